@@ -1,0 +1,1 @@
+"""SRD-Bench: joint super-resolution and denoising of Monte Carlo renders, benchmarked."""

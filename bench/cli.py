@@ -1,0 +1,77 @@
+"""Command line: `python -m bench +experiment=NAME [scale=smoke|cpu|paper] [key=value ...]`.
+
+The only module that reads the Hydra config: it turns it into a plain `Context` and the experiment's
+parameters, calls the experiment, and prints user errors as one line instead of a traceback.
+"""
+from __future__ import annotations
+
+import importlib
+import logging
+import sys
+import time
+from pathlib import Path
+
+import hydra
+from omegaconf import DictConfig, OmegaConf
+
+from bench.errors import UserError
+from bench.experiments import KINDS
+
+log = logging.getLogger("bench")
+CONF_DIR = str(Path(__file__).resolve().parent.parent / "conf")
+
+
+def available_experiments() -> list[str]:
+    return sorted(p.stem for p in (Path(CONF_DIR) / "experiment").glob("*.yaml"))
+
+
+def make_context(cfg: DictConfig):
+    from bench.experiments.pipeline import Context
+    plain = OmegaConf.to_container(cfg, resolve=True)
+    return Context(scale=plain["scale"]["name"], runs_dir=Path(plain["runs_dir"]),
+                   results_dir=Path(plain["results_dir"]), data_dir=Path(plain["data_dir"]),
+                   data_spec=plain["data"], train=plain["train"], eval=plain["eval"], models=plain["models"],
+                   budget_gmac=plain["scale"]["budget_gmac"], seeds=list(plain["seeds"]),
+                   device=plain["device"], workers=plain["workers"], force=plain["force"],
+                   progress=plain["progress"], vgg=plain["vgg"],
+                   render_data=plain["render_data"])
+
+
+def check_writable(path: Path, what: str) -> None:
+    try:
+        path.mkdir(parents=True, exist_ok=True)
+        probe = path / ".write_probe"
+        probe.write_text("")
+        probe.unlink()
+    except OSError as err:
+        raise UserError(f"{what} {path} is not writable ({err.strerror}); choose another with "
+                        f"{what.split()[0]}_dir=...") from err
+
+
+def run_experiment(cfg: DictConfig) -> None:
+    if "experiment" not in cfg:
+        raise UserError("choose an experiment: python -m bench +experiment=NAME; available: "
+                        + ", ".join(available_experiments()))
+    exp = OmegaConf.to_container(cfg.experiment, resolve=True)
+    kind = exp.pop("kind", "table")
+    if kind not in KINDS:
+        raise UserError(f"experiment kind {kind!r} is unknown; known kinds: {', '.join(KINDS)}")
+    if cfg.device == "cuda":
+        import torch
+        if not torch.cuda.is_available():
+            raise UserError("device=cuda but no CUDA GPU is available; use device=cpu")
+    ctx = make_context(cfg)
+    check_writable(ctx.results_dir, "results directory")
+    check_writable(ctx.runs_dir, "runs directory")
+    t0 = time.perf_counter()
+    importlib.import_module(f"bench.experiments.{kind}").run(ctx, **exp)
+    log.info("%s done in %.1f s", exp.get("name", kind), time.perf_counter() - t0)
+
+
+@hydra.main(config_path=CONF_DIR, config_name="config", version_base=None)
+def main(cfg: DictConfig) -> None:
+    try:
+        run_experiment(cfg)
+    except (UserError, PermissionError, FileNotFoundError) as err:
+        print(f"error: {err}", file=sys.stderr)
+        sys.exit(2)

@@ -1,0 +1,73 @@
+"""The one evaluator: full frames of a split, per-image metrics, aggregates and inference time.
+
+Metrics (bench.metrics): relMSE on linear HDR radiance, PSNR/SSIM on images clamped to [0, 1].
+Methods with `linear_hdr = True` (OIDN) take and return linear radiance; every other model works in the
+network domain of `hdr` (bench.hdr) and its output is mapped back to linear before scoring.
+"""
+from __future__ import annotations
+
+import time
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+import torch
+
+from bench.hdr import from_network, to_network
+from bench.metrics import all_metrics
+from bench.tasks import Task
+
+
+@torch.no_grad()
+def predict(model, x_lin: torch.Tensor, g: torch.Tensor, hdr: str) -> torch.Tensor:
+    """Linear-radiance prediction for one batch of sequences (B, T, C, h, w)."""
+    if getattr(model, "linear_hdr", False):
+        return model(x_lin, g)["final"]
+    return from_network(model(to_network(x_lin, hdr), g)["final"], hdr)
+
+
+@torch.no_grad()
+def evaluate(model, dataset, task: Task, *, hdr: str = "clamp", device: str = "cpu",
+             out_dir: str | Path | None = None, save_exr: bool = False,
+             write_exr=None) -> tuple[pd.DataFrame, dict]:
+    """Score `model` on every frame of `dataset` (items: full-frame sequences).
+
+    Returns (per-image rows, aggregate metrics). With `save_exr`, `write_exr(path, {name: HxWxC array})`
+    writes each output frame beside the metrics in `out_dir/frames/`.
+    """
+    if hasattr(model, "eval"):
+        model.to(device).eval()
+    rows = []
+    for index in range(len(dataset)):
+        item = dataset[index]
+        x, g, y = (item[k].unsqueeze(0).to(device) for k in (task.x, task.g, task.y))
+        predict(model, x[:, :1], g[:, :1], hdr)  # warm-up: first-call allocation is not inference time
+        t0 = time.perf_counter()
+        pred = predict(model, x, g, hdr)
+        per_frame_ms = 1000 * (time.perf_counter() - t0) / x.shape[1]
+        scores = all_metrics(pred[0].cpu(), y[0].cpu())
+        meta = item.get("meta", {})
+        frames = meta.get("frames", list(range(x.shape[1])))
+        for t in range(x.shape[1]):
+            rows.append({"scene": meta.get("scene", index), "sequence": meta.get("sequence", index),
+                         "frame": frames[t], "time_ms": per_frame_ms,
+                         **{k: float(v[t]) for k, v in scores.items()}})
+            if save_exr and out_dir is not None and write_exr is not None:
+                frame_dir = Path(out_dir) / "frames"
+                frame_dir.mkdir(parents=True, exist_ok=True)
+                write_exr(frame_dir / f"{rows[-1]['scene']}_{rows[-1]['frame']:04d}.exr",
+                          {"output": pred[0, t].permute(1, 2, 0).cpu().numpy().astype(np.float32)})
+    per_image = pd.DataFrame(rows)
+    if out_dir is not None:
+        Path(out_dir).mkdir(parents=True, exist_ok=True)
+        per_image.to_csv(Path(out_dir) / "per_image.csv", index=False)
+    return per_image, aggregate(per_image)
+
+
+def aggregate(per_image: pd.DataFrame) -> dict:
+    """Mean of each metric over images (a PSNR of +inf, identical images, stays +inf)."""
+    out = {"images": int(len(per_image))}
+    for col in ("relMSE", "PSNR", "SSIM", "time_ms"):
+        if col in per_image:
+            out[col] = float(per_image[col].mean())
+    return out

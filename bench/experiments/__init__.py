@@ -1,0 +1,6 @@
+"""Experiments (floor 3): each decides which runs its table needs and reuses recorded ones.
+
+An experiment is a YAML file in conf/experiment/ whose `experiment.kind` names a module here with a
+`run(ctx, **params)` function; the other keys of `experiment` are its params.
+"""
+KINDS = ("table", "data", "flops")

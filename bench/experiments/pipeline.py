@@ -1,0 +1,197 @@
+"""The steps every table shares: make the data, train a row's model, evaluate it; each step is a
+recorded run that is reused when its identity is already in the run store.
+
+A row is (model name, argument overrides, task). Its identity hashes only what determines its numbers,
+so two tables that ask for the same row (the paper reuses "ours" across Tables 4, 5 and 7) share one run.
+"""
+from __future__ import annotations
+
+import copy
+import logging
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+from hydra.utils import instantiate
+
+from bench import runs
+from bench.datagen import build_dataset
+from bench.dataset import SequenceDataset
+from bench.errors import UserError
+from bench.evaluate import evaluate
+from bench.tasks import Task, get_task
+from bench.train import load_weights, train
+
+log = logging.getLogger("bench")
+
+TORCH_HUB_VGG16 = Path.home() / ".cache/torch/hub/checkpoints/vgg16-397923af.pth"
+
+
+@dataclass
+class Context:
+    """Everything a table needs, as plain values (built by the CLI from the Hydra config)."""
+    scale: str
+    runs_dir: Path
+    results_dir: Path
+    data_dir: Path
+    data_spec: dict
+    train: dict
+    eval: dict
+    models: dict
+    budget_gmac: float = 260.0
+    seeds: list = field(default_factory=lambda: [0])
+    device: str = "cpu"
+    workers: int = 1
+    force: bool = False
+    progress: bool = True
+    vgg: dict = field(default_factory=dict)
+    render_data: bool = True
+
+
+# ---------------------------------------------------------------- models
+
+def model_config(ctx: Context, name: str, overrides: dict | None = None) -> dict:
+    if name not in ctx.models:
+        raise UserError(f"unknown model {name!r}; known models: {', '.join(sorted(ctx.models))} "
+                        f"(add one as conf/model/<name>.yaml, see README)")
+    cfg = copy.deepcopy(ctx.models[name])
+    cfg.update(overrides or {})
+    return cfg
+
+
+def build_model(cfg: dict, task: Task):
+    return instantiate(cfg, scale=task.scale)
+
+
+def is_learned(model) -> bool:
+    return any(p.requires_grad for p in model.parameters()) if hasattr(model, "parameters") else False
+
+
+# ---------------------------------------------------------------- data
+
+def data_identity(ctx: Context) -> dict:
+    return {"spec": ctx.data_spec, "root": str(ctx.data_dir)}
+
+
+def ensure_data(ctx: Context, passes: set[str]) -> Path:
+    """Render the dataset (only `passes`) unless a recorded data run already covers it."""
+    if not ctx.render_data:
+        if not (ctx.data_dir / "manifest.json").exists():
+            raise UserError(f"data directory {ctx.data_dir} has no manifest.json (render_data=false: nothing is "
+                            f"rendered); point data_dir=... at a dataset in the documented layout")
+        return ctx.data_dir
+    identity = {**data_identity(ctx), "passes": sorted(passes)}
+    run = runs.begin(ctx.runs_dir, "data", identity, seed=ctx.data_spec.get("seed"), device=ctx.device,
+                     label=f"data {ctx.scale}", force=ctx.force)
+    if run.reused and (ctx.data_dir / "manifest.json").exists():
+        log.info("data: reusing %s (run %s)", ctx.data_dir, run.hash)
+        return ctx.data_dir
+    log.info("data: rendering %s into %s", ", ".join(sorted(passes)), ctx.data_dir)
+    manifest = build_dataset(ctx.data_dir, ctx.data_spec, sorted(passes), workers=ctx.workers,
+                             progress=ctx.progress)
+    timing_cols = [c for c in manifest.columns if c.startswith("time")]
+    runs.complete(run, {"frames": int(len(manifest)),
+                        "render_time_s": float(manifest[timing_cols].fillna(0).to_numpy().sum())})
+    return ctx.data_dir
+
+
+def dataset(ctx: Context, split: str, task: Task, training: bool):
+    if not (ctx.data_dir / "manifest.json").exists():
+        raise UserError(f"data directory {ctx.data_dir} has no manifest.json; render it with "
+                        f"`python -m bench +experiment=data scale={ctx.scale}` or point data_dir=... at a "
+                        f"dataset in the documented layout (README, 'Dataset layout')")
+    buffers = task.buffers(with_mid=training)
+    if training:
+        return SequenceDataset(ctx.data_dir, split, buffers, seq_len=ctx.train["seq_len"],
+                               crop=ctx.train["crop"], augment=True)
+    return SequenceDataset(ctx.data_dir, split, buffers)
+
+
+# ---------------------------------------------------------------- perceptual features
+
+def perceptual_features(ctx: Context):
+    """(features module or None, identity dict saying which weights and layer are used)."""
+    from bench.nn.vgg import load_vgg16_features, random_vgg16_features
+    layer = ctx.vgg.get("layer", "relu3_3")
+    path = ctx.vgg.get("weights") or (str(TORCH_HUB_VGG16) if TORCH_HUB_VGG16.exists() else None)
+    if path:
+        if not Path(path).exists():
+            raise UserError(f"VGG16 weights file {path} (vgg.weights / SRD_VGG16_WEIGHTS) does not exist")
+        return load_vgg16_features(path, layer).to(ctx.device), {"weights": Path(path).name, "layer": layer}
+    if ctx.vgg.get("allow_random"):
+        log.warning("perceptual loss uses a fixed-seed RANDOM VGG16 (no weights found); tables will say so")
+        return random_vgg16_features(layer, seed=0).to(ctx.device), {"weights": "random(seed=0)", "layer": layer}
+    raise UserError("the perceptual loss needs ImageNet VGG16 weights in torchvision's format: set "
+                    "vgg.weights=/path/to/vgg16-397923af.pth (or SRD_VGG16_WEIGHTS), or put the file at "
+                    f"{TORCH_HUB_VGG16}; or allow a fixed-seed random VGG with vgg.allow_random=true; "
+                    "or turn the term off with train.loss.final.perceptual=0")
+
+
+# ---------------------------------------------------------------- train + evaluate
+
+def _train_identity(ctx: Context, cfg: dict, task: Task, seed: int, vgg_id: dict | None) -> dict:
+    schedule = {k: v for k, v in ctx.train.items() if k not in ("checkpoint_every",)}
+    return {"model": cfg, "task": task.name, "train": schedule, "data": runs.config_hash(data_identity(ctx)),
+            "seed": seed, "vgg": vgg_id}
+
+
+def trained_model(ctx: Context, cfg: dict, task: Task, seed: int, label: str = ""):
+    """The model of `cfg` trained on `task`, from the run store when recorded. Returns (model, run or None)."""
+    import torch
+    torch.manual_seed(seed)
+    model = build_model(cfg, task)
+    if not is_learned(model):
+        return model, None
+    uses_vgg = ctx.train["loss"]["final"].get("perceptual", 0) > 0
+    features, vgg_id = perceptual_features(ctx) if uses_vgg else (None, None)
+    identity = _train_identity(ctx, cfg, task, seed, vgg_id)
+    run = runs.begin(ctx.runs_dir, "train", identity, seed=seed, device=ctx.device, label=label,
+                     force=ctx.force)
+    if run.reused:
+        log.info("train %s: reusing run %s", label or cfg["_target_"], run.hash)
+        return load_weights(model, run.dir, ctx.device), run
+    t = ctx.train
+    summary = train(model, dataset(ctx, "train", task, training=True), task, run.dir,
+                    steps=t["steps"], batch_size=t["batch_size"], loss_weights=t["loss"], lr=t["lr"],
+                    betas=t["betas"], halve_every=t["halve_every"], hdr=t["hdr"], features=features,
+                    seed=seed, device=ctx.device, checkpoint_every=t["checkpoint_every"],
+                    progress=ctx.progress)
+    runs.complete(run, summary)
+    return model, run
+
+
+def evaluated(ctx: Context, cfg: dict, task: Task, seed: int, split: str, label: str = "") -> runs.Run:
+    """Evaluation run of a row (training it first if needed)."""
+    model, train_run = trained_model(ctx, cfg, task, seed, label)
+    identity = {"trained": train_run.hash if train_run else {"model": cfg, "task": task.name},
+                "split": split, "data": runs.config_hash(data_identity(ctx)), "hdr": ctx.train["hdr"]}
+    run = runs.begin(ctx.runs_dir, "eval", identity, seed=seed, device=ctx.device, label=label,
+                     force=ctx.force)
+    if run.reused:
+        log.info("eval %s: reusing run %s", label, run.hash)
+        return run
+    _, metrics = evaluate(model, dataset(ctx, split, task, training=False), task, hdr=ctx.train["hdr"],
+                          device=ctx.device, out_dir=run.dir)
+    metrics["params"] = sum(p.numel() for p in model.parameters()) if hasattr(model, "parameters") else 0
+    metrics["train_run"] = train_run.hash if train_run else None
+    metrics["vgg"] = (train_run.record["identity"].get("vgg") if train_run else None)
+    return runs.complete(run, metrics)
+
+
+def row(ctx: Context, label: str, model: str, overrides: dict | None = None, task: str = "srd",
+        split: str | None = None) -> dict:
+    """One table row: metrics averaged over `ctx.seeds` (with std when there are several)."""
+    t = get_task(task)
+    cfg = model_config(ctx, model, overrides)
+    split = split or ctx.eval.get("split", "val")
+    results = [evaluated(ctx, cfg, t, seed, split, label) for seed in ctx.seeds]
+    out = {"method": label}
+    for metric in ("relMSE", "PSNR", "SSIM", "time_ms"):
+        values = np.array([r.metrics[metric] for r in results], dtype=float)
+        out[metric] = float(values.mean())
+        if len(values) > 1:
+            out[f"{metric} std"] = float(values.std(ddof=1))
+    out["params"] = results[0].metrics.get("params", 0)
+    out["runs"] = " ".join(r.hash for r in results)
+    out["reused"] = all(r.reused for r in results)
+    return out

@@ -1,0 +1,189 @@
+"""The run store: every render job, training and evaluation is a directory with a `run.json`.
+
+A run is identified by a hash of the part of its config that determines its result (its *identity*:
+model arguments, data spec, training schedule, seed, ...), not by paths, worker counts or labels. A run
+whose hash is recorded with status "complete" is reused instead of recomputed; `force=True` recomputes.
+An interrupted run keeps its directory (status "running"), so whatever it checkpointed can be resumed.
+
+Layout: ``<runs_dir>/<kind>/<hash>/run.json`` plus the run's own artifacts beside it.
+`load()` turns every record into one tidy DataFrame, from which tables are views.
+"""
+from __future__ import annotations
+
+import getpass
+import hashlib
+import importlib.metadata
+import json
+import math
+import platform
+import shutil
+import socket
+import subprocess
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import pandas as pd
+
+RECORD = "run.json"
+_LIBRARIES = ("torch", "mitsuba", "drjit", "numpy", "OpenEXR", "pyoidn", "scikit-image", "hydra-core")
+
+
+def config_hash(identity: dict) -> str:
+    """Stable short hash of a JSON-serialisable dict (key order does not matter)."""
+    text = json.dumps(identity, sort_keys=True, separators=(",", ":"), default=str)
+    return hashlib.sha256(text.encode()).hexdigest()[:16]
+
+
+@dataclass
+class Run:
+    kind: str
+    hash: str
+    dir: Path
+    record: dict = field(default_factory=dict)
+    reused: bool = False
+    _t0: float = field(default_factory=time.perf_counter, repr=False)
+
+    @property
+    def metrics(self) -> dict:
+        return self.record.get("metrics", {})
+
+    def save(self) -> None:
+        tmp = self.dir / (RECORD + ".tmp")
+        tmp.write_text(json.dumps(self.record, indent=2, sort_keys=True, default=_json_default))
+        tmp.replace(self.dir / RECORD)
+
+
+def _json_default(value):
+    if isinstance(value, float) and not math.isfinite(value):
+        return str(value)
+    if hasattr(value, "item"):
+        return value.item()
+    return str(value)
+
+
+def lookup(runs_dir: str | Path, kind: str, identity: dict) -> Run | None:
+    """The complete run with this identity, or None."""
+    h = config_hash(identity)
+    path = Path(runs_dir) / kind / h / RECORD
+    if not path.exists():
+        return None
+    record = json.loads(path.read_text())
+    if record.get("status") != "complete":
+        return None
+    return Run(kind, h, path.parent, record, reused=True)
+
+
+def begin(runs_dir: str | Path, kind: str, identity: dict, config: dict | None = None,
+          seed: int | None = None, device: str = "cpu", label: str = "", force: bool = False) -> Run:
+    """Reuse a complete run, or open (or re-open, to resume) its directory for computing.
+
+    Check `run.reused`: when True the caller must not recompute. With `force`, an existing directory is
+    wiped first so nothing stale (checkpoints, outputs) survives.
+    """
+    if not force:
+        done = lookup(runs_dir, kind, identity)
+        if done is not None:
+            return done
+    h = config_hash(identity)
+    run_dir = Path(runs_dir) / kind / h
+    if force and run_dir.exists():
+        shutil.rmtree(run_dir)
+    _ensure_writable(run_dir)
+    record = {
+        "kind": kind, "hash": h, "label": label, "status": "running", "identity": identity,
+        "config": config if config is not None else identity, "seed": seed, "device": device,
+        "started": time.strftime("%Y-%m-%dT%H:%M:%S%z"), **provenance(),
+    }
+    run = Run(kind, h, run_dir, record)
+    run.save()
+    return run
+
+
+def complete(run: Run, metrics: dict, **extra) -> Run:
+    """Record metrics and wall time; the run becomes reusable."""
+    run.record.update(extra)
+    run.record["metrics"] = metrics
+    run.record["wall_time_s"] = run.record.get("resumed_wall_time_s", 0.0) + time.perf_counter() - run._t0
+    run.record["status"] = "complete"
+    run.record["finished"] = time.strftime("%Y-%m-%dT%H:%M:%S%z")
+    run.save()
+    return run
+
+
+def fail(run: Run, message: str) -> Run:
+    run.record["status"] = "failed"
+    run.record["error"] = message
+    run.record["wall_time_s"] = time.perf_counter() - run._t0
+    run.save()
+    return run
+
+
+def load(runs_dir: str | Path = "runs", kind: str | None = None) -> pd.DataFrame:
+    """All recorded runs as one tidy DataFrame: a row per run, metrics as `metric.<name>` columns and
+    the identity flattened as `cfg.<dotted.key>` columns."""
+    rows = []
+    pattern = f"{kind}/*/{RECORD}" if kind else f"*/*/{RECORD}"
+    for path in sorted(Path(runs_dir).glob(pattern)):
+        record = json.loads(path.read_text())
+        row = {k: record.get(k) for k in ("kind", "hash", "label", "status", "seed", "device",
+                                          "wall_time_s", "git_commit", "git_dirty", "host", "started")}
+        row["dir"] = str(path.parent)
+        row.update({f"metric.{k}": v for k, v in (record.get("metrics") or {}).items()
+                    if not isinstance(v, (dict, list))})
+        row.update({f"cfg.{k}": v for k, v in _flatten(record.get("identity", {})).items()})
+        rows.append(row)
+    return pd.DataFrame(rows)
+
+
+def _flatten(d: dict, prefix: str = "") -> dict:
+    out = {}
+    for key, value in d.items():
+        name = f"{prefix}{key}"
+        if isinstance(value, dict):
+            out.update(_flatten(value, name + "."))
+        else:
+            out[name] = json.dumps(value) if isinstance(value, list) else value
+    return out
+
+
+def _ensure_writable(path: Path) -> None:
+    try:
+        path.mkdir(parents=True, exist_ok=True)
+        probe = path / ".write_probe"
+        probe.write_text("")
+        probe.unlink()
+    except OSError as err:
+        raise PermissionError(f"runs directory {path} is not writable ({err.strerror}); "
+                              f"set runs_dir=... to a writable place") from err
+
+
+_PROVENANCE: dict | None = None
+
+
+def provenance() -> dict:
+    """Where and with what a run was computed: git commit/dirty flag, host, library versions."""
+    global _PROVENANCE
+    if _PROVENANCE is None:
+        versions = {}
+        for lib in _LIBRARIES:
+            try:
+                versions[lib] = importlib.metadata.version(lib)
+            except importlib.metadata.PackageNotFoundError:
+                versions[lib] = None
+        _PROVENANCE = {"host": socket.gethostname(), "user": getpass.getuser(),
+                       "python": platform.python_version(), "platform": platform.platform(),
+                       "versions": versions, **_git_state()}
+    return dict(_PROVENANCE)
+
+
+def _git_state() -> dict:
+    repo = Path(__file__).resolve().parent.parent
+    try:
+        commit = subprocess.run(["git", "rev-parse", "HEAD"], cwd=repo, capture_output=True,
+                                text=True, timeout=10).stdout.strip() or None
+        dirty = subprocess.run(["git", "status", "--porcelain", "--untracked-files=no"], cwd=repo,
+                               capture_output=True, text=True, timeout=10).stdout.strip() != ""
+    except (OSError, subprocess.SubprocessError):
+        commit, dirty = None, None
+    return {"git_commit": commit, "git_dirty": dirty}

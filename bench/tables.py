@@ -1,0 +1,123 @@
+"""Write a results DataFrame as CSV (raw numbers), Markdown and LaTeX (booktabs).
+
+Metric columns get an arrow (down: lower is better, up: higher is better) and the best value of each such
+column is bold. Rows can be excluded from the best-of competition (e.g. the paper's numbers shown beside
+ours) with `compete=False` in a boolean column named `compete`; that column is not printed.
+"""
+from __future__ import annotations
+
+import math
+from pathlib import Path
+
+import pandas as pd
+
+DOWN, UP = "\u2193", "\u2191"
+
+
+def _fmt(value, digits: int) -> str:
+    if isinstance(value, str):
+        return value
+    if value is None or (isinstance(value, float) and math.isnan(value)):
+        return "-"
+    if isinstance(value, float) and math.isinf(value):
+        return "inf" if value > 0 else "-inf"
+    if isinstance(value, (int,)) and not isinstance(value, bool):
+        return str(value)
+    if isinstance(value, float):
+        if value != 0 and abs(value) < 10 ** -(digits - 1):
+            return f"{value:.{digits - 1}e}"
+        return f"{value:.{digits}f}"
+    return str(value)
+
+
+def _best_rows(df: pd.DataFrame, lower: tuple, higher: tuple) -> dict[str, set]:
+    """Column -> index labels holding that column's best value among competing rows."""
+    competing = df[df["compete"].astype(bool)] if "compete" in df.columns else df
+    best = {}
+    for col in list(lower) + list(higher):
+        if col not in competing.columns:
+            continue
+        values = pd.to_numeric(competing[col], errors="coerce").dropna()
+        if values.empty:
+            continue
+        target = values.min() if col in lower else values.max()
+        best[col] = set(values.index[values == target])
+    return best
+
+
+def _header(col: str, lower: tuple, higher: tuple) -> str:
+    if col in lower:
+        return f"{col} {DOWN}"
+    if col in higher:
+        return f"{col} {UP}"
+    return col
+
+
+def to_markdown(df: pd.DataFrame, lower=(), higher=(), digits: int = 4, caption: str = "") -> str:
+    shown = [c for c in df.columns if c != "compete"]
+    best = _best_rows(df, lower, higher)
+    lines = []
+    if caption:
+        lines += [caption, ""]
+    lines.append("| " + " | ".join(_header(c, lower, higher) for c in shown) + " |")
+    lines.append("|" + "|".join("---" for _ in shown) + "|")
+    for idx, row in df.iterrows():
+        cells = []
+        for c in shown:
+            text = _fmt(row[c], digits)
+            cells.append(f"**{text}**" if idx in best.get(c, ()) else text)
+        lines.append("| " + " | ".join(cells) + " |")
+    return "\n".join(lines) + "\n"
+
+
+def _latex_escape(text: str) -> str:
+    for a, b in (("\\", r"\textbackslash{}"), ("&", r"\&"), ("%", r"\%"), ("_", r"\_"), ("#", r"\#"),
+                 ("$", r"\$"), ("^", r"\^{}"), ("->", r"$\to$"), ("+-", r"$\pm$"), ("\u00b1", r"$\pm$")):
+        text = text.replace(a, b)
+    return text
+
+
+def to_latex(df: pd.DataFrame, lower=(), higher=(), digits: int = 4, caption: str = "",
+             label: str = "") -> str:
+    shown = [c for c in df.columns if c != "compete"]
+    best = _best_rows(df, lower, higher)
+    head = []
+    for c in shown:
+        arrow = r"$\downarrow$" if c in lower else r"$\uparrow$" if c in higher else ""
+        head.append(_latex_escape(str(c)) + arrow)
+    lines = [r"\begin{table}", r"\centering"]
+    if caption:
+        lines.append(r"\caption{" + caption + "}")
+    if label:
+        lines.append(r"\label{" + label + "}")
+    lines += [r"\begin{tabular}{l" + "c" * (len(shown) - 1) + "}", r"\toprule", " & ".join(head) + r" \\",
+              r"\midrule"]
+    for idx, row in df.iterrows():
+        cells = []
+        for c in shown:
+            text = _latex_escape(_fmt(row[c], digits))
+            cells.append(r"\textbf{" + text + "}" if idx in best.get(c, ()) else text)
+        lines.append(" & ".join(cells) + r" \\")
+    lines += [r"\bottomrule", r"\end{tabular}", r"\end{table}"]
+    return "\n".join(lines) + "\n"
+
+
+def write_table(df: pd.DataFrame, out_dir: str | Path, name: str = "table", caption: str = "",
+                lower_is_better=(), higher_is_better=(), digits: int = 4) -> dict[str, Path]:
+    """Write `<name>.csv` (full precision), `<name>.md` and `<name>.tex`; returns their paths."""
+    out_dir = Path(out_dir)
+    try:
+        out_dir.mkdir(parents=True, exist_ok=True)
+    except OSError as err:
+        raise PermissionError(f"results directory {out_dir} is not writable ({err.strerror}); "
+                              f"set results_dir=... to a writable place") from err
+    df = df.reset_index(drop=True)
+    paths = {"csv": out_dir / f"{name}.csv", "md": out_dir / f"{name}.md", "tex": out_dir / f"{name}.tex"}
+    try:
+        df.drop(columns=["compete"], errors="ignore").to_csv(paths["csv"], index=False)
+        paths["md"].write_text(to_markdown(df, lower_is_better, higher_is_better, digits, caption))
+        paths["tex"].write_text(to_latex(df, lower_is_better, higher_is_better, digits,
+                                         _latex_escape(caption), f"tab:{out_dir.name}"))
+    except OSError as err:
+        raise PermissionError(f"cannot write tables to {out_dir}: {err.strerror}") from err
+    return paths

@@ -1,0 +1,109 @@
+"""The command line end to end: config composition, the smoke experiment, run reuse, clear errors."""
+import os
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import pandas as pd
+import pytest
+from hydra import compose, initialize_config_dir
+from hydra.utils import instantiate
+
+from bench.cli import CONF_DIR, available_experiments
+
+REPO = Path(__file__).resolve().parent.parent
+
+
+def bench(*args, cwd=REPO, timeout=600):
+    env = dict(os.environ, HYDRA_FULL_ERROR="0", PYTHONUNBUFFERED="1")
+    return subprocess.run([sys.executable, "-m", "bench", *args], cwd=cwd, capture_output=True,
+                          text=True, timeout=timeout, env=env)
+
+
+def compose_experiment(name, *overrides):
+    with initialize_config_dir(config_dir=CONF_DIR, version_base=None):
+        return compose("config", overrides=[f"+experiment={name}", *overrides])
+
+
+@pytest.mark.parametrize("name", available_experiments())
+@pytest.mark.parametrize("scale", ["smoke", "cpu", "paper"])
+def test_every_experiment_composes_at_every_scale(name, scale):
+    cfg = compose_experiment(name, f"scale={scale}")
+    assert cfg.scale.name == scale
+    assert cfg.experiment.name == name
+    assert cfg.data and cfg.train.steps > 0
+
+
+def test_every_model_config_instantiates():
+    cfg = compose_experiment("smoke")
+    for name, model_cfg in cfg.models.items():
+        model = instantiate(model_cfg, scale=2)
+        assert callable(model), name
+
+
+@pytest.fixture(scope="module")
+def smoke_dirs(tmp_path_factory):
+    root = tmp_path_factory.mktemp("smoke")
+    return [f"runs_dir={root / 'runs'}", f"results_dir={root / 'results'}", f"data_dir={root / 'data'}",
+            "progress=false"], root
+
+
+def test_smoke_end_to_end_then_reuse(smoke_dirs):
+    args, root = smoke_dirs
+    t0 = time.perf_counter()
+    first = bench("+experiment=smoke", *args)
+    first_s = time.perf_counter() - t0
+    assert first.returncode == 0, first.stderr[-3000:]
+    table_dir = root / "results"
+    for ext in ("csv", "tex", "md"):
+        assert (table_dir / "smoke" / f"table.{ext}").exists()
+    table = pd.read_csv(table_dir / "smoke" / "table.csv")
+    assert list(table["method"]) == ["Input bilinear", "Ours"]
+    for col in ("relMSE", "PSNR", "SSIM"):
+        assert table[col].notna().all() and (table[col].abs() < float("inf")).all(), col
+
+    t0 = time.perf_counter()
+    second = bench("+experiment=smoke", *args)
+    second_s = time.perf_counter() - t0
+    assert second.returncode == 0, second.stderr[-3000:]
+    assert "reusing" in second.stdout + second.stderr
+    assert "2 of 2 rows reused" in second.stdout + second.stderr
+    assert second_s < 0.5 * first_s, (first_s, second_s)
+    again = pd.read_csv(table_dir / "smoke" / "table.csv")
+    pd.testing.assert_frame_equal(table[["method", "relMSE", "PSNR", "SSIM"]],
+                                  again[["method", "relMSE", "PSNR", "SSIM"]])
+
+
+def test_unknown_experiment_is_a_clear_message():
+    out = bench("+experiment=no_such_table")
+    assert out.returncode != 0
+    assert "no_such_table" in out.stderr and "Traceback" not in out.stderr
+
+
+def test_missing_experiment_lists_the_available_ones():
+    out = bench()
+    assert out.returncode == 2
+    assert "+experiment=NAME" in out.stderr and "smoke" in out.stderr and "Traceback" not in out.stderr
+
+
+def test_unknown_model_is_a_clear_message(tmp_path):
+    out = bench("+experiment=smoke", "experiment.rows=[{label:x,model:no_such_model}]",
+                f"runs_dir={tmp_path}/runs", f"results_dir={tmp_path}/results", f"data_dir={tmp_path}/data")
+    assert out.returncode == 2
+    assert "unknown model 'no_such_model'" in out.stderr and "Traceback" not in out.stderr
+
+
+def test_missing_data_directory_is_a_clear_message(tmp_path):
+    out = bench("+experiment=smoke", "render_data=false", f"data_dir={tmp_path}/nowhere",
+                f"runs_dir={tmp_path}/runs", f"results_dir={tmp_path}/results")
+    assert out.returncode == 2
+    assert "has no manifest.json" in out.stderr and "Traceback" not in out.stderr
+
+
+def test_unwritable_results_directory_is_a_clear_message(tmp_path):
+    blocker = tmp_path / "file"
+    blocker.write_text("")
+    out = bench("+experiment=smoke", f"results_dir={blocker}/results", f"runs_dir={tmp_path}/runs")
+    assert out.returncode == 2
+    assert "not writable" in out.stderr and "Traceback" not in out.stderr

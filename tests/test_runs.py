@@ -1,0 +1,60 @@
+import json
+
+import pytest
+
+from bench import runs
+
+
+def test_hash_ignores_key_order_and_changes_with_values():
+    assert runs.config_hash({"a": 1, "b": {"c": 2}}) == runs.config_hash({"b": {"c": 2}, "a": 1})
+    assert runs.config_hash({"a": 1}) != runs.config_hash({"a": 2})
+
+
+def test_begin_complete_reuse_and_force(tmp_path):
+    ident = {"model": "x", "steps": 3}
+    run = runs.begin(tmp_path, "train", ident, seed=0, label="x")
+    assert not run.reused and run.record["status"] == "running"
+    assert runs.lookup(tmp_path, "train", ident) is None          # running is not reusable
+    (run.dir / "artifact.txt").write_text("weights")
+    runs.complete(run, {"relMSE": 0.5})
+    again = runs.begin(tmp_path, "train", ident)
+    assert again.reused and again.metrics["relMSE"] == 0.5
+    forced = runs.begin(tmp_path, "train", ident, force=True)
+    assert not forced.reused and not (forced.dir / "artifact.txt").exists()
+
+
+def test_interrupted_run_keeps_its_directory_for_resume(tmp_path):
+    ident = {"model": "y"}
+    run = runs.begin(tmp_path, "train", ident)
+    (run.dir / "checkpoint.pt").write_text("partial")
+    reopened = runs.begin(tmp_path, "train", ident)
+    assert not reopened.reused and (reopened.dir / "checkpoint.pt").read_text() == "partial"
+
+
+def test_record_has_provenance(tmp_path):
+    run = runs.complete(runs.begin(tmp_path, "eval", {"m": 1}, seed=3, device="cpu"), {"PSNR": float("inf")})
+    record = json.loads((run.dir / "run.json").read_text())
+    for key in ("hash", "identity", "config", "git_commit", "git_dirty", "seed", "host", "device",
+                "versions", "wall_time_s", "metrics", "status"):
+        assert key in record, key
+    assert record["versions"]["torch"].startswith("2.13")
+    assert record["seed"] == 3
+
+
+def test_load_is_one_tidy_frame(tmp_path):
+    for i in range(3):
+        runs.complete(runs.begin(tmp_path, "eval", {"m": i, "opt": {"d": i * 2}}, label=f"m{i}"),
+                      {"relMSE": 0.1 * i})
+    runs.begin(tmp_path, "train", {"m": 9})
+    df = runs.load(tmp_path)
+    assert len(df) == 4
+    evals = runs.load(tmp_path, kind="eval").sort_values("label")
+    assert list(evals["metric.relMSE"]) == pytest.approx([0.0, 0.1, 0.2])
+    assert list(evals["cfg.opt.d"]) == [0, 2, 4]
+
+
+def test_unwritable_runs_dir_gives_clear_error(tmp_path):
+    blocker = tmp_path / "file"
+    blocker.write_text("not a directory")
+    with pytest.raises(PermissionError, match="not writable"):
+        runs.begin(blocker / "sub", "train", {"m": 1})

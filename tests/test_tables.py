@@ -1,0 +1,29 @@
+import pandas as pd
+
+from bench.tables import write_table
+
+
+def test_write_table_three_formats_with_best_in_bold(tmp_path):
+    df = pd.DataFrame([
+        {"method": "Input bilinear", "relMSE": 0.0648, "PSNR": 21.44, "SSIM": 0.41},
+        {"method": "Ours", "relMSE": 0.0055, "PSNR": 32.11, "SSIM": 0.86},
+        {"method": "Ours (paper)", "relMSE": 0.0001, "PSNR": 99.0, "SSIM": 0.99, "compete": False},
+    ])
+    df.loc[:1, "compete"] = True
+    paths = write_table(df, tmp_path / "t", caption="A caption with x^2 and a_b",
+                        lower_is_better=("relMSE",), higher_is_better=("PSNR", "SSIM"))
+    csv = pd.read_csv(paths["csv"])
+    assert list(csv.columns) == ["method", "relMSE", "PSNR", "SSIM"]
+    assert csv["relMSE"].iloc[1] == 0.0055
+    md = paths["md"].read_text()
+    assert "relMSE \u2193" in md and "PSNR \u2191" in md
+    assert "**0.0055**" in md and "**32.1100**" in md and "**0.0001**" not in md
+    tex = paths["tex"].read_text()
+    assert r"\toprule" in tex and r"\bottomrule" in tex and r"$\downarrow$" in tex
+    assert r"\textbf{0.0055}" in tex and r"x\^{}2" in tex and r"a\_b" in tex
+
+
+def test_infinite_psnr_is_printed_not_nan(tmp_path):
+    df = pd.DataFrame([{"method": "identity", "relMSE": 0.0, "PSNR": float("inf"), "SSIM": 1.0}])
+    md = write_table(df, tmp_path, higher_is_better=("PSNR",))["md"].read_text()
+    assert "inf" in md and "nan" not in md.lower()
