@@ -1,0 +1,47 @@
+"""CFM denoiser (Xu et al., "Adversarial Monte Carlo Denoising with Conditioned Auxiliary Feature
+Modulation", SIGGRAPH Asia 2019), adapted to SRD.
+
+Xu et al.'s generator feeds the noisy radiance to a residual trunk and the auxiliary features (gBuffer)
+to a separate condition network whose features scale and shift (gamma, beta) the trunk's features in
+every residual block (conditioned feature modulation). SRD adaptation (paper Sec. 4.1): LR input, a
+pixel-shuffle upsampler and tail conv at the end for 2x, no adversarial loss (all methods share the same
+losses), and a trunk width (`channels`) chosen to the compute budget; the condition network keeps its
+original 32 channels. `deformable_blocks` makes the second conv of the last n blocks deformable: the
+paper's "CFM+deform" row (Table 4) replaces it in every block (deformable_blocks = blocks).
+"""
+import torch.nn as nn
+
+from baselines import fold_time, gbuffer_prefix, unfold_time
+from bench.nn.blocks import PixelShuffleUp, ResBlock, conv3x3
+from bench.nn.cfm import ConditionNet
+
+
+class CFMNet(nn.Module):
+    recurrent = False
+
+    def __init__(self, in_channels=3, gbuffer_channels=7, scale=2, channels=64, blocks=16,
+                 cond_channels=32, cond_hidden=32, deformable_blocks=0):
+        super().__init__()
+        if gbuffer_channels == 0:
+            raise ValueError("CFM modulates features by the gBuffer: gbuffer_channels must be > 0")
+        if not 0 <= deformable_blocks <= blocks:
+            raise ValueError(f"deformable_blocks must be in [0, {blocks}]")
+        self.gbuffer_channels = gbuffer_channels
+        self.condition = ConditionNet(gbuffer_channels, cond_channels, cond_hidden)
+        self.head = conv3x3(in_channels, channels)
+        self.body = nn.ModuleList(
+            ResBlock(channels, deformable=i >= blocks - deformable_blocks, cond_channels=cond_channels)
+            for i in range(blocks))
+        self.body_conv = conv3x3(channels, channels)
+        self.up = PixelShuffleUp(channels, channels, scale)
+        self.tail = conv3x3(channels, 3)
+
+    def forward(self, x, g):
+        b = x.shape[0]
+        cond = self.condition(fold_time(gbuffer_prefix(g, self.gbuffer_channels)))
+        feat = self.head(fold_time(x))
+        body = feat
+        for block in self.body:
+            body = block(body, cond)
+        out = self.tail(self.up(feat + self.body_conv(body)))
+        return {"final": unfold_time(out, b)}

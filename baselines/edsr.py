@@ -1,0 +1,45 @@
+"""EDSR (Lim et al., "Enhanced Deep Residual Networks for Single Image Super-Resolution", CVPRW 2017),
+adapted to SRD.
+
+Topology as in EDSR: head conv, `blocks` residual blocks without batch norm (scaled by res_scale), a body
+conv with a global skip from the head, an upsampler (conv to C*s^2 + pixel shuffle) and a tail conv to RGB.
+SRD adaptation (paper Sec. 4.1): the input is the noisy LR radiance concatenated with the LR gBuffer and
+the network is trained against the clean HR reference; width (`channels`) is chosen to the compute budget.
+scale=1 (denoise-only task) keeps the upsampler conv but has no pixel shuffle, so the topology and the
+receptive field stay the same.
+
+`dilation` makes the second conv of every block atrous (paper Sec. 4.2, Table 2: with 4 blocks the
+receptive field is 25/33/41/57 input pixels for rates 1/2/3/5, i.e. 9 + blocks * (2 + 2 * rate): the
+output of one LR pixel, its scale x scale HR block, depends on that many LR pixels per axis, at scale 1
+and 2 alike) without changing parameters or MACs.
+`deformable` replaces that second conv with a deformable conv.
+"""
+import torch.nn as nn
+
+from baselines import fold_time, unfold_time, with_gbuffer
+from bench.nn.blocks import PixelShuffleUp, ResBlock, conv3x3
+
+
+class EDSR(nn.Module):
+    recurrent = False
+
+    def __init__(self, in_channels=3, gbuffer_channels=7, scale=2, channels=64, blocks=16, dilation=1,
+                 deformable=False, res_scale=1.0):
+        super().__init__()
+        self.gbuffer_channels = gbuffer_channels
+        self.head = conv3x3(in_channels + gbuffer_channels, channels)
+        self.body = nn.ModuleList(
+            ResBlock(channels, dilation=dilation, deformable=deformable, res_scale=res_scale)
+            for _ in range(blocks))
+        self.body_conv = conv3x3(channels, channels)
+        self.up = PixelShuffleUp(channels, channels, scale)
+        self.tail = conv3x3(channels, 3)
+
+    def forward(self, x, g):
+        b = x.shape[0]
+        feat = self.head(fold_time(with_gbuffer(x, g, self.gbuffer_channels)))
+        body = feat
+        for block in self.body:
+            body = block(body)
+        out = self.tail(self.up(feat + self.body_conv(body)))
+        return {"final": unfold_time(out, b)}

@@ -1,0 +1,79 @@
+"""Kernel-predicting convolutional network (Bako et al., "Kernel-Predicting Convolutional Networks for
+Denoising Monte Carlo Renderings", SIGGRAPH 2017), adapted to SRD.
+
+Original: `layers` (9) 5x5 conv layers of 100 channels read the noisy radiance and auxiliary features;
+the last layer predicts per pixel a k x k kernel (k = 21), softmax-normalized, which filters the noisy
+radiance around that pixel. The diffuse/specular split is not used (neither does the paper, Sec. 5).
+SRD adaptation: at every LR pixel the network predicts s*s kernels, one per HR sub-pixel of its s x s
+output block, each a softmax-normalized weighting of the k x k LR neighbourhood of the noisy radiance
+(replicate-padded at the border, so weights summing to one keep a constant image constant); the s*s
+filtered values are then arranged by pixel shuffle. The paper's "attach a pixel-shuffle layer" thus acts
+on filtered radiance, keeping the kernel-prediction principle. Input is radiance concatenated with the
+gBuffer; width (`channels`) is chosen to the compute budget. With k = 21 the last layer (5x5, C to
+s*s*441 channels) dominates the MACs, so the budget leaves KPCN narrow.
+"""
+import torch
+import torch.nn as nn
+import torch.nn.functional as F
+
+from baselines import fold_time, unfold_time, with_gbuffer
+
+
+class KernelFilter(nn.Module):
+    """Apply per-pixel kernels: out[n, s, c] = sum_tap w[n, s, tap] * x_pad[n, c, neighbourhood(tap)].
+
+    A loop over the k*k taps with elementwise products (memory O(output), unlike an im2col of k*k*3
+    channels); FlopCounterMode does not see these MACs, so they are declared through `extra_macs`.
+    """
+
+    def __init__(self, filter_size):
+        super().__init__()
+        self.filter_size = filter_size
+
+    def forward(self, x, weights):
+        """x: (N, C, h, w); weights: (N, S, k*k, h, w), normalized over k*k -> (N, S, C, h, w)."""
+        k, (h, w) = self.filter_size, x.shape[-2:]
+        pad = F.pad(x, (k // 2,) * 4, mode="replicate").unsqueeze(1)  # (N, 1, C, h+k-1, w+k-1)
+        out = 0
+        for tap in range(k * k):
+            dy, dx = divmod(tap, k)
+            out = out + weights[:, :, tap : tap + 1] * pad[..., dy : dy + h, dx : dx + w]
+        return out
+
+    def extra_macs(self, inputs, output):
+        """One MAC per output value per tap."""
+        return output.numel() * self.filter_size ** 2
+
+
+class KPCN(nn.Module):
+    recurrent = False
+
+    def __init__(self, in_channels=3, gbuffer_channels=7, scale=2, channels=100, layers=9, kernel_size=5,
+                 filter_size=21):
+        super().__init__()
+        if filter_size % 2 == 0:
+            raise ValueError("filter_size must be odd (kernels are centred on the pixel)")
+        self.gbuffer_channels, self.scale, self.filter_size = gbuffer_channels, scale, filter_size
+        pad = kernel_size // 2
+        convs = [nn.Conv2d(in_channels + gbuffer_channels, channels, kernel_size, padding=pad), nn.ReLU()]
+        for _ in range(layers - 2):
+            convs += [nn.Conv2d(channels, channels, kernel_size, padding=pad), nn.ReLU()]
+        convs.append(nn.Conv2d(channels, scale * scale * filter_size ** 2, kernel_size, padding=pad))
+        self.net = nn.Sequential(*convs)
+        self.filter = KernelFilter(filter_size)
+
+    def kernels(self, x, g):
+        """Per-pixel kernels (N, s*s, k*k, h, w), each summing to one over its k*k taps."""
+        logits = self.net(fold_time(with_gbuffer(x, g, self.gbuffer_channels)))
+        n, _, h, w = logits.shape
+        return logits.view(n, self.scale ** 2, self.filter_size ** 2, h, w).softmax(dim=2)
+
+    def forward(self, x, g):
+        b = x.shape[0]
+        weights = self.kernels(x, g)
+        radiance = fold_time(x)[:, :3]
+        filtered = self.filter(radiance, weights)  # (N, s*s, 3, h, w)
+        n, _, c, h, w = filtered.shape
+        # pixel_shuffle wants channel index c*s*s + sub-pixel
+        out = F.pixel_shuffle(filtered.transpose(1, 2).reshape(n, c * self.scale ** 2, h, w), self.scale)
+        return {"final": unfold_time(out, b)}

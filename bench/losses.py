@@ -1,0 +1,127 @@
+"""Training losses of the paper (Sec. 3.5): spatial L1, HFEN edge loss, temporal L1, perceptual loss.
+
+Pure functions on tensors shaped (B, T, C, H, W) or (N, C, H, W). This module imports no network:
+the perceptual loss takes the feature extractor as a `features` callable (e.g. bench.nn.VGG16Features).
+
+Weights. The paper gives ratios g:t:s:p = 1:1:8:0 (intermediate head) and 1:1:8:10 (final output).
+They become absolute weights by dividing every ratio by g + t + s, so 1:1:8 is exactly Chaitanya et
+al.'s 0.1 / 0.1 / 0.8 and the perceptual weight is measured on that scale (10 -> 1.0).
+"""
+import torch
+import torch.nn.functional as F
+
+PAPER_WEIGHTS = {
+    "intermediate": {"edge": 1, "temporal": 1, "spatial": 8, "perceptual": 0},
+    "final": {"edge": 1, "temporal": 1, "spatial": 8, "perceptual": 10},
+}
+
+# HFEN (Ravishankar & Bresler 2011, used by Chaitanya et al. 2017): a 15x15 Laplacian-of-Gaussian
+# kernel with sigma 1.5, i.e. radius 7 (about 4.7 sigma).
+HFEN_SIGMA = 1.5
+HFEN_KERNEL_SIZE = 15
+
+
+def _as_images(x):
+    """Fold (B, T, C, H, W) into (B*T, C, H, W); pass (N, C, H, W) through."""
+    if x.dim() == 5:
+        return x.flatten(0, 1)
+    if x.dim() == 4:
+        return x
+    raise ValueError(f"expected a (B, T, C, H, W) or (N, C, H, W) tensor, got shape {tuple(x.shape)}")
+
+
+def spatial_l1(pred, target):
+    """Mean absolute error over all elements."""
+    return (pred - target).abs().mean()
+
+
+def _gaussian_kernels_1d(sigma, size, dtype, device):
+    """Sampled 1D Gaussian (normalized to sum 1) and its second derivative, both of length `size`."""
+    radius = size // 2
+    x = torch.arange(-radius, radius + 1, dtype=torch.float64)
+    g0 = torch.exp(-0.5 * x ** 2 / sigma ** 2)
+    g0 = g0 / g0.sum()
+    g2 = g0 * (x ** 2 / sigma ** 4 - 1 / sigma ** 2)  # d^2/dx^2 of the Gaussian, same normalization
+    return g0.to(dtype=dtype, device=device), g2.to(dtype=dtype, device=device)
+
+
+def laplacian_of_gaussian(x, sigma=HFEN_SIGMA, size=HFEN_KERNEL_SIZE):
+    """Per-channel LoG filter of (N, C, H, W) images, same size, replicate ("nearest") borders.
+
+    The 2D kernel g2(y) g0(x) + g0(y) g2(x) is applied as two separable passes (4 x 15 taps instead
+    of 225); it equals scipy.ndimage.gaussian_laplace(sigma, truncate=7/1.5, mode="nearest").
+    """
+    n, c, h, w = x.shape
+    radius = size // 2
+    g0, g2 = _gaussian_kernels_1d(sigma, size, x.dtype, x.device)
+    planes = F.pad(x.reshape(n * c, 1, h, w), (radius,) * 4, mode="replicate")
+
+    def filt(img, ky, kx):
+        img = F.conv2d(img, ky.view(1, 1, -1, 1))
+        return F.conv2d(img, kx.view(1, 1, 1, -1))
+
+    out = filt(planes, g2, g0) + filt(planes, g0, g2)
+    return out.view(n, c, h, w)
+
+
+def hfen(pred, target, sigma=HFEN_SIGMA):
+    """Edge loss: mean |LoG(pred) - LoG(target)| (HFEN with an L1 norm, as Chaitanya et al. 2017).
+
+    LoG is linear, so it is applied once to the difference.
+    """
+    diff = _as_images(pred - target)
+    return laplacian_of_gaussian(diff, sigma).abs().mean()
+
+
+def temporal_l1(pred, target):
+    """Mean |d pred/dt - d target/dt| with frame-to-frame differences along T of (B, T, C, H, W).
+
+    Zero (still differentiable) when T == 1: a single frame has no temporal change to match.
+    """
+    if pred.dim() != 5:
+        raise ValueError(f"temporal_l1 needs (B, T, C, H, W) tensors, got shape {tuple(pred.shape)}")
+    if pred.shape[1] < 2:
+        return (pred - target).sum() * 0
+    dpred = pred[:, 1:] - pred[:, :-1]
+    dtarget = target[:, 1:] - target[:, :-1]
+    return (dpred - dtarget).abs().mean()
+
+
+def perceptual(pred, target, features):
+    """Mean over elements of (features(pred) - features(target))^2, i.e. ||phi(y^) - phi(y)||^2 / (C H W)
+    averaged over the batch. `features` maps (N, 3, H, W) to (N, C, H', W')."""
+    pred, target = _as_images(pred), _as_images(target)
+    with torch.set_grad_enabled(torch.is_grad_enabled() and target.requires_grad):
+        target_features = features(target)
+    return (features(pred) - target_features).pow(2).mean()
+
+
+def absolute_weights(weights):
+    """Ratios {edge, temporal, spatial, perceptual} -> absolute weights, normalized by edge+temporal+spatial."""
+    norm = weights.get("edge", 0) + weights.get("temporal", 0) + weights.get("spatial", 0)
+    if norm <= 0:
+        raise ValueError(f"edge + temporal + spatial ratios must be positive, got {weights}")
+    unknown = set(weights) - {"edge", "temporal", "spatial", "perceptual"}
+    if unknown:
+        raise ValueError(f"unknown loss terms {sorted(unknown)}")
+    return {name: ratio / norm for name, ratio in weights.items()}
+
+
+def weighted_loss(pred, target, weights, features=None):
+    """Weighted sum of the loss terms named in `weights` (ratios, see absolute_weights).
+
+    Returns (total, parts): parts maps each term with a nonzero weight to its UNweighted value, so
+    total = sum(absolute_weight[name] * parts[name]). Terms with weight 0 are not computed.
+    The temporal term needs (B, T, ...) input with T >= 2; on (N, C, H, W) input it is skipped.
+    """
+    terms = {"spatial": spatial_l1, "edge": hfen, "temporal": temporal_l1,
+             "perceptual": lambda p, t: perceptual(p, t, features)}
+    if weights.get("perceptual", 0) and features is None:
+        raise ValueError("a nonzero perceptual weight needs a `features` callable")
+    total, parts = pred.new_zeros(()), {}
+    for name, weight in absolute_weights(weights).items():
+        if weight == 0 or (name == "temporal" and pred.dim() != 5):
+            continue
+        parts[name] = terms[name](pred, target)
+        total = total + weight * parts[name]
+    return total, parts

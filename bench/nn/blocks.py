@@ -1,0 +1,52 @@
+"""Residual blocks and pixel-shuffle upsampling shared by the proposed network and the baselines."""
+import torch.nn as nn
+
+from .cfm import CFM
+from .deform import DeformConv2d
+
+
+def conv3x3(in_ch, out_ch, dilation=1, bias=True):
+    """3x3 conv that keeps the spatial size (padding = dilation)."""
+    return nn.Conv2d(in_ch, out_ch, 3, padding=dilation, dilation=dilation, bias=bias)
+
+
+class ResBlock(nn.Module):
+    """EDSR residual block: conv1 -> [CFM] -> ReLU -> conv2 -> [CFM] -> x + res_scale * y.
+
+    conv2 is atrous when dilation > 1 (the receptive-field study, paper Table 2) and deformable when
+    deformable=True (a "deformable CFM block", paper Sec. 3.3); conv1 is always a plain 3x3.
+    CFM layers exist iff cond_channels > 0; `cond` is then the conditioning features at x's size.
+    """
+
+    def __init__(self, channels, dilation=1, deformable=False, cond_channels=0, res_scale=1.0):
+        super().__init__()
+        self.conv1 = conv3x3(channels, channels)
+        if deformable:
+            self.conv2 = DeformConv2d(channels, channels, 3, padding=dilation, dilation=dilation)
+        else:
+            self.conv2 = conv3x3(channels, channels, dilation=dilation)
+        self.cfm1 = CFM(channels, cond_channels) if cond_channels > 0 else None
+        self.cfm2 = CFM(channels, cond_channels) if cond_channels > 0 else None
+        self.act = nn.ReLU(inplace=True)
+        self.res_scale = res_scale
+
+    def forward(self, x, cond=None):
+        y = self.conv1(x)
+        if self.cfm1 is not None:
+            y = self.cfm1(y, cond)
+        y = self.conv2(self.act(y))
+        if self.cfm2 is not None:
+            y = self.cfm2(y, cond)
+        return x + self.res_scale * y
+
+
+class PixelShuffleUp(nn.Module):
+    """Sub-pixel upsampling (Shi et al. 2016): conv3x3 to out_ch*scale^2 channels, then PixelShuffle."""
+
+    def __init__(self, in_ch, out_ch, scale=2):
+        super().__init__()
+        self.conv = conv3x3(in_ch, out_ch * scale * scale)
+        self.shuffle = nn.PixelShuffle(scale)
+
+    def forward(self, x):
+        return self.shuffle(self.conv(x))

@@ -1,0 +1,206 @@
+"""Baselines: output contract, gradients, recurrence, kernel normalization, receptive field, classical and
+OIDN rows. Small models and images only (the whole file runs in seconds on 2 cores)."""
+import pytest
+import torch
+import torch.nn.functional as F
+
+from baselines.cfm import CFMNet
+from baselines.classical import Bicubic, Bilinear
+from baselines.edsr import EDSR
+from baselines.kpcn import KPCN
+from baselines.oidn import OIDN
+from baselines.rae import RAE
+
+torch.set_num_threads(1)
+
+SMALL = {
+    "edsr": (EDSR, dict(channels=8, blocks=2)),
+    "edsr_dilated_deform": (EDSR, dict(channels=8, blocks=2, dilation=2, deformable=True)),
+    "rae": (RAE, dict(width=8)),
+    "kpcn": (KPCN, dict(channels=8, layers=3, filter_size=5)),
+    "cfm": (CFMNet, dict(channels=8, blocks=2)),
+    "cfm_deform": (CFMNet, dict(channels=8, blocks=2, deformable_blocks=2)),
+}
+
+
+def inputs(b=2, t=3, h=13, w=17, g=7, seed=0):
+    gen = torch.Generator().manual_seed(seed)
+    return torch.rand(b, t, 3, h, w, generator=gen), torch.rand(b, t, g, h, w, generator=gen)
+
+
+@pytest.mark.parametrize("scale", [1, 2])
+@pytest.mark.parametrize("name", sorted(SMALL))
+def test_output_shape_odd_size_multi_frame(name, scale):
+    cls, kwargs = SMALL[name]
+    torch.manual_seed(0)
+    model = cls(scale=scale, **kwargs)
+    x, g = inputs()
+    out = model(x, g)["final"]
+    assert out.shape == (2, 3, 3, 13 * scale, 17 * scale)
+    assert torch.isfinite(out).all()
+    assert isinstance(cls.recurrent, bool)
+
+
+@pytest.mark.parametrize("name", sorted(SMALL))
+def test_gradients_reach_every_parameter(name):
+    cls, kwargs = SMALL[name]
+    torch.manual_seed(0)
+    model = cls(**kwargs)
+    with torch.no_grad():  # zero-initialized layers (CFM gamma/beta, deform offsets) would block gradients
+        for p in model.parameters():
+            p.add_(0.01 * torch.randn_like(p))
+    x, g = inputs(b=1, t=2)
+    target = torch.rand(1, 2, 3, 26, 34)
+    F.mse_loss(model(x, g)["final"], target).backward()
+    missing = [n for n, p in model.named_parameters() if p.grad is None or not p.grad.abs().sum() > 0]
+    assert not missing, f"no gradient for {missing}"
+
+
+def test_models_without_gbuffer():
+    x, _ = inputs(t=1)
+    for cls, kwargs in (SMALL["edsr"], SMALL["rae"], SMALL["kpcn"]):
+        assert cls(gbuffer_channels=0, **kwargs)(x, None)["final"].shape == (2, 1, 3, 26, 34)
+
+
+def test_rae_streaming_equals_forward_and_state_matters():
+    torch.manual_seed(0)
+    model = RAE(width=8).eval()
+    x, g = inputs(b=1, t=4)
+    with torch.no_grad():
+        full = model(x, g)["final"]
+        state = model.init_state(x[:, 0])
+        streamed = []
+        for t in range(4):
+            out, state = model.step(x[:, t], g[:, t], state)
+            streamed.append(out["final"])
+        alone = model(x[:, 3:], g[:, 3:])["final"][:, 0]  # frame 3 from a zero state
+    assert torch.allclose(torch.stack(streamed, 1), full, atol=1e-6)
+    assert not torch.allclose(alone, full[:, 3], atol=1e-4), "hidden state has no effect"
+
+
+def test_non_recurrent_models_treat_frames_independently():
+    torch.manual_seed(0)
+    model = EDSR(channels=8, blocks=2)
+    x, g = inputs(b=1, t=3)
+    with torch.no_grad():
+        assert torch.allclose(model(x, g)["final"][:, 1], model(x[:, 1:2], g[:, 1:2])["final"][:, 0], atol=1e-6)
+
+
+@pytest.mark.parametrize("scale", [1, 2])
+def test_kpcn_kernels_are_normalized(scale):
+    torch.manual_seed(0)
+    model = KPCN(scale=scale, channels=8, layers=3, filter_size=7)
+    _, g = inputs(b=1, t=2, h=9, w=11)  # smaller than the kernel's reach: exercises the border padding
+    x = torch.full((1, 2, 3, 9, 11), 0.37)
+    x[:, :, 1] = 1.5
+    with torch.no_grad():
+        weights = model.kernels(x, g)
+        out = model(x, g)["final"]
+    assert torch.allclose(weights.sum(dim=2), torch.ones(()), atol=1e-5)
+    expected = x[:, :, :, :1, :1].expand(-1, -1, -1, 9 * scale, 11 * scale)
+    assert torch.allclose(out, expected, atol=1e-5)
+
+
+def test_kpcn_filter_matches_explicit_sum():
+    """Each HR sub-pixel is the kernel-weighted sum of the LR neighbourhood (checked at one pixel)."""
+    torch.manual_seed(0)
+    model = KPCN(channels=4, layers=2, filter_size=3)
+    x, g = inputs(b=1, t=1, h=6, w=7)
+    with torch.no_grad():
+        weights = model.kernels(x, g)[0]  # (4, 9, h, w)
+        out = model(x, g)["final"][0, 0]
+    y0, x0 = 2, 3
+    patch = x[0, 0, :, y0 - 1 : y0 + 2, x0 - 1 : x0 + 2].reshape(3, 9)
+    for sub in range(4):
+        i, j = divmod(sub, 2)
+        expected = patch @ weights[sub, :, y0, x0]
+        assert torch.allclose(out[:, 2 * y0 + i, 2 * x0 + j], expected, atol=1e-5)
+
+
+def receptive_field(model, scale, size=65):
+    """Width, in LR pixels, of the input region that the output of the centre LR pixel depends on.
+
+    Weights and biases are made positive so no ReLU is ever off and no gradient cancels; the output of
+    the centre LR pixel is its scale x scale HR block.
+    """
+    with torch.no_grad():
+        for p in model.parameters():
+            p.copy_(p.abs() + 1e-3)
+    x = torch.rand(1, 1, 3, size, size, requires_grad=True)
+    g = torch.rand(1, 1, 7, size, size)
+    c = size // 2
+    model(x, g)["final"][..., c * scale : (c + 1) * scale, c * scale : (c + 1) * scale].sum().backward()
+    cols = (x.grad[0, 0].abs().sum(dim=(0, 1)) > 0).nonzero().flatten()
+    return int(cols.max() - cols.min() + 1)
+
+
+@pytest.mark.parametrize("scale", [1, 2])
+def test_edsr_receptive_field_matches_paper_table2(scale):
+    """Paper Table 2: 4 blocks with atrous second convs give RF 25/33/41/57 for rates 1/2/3/5."""
+    torch.manual_seed(0)
+    found = {rate: receptive_field(EDSR(scale=scale, channels=4, blocks=4, dilation=rate), scale)
+             for rate in (1, 2, 3, 5)}
+    assert found == {1: 25, 2: 33, 3: 41, 5: 57}
+
+
+def test_classical_rows_equal_torch_interpolate():
+    x, g = inputs(t=2)
+    up = Bilinear()(x, g)["final"]
+    ref = F.interpolate(x.flatten(0, 1), scale_factor=2, mode="bilinear", align_corners=False)
+    assert torch.equal(up, ref.view(2, 2, 3, 26, 34))
+    up = Bicubic()(x, g)["final"]
+    ref = F.interpolate(x.flatten(0, 1), scale_factor=2, mode="bicubic", align_corners=False)
+    assert torch.equal(up, ref.clamp_min(0).view(2, 2, 3, 26, 34))
+    assert torch.equal(Bilinear(scale=1)(x, g)["final"], x)
+    assert not list(Bilinear().parameters()) and not list(Bicubic().parameters())
+
+
+def test_bicubic_clamps_ringing():
+    x = torch.zeros(1, 1, 3, 8, 8)
+    x[..., 3:5, 3:5] = 10.0
+    raw = F.interpolate(x[0], scale_factor=2, mode="bicubic", align_corners=False)
+    assert raw.min() < 0  # the cubic kernel rings below zero next to the bright square
+    out = Bicubic()(x, None)["final"]
+    assert out.min() == 0 and torch.equal(out[0], raw.clamp_min(0))
+
+
+def smooth_scene(h, w, seed=0):
+    """A smooth clean HDR image, its noisy version, and a flat gBuffer (albedo 0.5, normal +z)."""
+    yy, xx = torch.meshgrid(torch.linspace(0, 1, h), torch.linspace(0, 1, w), indexing="ij")
+    clean = torch.stack([0.5 + 0.4 * torch.sin(3 * xx), 0.5 + 0.3 * torch.cos(2 * yy), 0.3 + 0.2 * xx * yy])
+    gen = torch.Generator().manual_seed(seed)
+    noisy = (clean + 0.15 * torch.randn(clean.shape, generator=gen)).clamp_min(0)
+    normal = torch.tensor([0.0, 0.0, 1.0]).view(3, 1, 1).expand(3, h, w)
+    g = torch.cat([torch.full((3, h, w), 0.5), normal, torch.full((1, h, w), 0.5)])
+    return clean, noisy, g
+
+
+@pytest.mark.parametrize("variant, max_ratio", [("lr_then_up", 0.3), ("up_then_hr", 0.99)])
+def test_oidn_reduces_error(variant, max_ratio):
+    """MSE vs bilinear-upscaled noisy input. Denoising at LR removes most noise (~0.08-0.17x); denoising
+    after upscaling barely helps (~0.97x): bilinear upscaling correlates the noise spatially and OIDN,
+    trained on per-pixel noise, keeps it as detail."""
+    clean, noisy, g = smooth_scene(32, 48)
+    clean_hr = F.interpolate(clean[None], scale_factor=2, mode="bilinear", align_corners=False)[0]
+    model = OIDN(variant=variant)
+    assert OIDN.linear_hdr and not list(model.parameters())
+    out = model(noisy[None, None], g[None, None])["final"]
+    assert out.shape == (1, 1, 3, 64, 96)
+    baseline = F.mse_loss(Bilinear()(noisy[None, None], None)["final"][0, 0], clean_hr)
+    assert F.mse_loss(out[0, 0], clean_hr) < max_ratio * baseline
+
+
+def test_oidn_denoise_only():
+    clean, noisy, g = smooth_scene(24, 32, seed=1)
+    out = OIDN(scale=1)(noisy[None, None], g[None, None])["final"][0, 0]
+    assert F.mse_loss(out, clean) < 0.2 * F.mse_loss(noisy, clean)
+
+
+def test_fewer_gbuffer_channels_take_a_prefix():
+    """ARCHITECTURE.md: a model built with gbuffer_channels=6 uses albedo + normal of a 7-channel gBuffer."""
+    x, g = inputs(t=1)
+    for cls, kwargs in (SMALL["edsr"], SMALL["cfm"]):
+        torch.manual_seed(0)
+        model = cls(gbuffer_channels=6, **kwargs)
+        with torch.no_grad():
+            assert torch.equal(model(x, g)["final"], model(x, g[:, :, :6])["final"])

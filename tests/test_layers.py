@@ -1,0 +1,270 @@
+"""Tests for bench.nn: deformable conv, CFM, residual blocks, pixel shuffle, VGG16 features."""
+import itertools
+import os
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+import torch.nn.functional as F
+
+from bench.nn import (CFM, ConditionNet, DeformConv2d, PixelShuffleUp, ResBlock, VGG16Features, conv3x3,
+                      deform_conv2d, load_vgg16_features, random_vgg16_features)
+from bench.nn.vgg import LAYER_NAMES
+
+torch.set_num_threads(1)
+
+
+# ---- deformable convolution ---------------------------------------------------------------------
+
+def brute_force_deform(x, offset, weight, bias, padding, dilation, mask=None):
+    """Per-pixel, per-tap numpy reference with explicit bilinear interpolation (zero outside)."""
+    x, offset, weight = x.numpy(), offset.numpy(), weight.numpy()
+    b, c, h, w = x.shape
+    o, _, kh, kw = weight.shape
+    out_h, out_w = offset.shape[-2:]
+    out = np.zeros((b, o, out_h, out_w))
+
+    def pixel(n, yy, xx):
+        if 0 <= yy < h and 0 <= xx < w:
+            return x[n, :, yy, xx]
+        return np.zeros(c)
+
+    for n, i, j in itertools.product(range(b), range(out_h), range(out_w)):
+        for ki, kj in itertools.product(range(kh), range(kw)):
+            k = ki * kw + kj
+            py = i - padding + ki * dilation + offset[n, 2 * k, i, j]
+            px = j - padding + kj * dilation + offset[n, 2 * k + 1, i, j]
+            y0, x0 = int(np.floor(py)), int(np.floor(px))
+            fy, fx = py - y0, px - x0
+            v = ((1 - fy) * (1 - fx) * pixel(n, y0, x0) + (1 - fy) * fx * pixel(n, y0, x0 + 1)
+                 + fy * (1 - fx) * pixel(n, y0 + 1, x0) + fy * fx * pixel(n, y0 + 1, x0 + 1))
+            if mask is not None:
+                v = v * mask[n, k, i, j].item()
+            out[n, :, i, j] += weight[:, :, ki, kj] @ v
+    if bias is not None:
+        out += bias.numpy()[None, :, None, None]
+    return torch.from_numpy(out)
+
+
+@pytest.mark.parametrize("k,padding,dilation", [(3, 1, 1), (3, 2, 2), (3, 0, 1), (5, 2, 1), (3, 5, 5)])
+def test_deform_zero_offsets_equal_conv2d(k, padding, dilation):
+    g = torch.Generator().manual_seed(0)
+    x = torch.randn(2, 3, 11, 9, generator=g, dtype=torch.float64)
+    w = torch.randn(4, 3, k, k, generator=g, dtype=torch.float64)
+    bias = torch.randn(4, generator=g, dtype=torch.float64)
+    ref = F.conv2d(x, w, bias, padding=padding, dilation=dilation)
+    offset = torch.zeros(2, 2 * k * k, *ref.shape[-2:], dtype=torch.float64)
+    out = deform_conv2d(x, offset, w, bias, padding=padding, dilation=dilation)
+    torch.testing.assert_close(out, ref, atol=1e-12, rtol=0)
+
+
+@pytest.mark.parametrize("dilation,modulated", [(1, False), (2, False), (1, True)])
+def test_deform_matches_brute_force_reference(dilation, modulated):
+    g = torch.Generator().manual_seed(1)
+    x = torch.randn(2, 3, 6, 5, generator=g, dtype=torch.float64)
+    w = torch.randn(2, 3, 3, 3, generator=g, dtype=torch.float64)
+    bias = torch.randn(2, generator=g, dtype=torch.float64)
+    # fractional offsets up to +-3 px: many taps fall partly or wholly outside the 6x5 image
+    offset = (torch.rand(2, 18, 6, 5, generator=g, dtype=torch.float64) - 0.5) * 6
+    mask = torch.rand(2, 9, 6, 5, generator=g, dtype=torch.float64) if modulated else None
+    out = deform_conv2d(x, offset, w, bias, padding=dilation, dilation=dilation, mask=mask)
+    ref = brute_force_deform(x, offset, w, bias, dilation, dilation, mask)
+    torch.testing.assert_close(out, ref, atol=1e-10, rtol=0)
+
+
+def test_deform_strips_cover_all_rows(monkeypatch):
+    """Force many tiny row strips; the result must not change."""
+    import bench.nn.deform as deform
+    g = torch.Generator().manual_seed(2)
+    x = torch.randn(1, 2, 7, 5, generator=g, dtype=torch.float64)
+    w = torch.randn(3, 2, 3, 3, generator=g, dtype=torch.float64)
+    offset = torch.randn(1, 18, 7, 5, generator=g, dtype=torch.float64)
+    whole = deform_conv2d(x, offset, w)
+    monkeypatch.setattr(deform, "_STRIP_VALUES", 1)
+    torch.testing.assert_close(deform_conv2d(x, offset, w), whole, atol=1e-14, rtol=0)
+
+
+def test_deform_gradcheck():
+    g = torch.Generator().manual_seed(3)
+    x = torch.randn(1, 2, 4, 4, generator=g, dtype=torch.float64, requires_grad=True)
+    w = torch.randn(2, 2, 3, 3, generator=g, dtype=torch.float64, requires_grad=True)
+    bias = torch.randn(2, generator=g, dtype=torch.float64, requires_grad=True)
+    # keep positions away from integers, where bilinear interpolation has a kink
+    offset = (0.2 + 0.6 * torch.rand(1, 18, 4, 4, generator=g, dtype=torch.float64)).requires_grad_()
+    mask = torch.rand(1, 9, 4, 4, generator=g, dtype=torch.float64, requires_grad=True)
+    assert torch.autograd.gradcheck(lambda *a: deform_conv2d(a[0], a[1], a[2], a[3], 1, 1, a[4]),
+                                    (x, offset, w, bias, mask))
+
+
+@pytest.mark.parametrize("dy,dx", [(0.0, 1.0), (1.0, 0.0), (-1.0, 0.0)])
+def test_deform_offset_layout_is_dy_dx(dy, dx):
+    """A constant integer offset (dy, dx) on every tap reads x[i - 1 + ki + dy, j - 1 + kj + dx]: a plain
+    conv over a wider zero padding, read out at a window shifted by (dy, dx)."""
+    layer = DeformConv2d(2, 3).double()
+    layer.offset_conv.bias.data = torch.tensor([dy, dx] * 9, dtype=torch.float64)
+    x = torch.randn(1, 2, 6, 7, dtype=torch.float64)
+    wide = F.conv2d(x, layer.weight, layer.bias, padding=2)  # wide[m] reads x[m - 2 + k]
+    sy, sx = 1 + int(dy), 1 + int(dx)
+    ref = wide[..., sy:sy + 6, sx:sx + 7]
+    torch.testing.assert_close(layer(x), ref, atol=1e-12, rtol=0)
+
+
+def test_deform_module_starts_as_plain_conv_and_learns_offsets():
+    for modulated in (False, True):
+        layer = DeformConv2d(4, 5, modulated=modulated)
+        x = torch.randn(2, 4, 8, 6)
+        torch.testing.assert_close(layer(x), F.conv2d(x, layer.weight, layer.bias, padding=1),
+                                   atol=1e-5, rtol=1e-5)
+        layer(x).square().sum().backward()
+        assert layer.offset_conv.weight.grad.abs().sum() > 0
+        if modulated:
+            assert layer.mask_conv.weight.grad.abs().sum() > 0
+
+
+def test_deform_rejects_non_same_padding():
+    with pytest.raises(ValueError):
+        DeformConv2d(2, 2, kernel_size=3, padding=0)
+
+
+@pytest.mark.slow
+def test_deform_speed_vs_conv2d():
+    """Forward time at (1, 32, 270, 480) vs nn.Conv2d, one thread. Target (later issue): <= 3x."""
+    x = torch.randn(1, 32, 270, 480)
+    conv, deform = torch.nn.Conv2d(32, 32, 3, padding=1), DeformConv2d(32, 32)
+    torch.nn.init.normal_(deform.offset_conv.weight, std=0.1)
+
+    def best(fn):
+        fn()
+        times = []
+        for _ in range(5):
+            t = time.perf_counter()
+            fn()
+            times.append(time.perf_counter() - t)
+        return min(times)
+
+    with torch.no_grad():
+        ratio = best(lambda: deform(x)) / best(lambda: conv(x))
+    print(f"deform/conv forward time ratio: {ratio:.2f}")
+    assert ratio < 8
+
+
+# ---- CFM, residual blocks, pixel shuffle ----------------------------------------------------------
+
+def test_cfm_identity_at_init_and_formula():
+    cfm = CFM(4, 3)
+    x, cond = torch.randn(2, 4, 5, 5), torch.randn(2, 3, 5, 5)
+    torch.testing.assert_close(cfm(x, cond), x)
+    for p in cfm.parameters():
+        torch.nn.init.normal_(p)
+    gamma = torch.einsum("oc,bchw->bohw", cfm.gamma.weight[:, :, 0, 0], cond) + cfm.gamma.bias.view(1, -1, 1, 1)
+    beta = torch.einsum("oc,bchw->bohw", cfm.beta.weight[:, :, 0, 0], cond) + cfm.beta.bias.view(1, -1, 1, 1)
+    torch.testing.assert_close(cfm(x, cond), x * (1 + gamma) + beta, atol=1e-5, rtol=1e-5)
+
+
+def test_condition_net_shape():
+    assert ConditionNet(7, 16, 8)(torch.randn(1, 7, 9, 5)).shape == (1, 16, 9, 5)
+
+
+def test_conv3x3_keeps_size():
+    for d in (1, 2, 3, 5):
+        conv = conv3x3(3, 4, dilation=d, bias=False)
+        assert conv.bias is None and conv(torch.randn(1, 3, 13, 7)).shape == (1, 4, 13, 7)
+
+
+@pytest.mark.parametrize("dilation,with_cfm", [(1, False), (2, False), (3, True), (5, True)])
+def test_resblock_matches_functional(dilation, with_cfm):
+    block = ResBlock(4, dilation=dilation, cond_channels=3 if with_cfm else 0, res_scale=0.5)
+    for p in block.parameters():
+        torch.nn.init.normal_(p, std=0.2)
+    x, cond = torch.randn(1, 4, 12, 11), torch.randn(1, 3, 12, 11)
+    y = F.conv2d(x, block.conv1.weight, block.conv1.bias, padding=1)
+    if with_cfm:
+        y = block.cfm1(y, cond)
+    y = F.conv2d(F.relu(y), block.conv2.weight, block.conv2.bias, padding=dilation, dilation=dilation)
+    if with_cfm:
+        y = block.cfm2(y, cond)
+    torch.testing.assert_close(block(x, cond if with_cfm else None), x + 0.5 * y, atol=1e-5, rtol=1e-5)
+
+
+def test_deformable_resblock_starts_like_plain_resblock():
+    plain, deform = ResBlock(4, dilation=2, cond_channels=3), ResBlock(4, dilation=2, deformable=True,
+                                                                       cond_channels=3)
+    assert isinstance(deform.conv2, DeformConv2d)
+    deform.conv2.weight.data.copy_(plain.conv2.weight)
+    deform.conv2.bias.data.copy_(plain.conv2.bias)
+    deform.conv1.load_state_dict(plain.conv1.state_dict())
+    x, cond = torch.randn(1, 4, 9, 10), torch.randn(1, 3, 9, 10)
+    torch.testing.assert_close(deform(x, cond), plain(x, cond), atol=1e-5, rtol=1e-5)
+
+
+def test_pixel_shuffle_up_layout():
+    up = PixelShuffleUp(3, 2, scale=2)
+    x = torch.randn(1, 3, 4, 5)
+    pre = up.conv(x)  # (1, 8, 4, 5): channel c*4 + a*2 + b goes to output (c, 2i+a, 2j+b)
+    out = up(x)
+    assert out.shape == (1, 2, 8, 10)
+    for c, a, b in itertools.product(range(2), range(2), range(2)):
+        torch.testing.assert_close(out[0, c, a::2, b::2], pre[0, c * 4 + a * 2 + b])
+
+
+# ---- VGG16 features ------------------------------------------------------------------------------
+
+def test_vgg_layer_indices_match_torchvision():
+    # torchvision vgg16().features: relu1_2 = 3, relu2_2 = 8, relu3_3 = 15, relu4_3 = 22, relu5_3 = 29
+    for name, index in [("relu1_2", 3), ("relu2_2", 8), ("relu3_3", 15), ("relu4_3", 22), ("relu5_3", 29)]:
+        assert LAYER_NAMES.index(name) == index
+    assert len(LAYER_NAMES) == 31
+    assert VGG16Features("relu3_3")(torch.rand(1, 3, 16, 16)).shape == (1, 256, 4, 4)
+
+
+def test_vgg_state_dict_round_trip(tmp_path):
+    model = random_vgg16_features("relu2_2", seed=1)
+    assert not any(p.requires_grad for p in model.parameters())
+    x = torch.rand(2, 3, 12, 12)
+    ref = model(x)
+    stripped = {k[len("features."):]: v for k, v in model.state_dict().items()}
+    full = dict(model.state_dict(), **{"classifier.0.weight": torch.zeros(1)})  # torchvision-style file
+    for name, state in [("prefixed.pth", model.state_dict()), ("plain.pth", stripped), ("full.pth", full)]:
+        torch.save(state, tmp_path / name)
+        torch.testing.assert_close(load_vgg16_features(tmp_path / name, "relu2_2")(x), ref)
+    with pytest.raises(ValueError, match="relu3_3"):
+        load_vgg16_features(tmp_path / "plain.pth", "relu3_3")
+    # fixed seed: reproducible; other seed: different
+    torch.testing.assert_close(random_vgg16_features("relu2_2", seed=1)(x), ref)
+    assert not torch.allclose(random_vgg16_features("relu2_2", seed=2)(x), ref)
+
+
+def test_vgg_normalizes_and_passes_input_gradients():
+    model = random_vgg16_features("conv1_1", seed=0)
+    x = torch.rand(1, 3, 6, 6, requires_grad=True)
+    mean = torch.tensor([0.485, 0.456, 0.406]).view(1, 3, 1, 1)
+    std = torch.tensor([0.229, 0.224, 0.225]).view(1, 3, 1, 1)
+    conv = model.features[0]
+    torch.testing.assert_close(model(x), F.conv2d((x - mean) / std, conv.weight, conv.bias, padding=1))
+    model.train()
+    assert not model.training
+    model(x).sum().backward()
+    assert x.grad.abs().sum() > 0
+
+
+def _shared_weights_dir():
+    return Path(os.environ.get("SRD_VGG16_WEIGHTS", "/work/shared/weights"))
+
+
+@pytest.mark.parametrize("filename,layer,too_deep", [
+    ("vgg16_imagenet_conv1_1-conv2_2.pth", "relu2_2", "relu3_3"),
+    ("vgg16_voc_finetuned_conv1_1-conv3_3.pth", "relu3_3", "relu4_1"),
+])
+def test_vgg_loads_shared_partial_files(filename, layer, too_deep):
+    path = _shared_weights_dir() / filename
+    if not path.exists():
+        pytest.skip(f"{path} not present (set SRD_VGG16_WEIGHTS to the directory holding it)")
+    model = load_vgg16_features(path, layer)
+    state = torch.load(path, map_location="cpu", weights_only=True)
+    torch.testing.assert_close(model.features[0].weight, state["0.weight"])
+    x = torch.rand(1, 3, 16, 16)
+    assert torch.isfinite(model(x)).all() and model(x).abs().sum() > 0
+    with pytest.raises(ValueError, match="lacks"):
+        load_vgg16_features(path, too_deep)

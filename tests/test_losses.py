@@ -1,0 +1,108 @@
+"""Tests for bench.losses against independent NumPy/SciPy computations and the paper's numbers."""
+import re
+from pathlib import Path
+
+import numpy as np
+import pytest
+import scipy.ndimage
+import scipy.signal
+import torch
+
+from bench.losses import (HFEN_KERNEL_SIZE, HFEN_SIGMA, PAPER_WEIGHTS, absolute_weights, hfen,
+                          laplacian_of_gaussian, perceptual, spatial_l1, temporal_l1, weighted_loss)
+
+PAPER = Path("/work/shared/seed/000_0570fe89fc995d8b.txt")
+
+
+def _scipy_log(img, sigma=1.5):
+    """SciPy LoG with the same 15x15 support (radius 7) and replicate ('nearest') borders."""
+    return scipy.ndimage.gaussian_laplace(img, sigma, mode="nearest", truncate=7 / sigma)
+
+
+def test_hfen_matches_scipy_gaussian_laplace():
+    rng = np.random.default_rng(0)
+    pred, target = rng.random((2, 3, 3, 21, 17)), rng.random((2, 3, 3, 21, 17))  # (B, T, C, H, W)
+    ref = np.mean([np.abs(_scipy_log(p) - _scipy_log(t)).mean()
+                   for p, t in zip(pred.reshape(-1, 21, 17), target.reshape(-1, 21, 17))])
+    out = hfen(torch.from_numpy(pred), torch.from_numpy(target))
+    assert abs(out.item() - ref) < 1e-12 * max(1.0, ref)
+    assert HFEN_SIGMA == 1.5 and HFEN_KERNEL_SIZE == 15
+
+
+def test_log_interior_matches_explicit_2d_kernel():
+    """Away from borders, the separable filter equals a correlation with the explicit 15x15 kernel
+    built from scipy.ndimage's 1D Gaussian derivative weights."""
+    impulse = np.zeros((15, 15))
+    impulse[7, 7] = 1
+    kernel = _scipy_log(impulse)  # impulse response = the 2D LoG kernel (symmetric)
+    assert abs(kernel.sum()) < 1e-3  # a Laplacian kernel integrates to ~0
+    img = np.random.default_rng(1).random((30, 28))
+    ref = scipy.signal.correlate2d(img, kernel, mode="valid")
+    out = laplacian_of_gaussian(torch.from_numpy(img)[None, None])[0, 0, 7:-7, 7:-7].numpy()
+    np.testing.assert_allclose(out, ref, atol=1e-12)
+
+
+def test_spatial_and_temporal_l1():
+    rng = np.random.default_rng(2)
+    p, t = rng.random((2, 4, 3, 5, 6)), rng.random((2, 4, 3, 5, 6))
+    assert spatial_l1(torch.from_numpy(p), torch.from_numpy(t)).item() == pytest.approx(np.abs(p - t).mean())
+    ref = np.abs(np.diff(p, axis=1) - np.diff(t, axis=1)).mean()
+    assert temporal_l1(torch.from_numpy(p), torch.from_numpy(t)).item() == pytest.approx(ref)
+    assert temporal_l1(torch.from_numpy(p[:, :1]), torch.from_numpy(t[:, :1])).item() == 0
+    with pytest.raises(ValueError):
+        temporal_l1(torch.from_numpy(p[0]), torch.from_numpy(t[0]))
+
+
+def test_perceptual_is_mean_squared_feature_difference():
+    torch.manual_seed(0)
+    conv = torch.nn.Conv2d(3, 5, 3, stride=2)
+    pred = torch.rand(2, 2, 3, 9, 9, requires_grad=True)
+    target = torch.rand(2, 2, 3, 9, 9)
+    out = perceptual(pred, target, conv)
+    fp, ft = conv(pred.reshape(4, 3, 9, 9)), conv(target.reshape(4, 3, 9, 9))
+    c, h, w = fp.shape[1:]
+    ref = sum(((fp[i] - ft[i]) ** 2).sum() / (c * h * w) for i in range(4)) / 4
+    torch.testing.assert_close(out, ref)
+    out.backward()
+    assert pred.grad.abs().sum() > 0
+
+
+def test_paper_weights():
+    assert PAPER_WEIGHTS["intermediate"] == {"edge": 1, "temporal": 1, "spatial": 8, "perceptual": 0}
+    assert PAPER_WEIGHTS["final"] == {"edge": 1, "temporal": 1, "spatial": 8, "perceptual": 10}
+    # Chaitanya et al. 2017 use 0.1 / 0.1 / 0.8 for edge / temporal / spatial
+    assert absolute_weights(PAPER_WEIGHTS["final"]) == pytest.approx(
+        {"edge": 0.1, "temporal": 0.1, "spatial": 0.8, "perceptual": 1.0})
+
+
+def test_paper_weights_against_paper_text():
+    if not PAPER.exists():
+        pytest.skip(f"paper text {PAPER} not available")
+    text = PAPER.read_text()
+    # "For the intermediate supervision, the ratio is set as $1:1:8:0$ ... final ... $1:1:8:10$"
+    ratios = re.findall(r"ratio is (?:empirically )?set as \$([\d:]+)\$", text)
+    assert len(ratios) == 2
+    assert "w_g L_g+w_t L_t+w_s L_s+w_p L_p" in text  # order of the ratios: g : t : s : p
+    for key, ratio in zip(("intermediate", "final"), ratios):
+        g, t, s, p = (int(v) for v in ratio.split(":"))
+        assert PAPER_WEIGHTS[key] == {"edge": g, "temporal": t, "spatial": s, "perceptual": p}
+
+
+def test_weighted_loss_combines_terms():
+    torch.manual_seed(1)
+    pred, target = torch.rand(1, 3, 3, 10, 10, requires_grad=True), torch.rand(1, 3, 3, 10, 10)
+    feats = torch.nn.Conv2d(3, 4, 3)
+    total, parts = weighted_loss(pred, target, PAPER_WEIGHTS["final"], features=feats)
+    expected = (0.1 * hfen(pred, target) + 0.1 * temporal_l1(pred, target) + 0.8 * spatial_l1(pred, target)
+                + 1.0 * perceptual(pred, target, feats))
+    torch.testing.assert_close(total, expected)
+    assert set(parts) == {"edge", "temporal", "spatial", "perceptual"}
+    total.backward()
+    assert pred.grad.abs().sum() > 0
+
+    total, parts = weighted_loss(pred, target, PAPER_WEIGHTS["intermediate"])  # perceptual weight 0
+    assert set(parts) == {"edge", "temporal", "spatial"}
+    total4, parts4 = weighted_loss(pred[0], target[0], PAPER_WEIGHTS["intermediate"])  # (N, C, H, W)
+    assert set(parts4) == {"edge", "spatial"}
+    with pytest.raises(ValueError):
+        weighted_loss(pred, target, PAPER_WEIGHTS["final"])  # perceptual needs features
