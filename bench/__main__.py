@@ -1,3 +1,5 @@
 from bench.cli import main
 
-main()
+# The guard matters: render workers are spawned processes that re-import this module.
+if __name__ == "__main__":
+    main()

@@ -186,14 +186,14 @@ def _conv_macs(module, run):
 
 
 def test_default_model_macs_near_paper():
-    """Paper Table 5: 258.29 GMac at 960x540 input; ours is within 10% (279.5, see the SRDNet docstring).
+    """Paper Table 5: 258.29 GMac at 960x540 input; ours is within 5% (267.8, see the SRDNet docstring).
     Counted on the meta device (shapes only)."""
     with torch.device("meta"):
         model = SRDNet()
         x, g = torch.zeros(1, 1, 3, 540, 960), torch.zeros(1, 1, 7, 540, 960)
         gmac = _conv_macs(model, lambda: model(x, g)) / 1e9
-        assert abs(gmac / 258.29 - 1) < 0.10, gmac
+        assert abs(gmac / 258.29 - 1) < 0.05, gmac
         # the counter against a hand count: 4 SR ResBlocks at LR, each 2 convs 3x3 32->32 + 2 CFMs (2 1x1 convs)
-        y, cond = torch.zeros(1, 32, 540, 960), torch.zeros(1, 32, 540, 960)
+        y, cond = torch.zeros(1, 32, 540, 960), torch.zeros(1, 16, 540, 960)
         macs = _conv_macs(model.sr.blocks, lambda: [blk(y, cond) for blk in model.sr.blocks])
-    assert macs == 4 * 540 * 960 * (2 * 32 * 32 * 9 + 2 * 2 * 32 * 32)
+    assert macs == 4 * 540 * 960 * (2 * 32 * 32 * 9 + 2 * 2 * 16 * 32)

@@ -89,9 +89,10 @@ def ensure_data(ctx: Context, passes: set[str]) -> Path:
     log.info("data: rendering %s into %s", ", ".join(sorted(passes)), ctx.data_dir)
     manifest = build_dataset(ctx.data_dir, ctx.data_spec, sorted(passes), workers=ctx.workers,
                              progress=ctx.progress)
-    timing_cols = [c for c in manifest.columns if c.startswith("time")]
+    timing_cols = [c for c in manifest.columns if c.startswith("time_s.")]
     runs.complete(run, {"frames": int(len(manifest)),
-                        "render_time_s": float(manifest[timing_cols].fillna(0).to_numpy().sum())})
+                        "render_time_s": float(manifest[timing_cols].fillna(0).to_numpy().sum()),
+                        "nonfinite_repaired": int(manifest.get("nonfinite_repaired", 0).sum())})
     return ctx.data_dir
 
 

@@ -35,11 +35,12 @@ Default (the paper's final model, stage_order="sr_dn"):
   Recurrence: each encoder level and the bottleneck keep their output as hidden state, concatenated
   with the next frame's features at that level (RAE); it is zero at the start of every forward call.
 
-Cost of the default model at 960x540 input: 0.546 M parameters, 279.5 GMac in convs and the
-deformable convs' weight products, plus 3.2 GMac of bilinear sampling (paper Table 5: 258.29 GMac).
-The paper does not give the size of its gBuffer encoder or of the CFM layers; here the two
-ConditionNets cost 11.7 GMac and the CFM 1x1 convs 19.9 GMac (together more than the 21 GMac gap),
-and the input is padded from 540 to 544 rows (+0.7%).
+Cost of the default model at 960x540 input: 0.518 M parameters, 264.7 GMac in convs and the
+deformable convs' weight products, plus 3.2 GMac of bilinear sampling: 267.8 GMac (paper Table 5:
+258.29 GMac). The paper does not give the size of its gBuffer encoder or of the CFM layers: with
+`cond_channels=16` conditioning channels (16 for the ConditionNet output and the CFM 1x1 convs) the
+model lands within +3% of the paper's 260 GMac budget (32 would be 282.6, +8.7%; 8 would be 260.5).
+The input is padded from 540 to 544 rows (+0.7%).
 
 Cascade training (paper Table 3 "Cascade" rows) uses forward_stage(stage, x, g): each stage alone, see
 its docstring. scale=1 (denoise-only task) keeps the same structure with a scale-1 "SR" front stage.
@@ -190,7 +191,8 @@ class SRDNet(nn.Module):
 
     def __init__(self, in_channels=3, gbuffer_channels=7, scale=2, channels=32, sr_blocks=4,
                  stage_order="sr_dn", channel_aug=True, skip=True, gbuffer_mode="cfm",
-                 sr_deform_blocks=0, dn_deform_blocks=3, dilation=1, dn_levels=5, intermediate=True):
+                 sr_deform_blocks=0, dn_deform_blocks=3, dilation=1, dn_levels=5, intermediate=True,
+                 cond_channels=16):
         super().__init__()
         if stage_order not in ("sr_dn", "dn_sr"):
             raise ValueError(f"stage_order must be 'sr_dn' or 'dn_sr', got {stage_order!r}")
@@ -205,14 +207,14 @@ class SRDNet(nn.Module):
         self.channel_aug, self.skip = channel_aug, skip
         self.emit_intermediate = intermediate and stage_order == "sr_dn" and scale > 1
         use_cfm = gbuffer_mode == "cfm" and gbuffer_channels > 0
-        cond_ch = channels if use_cfm else 0
+        cond_ch = cond_channels if use_cfm else 0
         concat_ch = gbuffer_channels if gbuffer_mode == "concat" else 0
         mid_ch = channels if channel_aug else 3  # channels passed from the first to the second stage
         # the LR-sized denoiser level, where the SR deep features are added (sr_dn)
         skip_level = (scale.bit_length() if stage_order == "sr_dn" else 0) if skip else 0
 
-        self.cond_sr = ConditionNet(gbuffer_channels, channels, channels) if use_cfm else None
-        self.cond_dn = ConditionNet(gbuffer_channels, channels, channels) if use_cfm else None
+        self.cond_sr = ConditionNet(gbuffer_channels, cond_ch, channels) if use_cfm else None
+        self.cond_dn = ConditionNet(gbuffer_channels, cond_ch, channels) if use_cfm else None
         if stage_order == "sr_dn":
             self.sr = SRStage(in_channels + concat_ch, mid_ch, channels, sr_blocks, scale, cond_ch,
                               sr_deform_blocks, dilation, rgb_head=channel_aug and self.emit_intermediate)

@@ -1,0 +1,349 @@
+"""Build a dataset directory of rendered sequences: one multi-layer EXR per frame and resolution + manifest.
+
+Layout (``root`` = e.g. ``data/smoke``)::
+
+    root/manifest.json                              spec, passes, variant and one record per frame
+    root/<split>/<sequence>/<frame:04d>_lr.exr      layers noisy, ref, albedo, normal, roughness (LR)
+    root/<split>/<sequence>/<frame:04d>_hr.exr      the same at HR (2x)
+    root/<split>/<sequence>/<frame:04d>.json        the frame's record; written last, marks it complete
+
+A sequence is T consecutive frames of one camera path through one procedural scene. Only the buffers in
+``passes`` are rendered (keys of the data contract: lr_noisy, lr_gbuf, lr_ref, hr_noisy, hr_gbuf, hr_ref),
+and gBuffer passes a scene does not need are left out (roughness of an all-diffuse scene; the loader
+supplies the constant) with the reason recorded.
+
+Seeds: every (scene, view, frame, buffer) gets its own seed derived with numpy's SeedSequence from the
+spec seed, so inputs and references are independent, and the same spec gives the same pixels whatever the
+number of workers or the order of work. Non-finite samples are counted and repaired with
+``bench.render.repair_nonfinite`` (mean of finite 3x3 neighbours, else 0).
+
+Resumable and cumulative: a frame whose record (same render settings) and EXRs holding every requested
+layer exist is skipped; buffers it lacks (a later build asking for more) are rendered alone and merged
+into its EXRs. All files are written atomically, records last, so an interrupted build leaves only
+complete frames behind.
+"""
+import hashlib
+import json
+import multiprocessing
+import os
+import socket
+import time
+import zlib
+from concurrent.futures import ProcessPoolExecutor, as_completed
+
+import numpy as np
+import pandas as pd
+from tqdm import tqdm
+
+from bench import exrio, render, scenes
+
+BUFFERS = ("lr_noisy", "lr_gbuf", "lr_ref", "hr_noisy", "hr_gbuf", "hr_ref")
+GBUF_LAYERS = ("albedo", "normal", "roughness")
+SUFFIXES = {"noisy": ("R", "G", "B"), "ref": ("R", "G", "B"), "albedo": ("R", "G", "B"),
+            "normal": ("X", "Y", "Z"), "roughness": ("Y",)}
+_BUFFER_CODES = {"noisy": 1, "ref": 2}
+
+
+def derive_seed(*parts):
+    """A 31-bit seed from integers/strings (strings hashed with crc32), stable across runs and machines."""
+    ints = [zlib.crc32(p.encode()) if isinstance(p, str) else int(p) for p in parts]
+    return int(np.random.SeedSequence(ints).generate_state(1)[0] % (1 << 31))
+
+
+def plan_sequences(spec):
+    """One dict per sequence to render: split, family, scene_seed, view, sequence id.
+
+    spec['splits'][split] = {'families': [...], 'sequences': n, 'views_per_scene': v (default 1)}:
+    sequence i is the k-th (k = i // len(families)) of family i mod len(families); every v consecutive
+    sequences of a family share one scene (a room seed), seen along different camera paths.
+    """
+    plan = []
+    for split, part in spec["splits"].items():
+        families = list(part["families"])
+        per_scene = int(part.get("views_per_scene", 1))
+        for i in range(int(part["sequences"])):
+            family, k = families[i % len(families)], i // len(families)
+            scene_seed = derive_seed(spec["seed"], split, family, k // per_scene)
+            view = k % per_scene
+            plan.append({"split": split, "family": family, "scene_seed": scene_seed, "view": view,
+                         "sequence": f"{family}-{scene_seed}-v{view}"})
+    return plan
+
+
+def _render_settings(spec, features):
+    """Everything that determines a frame's pixels (hashed into the record so stale frames re-render).
+
+    The buffer list is not part of it: every buffer has its own seed, so buffers added by a later build
+    (another table needing another task) are rendered alone and merged into the existing EXRs.
+    """
+    max_depth = features["max_depth"]
+    if spec.get("max_depth"):
+        max_depth = min(max_depth, int(spec["max_depth"]))
+    return {"lr_width": int(spec["lr_width"]), "lr_height": int(spec["lr_height"]),
+            "scale": int(spec.get("scale", 2)), "spp": int(spec["spp"]), "ref_spp": int(spec["ref_spp"]),
+            "seed": int(spec["seed"]), "max_depth": int(max_depth),
+            "half_gbuffer": bool(spec.get("half_gbuffer", False)), "left_out": sorted(features["left_out"])}
+
+
+def _settings_hash(settings):
+    return hashlib.sha1(json.dumps(settings, sort_keys=True).encode()).hexdigest()[:12]
+
+
+def _frame_paths(root, split, sequence, frame):
+    base = os.path.join(root, split, sequence, f"{frame:04d}")
+    return base + "_lr.exr", base + "_hr.exr", base + ".json"
+
+
+def buffer_layers(buffer, gbuf_layers=GBUF_LAYERS):
+    """EXR layers holding ``buffer`` (e.g. 'lr_gbuf' -> albedo, normal, roughness in the _lr file)."""
+    kind = buffer.split("_")[1]
+    return list(gbuf_layers) if kind == "gbuf" else [kind]
+
+
+def _load_record(rec_path, settings_hash):
+    """The frame's record if it exists and was rendered with the same settings, else None."""
+    try:
+        with open(rec_path) as f:
+            record = json.load(f)
+    except (OSError, ValueError):
+        return None
+    return record if record.get("settings_hash") == settings_hash else None
+
+
+def _present_layers(path):
+    """Layers of an EXR that decodes completely (empty if missing or broken)."""
+    return set(exrio.exr_layers(path)) if exrio.is_valid_exr(path) else set()
+
+
+def render_resolution(scene, camera, width, height, spp, ref_spp, seeds, passes, res, gbuf_layers,
+                      max_depth):
+    """Render the layers of one resolution of one frame; returns (layers, wall times, non-finite count)."""
+    layers, times, repaired = {}, {}, 0
+    if f"{res}_noisy" in passes or f"{res}_gbuf" in passes:
+        gbuf = list(gbuf_layers) if f"{res}_gbuf" in passes else []
+        out = render.render_view(scene, camera, width, height, spp, seeds["noisy"], passes=gbuf,
+                                 max_depth=max_depth)
+        times[f"{res}_noisy_s"] = out["wall_time_s"]
+        if f"{res}_noisy" in passes:
+            layers["noisy"] = out["radiance"]
+        for name in gbuf:
+            layers[name] = out[name]
+    if f"{res}_ref" in passes:
+        out = render.render_view(scene, camera, width, height, ref_spp, seeds["ref"], passes=(),
+                                 max_depth=max_depth)
+        times[f"{res}_ref_s"] = out["wall_time_s"]
+        layers["ref"] = out["radiance"]
+    for name in list(layers):
+        layers[name], count = render.repair_nonfinite(layers[name])
+        repaired += count
+    return layers, times, repaired
+
+
+def render_sequence(root, job, spec, passes, variant=None):
+    """Render the missing buffers of every frame of one planned sequence; returns its frame records.
+
+    A frame whose record matches the render settings and whose EXRs hold every layer of ``passes`` is
+    skipped ('resumed'); one that lacks some buffers gets only those rendered and merged in.
+    Runs in a worker process: sets the Mitsuba variant itself and loads the scene once for all frames.
+    """
+    variant = render.use_variant(variant)
+    scene_dict = scenes.make_scene(job["family"], job["scene_seed"])
+    features = scenes.scene_features(scene_dict)
+    settings = _render_settings(spec, features)
+    digest = _settings_hash(settings)
+    gbuf_layers = [g for g in GBUF_LAYERS if g not in features["left_out"]]
+    cameras = scenes.camera_path(job["scene_seed"], job["view"], int(spec["seq_len"]))
+    lr_w, lr_h, scale = settings["lr_width"], settings["lr_height"], settings["scale"]
+    sizes = {"lr": (lr_w, lr_h), "hr": (lr_w * scale, lr_h * scale)}
+    loaded, records = None, []
+    for frame, camera in enumerate(cameras):
+        lr_path, hr_path, rec_path = _frame_paths(root, job["split"], job["sequence"], frame)
+        paths = {"lr": lr_path, "hr": hr_path}
+        record = _load_record(rec_path, digest)
+        present = {res: _present_layers(path) if record else set() for res, path in paths.items()}
+        missing = [b for b in passes if not set(buffer_layers(b, gbuf_layers)) <= present[b[:2]]]
+        if not missing:
+            records.append({**record, "resumed": True})
+            continue
+        if loaded is None:
+            loaded = render.load_scene(scene_dict, variant)
+        seeds = {res: {kind: derive_seed(spec["seed"], job["scene_seed"], job["view"], frame, res, code)
+                       for kind, code in _BUFFER_CODES.items()} for res in ("lr", "hr")}
+        if record is None:
+            record = {"split": job["split"], "family": job["family"],
+                      "scene": f"{job['family']}-{job['scene_seed']}",
+                      "scene_seed": job["scene_seed"], "sequence": job["sequence"], "view": job["view"],
+                      "frame": frame, "camera": camera, "seeds": seeds, "spp": settings["spp"],
+                      "ref_spp": settings["ref_spp"], "lr_size": list(sizes["lr"]), "hr_size": list(sizes["hr"]),
+                      "max_depth": settings["max_depth"], "variant": variant, "device": _device(variant),
+                      "host": socket.gethostname(),
+                      "features": {k: features[k] for k in ("bsdf_types", "object_kinds", "glossy",
+                                                            "transmissive", "specular_chain")},
+                      "left_out": features["left_out"], "settings_hash": digest, "buffers": [], "time_s": {},
+                      "nonfinite_repaired": 0, "channels": {}}
+        for res in ("lr", "hr"):
+            todo = [b for b in missing if b.startswith(res)]
+            if not todo:
+                continue
+            (w, h), path = sizes[res], paths[res]
+            layers, times, repaired = render_resolution(
+                loaded, camera, w, h, settings["spp"], settings["ref_spp"], seeds[res], todo, res,
+                gbuf_layers, settings["max_depth"])
+            kept = exrio.read_exr(path, sorted(present[res] - set(layers))) if present[res] else {}
+            merged = {**kept, **layers}
+            half = [g for g in gbuf_layers if settings["half_gbuffer"]]
+            exrio.write_exr(path, merged, suffixes=SUFFIXES, half=half,
+                            attributes={"srd_sequence": job["sequence"], "srd_frame": frame})
+            record["time_s"].update(times)
+            record["nonfinite_repaired"] += repaired
+            record["channels"][res] = [f"{n}.{s}" for n in merged for s in SUFFIXES[n]]
+        record["buffers"] = sorted(set(record["buffers"]) | set(passes))
+        _write_json(rec_path, record)
+        records.append({**record, "resumed": False})
+    return records
+
+
+def _device(variant):
+    """'cuda' for GPU variants, else 'cpu' (llvm and scalar variants run on the CPU)."""
+    return "cuda" if variant.startswith("cuda") else "cpu"
+
+
+def _write_json(path, obj):
+    """Atomic JSON write (temp file + rename)."""
+    os.makedirs(os.path.dirname(os.path.abspath(path)), exist_ok=True)
+    tmp = f"{path}.{os.getpid()}.tmp"
+    with open(tmp, "w") as f:
+        json.dump(obj, f, indent=1, default=float)
+    os.replace(tmp, path)
+
+
+def _worker(args):
+    root, job, spec, passes, variant, threads = args
+    if threads:
+        # Several worker processes share the cores: cap each one's Dr.Jit thread pool.
+        import drjit
+        drjit.set_thread_count(threads)
+    return render_sequence(root, job, spec, passes, variant)
+
+
+def build_dataset(root, spec, passes=BUFFERS, workers=1, progress=True, variant=None):
+    """Render the dataset described by ``spec`` (a conf/data/<scale>.yaml dict) into ``root``.
+
+    passes: buffers to produce (subset of BUFFERS); buffers rendered by earlier builds are kept.
+    workers: processes rendering sequences in parallel (each sets its own Mitsuba variant and a share of
+    the cores; 'spawn' start, so no JIT state is forked). variant: Mitsuba variant (None: pick_variant).
+    Returns the manifest as a DataFrame with one row per frame (column 'resumed': it was already complete).
+    """
+    passes = [p for p in passes if p]
+    unknown = set(passes) - set(BUFFERS)
+    if unknown:
+        raise ValueError(f"unknown buffers {sorted(unknown)}; known: {BUFFERS}")
+    os.makedirs(root, exist_ok=True)
+    plan = plan_sequences(spec)
+    start = time.perf_counter()
+    threads = max(1, (os.cpu_count() or 1) // workers) if workers > 1 else 0
+    jobs = [(os.fspath(root), job, spec, passes, variant, threads) for job in plan]
+    records = []
+    bar = tqdm(total=len(plan) * int(spec["seq_len"]), desc=f"render {spec.get('name', root)}", unit="frame",
+               disable=not progress)
+    if workers <= 1:
+        for job in jobs:
+            done = _worker(job)
+            records += done
+            bar.update(len(done))
+    else:
+        # ProcessPoolExecutor (not Pool): a worker that dies raises BrokenProcessPool instead of hanging.
+        # 'spawn' needs the calling script to guard its entry point with `if __name__ == "__main__":`.
+        context = multiprocessing.get_context("spawn")
+        with ProcessPoolExecutor(workers, mp_context=context) as pool:
+            for future in as_completed([pool.submit(_worker, job) for job in jobs]):
+                done = future.result()
+                records += done
+                bar.update(len(done))
+    bar.close()
+    records.sort(key=lambda r: (r["split"], r["sequence"], r["frame"]))
+    present = sorted(set().union(*(r.get("buffers", []) for r in records)))
+    manifest = {"spec": spec, "passes": present, "variant": records[0]["variant"] if records else variant,
+                "build_wall_time_s": time.perf_counter() - start, "frames": records}
+    _write_json(os.path.join(root, "manifest.json"), manifest)
+    return manifest_frame(records)
+
+
+def manifest_frame(records):
+    """Flatten frame records into a DataFrame (nested timing and seed dicts become columns)."""
+    return pd.json_normalize(records, sep=".")
+
+
+def load_manifest(root):
+    """The manifest dict of a dataset directory."""
+    with open(os.path.join(root, "manifest.json")) as f:
+        return json.load(f)
+
+
+def render_user_scene(xml_path, root, lr_width, lr_height, spp=8, ref_spp=256, seed=0, passes=BUFFERS,
+                      max_depth=8, split="user", scale=2):
+    """Render a user's Mitsuba XML scene (from its own first sensor) as a one-frame dataset in ``root``.
+
+    The result loads with ``SequenceDataset(root, split, ..., seq_len=1)``, so any trained model can be run
+    on it. Returns the manifest DataFrame.
+    """
+    variant = render.use_variant()
+    scene = render.load_scene(os.fspath(xml_path), variant)
+    name = os.path.splitext(os.path.basename(os.fspath(xml_path)))[0]
+    lr_path, hr_path, rec_path = _frame_paths(root, split, name, 0)
+    seeds = {res: {kind: derive_seed(seed, name, res, code) for kind, code in _BUFFER_CODES.items()}
+             for res in ("lr", "hr")}
+    record = {"split": split, "family": "user", "scene": name, "scene_seed": int(seed), "sequence": name,
+              "view": 0, "frame": 0, "seeds": seeds, "spp": spp, "ref_spp": ref_spp, "source": os.fspath(xml_path),
+              "lr_size": [lr_width, lr_height], "hr_size": [lr_width * scale, lr_height * scale],
+              "max_depth": max_depth, "variant": variant, "device": _device(variant), "host": socket.gethostname(),
+              "left_out": {}, "buffers": sorted(passes), "time_s": {},
+              "nonfinite_repaired": 0, "channels": {}}
+    for res, (w, h), path in (("lr", (lr_width, lr_height), lr_path),
+                              ("hr", (lr_width * scale, lr_height * scale), hr_path)):
+        if not [b for b in passes if b.startswith(res)]:
+            continue
+        layers, times, repaired = render_resolution(scene, None, w, h, spp, ref_spp, seeds[res], passes, res,
+                                                    GBUF_LAYERS, max_depth)
+        exrio.write_exr(path, layers, suffixes=SUFFIXES)
+        record["time_s"].update(times)
+        record["nonfinite_repaired"] += repaired
+        record["channels"][res] = [f"{n}.{s}" for n in layers for s in SUFFIXES[n]]
+    _write_json(rec_path, record)
+    spec = {"name": name, "lr_width": lr_width, "lr_height": lr_height, "scale": scale, "spp": spp,
+            "ref_spp": ref_spp, "seq_len": 1, "seed": seed,
+            "splits": {split: {"families": ["user"], "sequences": 1}}}
+    _write_json(os.path.join(root, "manifest.json"),
+                {"spec": spec, "passes": list(passes), "variant": variant, "frames": [record]})
+    return manifest_frame([record])
+
+
+def tonemap_png(image):
+    """Linear HDR -> 8-bit display (Reinhard x/(1+x), then gamma 2.2); for previews only."""
+    image = np.clip(np.asarray(image, np.float32), 0, None)
+    return (np.clip(image / (1 + image), 0, 1) ** (1 / 2.2) * 255 + 0.5).astype(np.uint8)
+
+
+def export_examples(root, out_dir, split="train", count=4, frame=0):
+    """Save preview PNGs (LR input, LR albedo, LR normal, HR reference) of ``count`` sequences.
+
+    Normals are shown as 0.5 + 0.5 n (camera space), albedo clipped to [0, 1] with gamma 2.2.
+    Returns the paths written.
+    """
+    from PIL import Image
+
+    os.makedirs(out_dir, exist_ok=True)
+    records = [r for r in load_manifest(root)["frames"] if r["split"] == split and r["frame"] == frame]
+    paths = []
+    for rec in records[:count]:
+        lr_path, hr_path, _ = _frame_paths(root, split, rec["sequence"], frame)
+        lr, hr = exrio.read_exr(lr_path), exrio.read_exr(hr_path)
+        panels = {"input": tonemap_png(lr["noisy"]),
+                  "albedo": (np.clip(lr["albedo"], 0, 1) ** (1 / 2.2) * 255 + 0.5).astype(np.uint8),
+                  "normal": (np.clip(lr["normal"] * 0.5 + 0.5, 0, 1) * 255 + 0.5).astype(np.uint8),
+                  "reference": tonemap_png(hr["ref"])}
+        for name, pixels in panels.items():
+            path = os.path.join(out_dir, f"{rec['sequence']}_{frame:04d}_{name}.png")
+            Image.fromarray(pixels).save(path)
+            paths.append(path)
+    return paths
