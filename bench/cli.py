@@ -37,6 +37,17 @@ def make_context(cfg: DictConfig):
                    render_data=plain["render_data"])
 
 
+def resolve_device(device: str) -> str:
+    import torch
+    if device == "auto":
+        return "cuda" if torch.cuda.is_available() else "cpu"
+    if device == "cuda" and not torch.cuda.is_available():
+        raise UserError("device=cuda but no CUDA GPU is available; use device=cpu or device=auto")
+    if device not in ("cpu", "cuda"):
+        raise UserError(f"device must be auto, cpu or cuda, got {device!r}")
+    return device
+
+
 def check_writable(path: Path, what: str) -> None:
     try:
         path.mkdir(parents=True, exist_ok=True)
@@ -56,11 +67,8 @@ def run_experiment(cfg: DictConfig) -> None:
     kind = exp.pop("kind", "table")
     if kind not in KINDS:
         raise UserError(f"experiment kind {kind!r} is unknown; known kinds: {', '.join(KINDS)}")
-    if cfg.device == "cuda":
-        import torch
-        if not torch.cuda.is_available():
-            raise UserError("device=cuda but no CUDA GPU is available; use device=cpu")
     ctx = make_context(cfg)
+    ctx.device = resolve_device(ctx.device)
     check_writable(ctx.results_dir, "results directory")
     check_writable(ctx.runs_dir, "runs directory")
     t0 = time.perf_counter()

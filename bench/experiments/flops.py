@@ -31,6 +31,8 @@ SOTA_ROWS = [
     {"label": "CFM", "model": "cfm", "width_arg": "channels"},
     {"label": "Ours", "model": "srd", "width_arg": None},
 ]
+# The paper's Table 5 "FLOPS/GMac" column (960x540 input), shown beside our counts.
+PAPER_GMAC = {"EDSR": 258.10, "RAE": 251.81, "KPCN": 269.42, "CFM": 247.97, "Ours": 258.29}
 
 
 def frame_inputs(cfg: dict, input_hw: tuple[int, int]):
@@ -78,9 +80,11 @@ def build_table(models: dict[str, dict], budget_gmac: float, input_hw=(540, 960)
     for name, cfg in models.items():
         row, per_stage = audit_row(name, cfg, budget_gmac * 1e9, tuple(input_hw))
         log.info("flops: %s %s: %s GMac", name, row["width"], row.get("GMac (analytic)"))
+        row["per stage (GMac)"] = ", ".join(f"{s} {m / 1e9:.1f}" for s, m in per_stage.items()) or "-"
         rows.append(row)
         stages += [{"method": name, "stage": s, "GMac": m / 1e9} for s, m in per_stage.items()]
     table = pd.DataFrame(rows)
+    table["GMac (paper)"] = [PAPER_GMAC.get(name) for name in table["method"]]
     out_dir = Path(out_dir)
     h, w = input_hw
     write_table(table, out_dir, caption=caption + (" " if caption else "") + (

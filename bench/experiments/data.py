@@ -1,0 +1,45 @@
+"""`+experiment=data`: render a scale's whole dataset (every buffer) and summarise it.
+
+Writes `<results_dir>/data/table.{csv,md,tex}` (per split: sequences, frames, render time per pass,
+non-finite samples repaired, passes left out and why) and preview PNGs of a few training views.
+"""
+from __future__ import annotations
+
+import json
+import logging
+
+import pandas as pd
+
+from bench.datagen import BUFFERS, export_examples, load_manifest
+from bench.experiments.pipeline import Context, ensure_data
+from bench.tables import write_table
+
+log = logging.getLogger("bench")
+
+
+def summarize(frames: list[dict]) -> pd.DataFrame:
+    """One row per split from the manifest's frame records."""
+    df = pd.json_normalize(frames, sep=".")
+    rows = []
+    for split, part in df.groupby("split", sort=False):
+        row = {"split": split, "sequences": part["sequence"].nunique(), "frames": len(part)}
+        for col in sorted(c for c in part.columns if c.startswith("time_s.")):
+            row[f"{col.removeprefix('time_s.').removesuffix('_s')} s"] = float(part[col].fillna(0).sum())
+        row["nonfinite repaired"] = int(part.get("nonfinite_repaired", pd.Series(0)).sum())
+        left = [f"{k}: {v}" for rec in frames if rec["split"] == split for k, v in (rec.get("left_out") or {}).items()]
+        row["left out"] = "; ".join(f"{n}x {reason}" for reason, n in pd.Series(left).value_counts().items()) or "-"
+        rows.append(row)
+    return pd.DataFrame(rows)
+
+
+def run(ctx: Context, name: str = "data", passes: list[str] | None = None, examples: int = 4) -> pd.DataFrame:
+    root = ensure_data(ctx, set(passes or BUFFERS))
+    manifest = load_manifest(root)
+    table = summarize(manifest["frames"])
+    out = ctx.results_dir / name
+    write_table(table, out, caption=(
+        f"Dataset {ctx.scale} ({manifest.get('variant')}): render seconds per pass summed over frames; "
+        f"spec {json.dumps({k: v for k, v in ctx.data_spec.items() if k != 'splits'})}."))
+    export_examples(root, out / "examples", count=examples)
+    log.info("data: %d frames in %s; summary in %s", sum(table["frames"]), root, out)
+    return table
