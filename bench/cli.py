@@ -15,6 +15,7 @@ import hydra
 from omegaconf import DictConfig, OmegaConf
 
 from bench.errors import UserError
+from bench.runs import ensure_writable
 from bench.experiments import KINDS
 
 log = logging.getLogger("bench")
@@ -48,17 +49,6 @@ def resolve_device(device: str) -> str:
     return device
 
 
-def check_writable(path: Path, what: str) -> None:
-    try:
-        path.mkdir(parents=True, exist_ok=True)
-        probe = path / ".write_probe"
-        probe.write_text("")
-        probe.unlink()
-    except OSError as err:
-        raise UserError(f"{what} {path} is not writable ({err.strerror}); choose another with "
-                        f"{what.split()[0]}_dir=...") from err
-
-
 def run_experiment(cfg: DictConfig) -> None:
     if "experiment" not in cfg:
         raise UserError("choose an experiment: python -m bench +experiment=NAME; available: "
@@ -69,8 +59,8 @@ def run_experiment(cfg: DictConfig) -> None:
         raise UserError(f"experiment kind {kind!r} is unknown; known kinds: {', '.join(KINDS)}")
     ctx = make_context(cfg)
     ctx.device = resolve_device(ctx.device)
-    check_writable(ctx.results_dir, "results directory")
-    check_writable(ctx.runs_dir, "runs directory")
+    ensure_writable(ctx.results_dir, "results_dir")
+    ensure_writable(ctx.runs_dir, "runs_dir")
     t0 = time.perf_counter()
     importlib.import_module(f"bench.experiments.{kind}").run(ctx, **exp)
     log.info("%s done in %.1f s", exp.get("name", kind), time.perf_counter() - t0)

@@ -89,7 +89,7 @@ def begin(runs_dir: str | Path, kind: str, identity: dict, config: dict | None =
     run_dir = Path(runs_dir) / kind / h
     if force and run_dir.exists():
         shutil.rmtree(run_dir)
-    _ensure_writable(run_dir)
+    ensure_writable(run_dir)
     record = {
         "kind": kind, "hash": h, "label": label, "status": "running", "identity": identity,
         "config": config if config is not None else identity, "seed": seed, "device": device,
@@ -147,15 +147,16 @@ def _flatten(d: dict, prefix: str = "") -> dict:
     return out
 
 
-def _ensure_writable(path: Path) -> None:
+def ensure_writable(path: Path, setting: str = "runs_dir") -> None:
+    """Create `path` and prove it writable, or raise PermissionError naming the setting to change."""
     try:
         path.mkdir(parents=True, exist_ok=True)
         probe = path / ".write_probe"
         probe.write_text("")
         probe.unlink()
     except OSError as err:
-        raise PermissionError(f"runs directory {path} is not writable ({err.strerror}); "
-                              f"set runs_dir=... to a writable place") from err
+        raise PermissionError(f"{setting.removesuffix('_dir')} directory {path} is not writable "
+                              f"({err.strerror}); set {setting}=... to a writable place") from err
 
 
 _PROVENANCE: dict | None = None
