@@ -4,13 +4,15 @@ VENV   := .venv
 PY     := $(VENV)/bin/python
 STAMP  := $(VENV)/.installed
 
-.PHONY: setup run test test-slow clean
+.PHONY: setup run test test-slow clean clean-runs
 
 setup: $(STAMP)
 	@bash scripts/ensure_llvm.sh
 
 # Reinstall when the dependency list changes.
 $(STAMP): pyproject.toml
+	@$(PYTHON) -c 'import sys; assert sys.version_info[:2] == (3, 11), sys.version' 2>/dev/null || \
+		{ echo "SRD-Bench needs Python 3.11 (torch==2.13.0 CPU wheel); set PYTHON=/path/to/python3.11"; exit 1; }
 	@test -x $(PY) || $(PYTHON) -m venv $(VENV)
 	$(PY) -m pip install -q -e '.[test]'
 	@touch $(STAMP)
@@ -24,5 +26,10 @@ test: setup
 test-slow: setup
 	$(PY) -m pytest -q -m slow
 
+# Removes the environment only; trained runs and rendered data are kept (see clean-runs).
 clean:
-	rm -rf $(VENV) runs outputs multirun
+	rm -rf $(VENV)
+
+# Deletes the run store: every recorded render job, checkpoint and evaluation.
+clean-runs:
+	rm -rf runs

@@ -9,10 +9,7 @@ import torch
 import torch.nn as nn
 import torch.nn.functional as F
 
-
-def _fold(x):
-    """(B, T, C, h, w) -> (B*T, C, h, w)."""
-    return x.reshape(-1, *x.shape[2:])
+from baselines import fold_time
 
 
 class _Interpolate(nn.Module):
@@ -35,7 +32,7 @@ class _Interpolate(nn.Module):
 
     def forward(self, x, g=None):
         b, t = x.shape[:2]
-        out = self.upsample(_fold(x))
+        out = self.upsample(fold_time(x))
         return {"final": out.reshape(b, t, *out.shape[1:])}
 
 

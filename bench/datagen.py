@@ -36,9 +36,8 @@ import pandas as pd
 from tqdm import tqdm
 
 from bench import exrio, render, scenes
+from bench.tasks import BUFFERS, GBUF_LAYERS
 
-BUFFERS = ("lr_noisy", "lr_gbuf", "lr_ref", "hr_noisy", "hr_gbuf", "hr_ref")
-GBUF_LAYERS = ("albedo", "normal", "roughness")
 SUFFIXES = {"noisy": ("R", "G", "B"), "ref": ("R", "G", "B"), "albedo": ("R", "G", "B"),
             "normal": ("X", "Y", "Z"), "roughness": ("Y",)}
 _BUFFER_CODES = {"noisy": 1, "ref": 2}

@@ -27,11 +27,10 @@ from torch.utils.data import Dataset
 
 from bench import exrio
 from bench.hdr import MODES, from_network, to_network
+from bench.tasks import BUFFERS, GBUF_LAYERS
 
 __all__ = ["SequenceDataset", "augment_sequence", "to_network", "from_network", "MODES", "BUFFERS"]
 
-BUFFERS = ("lr_noisy", "lr_gbuf", "lr_ref", "hr_noisy", "hr_gbuf", "hr_ref")
-GBUF_LAYERS = ("albedo", "normal", "roughness")
 GBUF_SIZES = {"albedo": 3, "normal": 3, "roughness": 1}
 DEFAULT_ROUGHNESS = 1.0  # value of a left-out roughness pass (every BSDF diffuse)
 
@@ -161,12 +160,21 @@ class SequenceDataset(Dataset):
         return int(rng.integers(0, lr_h - c + 1)), int(rng.integers(0, lr_w - c + 1))
 
     def __getitem__(self, index):
+        item = self.item(index, self._draws)
+        self._draws += 1
+        return item
+
+    def item(self, index, draw):
+        """Item `index` with its crop and augmentation drawn from the RNG seeded by (seed, index, draw).
+
+        The trainer passes `draw` explicitly (from its step), so a resumed run sees the same batches as an
+        uninterrupted one; `dataset[index]` uses a per-object counter instead.
+        """
         name, start, n = self.items[index]
         frames = self.sequences[name][start:start + n]
         per_frame = [self._read_frame(rec) for rec in frames]
         item = {b: torch.stack([f[b] for f in per_frame]) for b in self.buffers}
-        rng = np.random.default_rng([int(self.seed), int(index), self._draws])
-        self._draws += 1
+        rng = np.random.default_rng([int(self.seed), int(index), int(draw)])
         if self.crop is not None:
             lr_w, lr_h = frames[0]["lr_size"]
             y, x = self._crop_origin(rng, lr_h, lr_w)

@@ -50,13 +50,36 @@ class Run:
 
     def save(self) -> None:
         tmp = self.dir / (RECORD + ".tmp")
-        tmp.write_text(json.dumps(self.record, indent=2, sort_keys=True, default=_json_default))
+        tmp.write_text(json.dumps(_encode(self.record), indent=2, sort_keys=True, allow_nan=False,
+                                  default=_json_default))
         tmp.replace(self.dir / RECORD)
 
 
-def _json_default(value):
+_NONFINITE = {"inf": math.inf, "-inf": -math.inf, "nan": math.nan}
+
+
+def _encode(value):
+    """Strict JSON: non-finite floats (an infinite PSNR) are stored as the strings "inf", "-inf", "nan"."""
+    if isinstance(value, dict):
+        return {k: _encode(v) for k, v in value.items()}
+    if isinstance(value, (list, tuple)):
+        return [_encode(v) for v in value]
     if isinstance(value, float) and not math.isfinite(value):
         return str(value)
+    return value
+
+
+def _decode_metrics(metrics: dict) -> dict:
+    return {k: _NONFINITE.get(v, v) if isinstance(v, str) else v for k, v in (metrics or {}).items()}
+
+
+def _read(path: Path) -> dict:
+    record = json.loads(path.read_text())
+    record["metrics"] = _decode_metrics(record.get("metrics"))
+    return record
+
+
+def _json_default(value):
     if hasattr(value, "item"):
         return value.item()
     return str(value)
@@ -68,7 +91,7 @@ def lookup(runs_dir: str | Path, kind: str, identity: dict) -> Run | None:
     path = Path(runs_dir) / kind / h / RECORD
     if not path.exists():
         return None
-    record = json.loads(path.read_text())
+    record = _read(path)
     if record.get("status") != "complete":
         return None
     return Run(kind, h, path.parent, record, reused=True)
@@ -90,11 +113,14 @@ def begin(runs_dir: str | Path, kind: str, identity: dict, config: dict | None =
     if force and run_dir.exists():
         shutil.rmtree(run_dir)
     ensure_writable(run_dir)
+    earlier = _read(run_dir / RECORD) if (run_dir / RECORD).exists() else {}
     record = {
         "kind": kind, "hash": h, "label": label, "status": "running", "identity": identity,
         "config": config if config is not None else identity, "seed": seed, "device": device,
-        "started": time.strftime("%Y-%m-%dT%H:%M:%S%z"), **provenance(),
+        "started": earlier.get("started", time.strftime("%Y-%m-%dT%H:%M:%S%z")), **provenance(),
     }
+    if earlier:  # an interrupted or failed run resumes: its earlier time still counts
+        record["resumed_wall_time_s"] = earlier.get("wall_time_s", 0.0) or 0.0
     run = Run(kind, h, run_dir, record)
     run.save()
     return run
@@ -114,7 +140,7 @@ def complete(run: Run, metrics: dict, **extra) -> Run:
 def fail(run: Run, message: str) -> Run:
     run.record["status"] = "failed"
     run.record["error"] = message
-    run.record["wall_time_s"] = time.perf_counter() - run._t0
+    run.record["wall_time_s"] = run.record.get("resumed_wall_time_s", 0.0) + time.perf_counter() - run._t0
     run.save()
     return run
 
@@ -125,7 +151,7 @@ def load(runs_dir: str | Path = "runs", kind: str | None = None) -> pd.DataFrame
     rows = []
     pattern = f"{kind}/*/{RECORD}" if kind else f"*/*/{RECORD}"
     for path in sorted(Path(runs_dir).glob(pattern)):
-        record = json.loads(path.read_text())
+        record = _read(path)
         row = {k: record.get(k) for k in ("kind", "hash", "label", "status", "seed", "device",
                                           "wall_time_s", "git_commit", "git_dirty", "host", "started")}
         row["dir"] = str(path.parent)

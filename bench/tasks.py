@@ -6,6 +6,10 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
+# The data contract (ARCHITECTURE.md): every buffer a dataset can hold, and the gBuffer layers in order.
+BUFFERS = ("lr_noisy", "lr_gbuf", "lr_ref", "hr_noisy", "hr_gbuf", "hr_ref")
+GBUF_LAYERS = ("albedo", "normal", "roughness")
+
 
 @dataclass(frozen=True)
 class Task:

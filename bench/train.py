@@ -18,6 +18,7 @@ from tqdm import tqdm
 
 from bench.hdr import to_network
 from bench.losses import weighted_loss
+from bench.macs import count_params
 from bench.tasks import Task
 
 CHECKPOINT = "checkpoint.pt"
@@ -69,7 +70,10 @@ def train(model, dataset, task: Task, out_dir: str | Path, *, steps: int, batch_
           loss_weights: dict, lr: float = 6e-4, betas=(0.9, 0.99), halve_every: float = 0.25,
           hdr: str = "clamp", features=None, seed: int = 0, device: str = "cpu",
           checkpoint_every: int = 100, progress: bool = True) -> dict:
-    """Train `model` on `dataset` (items: dicts of (T, C, H, W) tensors) and return a summary.
+    """Train `model` on `dataset` and return a summary.
+
+    `dataset.item(index, draw)` returns a dict of (T, C, H, W) tensors whose random crop/augmentation is
+    fixed by `draw`; with the batch indices drawn from (seed, step), every step is reproducible.
 
     Resumes from `out_dir/checkpoint.pt` when present. Writes `curve.csv` (loss per step).
     """
@@ -93,7 +97,8 @@ def train(model, dataset, task: Task, out_dir: str | Path, *, steps: int, batch_
     while step < steps:
         rng = random.Random(seed * 1_000_003 + step)
         torch.manual_seed(seed * 1_000_003 + step)
-        items = [dataset[rng.randrange(len(dataset))] for _ in range(batch_size)]
+        items = [dataset.item(rng.randrange(len(dataset)), step * batch_size + slot)
+                 for slot in range(batch_size)]
         batch = {k: v.to(device) for k, v in collate(items, keys).items()}
         for group in optimizer.param_groups:
             group["lr"] = lr_at(step, steps, lr, halve_every)
@@ -121,4 +126,4 @@ def train(model, dataset, task: Task, out_dir: str | Path, *, steps: int, batch_
     return {"steps": step, "resumed_from_step": resumed_from, "final_loss": sum(tail) / len(tail),
             "first_loss": curve[0]["loss"] if curve else float("nan"),
             "train_time_s": elapsed0 + time.perf_counter() - t0,
-            "params": sum(p.numel() for p in model.parameters())}
+            "params": count_params(model)}

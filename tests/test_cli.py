@@ -7,10 +7,11 @@ from pathlib import Path
 
 import pandas as pd
 import pytest
+import torch
 from hydra import compose, initialize_config_dir
 from hydra.utils import instantiate
 
-from bench.cli import CONF_DIR, available_experiments
+from bench.cli import CONF_DIR, available_experiments, make_context
 
 REPO = Path(__file__).resolve().parent.parent
 
@@ -32,14 +33,34 @@ def test_every_experiment_composes_at_every_scale(name, scale):
     cfg = compose_experiment(name, f"scale={scale}")
     assert cfg.scale.name == scale
     assert cfg.experiment.name == name
-    assert cfg.data and cfg.train.steps > 0
+    ctx = make_context(cfg)                       # every key the experiments read is there
+    assert ctx.data_spec and ctx.train["steps"] > 0 and ctx.budget_gmac > 0
 
 
-def test_every_model_config_instantiates():
+def test_every_model_config_instantiates_and_keeps_the_model_contract():
     cfg = compose_experiment("smoke")
+    x, g = torch.rand(1, 2, 3, 13, 7), torch.rand(1, 2, 7, 13, 7)
     for name, model_cfg in cfg.models.items():
         model = instantiate(model_cfg, scale=2)
-        assert callable(model), name
+        with torch.no_grad():
+            out = model(x, g)
+        assert out["final"].shape == (1, 2, 3, 26, 14), name
+        assert torch.isfinite(out["final"]).all(), name
+
+
+@pytest.mark.parametrize("scale", ["smoke", "cpu", "paper"])
+def test_configured_widths_meet_the_scale_budget(scale):
+    """The widths a scale trains with are the ones the MAC audit fits to its budget (+-5%)."""
+    from bench.experiments.flops import SOTA_ROWS, audit_row
+    ctx = make_context(compose_experiment("smoke", f"scale={scale}"))
+    for row in SOTA_ROWS:
+        cfg = dict(ctx.models[row["model"]])
+        checked, _ = audit_row(row["label"], cfg, ctx.budget_gmac * 1e9, (540, 960))
+        assert abs(checked["budget deviation %"]) <= 5, (scale, checked)
+        if row["width_arg"]:
+            fitted, _ = audit_row(row["label"], {**cfg, "width_arg": row["width_arg"]}, ctx.budget_gmac * 1e9,
+                                  (540, 960))
+            assert fitted["width"] == f"{row['width_arg']}={cfg[row['width_arg']]}", (scale, fitted)
 
 
 @pytest.fixture(scope="module")

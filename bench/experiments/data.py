@@ -10,9 +10,10 @@ import logging
 
 import pandas as pd
 
-from bench.datagen import BUFFERS, export_examples, load_manifest
+from bench.datagen import export_examples, load_manifest
 from bench.experiments.pipeline import Context, ensure_data
 from bench.tables import write_table
+from bench.tasks import BUFFERS
 
 log = logging.getLogger("bench")
 
@@ -33,7 +34,8 @@ def summarize(frames: list[dict]) -> pd.DataFrame:
 
 
 def run(ctx: Context, name: str = "data", passes: list[str] | None = None, examples: int = 4) -> pd.DataFrame:
-    root = ensure_data(ctx, set(passes or BUFFERS))
+    ensure_data(ctx, set(passes or BUFFERS))
+    root = ctx.data_dir
     manifest = load_manifest(root)
     table = summarize(manifest["frames"])
     out = ctx.results_dir / name

@@ -7,6 +7,9 @@ so two tables that ask for the same row (the paper reuses "ours" across Tables 4
 from __future__ import annotations
 
 import copy
+import functools
+import hashlib
+import json
 import logging
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -15,12 +18,14 @@ import numpy as np
 from hydra.utils import instantiate
 
 from bench import runs
-from bench.datagen import build_dataset
+from bench.datagen import build_dataset, load_manifest
 from bench.dataset import SequenceDataset
 from bench.errors import UserError
 from bench.evaluate import evaluate
+from bench.exrio import write_exr
+from bench.macs import count_params
 from bench.tasks import Task, get_task
-from bench.train import load_weights, train
+from bench.train import TrainingDiverged, load_weights, train
 
 log = logging.getLogger("bench")
 
@@ -64,48 +69,67 @@ def build_model(cfg: dict, task: Task):
 
 
 def is_learned(model) -> bool:
-    return any(p.requires_grad for p in model.parameters()) if hasattr(model, "parameters") else False
+    return count_params(model) > 0
 
 
 # ---------------------------------------------------------------- data
 
-def data_identity(ctx: Context) -> dict:
-    return {"spec": ctx.data_spec, "root": str(ctx.data_dir)}
+def _canonical(value) -> str:
+    return json.dumps(value, sort_keys=True, default=str)
 
 
-def ensure_data(ctx: Context, passes: set[str]) -> Path:
-    """Render the dataset (only `passes`) unless a recorded data run already covers it."""
-    if not ctx.render_data:
-        if not (ctx.data_dir / "manifest.json").exists():
-            raise UserError(f"data directory {ctx.data_dir} has no manifest.json (render_data=false: nothing is "
-                            f"rendered); point data_dir=... at a dataset in the documented layout")
-        return ctx.data_dir
-    identity = {**data_identity(ctx), "passes": sorted(passes)}
-    run = runs.begin(ctx.runs_dir, "data", identity, seed=ctx.data_spec.get("seed"), device=ctx.device,
-                     label=f"data {ctx.scale}", force=ctx.force)
-    if run.reused and (ctx.data_dir / "manifest.json").exists():
-        log.info("data: reusing %s (run %s)", ctx.data_dir, run.hash)
-        return ctx.data_dir
-    log.info("data: rendering %s into %s", ", ".join(sorted(passes)), ctx.data_dir)
-    manifest = build_dataset(ctx.data_dir, ctx.data_spec, sorted(passes), workers=ctx.workers,
-                             progress=ctx.progress)
-    timing_cols = [c for c in manifest.columns if c.startswith("time_s.")]
-    runs.complete(run, {"frames": int(len(manifest)),
-                        "render_time_s": float(manifest[timing_cols].fillna(0).to_numpy().sum()),
-                        "nonfinite_repaired": int(manifest.get("nonfinite_repaired", 0).sum())})
-    return ctx.data_dir
+@functools.lru_cache(maxsize=8)
+def _fingerprint(manifest_path: str, mtime_ns: int) -> str:
+    manifest = load_manifest(Path(manifest_path).parent)
+    frames = sorted((f["split"], f["sequence"], f["frame"], f.get("settings_hash")) for f in manifest["frames"])
+    return runs.config_hash({"spec": manifest["spec"], "frames": frames})
 
 
-def dataset(ctx: Context, split: str, task: Task, training: bool):
-    if not (ctx.data_dir / "manifest.json").exists():
+def data_fingerprint(ctx: Context) -> str:
+    """Hash of what is on disk (the manifest's spec and every frame's render settings), not of the path:
+    runs trained on it are reused exactly while the data they saw is unchanged."""
+    path = ctx.data_dir / "manifest.json"
+    if not path.exists():
         raise UserError(f"data directory {ctx.data_dir} has no manifest.json; render it with "
                         f"`python -m bench +experiment=data scale={ctx.scale}` or point data_dir=... at a "
                         f"dataset in the documented layout (README, 'Dataset layout')")
+    return _fingerprint(str(path.resolve()), path.stat().st_mtime_ns)
+
+
+def ensure_data(ctx: Context, passes: set[str]) -> str:
+    """Make sure `data_dir` holds the scale's dataset with at least `passes`, rendering only what is
+    missing; returns the data fingerprint. With render_data=false the directory is used as it is."""
+    if not ctx.render_data:
+        return data_fingerprint(ctx)
+    path = ctx.data_dir / "manifest.json"
+    if path.exists():
+        manifest = load_manifest(ctx.data_dir)
+        if _canonical(manifest["spec"]) == _canonical(ctx.data_spec) and passes <= set(manifest["passes"]):
+            log.info("data: %s already holds %s", ctx.data_dir, ", ".join(sorted(passes)))
+            return data_fingerprint(ctx)
+    identity = {"spec": ctx.data_spec, "passes": sorted(passes)}
+    run = runs.begin(ctx.runs_dir, "data", identity, seed=ctx.data_spec.get("seed"), device=ctx.device,
+                     label=f"data {ctx.scale}", force=True)  # a data run records one render job
+    log.info("data: rendering %s into %s", ", ".join(sorted(passes)), ctx.data_dir)
+    manifest = build_dataset(ctx.data_dir, ctx.data_spec, sorted(passes), workers=ctx.workers,
+                             progress=ctx.progress, variant="cuda_ad_rgb" if ctx.device == "cuda" else None)
+    timing_cols = [c for c in manifest.columns if c.startswith("time_s.")]
+    runs.complete(run, {"frames": int(len(manifest)), "resumed_frames": int(manifest["resumed"].sum()),
+                        "render_time_s": float(manifest[timing_cols].fillna(0).to_numpy().sum()),
+                        "nonfinite_repaired": int(manifest.get("nonfinite_repaired", 0).sum())})
+    return data_fingerprint(ctx)
+
+
+def dataset(ctx: Context, split: str, task: Task, training: bool, seed: int = 0):
+    data_fingerprint(ctx)  # a clear error when the directory is not a dataset
     buffers = task.buffers(with_mid=training)
-    if training:
-        return SequenceDataset(ctx.data_dir, split, buffers, seq_len=ctx.train["seq_len"],
-                               crop=ctx.train["crop"], augment=True)
-    return SequenceDataset(ctx.data_dir, split, buffers)
+    if not training:
+        return SequenceDataset(ctx.data_dir, split, buffers)
+    frames = load_manifest(ctx.data_dir)["spec"].get("seq_len")
+    if frames is not None and ctx.train["seq_len"] > frames:
+        raise UserError(f"train.seq_len={ctx.train['seq_len']} but the dataset's sequences have {frames} frames")
+    return SequenceDataset(ctx.data_dir, split, buffers, seq_len=ctx.train["seq_len"], crop=ctx.train["crop"],
+                           augment=True, seed=seed)
 
 
 # ---------------------------------------------------------------- perceptual features
@@ -118,7 +142,8 @@ def perceptual_features(ctx: Context):
     if path:
         if not Path(path).exists():
             raise UserError(f"VGG16 weights file {path} (vgg.weights / SRD_VGG16_WEIGHTS) does not exist")
-        return load_vgg16_features(path, layer).to(ctx.device), {"weights": Path(path).name, "layer": layer}
+        return (load_vgg16_features(path, layer).to(ctx.device),
+                {"weights": Path(path).name, "sha256": _file_sha256(str(Path(path).resolve())), "layer": layer})
     if ctx.vgg.get("allow_random"):
         log.warning("perceptual loss uses a fixed-seed RANDOM VGG16 (no weights found); tables will say so")
         return random_vgg16_features(layer, seed=0).to(ctx.device), {"weights": "random(seed=0)", "layer": layer}
@@ -128,11 +153,20 @@ def perceptual_features(ctx: Context):
                     "or turn the term off with train.loss.final.perceptual=0")
 
 
+@functools.lru_cache(maxsize=4)
+def _file_sha256(path: str) -> str:
+    digest = hashlib.sha256()
+    with open(path, "rb") as f:
+        for chunk in iter(lambda: f.read(1 << 20), b""):
+            digest.update(chunk)
+    return digest.hexdigest()[:16]
+
+
 # ---------------------------------------------------------------- train + evaluate
 
 def _train_identity(ctx: Context, cfg: dict, task: Task, seed: int, vgg_id: dict | None) -> dict:
     schedule = {k: v for k, v in ctx.train.items() if k not in ("checkpoint_every",)}
-    return {"model": cfg, "task": task.name, "train": schedule, "data": runs.config_hash(data_identity(ctx)),
+    return {"model": cfg, "task": task.name, "train": schedule, "data": data_fingerprint(ctx),
             "seed": seed, "vgg": vgg_id}
 
 
@@ -143,7 +177,7 @@ def trained_model(ctx: Context, cfg: dict, task: Task, seed: int, label: str = "
     model = build_model(cfg, task)
     if not is_learned(model):
         return model, None
-    uses_vgg = ctx.train["loss"]["final"].get("perceptual", 0) > 0
+    uses_vgg = any(w.get("perceptual", 0) > 0 for w in ctx.train["loss"].values())
     features, vgg_id = perceptual_features(ctx) if uses_vgg else (None, None)
     identity = _train_identity(ctx, cfg, task, seed, vgg_id)
     run = runs.begin(ctx.runs_dir, "train", identity, seed=seed, device=ctx.device, label=label,
@@ -152,11 +186,18 @@ def trained_model(ctx: Context, cfg: dict, task: Task, seed: int, label: str = "
         log.info("train %s: reusing run %s", label or cfg["_target_"], run.hash)
         return load_weights(model, run.dir, ctx.device), run
     t = ctx.train
-    summary = train(model, dataset(ctx, "train", task, training=True), task, run.dir,
-                    steps=t["steps"], batch_size=t["batch_size"], loss_weights=t["loss"], lr=t["lr"],
-                    betas=t["betas"], halve_every=t["halve_every"], hdr=t["hdr"], features=features,
-                    seed=seed, device=ctx.device, checkpoint_every=t["checkpoint_every"],
-                    progress=ctx.progress)
+    try:
+        summary = train(model, dataset(ctx, "train", task, training=True, seed=seed), task, run.dir,
+                        steps=t["steps"], batch_size=t["batch_size"], loss_weights=t["loss"], lr=t["lr"],
+                        betas=t["betas"], halve_every=t["halve_every"], hdr=t["hdr"], features=features,
+                        seed=seed, device=ctx.device, checkpoint_every=t["checkpoint_every"],
+                        progress=ctx.progress)
+    except TrainingDiverged as err:
+        runs.fail(run, str(err))
+        raise UserError(f"training {label or cfg['_target_']} (run {run.dir}) diverged: {err}") from err
+    except BaseException as err:  # interrupted or crashed: the record says so; the checkpoint stays
+        runs.fail(run, f"{type(err).__name__}: {err}")
+        raise
     runs.complete(run, summary)
     return model, run
 
@@ -165,15 +206,18 @@ def evaluated(ctx: Context, cfg: dict, task: Task, seed: int, split: str, label:
     """Evaluation run of a row (training it first if needed)."""
     model, train_run = trained_model(ctx, cfg, task, seed, label)
     identity = {"trained": train_run.hash if train_run else {"model": cfg, "task": task.name},
-                "split": split, "data": runs.config_hash(data_identity(ctx)), "hdr": ctx.train["hdr"]}
+                "split": split, "data": data_fingerprint(ctx), "hdr": ctx.train["hdr"]}
+    if ctx.eval.get("save_exr"):
+        identity["frames"] = True  # output frames are an artifact of their own run
     run = runs.begin(ctx.runs_dir, "eval", identity, seed=seed, device=ctx.device, label=label,
                      force=ctx.force)
     if run.reused:
         log.info("eval %s: reusing run %s", label, run.hash)
         return run
     _, metrics = evaluate(model, dataset(ctx, split, task, training=False), task, hdr=ctx.train["hdr"],
-                          device=ctx.device, out_dir=run.dir)
-    metrics["params"] = sum(p.numel() for p in model.parameters()) if hasattr(model, "parameters") else 0
+                          device=ctx.device, out_dir=run.dir, save_exr=ctx.eval.get("save_exr", False),
+                          write_exr=write_exr)
+    metrics["params"] = count_params(model)
     metrics["train_run"] = train_run.hash if train_run else None
     metrics["vgg"] = (train_run.record["identity"].get("vgg") if train_run else None)
     return runs.complete(run, metrics)
@@ -193,6 +237,8 @@ def row(ctx: Context, label: str, model: str, overrides: dict | None = None, tas
         if len(values) > 1:
             out[f"{metric} std"] = float(values.std(ddof=1))
     out["params"] = results[0].metrics.get("params", 0)
+    vgg = results[0].metrics.get("vgg")
+    out["vgg"] = f"VGG16 {vgg['layer']} from {vgg['weights']}" if vgg else None
     out["runs"] = " ".join(r.hash for r in results)
     out["reused"] = all(r.reused for r in results)
     return out

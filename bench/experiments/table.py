@@ -33,6 +33,9 @@ def run(ctx: Context, name: str, rows: list[dict], caption: str = "", task: str 
     notes = (f"{RELMSE_FORMULA}; PSNR/SSIM on images clamped to [0, 1]. Scale {ctx.scale}, "
              f"{ctx.train['steps']} training steps, loss g:t:s:p = {loss['edge']}:{loss['temporal']}:"
              f"{loss['spatial']}:{loss['perceptual']}, seeds {list(ctx.seeds)}.")
+    vgg = sorted({v for v in table.pop("vgg") if v})
+    if vgg:
+        notes += f" Perceptual loss features: {'; '.join(vgg)}."
     write_table(table.drop(columns=["reused"]), ctx.results_dir / name,
                 caption=f"{caption} {notes}".strip(),
                 lower_is_better=LOWER_IS_BETTER, higher_is_better=HIGHER_IS_BETTER)
