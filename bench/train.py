@@ -44,7 +44,7 @@ def batch_loss(model, batch: dict, task: Task, loss_weights: dict, hdr: str, fea
     out = model(to_network(batch[task.x], hdr), batch[task.g])
     total, parts = weighted_loss(out["final"], to_network(batch[task.y], hdr), loss_weights["final"], features)
     parts = {f"final.{k}": v for k, v in parts.items()}
-    if task.mid and out.get("intermediate") is not None:
+    if task.mid and out.get("intermediate") is not None and any(loss_weights["intermediate"].values()):
         mid, mid_parts = weighted_loss(out["intermediate"], to_network(batch[task.mid], hdr),
                                        loss_weights["intermediate"], features)
         total = total + mid
