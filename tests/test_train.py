@@ -115,3 +115,16 @@ def test_train_identity_changes_exactly_with_what_determines_the_result(ctx, tmp
     changed.append(_train_identity(ctx, cfg, TASK, 0, None))
     assert all(ident != base for ident in changed)
     assert len({json.dumps(i, sort_keys=True) for i in changed}) == len(changed)
+
+
+def test_intermediate_supervision_is_used_only_when_weighted():
+    from bench.models.srd import SRDNet
+    from bench.train import batch_loss, collate
+    torch.manual_seed(0)
+    model = SRDNet(channels=8, dn_levels=2, dn_deform_blocks=1)
+    batch = collate([SyntheticSequences().item(i, 0) for i in range(2)], TASK.buffers())
+    _, parts = batch_loss(model, batch, TASK, WEIGHTS, "clamp")
+    assert "intermediate.spatial" in parts and "final.spatial" in parts
+    off = {**WEIGHTS, "intermediate": {"edge": 0, "temporal": 0, "spatial": 0, "perceptual": 0}}
+    _, parts = batch_loss(model, batch, TASK, off, "clamp")
+    assert not any(k.startswith("intermediate.") for k in parts)
