@@ -96,6 +96,20 @@ def test_smoke_end_to_end_then_reuse(smoke_dirs):
                                   again[["method", "relMSE", "PSNR", "SSIM"]])
 
 
+def test_reused_training_is_loaded_for_a_new_evaluation(smoke_dirs):
+    """A new evaluation of a recorded training (here: with output frames) must use the trained weights:
+    same numbers as the first evaluation, and the frames written as EXR."""
+    args, root = smoke_dirs
+    before = pd.read_csv(root / "results" / "smoke" / "table.csv")
+    out = bench("+experiment=smoke", "eval.save_exr=true", *args)
+    assert out.returncode == 0, out.stderr[-3000:]
+    assert "train Ours: reusing run" in out.stdout + out.stderr
+    after = pd.read_csv(root / "results" / "smoke" / "table.csv")
+    pd.testing.assert_frame_equal(before[["method", "relMSE", "PSNR", "SSIM"]],
+                                  after[["method", "relMSE", "PSNR", "SSIM"]])
+    assert list((root / "runs" / "eval").glob("*/frames/*.exr"))
+
+
 def test_unknown_experiment_is_a_clear_message():
     out = bench("+experiment=no_such_table")
     assert out.returncode != 0

@@ -170,8 +170,11 @@ def _train_identity(ctx: Context, cfg: dict, task: Task, seed: int, vgg_id: dict
             "seed": seed, "vgg": vgg_id}
 
 
-def trained_model(ctx: Context, cfg: dict, task: Task, seed: int, label: str = ""):
-    """The model of `cfg` trained on `task`, from the run store when recorded. Returns (model, run or None)."""
+def trained_model(ctx: Context, cfg: dict, task: Task, seed: int, label: str = "", load: bool = True):
+    """The model of `cfg` trained on `task`, from the run store when recorded. Returns (model, run or None).
+
+    With load=False a recorded run's weights are not read (the caller may not need them; see
+    `evaluated`), and the returned model is untrained: call `load_weights(model, run.dir)` to fill it."""
     import torch
     torch.manual_seed(seed)
     model = build_model(cfg, task)
@@ -184,7 +187,7 @@ def trained_model(ctx: Context, cfg: dict, task: Task, seed: int, label: str = "
                      force=ctx.force)
     if run.reused:
         log.info("train %s: reusing run %s", label or cfg["_target_"], run.hash)
-        return load_weights(model, run.dir, ctx.device), run
+        return (load_weights(model, run.dir, ctx.device) if load else model), run
     t = ctx.train
     try:
         summary = train(model, dataset(ctx, "train", task, training=True, seed=seed), task, run.dir,
@@ -204,7 +207,7 @@ def trained_model(ctx: Context, cfg: dict, task: Task, seed: int, label: str = "
 
 def evaluated(ctx: Context, cfg: dict, task: Task, seed: int, split: str, label: str = "") -> runs.Run:
     """Evaluation run of a row (training it first if needed)."""
-    model, train_run = trained_model(ctx, cfg, task, seed, label)
+    model, train_run = trained_model(ctx, cfg, task, seed, label, load=False)
     identity = {"trained": train_run.hash if train_run else {"model": cfg, "task": task.name},
                 "split": split, "data": data_fingerprint(ctx), "hdr": ctx.train["hdr"]}
     if ctx.eval.get("save_exr"):
@@ -214,6 +217,8 @@ def evaluated(ctx: Context, cfg: dict, task: Task, seed: int, split: str, label:
     if run.reused:
         log.info("eval %s: reusing run %s", label, run.hash)
         return run
+    if train_run is not None and train_run.reused:
+        load_weights(model, train_run.dir, ctx.device)
     _, metrics = evaluate(model, dataset(ctx, split, task, training=False), task, hdr=ctx.train["hdr"],
                           device=ctx.device, out_dir=run.dir, save_exr=ctx.eval.get("save_exr", False),
                           write_exr=write_exr)
