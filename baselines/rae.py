@@ -18,7 +18,7 @@ import torch.nn as nn
 import torch.nn.functional as F
 
 from baselines import with_gbuffer
-from bench.nn.blocks import PixelShuffleUp, conv3x3
+from bench.nn.blocks import PixelShuffleUp, RecurrentBlock, conv3x3
 
 BASE_CHANNELS = (32, 43, 57, 76, 101)  # Chaitanya et al.'s encoder widths at width=32
 LEVELS = len(BASE_CHANNELS)
@@ -31,20 +31,6 @@ def _act(x):
 def level_channels(width):
     """Per-level channel counts: the original growth scaled by width / 32."""
     return [max(1, round(c * width / 32)) for c in BASE_CHANNELS]
-
-
-class RecurrentBlock(nn.Module):
-    """conv(x) -> concat with the previous hidden state -> two convs = new hidden state."""
-
-    def __init__(self, in_ch, channels):
-        super().__init__()
-        self.conv_in = conv3x3(in_ch, channels)
-        self.conv_h1 = conv3x3(2 * channels, channels)
-        self.conv_h2 = conv3x3(channels, channels)
-
-    def forward(self, x, hidden):
-        x = _act(self.conv_in(x))
-        return _act(self.conv_h2(_act(self.conv_h1(torch.cat([x, hidden], dim=1)))))
 
 
 class DecoderLevel(nn.Module):
@@ -69,7 +55,7 @@ class RAE(nn.Module):
         chans = level_channels(width)
         self.channels = chans
         ins = [in_channels + gbuffer_channels] + chans[:-1]
-        self.encoder = nn.ModuleList(RecurrentBlock(i, c) for i, c in zip(ins, chans))
+        self.encoder = nn.ModuleList(RecurrentBlock(i, c, negative_slope=0.1) for i, c in zip(ins, chans))
         self.bottleneck = conv3x3(chans[-1], chans[-1])
         outs = chans[::-1]  # decoder level l (deepest first) outputs the channels of encoder level l
         dec_ins = [chans[-1]] + outs[:-1]

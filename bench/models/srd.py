@@ -49,7 +49,7 @@ import torch
 import torch.nn as nn
 import torch.nn.functional as F
 
-from bench.nn import CFM, ConditionNet, DeformConv2d, PixelShuffleUp, ResBlock, conv3x3
+from bench.nn import CFM, ConditionNet, DeformConv2d, PixelShuffleUp, RecurrentBlock, ResBlock, conv3x3
 
 
 class SRStage(nn.Module):
@@ -78,23 +78,6 @@ class SRStage(nn.Module):
         deep = head + self.body_end(y)
         out = self.up(deep)
         return out, (self.rgb(out) if self.rgb is not None else None), deep
-
-
-class EncoderLevel(nn.Module):
-    """conv_in -> ReLU -> (+ skip) -> recurrent block: conv(concat(x, hidden)) -> ReLU -> conv -> ReLU."""
-
-    def __init__(self, in_ch, channels):
-        super().__init__()
-        self.conv_in = conv3x3(in_ch, channels)
-        self.conv_rec = conv3x3(2 * channels, channels)
-        self.conv_out = conv3x3(channels, channels)
-
-    def forward(self, x, hidden, skip=None):
-        y = F.relu(self.conv_in(x))
-        if skip is not None:
-            y = y + skip
-        y = F.relu(self.conv_rec(torch.cat((y, hidden), dim=1)))
-        return F.relu(self.conv_out(y))  # new hidden state and skip connection
 
 
 class DecoderBlock(nn.Module):
@@ -129,7 +112,7 @@ class RecurrentDenoiser(nn.Module):
         if not 0 <= deform_blocks <= levels:
             raise ValueError(f"dn_deform_blocks must be in 0..{levels}, got {deform_blocks}")
         self.levels, self.channels, self.skip_level = levels, channels, skip_level
-        self.encoder = nn.ModuleList(EncoderLevel(in_ch if j == 0 else channels, channels)
+        self.encoder = nn.ModuleList(RecurrentBlock(in_ch if j == 0 else channels, channels)
                                      for j in range(levels + 1))  # last one = bottleneck
         self.decoder = nn.ModuleList(DecoderBlock(channels, cond_channels, deformable=j <= deform_blocks)
                                      for j in range(levels, 0, -1))

@@ -1,5 +1,7 @@
 """Residual blocks and pixel-shuffle upsampling shared by the proposed network and the baselines."""
+import torch
 import torch.nn as nn
+import torch.nn.functional as F
 
 from .cfm import CFM
 from .deform import DeformConv2d
@@ -50,3 +52,24 @@ class PixelShuffleUp(nn.Module):
 
     def forward(self, x):
         return self.shuffle(self.conv(x))
+
+
+class RecurrentBlock(nn.Module):
+    """An encoder level of the recurrent auto-encoder (Chaitanya et al. 2017):
+    act(conv_in(x)) [+ skip] -> concat with the previous hidden state -> conv -> act -> conv -> act.
+    The output is both the new hidden state and the level's skip to the decoder.
+    `negative_slope` 0.1 is RAE's leaky ReLU; 0 is a plain ReLU (the proposed network)."""
+
+    def __init__(self, in_ch, channels, negative_slope=0.0):
+        super().__init__()
+        self.conv_in = conv3x3(in_ch, channels)
+        self.conv_rec = conv3x3(2 * channels, channels)
+        self.conv_out = conv3x3(channels, channels)
+        self.negative_slope = negative_slope
+
+    def forward(self, x, hidden, skip=None):
+        y = F.leaky_relu(self.conv_in(x), self.negative_slope)
+        if skip is not None:
+            y = y + skip
+        y = F.leaky_relu(self.conv_rec(torch.cat((y, hidden), dim=1)), self.negative_slope)
+        return F.leaky_relu(self.conv_out(y), self.negative_slope)
