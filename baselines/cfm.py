@@ -8,11 +8,13 @@ pixel-shuffle upsampler and tail conv at the end for 2x, no adversarial loss (al
 losses), and a trunk width (`channels`) chosen to the compute budget; the condition network keeps its
 original 32 channels. `deformable_blocks` makes the second conv of the last n blocks deformable: the
 paper's "CFM+deform" row (Table 4) replaces it in every block (deformable_blocks = blocks).
+`input_residual` (default, as for every learned model here; not in the original) adds the bilinear
+upsampling of the input radiance to the output, from a zero-initialised last conv (see SRDNet).
 """
 import torch.nn as nn
 
 from baselines import fold_time, gbuffer_prefix, unfold_time
-from bench.nn.blocks import PixelShuffleUp, ResBlock, conv3x3
+from bench.nn.blocks import PixelShuffleUp, ResBlock, conv3x3, upsampled_input, zero_init
 from bench.nn.cfm import ConditionNet
 
 
@@ -20,7 +22,7 @@ class CFMNet(nn.Module):
     recurrent = False
 
     def __init__(self, in_channels=3, gbuffer_channels=7, scale=2, channels=64, blocks=16,
-                 cond_channels=32, cond_hidden=32, deformable_blocks=0):
+                 cond_channels=32, cond_hidden=32, deformable_blocks=0, input_residual=True):
         super().__init__()
         if gbuffer_channels == 0:
             raise ValueError("CFM modulates features by the gBuffer: gbuffer_channels must be > 0")
@@ -35,6 +37,9 @@ class CFMNet(nn.Module):
         self.body_conv = conv3x3(channels, channels)
         self.up = PixelShuffleUp(channels, channels, scale)
         self.tail = conv3x3(channels, 3)
+        self.scale, self.input_residual = scale, input_residual
+        if input_residual:
+            zero_init(self.tail)
 
     def forward(self, x, g):
         b = x.shape[0]
@@ -44,4 +49,6 @@ class CFMNet(nn.Module):
         for block in self.body:
             body = block(body, cond)
         out = self.tail(self.up(feat + self.body_conv(body)))
+        if self.input_residual:
+            out = out + upsampled_input(fold_time(x), self.scale)
         return {"final": unfold_time(out, b)}

@@ -13,18 +13,20 @@ receptive field is 25/33/41/57 input pixels for rates 1/2/3/5, i.e. 9 + blocks *
 output of one LR pixel, its scale x scale HR block, depends on that many LR pixels per axis, at scale 1
 and 2 alike) without changing parameters or MACs.
 `deformable` replaces that second conv with a deformable conv.
+`input_residual` (default, as for every learned model here; not in the original) adds the bilinear
+upsampling of the input radiance to the output, from a zero-initialised last conv (see SRDNet).
 """
 import torch.nn as nn
 
 from baselines import fold_time, unfold_time, with_gbuffer
-from bench.nn.blocks import PixelShuffleUp, ResBlock, conv3x3
+from bench.nn.blocks import PixelShuffleUp, ResBlock, conv3x3, upsampled_input, zero_init
 
 
 class EDSR(nn.Module):
     recurrent = False
 
     def __init__(self, in_channels=3, gbuffer_channels=7, scale=2, channels=64, blocks=16, dilation=1,
-                 deformable=False, res_scale=1.0):
+                 deformable=False, res_scale=1.0, input_residual=True):
         super().__init__()
         self.gbuffer_channels = gbuffer_channels
         self.head = conv3x3(in_channels + gbuffer_channels, channels)
@@ -34,6 +36,9 @@ class EDSR(nn.Module):
         self.body_conv = conv3x3(channels, channels)
         self.up = PixelShuffleUp(channels, channels, scale)
         self.tail = conv3x3(channels, 3)
+        self.scale, self.input_residual = scale, input_residual
+        if input_residual:
+            zero_init(self.tail)
 
     def forward(self, x, g):
         b = x.shape[0]
@@ -42,4 +47,6 @@ class EDSR(nn.Module):
         for block in self.body:
             body = block(body)
         out = self.tail(self.up(feat + self.body_conv(body)))
+        if self.input_residual:
+            out = out + upsampled_input(fold_time(x), self.scale)
         return {"final": unfold_time(out, b)}

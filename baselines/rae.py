@@ -12,13 +12,15 @@ scale=1 it is the original final conv. Inputs are padded (replicate) to a multip
 
 Recurrent: the hidden state is zero at the start of every forward call and carried along T; streaming
 inference uses init_state(x0) / step(x_t, g_t, state).
+`input_residual` (default, as for every learned model here; not in the original) adds the bilinear
+upsampling of the input radiance to the output, from a zero-initialised last conv (see SRDNet).
 """
 import torch
 import torch.nn as nn
 import torch.nn.functional as F
 
 from baselines import with_gbuffer
-from bench.nn.blocks import PixelShuffleUp, RecurrentBlock, conv3x3
+from bench.nn.blocks import PixelShuffleUp, RecurrentBlock, conv3x3, upsampled_input, zero_init
 
 BASE_CHANNELS = (32, 43, 57, 76, 101)  # Chaitanya et al.'s encoder widths at width=32
 LEVELS = len(BASE_CHANNELS)
@@ -49,7 +51,7 @@ class DecoderLevel(nn.Module):
 class RAE(nn.Module):
     recurrent = True
 
-    def __init__(self, in_channels=3, gbuffer_channels=7, scale=2, width=32):
+    def __init__(self, in_channels=3, gbuffer_channels=7, scale=2, width=32, input_residual=True):
         super().__init__()
         self.gbuffer_channels, self.scale = gbuffer_channels, scale
         chans = level_channels(width)
@@ -61,6 +63,9 @@ class RAE(nn.Module):
         dec_ins = [chans[-1]] + outs[:-1]
         self.decoder = nn.ModuleList(DecoderLevel(i, c, c) for i, c in zip(dec_ins, outs))
         self.head = PixelShuffleUp(chans[0], 3, scale)
+        self.input_residual = input_residual
+        if input_residual:
+            zero_init(self.head.conv)
 
     @staticmethod
     def padded_size(h, w):
@@ -87,6 +92,8 @@ class RAE(nn.Module):
         for level, skip in zip(self.decoder, reversed(skips)):
             z = level(z, skip)
         out = self.head(z)[..., : self.scale * h, : self.scale * w]
+        if self.input_residual:
+            out = out + upsampled_input(x_t, self.scale)
         return {"final": out}, skips
 
     def forward(self, x, g):

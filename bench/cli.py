@@ -49,12 +49,37 @@ def resolve_device(device: str) -> str:
     return device
 
 
+def run_all(tables: list[str], overrides: list[str], summary_dir: Path) -> None:
+    """Run each experiment in `tables` with the command line's other overrides, one after the other;
+    write each one's wall time to `<summary_dir>/table.{csv,md,tex}`. Runs shared between tables are
+    trained once (the run store), so a restarted `all` continues where it stopped."""
+    import pandas as pd
+    from hydra import compose
+    from bench.tables import write_table
+    rows = []
+    for name in tables:
+        if name not in available_experiments() or name == "all":
+            raise UserError(f"experiment.tables: unknown experiment {name!r}")
+        t0 = time.perf_counter()
+        run_experiment(compose(config_name="config", overrides=overrides + [f"+experiment={name}"]))
+        rows.append({"experiment": name, "wall time (min)": (time.perf_counter() - t0) / 60})
+        write_table(pd.DataFrame(rows), summary_dir,
+                    caption="Wall time per table of `+experiment=all` (this invocation; reused runs cost ~0).")
+
+
 def run_experiment(cfg: DictConfig) -> None:
     if "experiment" not in cfg:
         raise UserError("choose an experiment: python -m bench +experiment=NAME; available: "
                         + ", ".join(available_experiments()))
     exp = OmegaConf.to_container(cfg.experiment, resolve=True)
     kind = exp.pop("kind", "table")
+    if kind == "all":
+        from hydra.core.hydra_config import HydraConfig
+        overrides = [o for o in HydraConfig.get().overrides.task if not o.lstrip("+").startswith("experiment")]
+        t0 = time.perf_counter()
+        run_all(exp["tables"], overrides, Path(cfg.results_dir) / exp.get("name", "all"))
+        log.info("all done in %.1f min", (time.perf_counter() - t0) / 60)
+        return
     if kind not in KINDS:
         raise UserError(f"experiment kind {kind!r} is unknown; known kinds: {', '.join(KINDS)}")
     ctx = make_context(cfg)

@@ -244,7 +244,7 @@ def build_dataset(root, spec, passes=BUFFERS, workers=1, progress=True, variant=
     jobs = [(os.fspath(root), job, spec, passes, variant, threads) for job in plan]
     records = []
     bar = tqdm(total=len(plan) * int(spec["seq_len"]), desc=f"render {spec.get('name', root)}", unit="frame",
-               disable=not progress)
+               disable=None if progress else True)
     if workers <= 1:
         for job in jobs:
             done = _worker(job)

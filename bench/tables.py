@@ -3,6 +3,8 @@
 Metric columns get an arrow (down: lower is better, up: higher is better) and the best value of each such
 column is bold. Rows can be excluded from the best-of competition (e.g. the paper's numbers shown beside
 ours) with `compete=False` in a boolean column named `compete`; that column is not printed.
+A column "X std" beside a column "X" (several seeds) is printed inside X's cells as "mean ± std" in
+Markdown and LaTeX; the CSV keeps both columns.
 """
 from __future__ import annotations
 
@@ -53,8 +55,20 @@ def _header(col: str, lower: tuple, higher: tuple) -> str:
     return col
 
 
+def _shown(df: pd.DataFrame) -> list:
+    return [c for c in df.columns if c != "compete" and not (str(c).endswith(" std") and str(c)[:-4] in df.columns)]
+
+
+def _cell(row, col, digits: int) -> str:
+    text = _fmt(row[col], digits)
+    std = row.get(f"{col} std")
+    if std is not None and not (isinstance(std, float) and math.isnan(std)):
+        text += " \u00b1 " + _fmt(std, digits)
+    return text
+
+
 def to_markdown(df: pd.DataFrame, lower=(), higher=(), digits: int = 4, caption: str = "") -> str:
-    shown = [c for c in df.columns if c != "compete"]
+    shown = _shown(df)
     best = _best_rows(df, lower, higher)
     lines = []
     if caption:
@@ -64,7 +78,7 @@ def to_markdown(df: pd.DataFrame, lower=(), higher=(), digits: int = 4, caption:
     for idx, row in df.iterrows():
         cells = []
         for c in shown:
-            text = _fmt(row[c], digits)
+            text = _cell(row, c, digits)
             cells.append(f"**{text}**" if idx in best.get(c, ()) else text)
         lines.append("| " + " | ".join(cells) + " |")
     return "\n".join(lines) + "\n"
@@ -79,7 +93,7 @@ def _latex_escape(text: str) -> str:
 
 def to_latex(df: pd.DataFrame, lower=(), higher=(), digits: int = 4, caption: str = "",
              label: str = "") -> str:
-    shown = [c for c in df.columns if c != "compete"]
+    shown = _shown(df)
     best = _best_rows(df, lower, higher)
     head = []
     for c in shown:
@@ -95,7 +109,7 @@ def to_latex(df: pd.DataFrame, lower=(), higher=(), digits: int = 4, caption: st
     for idx, row in df.iterrows():
         cells = []
         for c in shown:
-            text = _latex_escape(_fmt(row[c], digits))
+            text = _latex_escape(_cell(row, c, digits))
             cells.append(r"\textbf{" + text + "}" if idx in best.get(c, ()) else text)
         lines.append(" & ".join(cells) + r" \\")
     lines += [r"\bottomrule", r"\end{tabular}", r"\end{table}"]

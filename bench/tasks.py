@@ -29,10 +29,17 @@ TASKS = {t.name: t for t in (
     Task("srd", x="lr_noisy", g="lr_gbuf", y="hr_ref", scale=2, mid="hr_noisy"),
     Task("sr", x="lr_ref", g="lr_gbuf", y="hr_ref", scale=2),
     Task("denoise", x="hr_noisy", g="hr_gbuf", y="hr_ref", scale=1),
-    # Cascade sub-tasks: SR of the noisy image (first stage of SR->dn) and LR denoising (first of dn->SR).
+    # Cascade sub-tasks: SR of the noisy image (first stage of SR->dn), HR denoising with the LR gBuffer
+    # (its second stage: only the LR gBuffer exists at run time) and LR denoising (first of dn->SR).
     Task("sr_noisy", x="lr_noisy", g="lr_gbuf", y="hr_noisy", scale=2),
+    Task("denoise_hr", x="hr_noisy", g="lr_gbuf", y="hr_ref", scale=1),
     Task("denoise_lr", x="lr_noisy", g="lr_gbuf", y="lr_ref", scale=1),
 )}
+
+# Cascade (paper Table 3): per stage order, each stage of SRDNet.forward_stage and the task it is
+# trained on alone, in the order the stages run.
+CASCADE_STAGES = {"sr_dn": (("sr", "sr_noisy"), ("dn", "denoise_hr")),
+                  "dn_sr": (("dn", "denoise_lr"), ("sr", "sr"))}
 
 
 def get_task(name: str) -> Task:

@@ -92,7 +92,8 @@ def train(model, dataset, task: Task, out_dir: str | Path, *, steps: int, batch_
     keys = task.buffers(with_mid=True)
     # Each step draws its batch from an RNG seeded by (seed, step), so a resumed run sees the same batches.
     t0 = time.perf_counter()
-    bar = tqdm(total=steps, initial=step, desc=f"train {type(model).__name__}", disable=not progress,
+    bar = tqdm(total=steps, initial=step, desc=f"train {type(model).__name__}", disable=None if progress else True,
+               
                dynamic_ncols=True, leave=False, mininterval=1.0)
     while step < steps:
         rng = random.Random(seed * 1_000_003 + step)

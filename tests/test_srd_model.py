@@ -79,10 +79,10 @@ def test_gradients_reach_every_parameter(kwargs):
     torch.manual_seed(0)
     model = SRDNet(**kwargs, **TINY)
     x, g = _inputs(h=12, w=10)
-    # CFM gamma/beta start at zero (identity), so the ConditionNets get zero gradient on the very first
-    # step by construction; check the gradients of the second step, as training sees them.
+    # Two zero-initialised links (the output convs of input_residual, then CFM gamma/beta) hold the
+    # ConditionNets' gradient at zero for two steps by construction; check the third step's gradients.
     optimizer = torch.optim.Adam(model.parameters(), lr=6e-4)  # the paper's optimizer
-    for _ in range(2):
+    for _ in range(3):
         optimizer.zero_grad()
         out = model(x, g)
         sum(v.square().mean() for v in out.values()).backward()
@@ -94,7 +94,7 @@ def test_gradients_reach_every_parameter(kwargs):
 
 def test_recurrent_state_carried_within_and_reset_between_calls():
     torch.manual_seed(0)
-    model = SRDNet(**TINY)
+    model = SRDNet(input_residual=False, **TINY)  # zero output convs would hide the recurrence at init
     x, g = _inputs(t=3, h=8, w=8)
     out = model(x, g)["final"]
     # frame 1 of a 3-frame sequence equals a single-frame call: the state starts at zero every call
@@ -197,3 +197,17 @@ def test_default_model_macs_near_paper():
         y, cond = torch.zeros(1, 32, 540, 960), torch.zeros(1, 16, 540, 960)
         macs = _conv_macs(model.sr.blocks, lambda: [blk(y, cond) for blk in model.sr.blocks])
     assert macs == 4 * 540 * 960 * (2 * 32 * 32 * 9 + 2 * 2 * 16 * 32)
+
+
+@pytest.mark.parametrize("stage_order,channel_aug", [("sr_dn", True), ("sr_dn", False), ("dn_sr", True),
+                                                     ("dn_sr", False)])
+def test_input_residual_starts_at_bilinear(stage_order, channel_aug):
+    """With input_residual the untrained network is exactly the "Input bilinear" row (and its
+    intermediate head the same); without it, it is not."""
+    x, g = _inputs(t=2, h=12, w=10)
+    bilinear = torch.nn.functional.interpolate(x[0], scale_factor=2, mode="bilinear", align_corners=False)
+    out = SRDNet(stage_order=stage_order, channel_aug=channel_aug, skip=False, **TINY)(x, g)
+    for key in out:
+        torch.testing.assert_close(out[key][0], bilinear, atol=1e-6, rtol=0)
+    plain = SRDNet(stage_order=stage_order, channel_aug=channel_aug, input_residual=False, **TINY)(x, g)
+    assert (plain["final"][0] - bilinear).abs().max() > 1e-2

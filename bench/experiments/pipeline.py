@@ -1,12 +1,18 @@
 """The steps every table shares: make the data, train a row's model, evaluate it; each step is a
 recorded run that is reused when its identity is already in the run store.
 
-A row is (model name, argument overrides, task). Its identity hashes only what determines its numbers,
-so two tables that ask for the same row (the paper reuses "ours" across Tables 4, 5 and 7) share one run.
+A row is (model name, argument overrides, task, training overrides, cascade or not). Its identity hashes
+only what determines its numbers, so two tables that ask for the same row (the paper reuses "ours" across
+Tables 4, 5 and 7) share one run. A Cascade row (paper Table 3) is two runs, one per SRDNet stage, each
+trained alone on its own task (bench.tasks.CASCADE_STAGES) and assembled for evaluation.
+
+Identities hash configuration, not code: after changing a model's code, run with force=true (or clean
+the run store) or the old runs are reused.
 """
 from __future__ import annotations
 
 import copy
+import dataclasses
 import functools
 import hashlib
 import json
@@ -24,7 +30,8 @@ from bench.errors import UserError
 from bench.evaluate import evaluate
 from bench.exrio import write_exr
 from bench.macs import count_params
-from bench.tasks import Task, get_task
+from bench.models.srd import SRDNet, SRDStage, load_stage
+from bench.tasks import CASCADE_STAGES, Task, get_task
 from bench.train import TrainingDiverged, load_weights, train
 
 log = logging.getLogger("bench")
@@ -64,8 +71,22 @@ def model_config(ctx: Context, name: str, overrides: dict | None = None) -> dict
     return cfg
 
 
-def build_model(cfg: dict, task: Task):
-    return instantiate(cfg, scale=task.scale)
+def build_model(cfg: dict, scale: int):
+    return instantiate(cfg, scale=scale)
+
+
+def deep_merge(base: dict, overrides: dict | None) -> dict:
+    """A copy of `base` with `overrides` merged in, nested dicts key by key."""
+    out = copy.deepcopy(base)
+    for key, value in (overrides or {}).items():
+        out[key] = deep_merge(out[key], value) if isinstance(value, dict) and isinstance(out.get(key), dict) \
+            else copy.deepcopy(value)
+    return out
+
+
+def with_training(ctx: Context, overrides: dict | None) -> Context:
+    """`ctx` with a row's training overrides (e.g. the perceptual weight) merged into its recipe."""
+    return dataclasses.replace(ctx, train=deep_merge(ctx.train, overrides)) if overrides else ctx
 
 
 def is_learned(model) -> bool:
@@ -164,25 +185,32 @@ def _file_sha256(path: str) -> str:
 
 # ---------------------------------------------------------------- train + evaluate
 
-def _train_identity(ctx: Context, cfg: dict, task: Task, seed: int, vgg_id: dict | None) -> dict:
+def _train_identity(ctx: Context, cfg: dict, task: Task, seed: int, vgg_id: dict | None,
+                    stage: str | None) -> dict:
     schedule = {k: v for k, v in ctx.train.items() if k not in ("checkpoint_every",)}
-    return {"model": cfg, "task": task.name, "train": schedule, "data": data_fingerprint(ctx),
-            "seed": seed, "vgg": vgg_id}
+    identity = {"model": cfg, "task": task.name, "train": schedule, "data": data_fingerprint(ctx),
+                "seed": seed, "vgg": vgg_id}
+    if stage is not None:
+        identity["stage"] = stage
+    return identity
 
 
-def trained_model(ctx: Context, cfg: dict, task: Task, seed: int, label: str = "", load: bool = True):
+def trained_model(ctx: Context, cfg: dict, task: Task, seed: int, label: str = "", load: bool = True,
+                  stage: str | None = None):
     """The model of `cfg` trained on `task`, from the run store when recorded. Returns (model, run or None).
 
     With load=False a recorded run's weights are not read (the caller may not need them; see
-    `evaluated`), and the returned model is untrained: call `load_weights(model, run.dir)` to fill it."""
+    `evaluated`), and the returned model is untrained: call `load_weights(model, run.dir)` to fill it.
+    With `stage` ("sr" or "dn") only that stage of an SRDNet (built at the SRD scale, 2) is trained on
+    `task`, through SRDStage."""
     import torch
     torch.manual_seed(seed)
-    model = build_model(cfg, task)
+    model = build_model(cfg, task.scale) if stage is None else SRDStage(_cascade_net(cfg), stage)
     if not is_learned(model):
         return model, None
     uses_vgg = any(w.get("perceptual", 0) > 0 for w in ctx.train["loss"].values())
     features, vgg_id = perceptual_features(ctx) if uses_vgg else (None, None)
-    identity = _train_identity(ctx, cfg, task, seed, vgg_id)
+    identity = _train_identity(ctx, cfg, task, seed, vgg_id, stage)
     run = runs.begin(ctx.runs_dir, "train", identity, seed=seed, device=ctx.device, label=label,
                      force=ctx.force)
     if run.reused:
@@ -205,11 +233,35 @@ def trained_model(ctx: Context, cfg: dict, task: Task, seed: int, label: str = "
     return model, run
 
 
-def evaluated(ctx: Context, cfg: dict, task: Task, seed: int, split: str, label: str = "") -> runs.Run:
+def _cascade_net(cfg: dict) -> SRDNet:
+    net = build_model(cfg, get_task("srd").scale)
+    if not isinstance(net, SRDNet):
+        raise UserError(f"a Cascade row needs the proposed model (SRDNet), got {cfg['_target_']}")
+    return net
+
+
+def cascade_model(ctx: Context, cfg: dict, seed: int, label: str = ""):
+    """A Cascade (paper Table 3): each SRDNet stage trained alone on its own task, assembled into one
+    net. Returns (net, list of the stages' training runs)."""
+    net, stage_runs = _cascade_net(cfg), []
+    for stage, task_name in CASCADE_STAGES[cfg.get("stage_order", "sr_dn")]:
+        stage_model, run = trained_model(ctx, cfg, get_task(task_name), seed, f"{label} [{stage} stage]",
+                                         stage=stage)
+        load_stage(net, stage, stage_model.state_dict())
+        stage_runs.append(run)
+    return net, stage_runs
+
+
+def evaluated(ctx: Context, cfg: dict, task: Task, seed: int, split: str, label: str = "",
+              cascade: bool = False) -> runs.Run:
     """Evaluation run of a row (training it first if needed)."""
-    model, train_run = trained_model(ctx, cfg, task, seed, label, load=False)
-    identity = {"trained": train_run.hash if train_run else {"model": cfg, "task": task.name},
-                "split": split, "data": data_fingerprint(ctx), "hdr": ctx.train["hdr"]}
+    if cascade:
+        model, stage_runs = cascade_model(ctx, cfg, seed, label)
+        train_run, trained = None, "+".join(r.hash for r in stage_runs)
+    else:
+        model, train_run = trained_model(ctx, cfg, task, seed, label, load=False)
+        trained = train_run.hash if train_run else {"model": cfg, "task": task.name}
+    identity = {"trained": trained, "split": split, "data": data_fingerprint(ctx), "hdr": ctx.train["hdr"]}
     if ctx.eval.get("save_exr"):
         identity["frames"] = True  # output frames are an artifact of their own run
     run = runs.begin(ctx.runs_dir, "eval", identity, seed=seed, device=ctx.device, label=label,
@@ -223,19 +275,21 @@ def evaluated(ctx: Context, cfg: dict, task: Task, seed: int, split: str, label:
                           device=ctx.device, out_dir=run.dir, save_exr=ctx.eval.get("save_exr", False),
                           write_exr=write_exr)
     metrics["params"] = count_params(model)
-    metrics["train_run"] = train_run.hash if train_run else None
+    metrics["train_run"] = trained if isinstance(trained, str) else None
     metrics["vgg"] = (train_run.record["identity"].get("vgg") if train_run else None)
     return runs.complete(run, metrics)
 
 
 def row(ctx: Context, label: str, model: str, overrides: dict | None = None, task: str = "srd",
-        split: str | None = None) -> dict:
-    """One table row: metrics averaged over `ctx.seeds` (with std when there are several)."""
+        split: str | None = None, train: dict | None = None, cascade: bool = False) -> dict:
+    """One table row: metrics averaged over `ctx.seeds` (with std when there are several).
+    `train` overrides the training recipe for this row; `cascade` trains the stages separately."""
     t = get_task(task)
     cfg = model_config(ctx, model, overrides)
+    ctx = with_training(ctx, train)
     split = split or ctx.eval.get("split", "val")
-    results = [evaluated(ctx, cfg, t, seed, split, label) for seed in ctx.seeds]
-    out = {"method": label}
+    results = [evaluated(ctx, cfg, t, seed, split, label, cascade) for seed in ctx.seeds]
+    out = {"method": label, "task": task}
     for metric in ("relMSE", "PSNR", "SSIM", "time_ms"):
         values = np.array([r.metrics[metric] for r in results], dtype=float)
         out[metric] = float(values.mean())

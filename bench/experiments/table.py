@@ -1,45 +1,136 @@
-"""A metrics table: one row per (model, overrides, task), each a recorded run, written with
-`bench.tables.write_table` to `<results_dir>/<name>/table.{csv,tex,md}`."""
+"""A metrics table: one row per (model, overrides, task, training overrides), each a recorded run,
+written with `bench.tables.write_table` to `<results_dir>/<name>/table.{csv,tex,md}`, with the paper's
+numbers beside ours and a PNG of crops from a fixed validation frame.
+
+A row of the experiment file:
+  label: "rate {dilation}"     # shown in the table; `{key}` is filled from the row's sweep values
+  model: edsr                  # a name in conf/model/
+  overrides: {blocks: 4}       # model arguments
+  task: sr                     # bench.tasks (default: the experiment's task, srd)
+  train: {loss: {final: {perceptual: 0}}}   # training-recipe overrides for this row
+  cascade: true                # train the SRDNet stages separately (paper Table 3 "Cascade")
+  paper: "{dilation}"          # the paper's row label in bench/paper_values.csv
+  sweep: {dilation: [1, 2, 3, 5], task: [sr, denoise]}   # one row per combination (task or model args)
+"""
 from __future__ import annotations
 
+import copy
+import itertools
 import logging
 
 import pandas as pd
 
+from bench.experiments.figure import crop_figure
+from bench.experiments.flops import frame_inputs
 from bench.experiments.pipeline import Context, ensure_data, model_config, row
+from bench.macs import count_macs, on_meta
 from bench.metrics import HIGHER_IS_BETTER, LOWER_IS_BETTER, RELMSE_FORMULA
+from bench.paper import TABLES, paper_values
 from bench.tables import write_table
-from bench.tasks import get_task
+from bench.tasks import CASCADE_STAGES, get_task
 
 log = logging.getLogger("bench")
 
+PAPER_TASK = {"srd": "SRD", "sr": "SR", "denoise": "Denoising"}  # our task name -> the paper's column
+ROW_KEYS = {"label", "model", "overrides", "task", "train", "cascade", "paper", "split"}
+
+
+def expand_rows(rows: list[dict], default_task: str = "srd") -> list[dict]:
+    """Rows with `sweep` become one row per combination of the sweep's values (in the order written);
+    `task` in a sweep sets the row's task, any other key a model argument. Labels and `paper` are
+    format strings over the sweep values."""
+    out = []
+    for r in rows:
+        unknown = set(r) - ROW_KEYS - {"sweep"}
+        if unknown:
+            raise ValueError(f"row {r.get('label')!r}: unknown keys {sorted(unknown)}; known: {sorted(ROW_KEYS)}")
+        sweep = r.get("sweep") or {}
+        for values in itertools.product(*sweep.values()):
+            point = dict(zip(sweep, values))
+            new = {k: copy.deepcopy(v) for k, v in r.items() if k != "sweep"}
+            new["task"] = point.pop("task", r.get("task", default_task))
+            new["overrides"] = {**(r.get("overrides") or {}), **point}
+            fmt = {**new["overrides"], "task": new["task"]}
+            new["label"] = str(r["label"]).format(**fmt)
+            if "paper" in r:
+                new["paper"] = str(r["paper"]).format(**fmt)
+            out.append(new)
+    return out
+
 
 def passes_for(rows: list[dict], default_task: str) -> set[str]:
-    """The union of buffers the table's tasks read (training and evaluation)."""
+    """The union of buffers the table's tasks read (training and evaluation, Cascade stages included)."""
     needed = set()
     for r in rows:
-        needed.update(get_task(r.get("task", default_task)).buffers(with_mid=True))
+        tasks = [r.get("task", default_task)]
+        if r.get("cascade"):
+            tasks += [t for _, t in CASCADE_STAGES[(r.get("overrides") or {}).get("stage_order", "sr_dn")]]
+        for t in tasks:
+            needed.update(get_task(t).buffers(with_mid=True))
     return needed
 
 
+def gmac(ctx: Context, r: dict, input_hw=(540, 960)) -> float | None:
+    """Analytic GMac of a row's model per 960x540 LR frame (None for non-learned rows)."""
+    from hydra.utils import instantiate
+    cfg = model_config(ctx, r["model"], r.get("overrides"))
+    scale = get_task(r["task"]).scale
+    model, inputs = on_meta(lambda: instantiate(cfg, scale=scale), frame_inputs(cfg, input_hw))
+    if sum(p.numel() for p in model.parameters()) == 0:
+        return None
+    return float(count_macs(model, inputs)["macs"].sum()) / 1e9
+
+
+def with_paper(table: pd.DataFrame, rows: list[dict], paper_table: str | None) -> pd.DataFrame:
+    """Add the paper's relMSE/PSNR/SSIM for rows that name their paper row."""
+    if not paper_table:
+        return table
+    published = paper_values(paper_table).set_index(["row", "task"])
+    for metric in ("relMSE", "PSNR", "SSIM"):
+        values = []
+        for r in rows:
+            key = (r.get("paper"), PAPER_TASK.get(r["task"], r["task"]))
+            values.append(published.loc[key, metric] if r.get("paper") and key in published.index else None)
+        table[f"paper {metric}"] = values
+    return table
+
+
 def run(ctx: Context, name: str, rows: list[dict], caption: str = "", task: str = "srd",
-        split: str | None = None) -> pd.DataFrame:
-    for r in rows:  # fail on a bad model name before any rendering or training
+        split: str | None = None, paper: str | None = "auto", gmac_column: bool = False,
+        figure: bool = True) -> pd.DataFrame:
+    rows = expand_rows(rows, task)
+    for r in rows:  # fail on a bad model or task name before any rendering or training
         model_config(ctx, r["model"], r.get("overrides"))
+        get_task(r["task"])
     ensure_data(ctx, passes_for(rows, task))
-    table = pd.DataFrame([row(ctx, r["label"], r["model"], r.get("overrides"), r.get("task", task), split)
+    table = pd.DataFrame([row(ctx, r["label"], r["model"], r.get("overrides"), r["task"],
+                              r.get("split", split), r.get("train"), r.get("cascade", False))
                           for r in rows])
+    if table["task"].nunique() == 1:  # a single task goes in the caption, not a column
+        table = table.drop(columns=["task"])
+    if gmac_column:
+        table.insert(2, "GMac", [gmac(ctx, r) for r in rows])
+    paper_table = (name if name in TABLES else None) if paper == "auto" else paper
+    table = with_paper(table, rows, paper_table)
     loss = ctx.train["loss"]["final"]
-    notes = (f"{RELMSE_FORMULA}; PSNR/SSIM on images clamped to [0, 1]. Scale {ctx.scale}, "
-             f"{ctx.train['steps']} training steps, loss g:t:s:p = {loss['edge']}:{loss['temporal']}:"
-             f"{loss['spatial']}:{loss['perceptual']}, seeds {list(ctx.seeds)}.")
-    vgg = sorted({v for v in table.pop("vgg") if v})
+    tasks = ", ".join(dict.fromkeys(r["task"] for r in rows))
+    notes = (f"Task {tasks}. {RELMSE_FORMULA}; PSNR/SSIM on images clamped to [0, 1]. Scale {ctx.scale}, split "
+             f"{split or ctx.eval.get('split', 'val')}, {ctx.train['steps']} training steps, loss g:t:s:p = "
+             f"{loss['edge']}:{loss['temporal']}:{loss['spatial']}:{loss['perceptual']} (unless a row says "
+             f"otherwise), seeds {list(ctx.seeds)} (mean +- std over seeds when several); time_ms: "
+             f"inference per frame on {ctx.device}.")
+    if gmac_column:
+        notes += f" GMac: multiply-accumulates per 960x540 input frame at this scale's widths (budget {ctx.budget_gmac:g})."
+    if paper_table:
+        notes += " 'paper' columns: the published values (Wei et al., same metrics, their data and scale)."
+    vgg = sorted({v for v in table.pop("vgg") if isinstance(v, str)})
     if vgg:
         notes += f" Perceptual loss features: {'; '.join(vgg)}."
-    write_table(table.drop(columns=["reused"]), ctx.results_dir / name,
-                caption=f"{caption} {notes}".strip(),
+    out_dir = ctx.results_dir / name
+    write_table(table.drop(columns=["reused"]), out_dir, caption=f"{caption} {notes}".strip(),
                 lower_is_better=LOWER_IS_BETTER, higher_is_better=HIGHER_IS_BETTER)
+    if figure:
+        crop_figure(ctx, rows, out_dir / "crops.png", split=split or ctx.eval.get("split", "val"))
     reused = int(table["reused"].sum())
-    log.info("%s: %d of %d rows reused from the run store; table in %s", name, reused, len(table),
-             ctx.results_dir / name)
+    log.info("%s: %d of %d rows reused from the run store; table in %s", name, reused, len(table), out_dir)
     return table

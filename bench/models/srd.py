@@ -49,7 +49,8 @@ import torch
 import torch.nn as nn
 import torch.nn.functional as F
 
-from bench.nn import CFM, ConditionNet, DeformConv2d, PixelShuffleUp, RecurrentBlock, ResBlock, conv3x3
+from bench.nn import (CFM, ConditionNet, DeformConv2d, PixelShuffleUp, RecurrentBlock, ResBlock, conv3x3,
+                     upsampled_input, zero_init)
 
 
 class SRStage(nn.Module):
@@ -168,6 +169,12 @@ class SRDNet(nn.Module):
     SR ResBlocks / decoder blocks (u1, u2, ...) use a deformable conv2 (paper: 0 / 3). dilation: dilation
     of the SR ResBlocks' conv2 (Table 2 study). dn_levels: encoder levels (pooling steps) of the denoiser.
     intermediate: return the SR stage's RGB head (only for stage_order="sr_dn" with scale > 1).
+    input_residual: every RGB image a stage makes is predicted, by a zero-initialised output conv, as a
+    correction to the bilinear upsampling of that stage's RGB input (the previous stage's image without
+    channel_aug, else the network input), so training starts at the "Input bilinear" row and the
+    Cascade stages compose exactly like the end-to-end model. Not in
+    the paper (which does not say); without it the network needs far more steps than the smoke and cpu
+    scales give to catch up with bilinear. Set false for the paper's plain output.
     """
 
     recurrent = True
@@ -175,7 +182,7 @@ class SRDNet(nn.Module):
     def __init__(self, in_channels=3, gbuffer_channels=7, scale=2, channels=32, sr_blocks=4,
                  stage_order="sr_dn", channel_aug=True, skip=True, gbuffer_mode="cfm",
                  sr_deform_blocks=0, dn_deform_blocks=3, dilation=1, dn_levels=5, intermediate=True,
-                 cond_channels=16):
+                 cond_channels=16, input_residual=True):
         super().__init__()
         if stage_order not in ("sr_dn", "dn_sr"):
             raise ValueError(f"stage_order must be 'sr_dn' or 'dn_sr', got {stage_order!r}")
@@ -187,7 +194,8 @@ class SRDNet(nn.Module):
             raise ValueError(f"sr_deform_blocks must be in 0..{sr_blocks}, got {sr_deform_blocks}")
         self.scale, self.stage_order, self.gbuffer_mode = scale, stage_order, gbuffer_mode
         self.gbuffer_channels, self.dn_levels = gbuffer_channels, dn_levels
-        self.channel_aug, self.skip = channel_aug, skip
+        self.channel_aug, self.skip, self.input_residual = channel_aug, skip, input_residual
+        self.mid_ch = channels if channel_aug else 3
         self.emit_intermediate = intermediate and stage_order == "sr_dn" and scale > 1
         use_cfm = gbuffer_mode == "cfm" and gbuffer_channels > 0
         cond_ch = cond_channels if use_cfm else 0
@@ -209,6 +217,20 @@ class SRDNet(nn.Module):
             self.sr = SRStage(mid_ch + concat_ch, channels, channels, sr_blocks, scale, cond_ch,
                               sr_deform_blocks, dilation, rgb_head=True)
         _he_init(self)
+        if input_residual:
+            for conv in self._image_convs():
+                zero_init(conv)
+
+    def _image_convs(self):
+        """The convs whose output is an RGB image (a residual on the upsampled input)."""
+        if self.stage_order == "sr_dn":
+            convs = [self.dn.out] + ([self.sr.rgb] if self.sr.rgb is not None else [])
+            return convs + ([self.sr.up.conv] if self.mid_ch == 3 else [])
+        return [self.sr.rgb] + ([self.dn.out] if self.mid_ch == 3 else [])
+
+    def _base(self, x, scale):
+        """What an RGB output is a residual on: the bilinear-upsampled input, or 0."""
+        return upsampled_input(x, scale) if self.input_residual else 0
 
     # ---- geometry -------------------------------------------------------------------------------
     def _dn_factor(self):
@@ -273,17 +295,26 @@ class SRDNet(nn.Module):
         if self.stage_order == "sr_dn":
             cond = self.cond_sr(g) if self.cond_sr is not None else None
             feats, rgb, deep = self.sr(self._concat(x, g) if concat else x, cond)
+            base = self._base(x, self.scale)
+            if rgb is not None:
+                rgb = rgb + base
+            elif self.mid_ch == 3:
+                feats = feats + base
             dn_in = self._concat(feats, g, self.scale) if concat else feats
             final, _, hidden = self.dn(dn_in, state["hidden"], self._dn_conds(g, self.scale),
                                        deep if self.skip else None)
+            final = final + (feats if self.mid_ch == 3 and self.input_residual else base)
             if self.emit_intermediate:
                 out["intermediate"] = (rgb if rgb is not None else feats)[..., :h * self.scale, :w * self.scale]
         else:
             dn_out, u1, hidden = self.dn(self._concat(x, g) if concat else x, state["hidden"],
                                          self._dn_conds(g, 1))
+            if self.mid_ch == 3:
+                dn_out = dn_out + self._base(x, 1)
             cond = self.cond_sr(g) if self.cond_sr is not None else None
             _, final, _ = self.sr(self._concat(dn_out, g) if concat else dn_out, cond,
                                   u1 if self.skip else None)
+            final = final + self._base(dn_out if self.mid_ch == 3 else x, self.scale)
         out["final"] = final[..., :h * self.scale, :w * self.scale]
         return out, {"hidden": hidden}
 
@@ -320,7 +351,7 @@ class SRDNet(nn.Module):
             x, g = self._pad(x_t), self._pad(self._gbuffer(g_t, x_t))
             cond = self.cond_sr(g) if self.cond_sr is not None else None
             feats, rgb, _ = self.sr(self._concat(x, g) if concat else x, cond)
-            out = feats if self.stage_order == "sr_dn" else rgb
+            out = (feats if self.stage_order == "sr_dn" else rgb) + self._base(x, self.scale)
             return {"final": out[..., :h * self.scale, :w * self.scale]}, state
         factor = x_t.shape[-1] // g_t.shape[-1] if g_t is not None else 1  # x size / g size
         multiple = 2 ** self.dn_levels
@@ -328,7 +359,40 @@ class SRDNet(nn.Module):
         g = self._pad(self._gbuffer(g_t, x_t[..., ::factor, ::factor]), max(1, multiple // factor))
         out, _, hidden = self.dn(self._concat(x, g, factor) if concat else x, state["hidden"],
                                  self._dn_conds(g, factor))
+        out = out + self._base(x, 1)
         return {"final": out[..., :h, :w]}, {"hidden": hidden}
+
+
+class SRDStage(nn.Module):
+    """One stage of an SRDNet on its own, for Cascade training: forward(x, g) = net.forward_stage(stage, x, g).
+    Its state dict is the whole net's under `net.`; `SRDNet.load_stage` takes that stage's part back."""
+
+    recurrent = True
+
+    def __init__(self, net: SRDNet, stage: str):
+        super().__init__()
+        self.net, self.stage = net, stage
+
+    def forward(self, x, g=None):
+        return self.net.forward_stage(self.stage, x, g)
+
+
+def _stage_prefixes(stage):
+    return ("sr.", "cond_sr.") if stage == "sr" else ("dn.", "cond_dn.")
+
+
+def load_stage(net: SRDNet, stage: str, stage_state: dict) -> SRDNet:
+    """Copy the parameters of `stage` ("sr" or "dn") from an SRDStage's state dict into `net` (in place):
+    a Cascade is two separately trained stages assembled into one net."""
+    prefixes = _stage_prefixes(stage)
+    part = {k[len("net."):]: v for k, v in stage_state.items() if k[len("net."):].startswith(prefixes)}
+    if not part:
+        raise ValueError(f"no parameters of stage {stage!r} in the given state dict")
+    missing = [k for k in net.state_dict() if k.startswith(prefixes) and k not in part]
+    if missing:
+        raise ValueError(f"stage {stage!r} state lacks {missing[:3]}...")
+    net.load_state_dict(part, strict=False)
+    return net
 
 
 def _run_sequence(init_state, step, x, g):

@@ -42,6 +42,24 @@ class ResBlock(nn.Module):
         return x + self.res_scale * y
 
 
+def upsampled_input(x, scale):
+    """Bilinear upsampling of the radiance (first 3 channels) of x (B, C, h, w) by `scale`: the base that
+    a model with `input_residual` adds its output to. It is the "Input bilinear" row of the tables, so
+    such a model starts as that row and learns a correction (VDSR-style global residual learning)."""
+    x = x[:, :3]
+    if scale == 1:
+        return x
+    return F.interpolate(x, scale_factor=scale, mode="bilinear", align_corners=False)
+
+
+def zero_init(conv):
+    """Zero a conv's weight and bias, so a residual branch ending in it starts as the identity."""
+    nn.init.zeros_(conv.weight)
+    if conv.bias is not None:
+        nn.init.zeros_(conv.bias)
+    return conv
+
+
 class PixelShuffleUp(nn.Module):
     """Sub-pixel upsampling (Shi et al. 2016): conv3x3 to out_ch*scale^2 channels, then PixelShuffle."""
 

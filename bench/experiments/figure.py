@@ -1,0 +1,94 @@
+"""Qualitative figure of a table (as the paper's Figs. 8-11): crops of one fixed validation frame, the
+input bilinear, each row's output and the reference, each crop titled with its relMSE.
+
+The frame is the last frame of the split's first sequence (recurrent models have seen the whole
+sequence); the crop is the window of the reference with the most gradient energy, so it shows edges
+and texture rather than a flat wall.
+"""
+from __future__ import annotations
+
+import logging
+from pathlib import Path
+
+import numpy as np
+import torch
+import torch.nn.functional as F
+
+from bench.evaluate import predict
+from bench.experiments.pipeline import (Context, cascade_model, dataset, model_config, trained_model,
+                                        with_training)
+from bench.metrics import relmse
+from bench.tasks import get_task
+
+log = logging.getLogger("bench")
+
+
+def busiest_window(ref: torch.Tensor, size: int) -> tuple[int, int]:
+    """Top-left corner of the size x size window of ref (3, H, W) with the largest gradient energy."""
+    lum = ref.clamp(0, 1).mean(0)
+    energy = (lum[1:, :-1] - lum[:-1, :-1]).abs() + (lum[:-1, 1:] - lum[:-1, :-1]).abs()
+    sums = F.avg_pool2d(energy[None, None], size - 1, stride=1)[0, 0]
+    flat = int(sums.argmax())
+    return divmod(flat, sums.shape[1])
+
+
+def tonemap(img: torch.Tensor) -> np.ndarray:
+    """Linear radiance (3, h, w) -> displayable sRGB-ish (h, w, 3) in [0, 1] (clamp, gamma 2.2)."""
+    return img.clamp(0, 1).pow(1 / 2.2).permute(1, 2, 0).cpu().numpy()
+
+
+def _row_output(ctx: Context, r: dict, x, g, seed: int) -> torch.Tensor:
+    rctx = with_training(ctx, r.get("train"))
+    cfg = model_config(ctx, r["model"], r.get("overrides"))
+    task = get_task(r["task"])
+    if r.get("cascade"):
+        model, _ = cascade_model(rctx, cfg, seed, r["label"])
+    else:
+        model, _ = trained_model(rctx, cfg, task, seed, r["label"])
+    if hasattr(model, "eval"):
+        model.to(ctx.device).eval()
+    return predict(model, x.to(ctx.device), g.to(ctx.device), rctx.train["hdr"])[0, -1].cpu()
+
+
+def crop_figure(ctx: Context, rows: list[dict], path: Path, split: str = "val", size: int = 64) -> Path | None:
+    """Write the crops PNG for `rows` (expanded table rows); rows of different tasks get their own input."""
+    import matplotlib
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    seed = ctx.seeds[0]
+    panels, ref = [], None
+    for task_name in dict.fromkeys(r["task"] for r in rows):
+        task = get_task(task_name)
+        item = dataset(ctx, split, task, training=False)[0]
+        x, g, y = item[task.x][None], item[task.g][None], item[task.y][-1]
+        if ref is None:
+            ref = y
+            size = min(size, y.shape[-2], y.shape[-1])
+            top, left = busiest_window(y, size)
+        if task.scale > 1:
+            base = F.interpolate(x[0, -1:], scale_factor=task.scale, mode="bilinear", align_corners=False)[0]
+            panels.append((f"Input bilinear ({task_name})" if len(panels) else "Input bilinear", base))
+        else:
+            panels.append((f"Input ({task_name})", x[0, -1]))
+        for r in (r for r in rows if r["task"] == task_name and r["model"] != "bilinear"):
+            panels.append((r["label"], _row_output(ctx, r, x, g, seed)))
+    panels.append(("Reference", ref))
+    crop = (slice(None), slice(top, top + size), slice(left, left + size))
+    cols = min(len(panels), 5)
+    nrows = -(-len(panels) // cols)
+    fig, axes = plt.subplots(nrows, cols, figsize=(2.4 * cols, 2.7 * nrows), squeeze=False)
+    for ax in axes.flat:
+        ax.axis("off")
+    for ax, (label, img) in zip(axes.flat, panels):
+        c = img[crop]
+        ax.imshow(tonemap(c))
+        title = label if label == "Reference" else f"{label}\nrelMSE {float(relmse(c, ref[crop])):.4f}"
+        ax.set_title(title, fontsize=7)
+    fig.suptitle(f"{path.parent.name}: {split} frame, crop {size}x{size} at ({top}, {left})", fontsize=8)
+    fig.tight_layout()
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(path, dpi=120)
+    plt.close(fig)
+    log.info("figure: %s", path)
+    return path

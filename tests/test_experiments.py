@@ -1,0 +1,128 @@
+"""Every paper table at `smoke` scale with a few training steps: rows, formats, paper values, figures,
+run reuse within and across tables, seeds as mean +- std, and `all`."""
+import os
+import subprocess
+import sys
+
+import pandas as pd
+import pytest
+import torch
+from hydra import compose, initialize_config_dir
+from omegaconf import OmegaConf
+
+from bench.cli import CONF_DIR, run_experiment
+from bench.experiments.table import expand_rows
+from bench.models.srd import SRDNet, SRDStage, load_stage
+from bench.paper import paper_values
+
+TABLES = ["sr_denoise", "dilation", "stage_order", "deform", "sota", "ipt", "deform_num", "perceptual",
+          "generalization"]
+PAPER_TABLES = {"sr_denoise", "dilation", "stage_order", "deform", "sota", "ipt", "deform_num"}
+
+
+@pytest.fixture(scope="module")
+def dirs(tmp_path_factory):
+    root = tmp_path_factory.mktemp("tables")
+    overrides = ["scale=smoke", f"runs_dir={root / 'runs'}", f"results_dir={root / 'results'}",
+                 f"data_dir={root / 'data'}", "progress=false", "train.steps=4", "train.checkpoint_every=2",
+                 "vgg.weights=null", "vgg.allow_random=true"]
+    return overrides, root
+
+
+def compose_experiment(name, overrides):
+    with initialize_config_dir(config_dir=CONF_DIR, version_base=None):
+        return compose("config", overrides=[f"+experiment={name}", *overrides])
+
+
+def expected_labels(name, overrides):
+    exp = OmegaConf.to_container(compose_experiment(name, overrides).experiment, resolve=True)
+    return [r["label"] for r in expand_rows(exp["rows"])], exp
+
+
+@pytest.mark.parametrize("name", TABLES)
+def test_table_runs_at_smoke_and_writes_every_format(dirs, name, caplog):
+    overrides, root = dirs
+    labels, exp = expected_labels(name, overrides)
+    run_experiment(compose_experiment(name, overrides))
+    out = root / "results" / name
+    for ext in ("csv", "md", "tex"):
+        assert (out / f"table.{ext}").stat().st_size > 0
+    assert (out / "crops.png").stat().st_size > 0
+    table = pd.read_csv(out / "table.csv")
+    assert list(table["method"]) == labels
+    assert table[["relMSE", "PSNR", "SSIM"]].notna().all().all()
+    if name in PAPER_TABLES:  # every row that names a paper row shows the published numbers
+        named = [r.get("paper") is not None for r in expand_rows(exp["rows"])]
+        assert table.loc[named, "paper relMSE"].notna().all()
+        assert len(paper_values(name)) >= sum(named) / (2 if name in ("sr_denoise", "dilation") else 1) - 1e-9
+    if name == "sota":
+        learned = table[table["params"] > 0]
+        assert learned["GMac"].between(0.95 * 72, 1.05 * 72).all()  # smoke budget, +-5%
+    if name == "perceptual":
+        assert "random(seed=0)" in (out / "table.md").read_text()  # says which VGG it used
+
+
+def test_identical_rows_are_trained_once_across_tables(dirs):
+    """The paper's own reuse: "ours" is Table 4's one-stage row, Table 5's Ours and Table 7's u1+u2+u3;
+    Table 6's last row is Table 7's 0 and Table 3's +IPT."""
+    _, root = dirs
+    runs = lambda name: pd.read_csv(root / "results" / name / "table.csv").set_index("method")["runs"]
+    assert runs("sota")["Ours"] == runs("deform_num")["u1+u2+u3"] == runs("deform")["End2End + one-stage deform (ours)"]
+    assert runs("ipt")["+ channel aug + skip + CFM"] == runs("deform_num")["0"] \
+        == runs("stage_order")["Simple End2End (SR->dn) + IPT"]
+    assert runs("ipt")["Simple End2End (SR->dn)"] == runs("stage_order")["Simple End2End (SR->dn)"]
+
+
+def test_rerun_trains_nothing(dirs, caplog):
+    overrides, _ = dirs
+    with caplog.at_level("INFO", logger="bench"):
+        run_experiment(compose_experiment("stage_order", overrides))
+    assert "5 of 5 rows reused" in caplog.text
+    assert "train Cascade (dn->SR) [dn stage]: reusing" in caplog.text
+
+
+def test_seeds_give_mean_and_std(dirs):
+    overrides, root = dirs
+    run_experiment(compose_experiment("perceptual", overrides + ["seeds=[0,1]", "++experiment.figure=false"]))
+    table = pd.read_csv(root / "results" / "perceptual" / "table.csv")
+    assert table.loc[1:, "relMSE std"].notna().all() and (table.loc[1:, "relMSE std"] > 0).all()
+    assert " \u00b1 " in (root / "results" / "perceptual" / "table.md").read_text()
+    assert r"$\pm$" in (root / "results" / "perceptual" / "table.tex").read_text()
+
+
+def test_all_runs_the_listed_tables_and_reuses_them(dirs):
+    overrides, root = dirs
+    env = dict(os.environ, HYDRA_FULL_ERROR="0")
+    for _ in range(2):  # the second time (at the latest) every run is recorded
+        out = subprocess.run([sys.executable, "-m", "bench", "+experiment=all", "experiment.tables=[ipt,deform_num]",
+                              *overrides], capture_output=True, text=True, env=env, timeout=600)
+        assert out.returncode == 0, out.stderr[-3000:]
+    log = out.stdout + out.stderr
+    assert "4 of 4 rows reused" in log and "6 of 6 rows reused" in log
+    summary = pd.read_csv(root / "results" / "all" / "table.csv")
+    assert list(summary["experiment"]) == ["ipt", "deform_num"]
+
+
+def test_sweep_expands_in_order():
+    rows = expand_rows([{"label": "rate {dilation} ({task})", "model": "edsr", "paper": "{dilation}",
+                         "overrides": {"blocks": 4}, "sweep": {"task": ["sr", "denoise"], "dilation": [1, 5]}}])
+    assert [r["label"] for r in rows] == ["rate 1 (sr)", "rate 5 (sr)", "rate 1 (denoise)", "rate 5 (denoise)"]
+    assert rows[3]["overrides"] == {"blocks": 4, "dilation": 5} and rows[3]["paper"] == "5"
+    with pytest.raises(ValueError, match="unknown keys"):
+        expand_rows([{"label": "x", "model": "edsr", "overide": {}}])
+
+
+@pytest.mark.parametrize("stage_order", ["sr_dn", "dn_sr"])
+def test_cascade_stages_assemble_into_one_net(stage_order):
+    """Stage weights trained separately (SRDStage) load into the parts of one SRDNet they came from."""
+    kw = dict(channels=8, stage_order=stage_order, channel_aug=False, skip=False, gbuffer_mode="concat")
+    torch.manual_seed(0)
+    first, second = SRDStage(SRDNet(**kw), "sr"), SRDStage(SRDNet(**kw), "dn")
+    for p in list(first.parameters()) + list(second.parameters()):
+        torch.nn.init.normal_(p, std=0.05)
+    net = load_stage(load_stage(SRDNet(**kw), "sr", first.state_dict()), "dn", second.state_dict())
+    for name, p in net.named_parameters():
+        source = first.net if name.startswith(("sr.", "cond_sr.")) else second.net
+        torch.testing.assert_close(p, dict(source.named_parameters())[name])
+    with pytest.raises(ValueError):
+        load_stage(SRDNet(**kw), "sr", {"net.dn.out.weight": torch.zeros(1)})
