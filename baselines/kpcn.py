@@ -26,7 +26,8 @@ class KernelFilter(nn.Module):
     of rows so the unfolded input stays under `max_elements` (a 1080p frame would need 2.7 GB at once).
     A loop over taps with slicing is far slower to train: each slice's backward allocates a full-size
     gradient (33 s per training step at the cpu scale, against well under a second here).
-    FlopCounterMode does not see these MACs, so they are declared through `extra_macs`.
+    The contraction is a batched matmul, so FlopCounterMode counts it; `macs` declares the same for the
+    analytic count.
     """
 
     def __init__(self, filter_size, max_elements=1 << 25):
@@ -46,7 +47,7 @@ class KernelFilter(nn.Module):
             bands.append(torch.einsum("nckp,nskp->nscp", cols, wts).reshape(n, -1, c, bottom - top, w))
         return torch.cat(bands, dim=-2)
 
-    def extra_macs(self, inputs, output):
+    def macs(self, inputs, output):
         """One MAC per output value per tap."""
         return output.numel() * self.filter_size ** 2
 

@@ -91,7 +91,7 @@ def build_table(models: dict[str, dict], budget_gmac: float, input_hw=(540, 960)
     write_table(table, out_dir, caption=caption + (" " if caption else "") + (
         f"Compute per {w}x{h} input frame (scale 2 unless a model sets it), budget {budget_gmac:g} GMac (multiply-accumulates). "
         "Analytic count from layer shapes; torch counter = FlopCounterMode FLOPs / 2, which sees only "
-        "conv/matmul; 'not seen' = declared MACs it misses (e.g. KPCN's per-pixel kernel filtering). "
+        "conv/matmul; 'not seen' = declared MACs it misses (the deformable convs' bilinear sampling). "
         "Widths fitted to the budget where given, else the model's default."))
     pd.DataFrame(stages, columns=["method", "stage", "GMac"]).to_csv(out_dir / "stages.csv", index=False)
     return table
