@@ -15,12 +15,16 @@ import torch
 
 from bench.hdr import from_network, to_network
 from bench.metrics import all_metrics
+from bench.sanitize import sanitize_inputs
 from bench.tasks import Task
 
 
 @torch.no_grad()
-def predict(model, x_lin: torch.Tensor, g: torch.Tensor, hdr: str) -> torch.Tensor:
-    """Linear-radiance prediction for one batch of sequences (B, T, C, h, w)."""
+def predict(model, x_lin: torch.Tensor, g: torch.Tensor, hdr: str, sanitize: bool = True) -> torch.Tensor:
+    """Linear-radiance prediction for one batch of sequences (B, T, C, h, w), on sanitized inputs
+    (bench.sanitize; `sanitize=False` only to show what happens without it)."""
+    if sanitize:
+        x_lin, g = sanitize_inputs(x_lin, g)
     if getattr(model, "linear_hdr", False):
         return model(x_lin, g)["final"]
     return from_network(model(to_network(x_lin, hdr), g)["final"], hdr)

@@ -19,6 +19,7 @@ from tqdm import tqdm
 from bench.hdr import to_network
 from bench.losses import weighted_loss
 from bench.macs import count_params
+from bench.sanitize import sanitize_inputs
 from bench.tasks import Task
 
 CHECKPOINT = "checkpoint.pt"
@@ -41,7 +42,8 @@ def collate(items: list[dict], keys: list[str]) -> dict[str, torch.Tensor]:
 
 def batch_loss(model, batch: dict, task: Task, loss_weights: dict, hdr: str, features=None):
     """Total loss and its named parts for one batch of (B, T, C, H, W) buffers."""
-    out = model(to_network(batch[task.x], hdr), batch[task.g])
+    x, g = sanitize_inputs(batch[task.x], batch[task.g])
+    out = model(to_network(x, hdr), g)
     total, parts = weighted_loss(out["final"], to_network(batch[task.y], hdr), loss_weights["final"], features)
     parts = {f"final.{k}": v for k, v in parts.items()}
     if task.mid and out.get("intermediate") is not None and any(loss_weights["intermediate"].values()):

@@ -1,0 +1,272 @@
+"""`+experiment=stability`: numerical stability of every model on stiff and extreme inputs.
+
+Each named case perturbs a clean validation sequence (or replaces it) and is run through every model
+(proposed, baselines, non-learned rows) in evaluation, with and without the input sanitation
+(bench.sanitize, which the trainer and evaluator always apply), and, for learned models, through one
+training step (gradients and updated weights must be finite). A case passes when the output is finite
+or the model refuses the input with a clear error. Special cases: sizes, 1- and 100-frame sequences
+(recurrent state must not drift or blow up), bf16 autocast (fp16 on GPU), deformable offsets driven to
++-1e3, a few training steps at 10x the learning rate (divergence must be detected, never silent NaN
+weights), and the metrics' own edge cases.
+
+Writes `<results_dir>/stability/table.csv` (one row per case and model) and `table.md` (case x model:
+"ok" with max |output|, or what failed).
+"""
+from __future__ import annotations
+
+import copy
+import logging
+import math
+import tempfile
+import time
+
+import pandas as pd
+import torch
+import torch.nn.functional as F
+
+from bench.evaluate import predict
+from bench.experiments.pipeline import (Context, dataset, ensure_data, is_learned, model_config,
+                                        trained_model)
+from bench.metrics import psnr, relmse, ssim
+from bench.nn import DeformConv2d
+from bench.tables import write_table
+from bench.tasks import get_task
+from bench.train import TrainingDiverged, batch_loss, train
+
+log = logging.getLogger("bench")
+LOSS = {"final": {"edge": 1, "temporal": 1, "spatial": 8, "perceptual": 0},
+        "intermediate": {"edge": 1, "temporal": 1, "spatial": 8, "perceptual": 0}}
+
+
+def _pixels(x, fraction=0.002, seed=0):
+    """A fixed random mask of about `fraction` of the pixels (at least 3), shaped (..., 1, H, W)."""
+    gen = torch.Generator().manual_seed(seed)
+    mask = torch.rand(*x.shape[:-3], 1, *x.shape[-2:], generator=gen) < fraction
+    mask.view(-1)[:3] = True
+    return mask
+
+
+def _set(t, channels, value, seed=0):
+    """A copy of t with `value` written into `channels` at a few fixed pixels."""
+    t = t.clone()
+    t[..., channels, :, :].masked_fill_(_pixels(t, seed=seed), value)
+    return t
+
+
+ALL, ALBEDO, NORMAL, ROUGH = slice(0, 3), slice(0, 3), slice(3, 6), slice(6, 7)
+
+# name -> (x, g) -> (x, g), on linear radiance and the raw gBuffer
+INPUT_CASES = {
+    "clean": lambda x, g: (x, g),
+    "firefly 1e3": lambda x, g: (_set(x, ALL, 1e3), g),
+    "firefly 1e4": lambda x, g: (_set(x, ALL, 1e4), g),
+    "firefly 1e6": lambda x, g: (_set(x, ALL, 1e6), g),
+    "HDR scale 1e-4": lambda x, g: (x * 1e-4, g),
+    "HDR scale 1e4": lambda x, g: (x * 1e4, g),
+    "NaN radiance": lambda x, g: (_set(x, ALL, math.nan), g),
+    "+Inf radiance": lambda x, g: (_set(x, ALL, math.inf), g),
+    "-Inf radiance": lambda x, g: (_set(x, ALL, -math.inf), g),
+    "NaN albedo": lambda x, g: (x, _set(g, ALBEDO, math.nan)),
+    "+Inf albedo": lambda x, g: (x, _set(g, ALBEDO, math.inf)),
+    "NaN normal": lambda x, g: (x, _set(g, NORMAL, math.nan)),
+    "-Inf normal": lambda x, g: (x, _set(g, NORMAL, -math.inf)),
+    "NaN roughness": lambda x, g: (x, _set(g, ROUGH, math.nan)),
+    "+Inf roughness": lambda x, g: (x, _set(g, ROUGH, math.inf)),
+    "all-black frame": lambda x, g: (torch.zeros_like(x), g),
+    "constant frame": lambda x, g: (torch.full_like(x, 0.5), g),
+    "zero albedo": lambda x, g: (x, torch.cat([torch.zeros_like(g[..., ALBEDO, :, :]), g[..., 3:, :, :]], -3)),
+    "zero-length normals": lambda x, g: (x, torch.cat([g[..., :3, :, :], torch.zeros_like(g[..., NORMAL, :, :]),
+                                                       g[..., 6:, :, :]], -3)),
+    "non-unit normals (x5)": lambda x, g: (x, torch.cat([g[..., :3, :, :], 5 * g[..., NORMAL, :, :],
+                                                         g[..., 6:, :, :]], -3)),
+    "roughness -1 and 5": lambda x, g: (x, _set(_set(g, ROUGH, -1.0, seed=1), ROUGH, 5.0, seed=2)),
+}
+SIZES = {"size 1x1": (1, 1), "size 13x7 (odd)": (13, 7), "size 33x17 (not a multiple of 32)": (33, 17),
+         "size 4x200 (wide strip)": (4, 200)}
+
+
+def _resize(t, hw):
+    return F.interpolate(t.flatten(0, 1), size=hw, mode="nearest").unflatten(0, t.shape[:2])
+
+
+def _finite(t) -> bool:
+    return bool(torch.isfinite(t).all())
+
+
+def _timed(fn):
+    t0 = time.perf_counter()
+    out = fn()
+    return out, 1000 * (time.perf_counter() - t0)
+
+
+def _eval_row(model, x, g, hdr, ref=None, clean=None, sanitize=True) -> dict:
+    try:
+        out, ms = _timed(lambda: predict(model, x, g, hdr, sanitize=sanitize))
+    except Exception as err:  # a refusal with a message is an acceptable outcome; record it
+        return {"finite": False, "error": f"{type(err).__name__}: {err}"[:200]}
+    row = {"finite": _finite(out), "max |output|": float(out.abs().nan_to_num(math.inf).max()), "time_ms": ms}
+    if row["finite"] and ref is not None and ref.shape == out.shape:
+        row["relMSE vs reference"] = float(relmse(out.flatten(0, 1), ref.flatten(0, 1)).mean())
+    if row["finite"] and clean is not None and clean.shape == out.shape:
+        row["relMSE vs clean case"] = float(relmse(out.flatten(0, 1), clean.flatten(0, 1)).mean())
+    return row
+
+
+def _train_step_row(model, batch, task, hdr, lr=6e-4) -> dict:
+    """One Adam step on a copy of `model`: are the loss, the gradients and the new weights finite?"""
+    model = copy.deepcopy(model).train()
+    optimizer = torch.optim.Adam(model.parameters(), lr=lr)
+    try:
+        loss, _ = batch_loss(model, batch, task, LOSS, hdr)
+        loss.backward()
+    except Exception as err:
+        return {"train step": f"error: {type(err).__name__}: {err}"[:200]}
+    grads_ok = all(p.grad is None or _finite(p.grad) for p in model.parameters())
+    optimizer.step()
+    weights_ok = all(_finite(p) for p in model.parameters())
+    ok = _finite(loss) and grads_ok and weights_ok
+    return {"train step": "ok" if ok else f"non-finite (loss {_finite(loss)}, grads {grads_ok}, weights {weights_ok})"}
+
+
+def _deform_rows(model, x, g, hdr) -> list[dict]:
+    """Offsets driven to +-1e3 (sampling far outside the image): finite output and gradients."""
+    rows = []
+    for value in (1e3, -1e3):
+        m = copy.deepcopy(model).train()
+        layers = [mod for mod in m.modules() if isinstance(mod, DeformConv2d)]
+        with torch.no_grad():
+            for layer in layers:
+                layer.offset_conv.bias.fill_(value)
+        from bench.hdr import to_network
+        out = m(to_network(x, hdr), g)["final"]
+        out.square().mean().backward()
+        grads = all(p.grad is None or _finite(p.grad) for p in m.parameters())
+        offset_grads = all(_finite(layer.offset_conv.bias.grad) for layer in layers if layer.offset_conv.bias.grad is not None)
+        rows.append({"case": f"deform offsets {value:+.0e}", "finite": _finite(out) and grads and offset_grads,
+                     "max |output|": float(out.detach().abs().max()),
+                     "train step": "ok" if grads and offset_grads else "non-finite gradients"})
+    return rows
+
+
+def _high_lr_row(ctx: Context, model, task, hdr, factor=10.0, steps=5) -> dict:
+    """A few real training steps at `factor` x the learning rate: finite weights, or divergence detected."""
+    m = copy.deepcopy(model)
+    with tempfile.TemporaryDirectory() as tmp:
+        try:
+            train(m, dataset(ctx, "train", task, training=True), task, tmp, steps=steps,
+                  batch_size=ctx.train["batch_size"], loss_weights=LOSS, lr=factor * ctx.train["lr"],
+                  betas=ctx.train["betas"], hdr=hdr, device="cpu", checkpoint_every=steps, progress=False)
+        except TrainingDiverged as err:
+            return {"case": f"train at {factor:g}x lr", "finite": True, "train step": f"divergence detected: {err}"[:200]}
+    ok = all(_finite(p) for p in m.parameters())
+    return {"case": f"train at {factor:g}x lr", "finite": ok, "train step": "ok" if ok else "SILENT NaN WEIGHTS"}
+
+
+def metric_rows() -> list[dict]:
+    """The metrics' edge cases: zero reference, identical images, constant images."""
+    zero, img = torch.zeros(1, 3, 16, 16), torch.rand(1, 3, 16, 16)
+    const_a, const_b = torch.full((1, 3, 16, 16), 0.3), torch.full((1, 3, 16, 16), 0.7)
+    checks = {
+        "relMSE, reference all zero (uses eps)": float(relmse(img, zero)),
+        "PSNR, identical images (inf)": float(psnr(img, img)),
+        "SSIM, identical constant images": float(ssim(const_a, const_a)),
+        "SSIM, different constant images": float(ssim(const_a, const_b)),
+    }
+    expected = {"PSNR, identical images (inf)": math.inf, "SSIM, identical constant images": 1.0}
+    rows = []
+    for case, value in checks.items():
+        ok = value == expected[case] if case in expected else math.isfinite(value)
+        rows.append({"case": case, "model": "metrics", "finite": ok, "max |output|": value})
+    return rows
+
+
+def model_rows(ctx: Context, name: str, seed: int, frames: int, long_frames: int) -> list[dict]:
+    task = get_task("srd")
+    cfg = model_config(ctx, name)
+    model, _ = trained_model(ctx, cfg, task, seed, f"{name} (stability)")
+    model.eval()
+    hdr = ctx.train["hdr"]
+    item = dataset(ctx, ctx.eval.get("split", "val"), task, training=False)[0]
+    x0, g0, ref = (item[k][None, :frames] for k in (task.x, task.g, task.y))
+    clean = predict(model, x0, g0, hdr)
+    rows = []
+    for case, make in INPUT_CASES.items():
+        x, g = make(x0, g0)
+        scale_ref = ref * (1e-4 if case == "HDR scale 1e-4" else 1e4 if case == "HDR scale 1e4" else 1)
+        row = {"case": case, **_eval_row(model, x, g, hdr, scale_ref, None if "scale" in case else clean)}
+        row["finite without sanitation"] = _eval_row(model, x, g, hdr, sanitize=False).get("finite", False)
+        if is_learned(model):
+            mid = _resize(ref, (2 * x.shape[-2], 2 * x.shape[-1]))
+            row.update(_train_step_row(model, {"lr_noisy": x, "lr_gbuf": g, "hr_ref": scale_ref,
+                                               "hr_noisy": mid}, task, hdr))
+        rows.append(row)
+    for case, hw in SIZES.items():
+        x, g = _resize(x0[:, :2], hw), _resize(g0[:, :2], hw)
+        row = {"case": case, **_eval_row(model, x, g, hdr)}
+        if row.get("finite"):
+            shape = tuple(predict(model, x, g, hdr).shape[-2:])
+            if shape != (2 * hw[0], 2 * hw[1]):
+                row.update(finite=False, error=f"output size {shape} for input {hw}")
+        rows.append(row)
+    rows.append({"case": "sequence of 1 frame", **_eval_row(model, x0[:, :1], g0[:, :1], hdr, ref[:, :1])})
+    reps = -(-long_frames // x0.shape[1])
+    x_long, g_long = x0.repeat(1, reps, 1, 1, 1)[:, :long_frames], g0.repeat(1, reps, 1, 1, 1)[:, :long_frames]
+    row = {"case": f"sequence of {long_frames} frames", **_eval_row(model, x_long, g_long, hdr)}
+    if row.get("finite"):  # drift: the last frame against the same input frame one cycle after the start
+        out = predict(model, x_long, g_long, hdr)
+        t_last = long_frames - 1
+        t_early = t_last % x0.shape[1] + x0.shape[1]
+        row["relMSE vs clean case"] = float(relmse(out[0, t_last], out[0, t_early]).mean())
+        row["note"] = f"relMSE vs clean case = drift of frame {t_last} against frame {t_early} (same input)"
+    rows.append(row)
+    with torch.autocast("cpu", dtype=torch.bfloat16):
+        rows.append({"case": "bf16 autocast (CPU)", **_eval_row(model, x0, g0, hdr, ref, clean)})
+    if torch.cuda.is_available():
+        gpu = copy.deepcopy(model).cuda()
+        with torch.autocast("cuda", dtype=torch.float16):
+            row = _eval_row(gpu, x0.cuda(), g0.cuda(), hdr)
+        rows.append({"case": "fp16 autocast (GPU)", **row})
+    if any(isinstance(m, DeformConv2d) for m in model.modules()):
+        rows += _deform_rows(model, x0, g0, hdr)
+    if is_learned(model):
+        rows.append(_high_lr_row(ctx, model, task, hdr))
+    return [{"model": name, **r} for r in rows]
+
+
+def status(row) -> str:
+    """The Markdown cell of a row."""
+    if isinstance(row.get("error"), str):
+        return "error (clear)"
+    train = row.get("train step")
+    bad_train = isinstance(train, str) and not (train == "ok" or train.startswith("divergence detected"))
+    if not row.get("finite") or bad_train:
+        return "FAIL" + (f" ({train})" if bad_train else "")
+    value = row.get("max |output|")
+    return "ok" + (f" {value:.3g}" if isinstance(value, float) and not math.isnan(value) else "")
+
+
+def run(ctx: Context, name: str = "stability", models: list[str] | None = None, frames: int = 3,
+        long_frames: int = 100) -> pd.DataFrame:
+    models = models or ["srd", "edsr", "rae", "kpcn", "cfm", "bilinear", "bicubic", "oidn_lr", "oidn_hr"]
+    ensure_data(ctx, set(get_task("srd").buffers(with_mid=True)))
+    rows = []
+    for model_name in models:
+        log.info("stability: %s", model_name)
+        rows += model_rows(ctx, model_name, ctx.seeds[0], frames, long_frames)
+    rows += metric_rows()
+    table = pd.DataFrame(rows)
+    out_dir = ctx.results_dir / name
+    table["status"] = [status(r) for r in table.to_dict("records")]
+    pivot = table.pivot_table(index="case", columns="model", values="status", aggfunc="first", sort=False).fillna("")
+    caption = (f"Stability at scale {ctx.scale} on {ctx.device}: each case through each model (trained at this "
+               f"scale), inputs sanitized (bench.sanitize). 'ok' + max |output| (linear radiance); 'error "
+               f"(clear)': the model refused with a message; FAIL: non-finite output, gradients or weights. "
+               f"Per-row details (relMSE vs reference and vs the clean case, time, the same case without "
+               f"sanitation, training step) in table.csv.")
+    write_table(pivot.reset_index(), out_dir, caption=caption)
+    table.to_csv(out_dir / "table.csv", index=False)  # the long form, one row per case and model
+    failures = table[table["status"].str.startswith("FAIL")]
+    for r in failures.to_dict("records"):
+        log.warning("stability: %s on %s failed: %s", r["case"], r["model"], r.get("train step") or r.get("error"))
+    log.info("stability: %d of %d cases pass; table in %s", len(table) - len(failures), len(table), out_dir)
+    return table
