@@ -5,7 +5,6 @@ learned method must beat. Both classes follow the model contract of ARCHITECTURE
 return {"final": ...}), ignore the gBuffer and have no parameters, so the trainer skips them. They work
 in whatever domain they are handed (interpolation is applied to the values as given).
 """
-import torch
 import torch.nn as nn
 import torch.nn.functional as F
 

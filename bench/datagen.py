@@ -279,6 +279,22 @@ def load_manifest(root):
         return json.load(f)
 
 
+def frame_view(record):
+    """(scene, camera, gBuffer layers, max_depth) of a manifest frame record, so that the same view can be
+    re-rendered with other settings (spp, resolution, seed), as the timing experiment does.
+
+    A procedural frame's scene is rebuilt from its family and seed (make_scene is deterministic); a user
+    scene (record with 'source') is its XML path, rendered from its own first sensor (camera None).
+    Layers left out of the dataset (roughness of an all-diffuse scene) are left out here too.
+    """
+    left_out = record.get("left_out") or {}
+    layers = [g for g in GBUF_LAYERS if g not in left_out]
+    if record.get("source"):
+        return record["source"], None, layers, int(record["max_depth"])
+    return scenes.make_scene(record["family"], record["scene_seed"]), record["camera"], layers, \
+        int(record["max_depth"])
+
+
 def render_user_scene(xml_path, root, lr_width, lr_height, spp=8, ref_spp=256, seed=0, passes=BUFFERS,
                       max_depth=8, split="user", scale=2):
     """Render a user's Mitsuba XML scene (from its own first sensor) as a one-frame dataset in ``root``.

@@ -4,7 +4,6 @@ import math
 
 import pandas as pd
 import pytest
-import torch
 from hydra import compose, initialize_config_dir
 
 from bench.cli import CONF_DIR, run_experiment

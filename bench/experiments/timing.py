@@ -1,0 +1,502 @@
+"""`+experiment=time`: error against run time on this machine, the trade-off behind the paper's claim that
+rendering at low resolution and low spp and running SRD beats path tracing the HR image for longer.
+
+For a few validation views (the last frame of the first `views` val sequences, scored against that
+frame's `hr_ref` from the dataset) it measures:
+
+- brute force: HR path tracing at 1, 2, 4, ... spp up to half the reference's spp;
+- HR at low spp + a denoiser (methods with task `denoise`: OIDN, the RAE trained on the denoise task);
+- LR at 1..16 spp + each SRD method (task `srd`); the networks were trained at the dataset's spp (8), so
+  the other spp show how they degrade off their operating point.
+
+Total time per frame = render time (radiance and gBuffer in one pass, as the dataset is rendered;
+`render_view`'s wall time on an already loaded scene after a warm-up render, so neither scene loading nor
+Mitsuba's JIT compilation counts) + network time (median of `repeats` warm runs, per frame). Recurrent
+models were trained and scored on sequences, so every input is rendered for each frame of the view's
+sequence, the render time is the mean over those frames, and the error is taken on the last frame.
+
+Two derived numbers per method: the equal-quality speed-up (the time brute-force path tracing needs to
+reach the method's relMSE, interpolated log-log on its curve, divided by the method's time) and, at the
+operating point, the equal-time error (brute-force relMSE at the method's total time).
+
+Renders are runs of kind `timing`, keyed by view, size, spp, passes, seed, Mitsuba variant and host, so
+a rerun re-renders nothing and a time measured on another machine is never reused. force=true re-renders
+and re-times them; it never retrains networks here (run the tables with force=true for that). Network
+times are measured afresh on every run.
+"""
+from __future__ import annotations
+
+import dataclasses
+import logging
+import math
+import os
+import socket
+import time
+from dataclasses import dataclass
+
+import numpy as np
+import pandas as pd
+import torch
+
+from bench import render, runs
+from bench.datagen import derive_seed, frame_view
+from bench.dataset import SequenceDataset
+from bench.errors import UserError
+from bench.evaluate import predict
+from bench.experiments.pipeline import (Context, build_model, ensure_data, is_learned, model_config,
+                                        recorded_training, trained_model)
+from bench.metrics import HIGHER_IS_BETTER, LOWER_IS_BETTER, RELMSE_FORMULA, all_metrics, mse
+from bench.tables import write_table
+from bench.tasks import GBUF_LAYERS, get_task
+
+log = logging.getLogger("bench")
+
+BRUTE_FORCE = "Path tracing (HR)"
+INPUT_RES = {"srd": "lr", "denoise": "hr"}  # a method's task -> the resolution it renders its input at
+EXPECTED_SLOPE = (-1.3, -0.7)               # MSE of a k-spp image falls as 1/k
+PAPER_SPEEDUP = 4                           # what the paper implies at LR 8 spp
+IDEAL_SLOPE = -1.0                          # beyond the measured curve: error ~ 1/spp, time ~ spp
+
+
+# ---------------------------------------------------------------- pure functions
+
+def brute_force_spp(ref_spp: int, cap: int | None = None) -> list[int]:
+    """1, 2, 4, ... up to half the reference's spp (the reference itself is ref_spp), at most `cap`."""
+    out, k = [], 1
+    while 2 * k <= ref_spp and (cap is None or k <= cap):
+        out.append(k)
+        k *= 2
+    return out
+
+
+def loglog_slope(x, y) -> float:
+    """Least-squares slope of log y against log x: the exponent of a power law y ~ x^slope."""
+    return float(np.polyfit(np.log(np.asarray(x, float)), np.log(np.asarray(y, float)), 1)[0])
+
+
+def reference_noise_slope(spp, ref_spp: int) -> float:
+    """The slope an exact 1/k law shows when measured against a reference of ref_spp samples: the
+    reference's own error adds sigma^2/ref_spp to every point and flattens the curve a little."""
+    return loglog_slope(spp, [1 / k + 1 / ref_spp for k in spp])
+
+
+def slope_ok(slope: float, expected=EXPECTED_SLOPE) -> bool:
+    return expected[0] <= slope <= expected[1]
+
+
+def _curve(times, errors) -> tuple[np.ndarray, np.ndarray]:
+    """Knots (log time, log error) of the brute-force curve, time strictly increasing, error falling: the
+    points that beat every faster point (noise, fireflies above all, can make a longer render score
+    worse; such a point says little about the expected error and is dropped), then the longest render's
+    time at the best error, so the curve stays flat up to what was measured rather than assuming
+    progress the renders did not show."""
+    order = np.argsort(np.asarray(times, float), kind="stable")
+    t = np.log(np.asarray(times, float)[order])
+    e = np.log(np.asarray(errors, float)[order])
+    keep = [0]
+    for i in range(1, len(t)):
+        if e[i] < e[keep[-1]]:
+            keep[-1:] = [keep[-1], i] if t[i] > t[keep[-1]] else [i]
+    log_t, log_e = t[keep], e[keep]
+    if t[-1] > log_t[-1]:
+        log_t, log_e = np.append(log_t, t[-1]), np.append(log_e, log_e[-1])
+    return log_t, log_e
+
+
+def equal_time_error(times, errors, seconds: float) -> tuple[float, bool]:
+    """Brute-force error after `seconds`: log-error interpolated against log-time on its curve (`times`,
+    `errors`); beyond the measured times it follows the 1/spp law (error ~ 1/time). (error, extrapolated)"""
+    log_t, log_e = _curve(times, errors)
+    x = math.log(seconds)
+    if x < log_t[0] or x > log_t[-1]:
+        end = 0 if x < log_t[0] else -1
+        return math.exp(log_e[end] + IDEAL_SLOPE * (x - log_t[end])), True
+    return math.exp(float(np.interp(x, log_t, log_e))), False
+
+
+def equal_quality_time(times, errors, error: float) -> tuple[float, bool]:
+    """Seconds brute-force path tracing needs to reach `error` first: log-time interpolated against
+    log-error on its curve; beyond it (an error no measured render reached, or one worse than the
+    quickest render's) the 1/spp law. (seconds, extrapolated)"""
+    log_t, log_e = _curve(times, errors)
+    y = math.log(error)
+    if y > log_e[0] or y < log_e[-1]:
+        end = 0 if y > log_e[0] else -1
+        return math.exp(log_t[end] + (y - log_e[end]) / IDEAL_SLOPE), True
+    i = int(np.argmax(log_e <= y))  # first knot at or below the error
+    if i == 0:
+        return math.exp(log_t[0]), False
+    f = (log_e[i - 1] - y) / (log_e[i - 1] - log_e[i])
+    return math.exp(log_t[i - 1] + f * (log_t[i] - log_t[i - 1])), False
+
+
+def pareto_front(times, errors) -> np.ndarray:
+    """Mask of the points no other point beats in both time and error (at least as good in both, better
+    in one): the methods worth running at some time budget."""
+    t, e = np.asarray(times, float), np.asarray(errors, float)
+    dominated = [bool(np.any((t <= t[i]) & (e <= e[i]) & ((t < t[i]) | (e < e[i])))) for i in range(len(t))]
+    return ~np.array(dominated, dtype=bool)
+
+
+# ---------------------------------------------------------------- views and renders
+
+@dataclass
+class View:
+    """One validation sequence; its last frame is scored against `ref` (3, H, W), the dataset's hr_ref."""
+    sequence: str
+    frames: list
+    scene: object
+    gbuf_layers: list
+    max_depth: int
+    ref: torch.Tensor
+
+
+def pick_views(ctx: Context, count: int, split: str = "val") -> list[View]:
+    """The first `count` sequences of `split` (in the loader's order), fewer when the split has fewer."""
+    data = SequenceDataset(ctx.data_dir, split, ["hr_ref"])
+    views = []
+    for index, (name, records) in enumerate(list(data.sequences.items())[:count]):
+        scene, _, layers, depth = frame_view(records[-1])
+        views.append(View(name, records, scene, layers, depth, data.item(index, 0)["hr_ref"][-1]))
+    return views
+
+
+class Renderer:
+    """Renders frames of one view, loading its scene once and warming Mitsuba's JIT once per image size
+    and set of passes (Dr.Jit bakes both into its kernels; the first render of each costs about 0.5 s of
+    compilation whatever the spp): the timed render then measures path tracing, not compilation."""
+
+    def __init__(self, view: View, variant: str):
+        self.view, self.variant = view, variant
+        self._scene, self._warm = None, set()
+
+    def __call__(self, camera, width: int, height: int, spp: int, seed: int, passes: list) -> dict:
+        if self._scene is None:
+            self._scene = render.load_scene(self.view.scene, self.variant)
+        key = (width, height, tuple(passes))
+        if key not in self._warm:
+            render.render_view(self._scene, camera, width, height, 1, seed, passes, max_depth=self.view.max_depth)
+            self._warm.add(key)
+        return render.render_view(self._scene, camera, width, height, spp, seed, passes,
+                                  max_depth=self.view.max_depth)
+
+
+def gbuffer_tensor(out: dict, layers: list) -> torch.Tensor:
+    """The 7-channel gBuffer (albedo, normal, roughness) of a render as (7, H, W); a left-out roughness
+    is the constant 1, as the dataset loader supplies it."""
+    h, w = out["radiance"].shape[:2]
+    planes = [out[name] if name in layers else np.ones((h, w, 1), np.float32) for name in GBUF_LAYERS]
+    return torch.from_numpy(np.concatenate(planes, -1).transpose(2, 0, 1).copy())
+
+
+def cached_render(ctx: Context, view: View, renderer: Renderer, frame: int, res: str, spp: int,
+                  gbuffer: bool, stats: dict) -> dict:
+    """One frame at `res` ('lr'/'hr') and `spp`, from the run store when recorded; returns radiance
+    (3, H, W), gbuf (7, H, W) or None, and render_s (wall seconds of that render on this host)."""
+    record = view.frames[frame]
+    width, height = record[f"{res}_size"]
+    passes = list(view.gbuf_layers) if gbuffer else []
+    seed = derive_seed(ctx.data_spec["seed"], "timing", record["scene"], record["view"], record["frame"],
+                       res, spp, int(gbuffer))
+    identity = {"scene": record["scene"], "sequence": record["sequence"], "frame": record["frame"],
+                "camera": record.get("camera"), "size": [width, height], "spp": spp, "seed": seed,
+                "passes": passes, "max_depth": view.max_depth, "variant": renderer.variant,
+                "host": socket.gethostname()}
+    run = runs.begin(ctx.runs_dir, "timing", identity, seed=seed, device=_render_device(renderer.variant),
+                     label=f"render {record['sequence']}/{record['frame']} {res} {spp} spp", force=ctx.force)
+    stats["renders"] += 1
+    if run.reused:
+        stats["reused"] += 1
+        with np.load(run.dir / "render.npz") as saved:
+            gbuf = torch.from_numpy(saved["gbuf"]) if gbuffer else None
+            return {"radiance": torch.from_numpy(saved["radiance"]), "gbuf": gbuf,
+                    "render_s": run.metrics["render_s"]}
+    out = renderer(record.get("camera"), width, height, spp, seed, passes)
+    radiance, repaired = render.repair_nonfinite(out["radiance"])
+    for name in passes:
+        out[name], count = render.repair_nonfinite(out[name])
+        repaired += count
+    result = {"radiance": torch.from_numpy(radiance.transpose(2, 0, 1).copy()),
+              "gbuf": gbuffer_tensor(out, passes) if gbuffer else None, "render_s": out["wall_time_s"]}
+    arrays = {"radiance": result["radiance"].numpy()}
+    if gbuffer:
+        arrays["gbuf"] = result["gbuf"].numpy()
+    np.savez(run.dir / "render.npz", **arrays)
+    runs.complete(run, {"render_s": out["wall_time_s"], "nonfinite_repaired": repaired})
+    return result
+
+
+def _render_device(variant: str) -> str:
+    return "cuda" if variant.startswith("cuda") else "cpu"
+
+
+def input_sequence(ctx, view, renderer, res, spp, stats) -> tuple[torch.Tensor, torch.Tensor, float]:
+    """Radiance and gBuffer of every frame of the view at (res, spp) as (1, T, C, h, w) tensors, and the
+    mean render seconds per frame."""
+    frames = [cached_render(ctx, view, renderer, i, res, spp, True, stats) for i in range(len(view.frames))]
+    x = torch.stack([f["radiance"] for f in frames])[None]
+    g = torch.stack([f["gbuf"] for f in frames])[None]
+    return x, g, float(np.mean([f["render_s"] for f in frames]))
+
+
+# ---------------------------------------------------------------- methods
+
+def resolve_method(ctx: Context, method: dict, train_missing: bool):
+    """The model ready to run, or None to skip the method: a learned model comes from its recorded
+    training run, and is trained here only when `train_missing` (training is the tables' job)."""
+    task = get_task(method["task"])
+    cfg = model_config(ctx, method["model"], method.get("overrides"))
+    seed = ctx.seeds[0]
+    if not is_learned(build_model(cfg, task.scale)):
+        return build_model(cfg, task.scale)
+    if not train_missing and recorded_training(ctx, cfg, task, seed) is None:
+        log.warning("time: %s skipped: no recorded %s-task training run at scale %s (train it with its table, "
+                    "e.g. sota or sr_denoise, or set experiment.train_missing=true)",
+                    method["label"], task.name, ctx.scale)
+        return None
+    model, _ = trained_model(dataclasses.replace(ctx, force=False), cfg, task, seed, method["label"])
+    return model.to(ctx.device).eval()
+
+
+def network_device(ctx: Context, model) -> str:
+    """Where and in what precision the method's network runs (OIDN runs in pyoidn, on the CPU)."""
+    if getattr(model, "linear_hdr", False):
+        return "cpu fp32 (pyoidn)"
+    return f"{ctx.device} fp32" + (f", {torch.get_num_threads()} threads" if ctx.device == "cpu" else "")
+
+
+def _sync(device: str) -> None:
+    if str(device).startswith("cuda"):
+        torch.cuda.synchronize()
+
+
+@torch.no_grad()
+def timed_prediction(model, x, g, hdr: str, device: str, repeats: int) -> tuple[torch.Tensor, float]:
+    """(last frame of the prediction (3, H, W), median seconds per frame over `repeats` warm runs).
+    A recurrent model sees the whole sequence (time per frame = sequence time / T); any other model only
+    the last frame, so its time is one frame's latency."""
+    if not getattr(model, "recurrent", False):
+        x, g = x[:, -1:], g[:, -1:]
+    x, g = x.to(device), g.to(device)
+    pred = predict(model, x, g, hdr)  # warm-up: first-call allocation is not inference time
+    _sync(device)
+    seconds = []
+    for _ in range(max(1, repeats)):
+        t0 = time.perf_counter()
+        pred = predict(model, x, g, hdr)
+        _sync(device)
+        seconds.append(time.perf_counter() - t0)
+    return pred[0, -1].float().cpu(), float(np.median(seconds)) / x.shape[1]
+
+
+def scores(pred: torch.Tensor, ref: torch.Tensor) -> dict:
+    out = {k: float(v[0]) for k, v in all_metrics(pred[None], ref[None]).items()}
+    out["MSE"] = float(mse(pred[None], ref[None])[0])
+    return out
+
+
+# ---------------------------------------------------------------- measuring one view
+
+def measure_view(ctx: Context, view: View, variant: str, methods: list, bf_spp: list, spp_lists: dict,
+                 repeats: int, stats: dict) -> list[dict]:
+    """Rows (method, spp, render s, network s, metrics) of one view."""
+    renderer, rows = Renderer(view, variant), []
+    last = len(view.frames) - 1
+    for spp in bf_spp:
+        out = cached_render(ctx, view, renderer, last, "hr", spp, False, stats)
+        rows.append({"method": BRUTE_FORCE, "input": "HR", "spp": spp, "render s": out["render_s"],
+                     "network s": 0.0, "network on": "-", **scores(out["radiance"], view.ref)})
+    for task, res in INPUT_RES.items():
+        chosen = [m for m in methods if m["task"] == task]
+        for spp in (spp_lists[res] if chosen else []):
+            x, g, render_s = input_sequence(ctx, view, renderer, res, spp, stats)
+            for m in chosen:
+                pred, network_s = timed_prediction(m["net"], x, g, ctx.train["hdr"], ctx.device, repeats)
+                rows.append({"method": m["label"], "input": res.upper(), "spp": spp, "render s": render_s,
+                             "network s": network_s, "network on": network_device(ctx, m["net"]),
+                             **scores(pred, view.ref)})
+    return rows
+
+
+# ---------------------------------------------------------------- tables and figure
+
+def average(rows: list[dict]) -> pd.DataFrame:
+    """Mean over views per (method, spp), methods in the order measured, each by spp; total s = render s
+    + network s."""
+    df = pd.DataFrame(rows)
+    keys = ["method", "input", "spp", "network on"]
+    table = df.groupby(keys, sort=False).mean(numeric_only=True).reset_index()
+    rank = {method: i for i, method in enumerate(dict.fromkeys(df["method"]))}
+    table = table.sort_values(["method", "spp"], key=lambda c: c.map(rank) if c.name == "method" else c,
+                              kind="stable").reset_index(drop=True)
+    table.insert(table.columns.get_loc("network s") + 1, "total s", table["render s"] + table["network s"])
+    return table
+
+
+def add_speedups(table: pd.DataFrame) -> pd.DataFrame:
+    """Equal-quality speed-up of every row against the brute-force curve, and the Pareto mask."""
+    bf = table[table["method"] == BRUTE_FORCE]
+    speedups, extrapolated = [], []
+    for _, r in table.iterrows():
+        seconds, beyond = (math.nan, False) if r["method"] == BRUTE_FORCE else \
+            equal_quality_time(bf["total s"], bf["relMSE"], r["relMSE"])
+        speedups.append(seconds / r["total s"])
+        extrapolated.append("yes" if beyond else "")
+    table["speed-up"] = speedups
+    table["extrapolated"] = extrapolated
+    table["Pareto"] = pareto_front(table["total s"], table["relMSE"])
+    return table
+
+
+SPEEDUP_COLUMNS = ["method", "input", "spp", "total s", "relMSE", "PT s at equal relMSE", "speed-up at equal relMSE",
+                   "PT relMSE at equal time", "relMSE ratio PT/method", "extrapolated"]
+
+
+def speedup_table(table: pd.DataFrame, operating_spp: int) -> pd.DataFrame:
+    """One row per method at the operating point: equal-quality speed-up and equal-time error."""
+    bf = table[table["method"] == BRUTE_FORCE]
+    rows = []
+    for method, part in table[table["method"] != BRUTE_FORCE].groupby("method", sort=False):
+        r = part.iloc[int(np.argmin(np.abs(np.log2(part["spp"].to_numpy(float)) - math.log2(operating_spp))))]
+        pt_seconds, extra_q = equal_quality_time(bf["total s"], bf["relMSE"], r["relMSE"])
+        pt_error, extra_t = equal_time_error(bf["total s"], bf["relMSE"], r["total s"])
+        rows.append({"method": method, "input": r["input"], "spp": int(r["spp"]), "total s": r["total s"],
+                     "relMSE": r["relMSE"], "PT s at equal relMSE": pt_seconds,
+                     "speed-up at equal relMSE": pt_seconds / r["total s"],
+                     "PT relMSE at equal time": pt_error, "relMSE ratio PT/method": pt_error / r["relMSE"],
+                     "extrapolated": "yes" if (extra_q or extra_t) else "no"})
+    return pd.DataFrame(rows, columns=SPEEDUP_COLUMNS)
+
+
+def plot(table: pd.DataFrame, path, title: str) -> None:
+    """Log-log relMSE against total time, one curve per method (points labelled by spp), Pareto front."""
+    import matplotlib
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, ax = plt.subplots(figsize=(9, 5.5))
+    for method, part in table.groupby("method", sort=False):
+        brute = method == BRUTE_FORCE
+        ax.plot(part["total s"], part["relMSE"], marker="o" if part["input"].iloc[0] == "LR" else "s",
+                ms=4, lw=2.5 if brute else 1.2, color="black" if brute else None, label=method)
+        for _, r in part.iterrows():
+            ax.annotate(f"{int(r['spp'])}", (r["total s"], r["relMSE"]), fontsize=6, xytext=(2, 2),
+                        textcoords="offset points")
+    front = table[table["Pareto"]].sort_values("total s")
+    ax.step(front["total s"], front["relMSE"], where="post", color="red", ls="--", lw=1, label="Pareto front")
+    ax.scatter(front["total s"], front["relMSE"], s=110, facecolors="none", edgecolors="red", zorder=3)
+    ax.set(xscale="log", yscale="log", xlabel="total time per frame (s): render + network",
+           ylabel="relMSE vs HR reference", title=title)
+    ax.grid(True, which="both", alpha=0.3)
+    ax.legend(fontsize=7, loc="upper left", bbox_to_anchor=(1.01, 1.0))
+    fig.savefig(path, dpi=150, bbox_inches="tight")
+    plt.close(fig)
+
+
+# ---------------------------------------------------------------- the experiment
+
+DEFAULT_METHODS = [{"label": "Ours", "model": "srd"}, {"label": "Input bilinear", "model": "bilinear"}]
+
+
+def _methods(ctx: Context, methods: list[dict] | None) -> list[dict]:
+    """Methods with their task (default srd), checked before anything is rendered."""
+    out = []
+    for m in methods or DEFAULT_METHODS:
+        m = {"task": "srd", **m}
+        if m["task"] not in INPUT_RES:
+            raise UserError(f"time: method {m['label']!r} has task {m['task']!r}; use srd (LR input) or "
+                            f"denoise (HR input)")
+        model_config(ctx, m["model"], m.get("overrides"))
+        out.append(m)
+    return out
+
+
+def _data_passes(methods: list[dict], train_missing: bool) -> set[str]:
+    """The reference always; the tasks' training buffers only when networks may be trained here."""
+    passes = {"hr_ref"}
+    if train_missing:
+        for m in methods:
+            passes.update(get_task(m["task"]).buffers(with_mid=True))
+    return passes
+
+
+def _slope_note(slope: float, flattened: float, ref_spp: int) -> str:
+    text = (f"Brute-force MSE vs spp: log-log slope {slope:.2f} (expected about -1; {flattened:.2f} with the "
+            f"{ref_spp}-spp reference's own noise)")
+    if not slope_ok(slope):
+        text += (f", OUTSIDE [{EXPECTED_SLOPE[0]}, {EXPECTED_SLOPE[1]}]: fireflies or a render mismatch; "
+                 f"the curves are suspect")
+    return text + "."
+
+
+def _skipped_note(skipped: list[str]) -> str:
+    if not skipped:
+        return ""
+    return (f"Skipped, no recorded training run at this scale (train them with their tables or set "
+            f"experiment.train_missing=true): {', '.join(skipped)}.")
+
+
+def _caption(ctx, caption, views, variant, train_spp) -> str:
+    return (f"{caption} Scale {ctx.scale}, {len(views)} val view(s) (last frame of "
+            f"{', '.join(v.sequence for v in views)}), host {socket.gethostname()} ({os.cpu_count()} CPUs), "
+            f"Mitsuba {variant}. Seconds per frame, averaged over views: render = render_view wall time "
+            f"(radiance + gBuffer in one pass, scene loaded, JIT warm), network = median of warm runs. "
+            f"{RELMSE_FORMULA}; PSNR/SSIM clamped to [0, 1]; all against the HR reference. Networks trained "
+            f"at {train_spp} spp. speed-up: seconds brute-force HR path tracing (PT) needs for the same relMSE "
+            f"(log-log interpolation on its curve; extrapolated: beyond it, by the 1/spp law) / the method's "
+            f"seconds; the paper implies about {PAPER_SPEEDUP}x at LR 8 spp. Pareto: no other row is both "
+            f"faster and better.")
+
+
+def run(ctx: Context, name: str = "time", caption: str = "Error against run time.", views: int = 4,
+        lr_spp: list | None = None, hr_spp: list | None = None, max_spp: int | None = None,
+        operating_spp: int = 8, repeats: int = 5, train_missing: bool = False,
+        methods: list[dict] | None = None) -> pd.DataFrame:
+    methods = _methods(ctx, methods)
+    ensure_data(ctx, _data_passes(methods, train_missing))
+    chosen = pick_views(ctx, int(views))
+    ref_spp = int(chosen[0].frames[-1]["ref_spp"])
+    bf_spp = brute_force_spp(ref_spp, max_spp)
+    if len(bf_spp) < 2:
+        raise UserError(f"time: the reference has {ref_spp} spp and max_spp={max_spp}: brute force needs at "
+                        f"least 1 and 2 spp")
+    spp_lists = {"lr": list(lr_spp or [1, 2, 4, 8, 16]), "hr": list(hr_spp or [1, 2, 4, 8, 16])}
+    nets = {m["label"]: resolve_method(ctx, m, train_missing) for m in methods}
+    kept = [{**m, "net": nets[m["label"]]} for m in methods if nets[m["label"]] is not None]
+    variant = render.use_variant("cuda_ad_rgb" if ctx.device == "cuda" else None)
+    stats, rows = {"renders": 0, "reused": 0}, []
+    for view in chosen:
+        log.info("time: view %s", view.sequence)
+        rows += measure_view(ctx, view, variant, kept, bf_spp, spp_lists, repeats, stats)
+    table = add_speedups(average(rows))
+    skipped = [label for label, net in nets.items() if net is None]
+    report(ctx, name, caption, table, chosen, variant, skipped, operating_spp)
+    log.info("time: %d of %d renders reused from the run store; tables and figure in %s",
+             stats["reused"], stats["renders"], ctx.results_dir / name)
+    return table
+
+
+def report(ctx: Context, name: str, caption: str, table: pd.DataFrame, views: list[View], variant: str,
+           skipped: list[str], operating_spp: int) -> None:
+    """Check the brute-force slope, write table.*, speedup.* and error_vs_time.png."""
+    ref_spp, train_spp = int(views[0].frames[-1]["ref_spp"]), views[0].frames[-1]["spp"]
+    bf = table[table["method"] == BRUTE_FORCE]
+    slope = loglog_slope(bf["spp"], bf["MSE"])
+    if not slope_ok(slope):
+        log.warning("time: brute-force MSE falls as spp^%.2f, outside the expected [%g, %g] (about 1/spp)",
+                    slope, *EXPECTED_SLOPE)
+    notes = " ".join(filter(None, [_slope_note(slope, reference_noise_slope(bf["spp"], ref_spp), ref_spp),
+                                   _skipped_note(skipped)]))
+    out = ctx.results_dir / name
+    shown = table.drop(columns=["MSE"]).assign(Pareto=table["Pareto"].map({True: "yes", False: ""}))
+    write_table(shown, out, caption=f"{_caption(ctx, caption, views, variant, train_spp)} {notes}",
+                lower_is_better=LOWER_IS_BETTER, higher_is_better=HIGHER_IS_BETTER)
+    write_table(speedup_table(table, operating_spp), out, name="speedup", caption=(
+        f"Equal quality and equal time against brute-force HR path tracing (PT) at the operating point "
+        f"({operating_spp} spp; the paper's is LR 8 spp, where it implies about {PAPER_SPEEDUP}x), scale "
+        f"{ctx.scale}, {len(views)} view(s), host {socket.gethostname()}; seconds per frame; {RELMSE_FORMULA}. "
+        f"PT s at equal relMSE: log-time interpolated against log-relMSE on PT's curve; speed-up = that / "
+        f"the method's total s. PT relMSE at equal time: log-relMSE interpolated at the method's total s. "
+        f"extrapolated: beyond PT's measured times or errors, continued by the 1/spp law (relMSE ~ 1/time). "
+        f"{notes}"), lower_is_better=("relMSE",), higher_is_better=("speed-up at equal relMSE",))
+    plot(table, out / "error_vs_time.png", f"Error vs time ({ctx.scale}, {len(views)} view(s))")
