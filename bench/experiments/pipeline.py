@@ -186,7 +186,7 @@ def _file_sha256(path: str) -> str:
 # ---------------------------------------------------------------- train + evaluate
 
 def _train_identity(ctx: Context, cfg: dict, task: Task, seed: int, vgg_id: dict | None,
-                    stage: str | None) -> dict:
+                    stage: str | None = None) -> dict:
     schedule = {k: v for k, v in ctx.train.items() if k not in ("checkpoint_every",)}
     identity = {"model": cfg, "task": task.name, "train": schedule, "data": data_fingerprint(ctx),
                 "seed": seed, "vgg": vgg_id}
