@@ -150,6 +150,55 @@ def test_deform_speed_vs_conv2d():
     assert ratio < 8
 
 
+
+@pytest.mark.parametrize("dilation,modulated", [(1, False), (2, True)])
+def test_deform_inference_and_training_samplers_agree(dilation, modulated):
+    """Without autograd the columns come from an embedding_bag gather, with it from grid_sample
+    (bench/nn/deform.py): the two must agree, with offsets reaching far outside the image."""
+    g = torch.Generator().manual_seed(4)
+    x = torch.randn(2, 3, 9, 11, generator=g, dtype=torch.float64)
+    w = torch.randn(4, 3, 3, 3, generator=g, dtype=torch.float64)
+    bias = torch.randn(4, generator=g, dtype=torch.float64)
+    offset = (torch.rand(2, 18, 9, 11, generator=g, dtype=torch.float64) - 0.5) * 30
+    mask = torch.rand(2, 9, 9, 11, generator=g, dtype=torch.float64) if modulated else None
+    with torch.no_grad():
+        inference = deform_conv2d(x, offset, w, bias, dilation, dilation, mask)
+    training = deform_conv2d(x, offset, w.clone().requires_grad_(), bias, dilation, dilation, mask)
+    torch.testing.assert_close(inference, training.detach(), atol=1e-12, rtol=0)
+
+
+def test_deform_channels_last_input_gives_channels_last_output():
+    layer = DeformConv2d(5, 6)
+    torch.nn.init.normal_(layer.offset_conv.weight, std=0.3)
+    x = torch.randn(2, 5, 7, 9)
+    with torch.no_grad():
+        plain, nhwc = layer(x), layer(x.contiguous(memory_format=torch.channels_last))
+    assert nhwc.is_contiguous(memory_format=torch.channels_last)
+    torch.testing.assert_close(nhwc, plain, atol=1e-5, rtol=1e-5)
+
+
+def test_deform_bf16_autocast_keeps_positions_in_float32():
+    """Under autocast the offsets are bfloat16, which cannot represent x = 299.25 (its spacing there is
+    2): sampling positions must still be computed in float32, or columns shift by a pixel."""
+    layer = DeformConv2d(4, 4)
+    torch.nn.init.zeros_(layer.offset_conv.weight)
+    torch.nn.init.constant_(layer.offset_conv.bias, 0.25)
+    x = torch.randn(1, 4, 3, 300)
+    with torch.no_grad():
+        ref = layer(x)
+        with torch.autocast("cpu", dtype=torch.bfloat16):
+            low = layer(x).float()
+    assert float((low - ref).abs().max()) < 0.05 * float(ref.abs().max())
+
+
+def test_deform_propagates_nan_offsets_to_their_pixel_only():
+    x, w = torch.randn(1, 2, 6, 6), torch.randn(3, 2, 3, 3)
+    offset = torch.zeros(1, 18, 6, 6)
+    offset[0, 4, 2, 3] = float("nan")
+    with torch.no_grad():
+        out = deform_conv2d(x, offset, w)
+    assert torch.isnan(out[0, :, 2, 3]).all() and torch.isnan(out).sum() == 3
+
 # ---- CFM, residual blocks, pixel shuffle ----------------------------------------------------------
 
 def test_cfm_identity_at_init_and_formula():

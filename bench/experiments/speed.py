@@ -1,0 +1,418 @@
+"""`+experiment=speed`: how fast every learned model runs on THIS machine, against reference points
+measured in the same run (issue #8).
+
+Per model (the configured widths of ctx.models), one LR frame at `input_hw` (default 960x540 in,
+1920x1080 out), each fast path of bench.infer (fp32 reference, inference_mode, channels_last, bf16,
+compile): warm ms per frame (median, min, max of `repeats` calls after `warmup`), achieved GMac/s
+(analytic MACs of bench.macs counted on the meta device, divided by the median time), peak memory of
+one call, and the largest difference from the fp32 output (every fast path is checked in the run that
+times it). Then one training step (forward, loss, backward, Adam) at the training crop.
+
+Reference points, same run, same threads: Intel OIDN (pyoidn, albedo + normal) denoising one frame at
+the OUTPUT size; a plain stack of 3x3 convs + ReLU with the proposed model's MACs at the same input
+size, per fast path (what the hardware gives a dense conv net of that cost); a plain nn.Conv2d next to
+the deformable conv at realistic layer shapes. The headline ratios are model time / OIDN time and model
+GMac/s / conv-stack GMac/s. Tiled inference (bench.infer.tiled_predict) is checked against untiled
+inference at the input size and timed at a 4K output (3840x2160) with its peak memory.
+
+Times are wall clock (CUDA synchronised); peak memory on CPU is the rise of the process's peak
+resident set (VmHWM, reset through /proc/self/clear_refs after malloc_trim) during one call, on CUDA
+torch.cuda.max_memory_allocated above what was allocated before. Weights are the untrained init plus
+N(0, `perturb`) noise on every parameter: timings do not depend on trained values, and the noise makes
+the zero-initialised branches (CFM, deformable offsets, residual output convs) compute, which the
+tiling check needs.
+
+Writes `<results_dir>/speed/<device tag>/table.{csv,md,tex}`: keyed by scale (the widths) and by
+machine (e.g. `results/cpu/speed/cpu-amd-epyc/`), since a speed table describes one machine.
+"""
+from __future__ import annotations
+
+import contextlib
+import copy
+import ctypes
+import logging
+import platform
+import re
+import statistics
+import time
+from pathlib import Path
+
+import pandas as pd
+import torch
+import torch.nn as nn
+from hydra.utils import instantiate
+
+from bench.infer import max_abs_diff, parse_path, prepare, tiled_predict
+from bench.losses import weighted_loss
+from bench.macs import count_macs, on_meta
+from bench.nn import DeformConv2d
+from bench.tables import write_table
+
+log = logging.getLogger("bench")
+
+MODELS = ["srd", "edsr", "rae", "kpcn", "cfm"]
+LABELS = {"srd": "Ours", "edsr": "EDSR", "rae": "RAE", "kpcn": "KPCN", "cfm": "CFM"}
+PATHS = ["fp32", "inference_mode", "channels_last", "bf16"]
+COLUMNS = ["section", "method", "path", "size", "per", "ms", "ms min", "ms max", "GMac", "GMac/s",
+           "peak MiB", "time / OIDN", "GMac/s / conv stack", "time / plain conv", "max abs diff",
+           "max rel diff", "note"]
+
+
+# ------------------------------------------------------------------------------ machine
+
+def device_tag(device: str) -> str:
+    """A directory name for the machine: cpu-<cpu model> or cuda-<gpu model>, lower case."""
+    if str(device).startswith("cuda"):
+        name = torch.cuda.get_device_name(torch.device(device))
+    else:
+        name = platform.processor() or "unknown"
+        with contextlib.suppress(OSError):
+            found = re.search(r"model name\s*:\s*(.+)", Path("/proc/cpuinfo").read_text())
+            name = found.group(1) if found else name
+    slug = re.sub(r"\(r\)|\(tm\)|cpu|processor|@.*|\d+-core", " ", name.lower())
+    slug = re.sub(r"[^a-z0-9]+", "-", slug).strip("-")
+    return f"{'cuda' if str(device).startswith('cuda') else 'cpu'}-{slug or 'unknown'}"
+
+
+def machine_caption(device: str) -> str:
+    """Device, library and thread settings of this run, for the caption."""
+    if str(device).startswith("cuda"):
+        where = f"{torch.cuda.get_device_name(torch.device(device))} (CUDA {torch.version.cuda})"
+    else:
+        where = f"{device_tag(device)[4:]} CPU, {torch.get_num_threads()} torch threads"
+    return f"{where}, torch {torch.__version__}"
+
+
+def _sync(device: str) -> None:
+    if str(device).startswith("cuda"):
+        torch.cuda.synchronize()
+
+
+def time_call(fn, device: str, repeats: int = 5, warmup: int = 1) -> dict:
+    """Median, min and max milliseconds of `repeats` calls of fn() after `warmup` untimed ones, and the
+    last call's result (to compare outputs without an extra call)."""
+    result = None
+    for _ in range(warmup):
+        result = fn()
+    _sync(device)
+    times = []
+    for _ in range(max(1, repeats)):
+        t0 = time.perf_counter()
+        result = fn()
+        _sync(device)
+        times.append(1000 * (time.perf_counter() - t0))
+    return {"ms": statistics.median(times), "ms min": min(times), "ms max": max(times), "result": result}
+
+
+def _status_kib(field: str) -> int:
+    found = re.search(rf"^{field}:\s+(\d+) kB", Path("/proc/self/status").read_text(), re.MULTILINE)
+    return int(found.group(1)) if found else 0
+
+
+def _release_free_memory() -> None:
+    """Return freed heap memory to the OS (glibc malloc_trim), so the next peak starts from what is live."""
+    with contextlib.suppress(OSError, AttributeError):
+        ctypes.CDLL("libc.so.6").malloc_trim(0)
+
+
+def peak_memory_mib(fn, device: str) -> float:
+    """Peak memory one call of fn() adds to what is allocated before it, in MiB (module docstring).
+    NaN on a CPU system without /proc (the resident-set peak cannot be reset there)."""
+    if str(device).startswith("cuda"):
+        _sync(device)
+        before = torch.cuda.memory_allocated(device)
+        torch.cuda.reset_peak_memory_stats(device)
+        fn()
+        _sync(device)
+        return (torch.cuda.max_memory_allocated(device) - before) / 2 ** 20
+    try:
+        _release_free_memory()
+        before = _status_kib("VmRSS")
+        Path("/proc/self/clear_refs").write_text("5")  # resets VmHWM to the current resident set
+    except OSError:
+        return float("nan")
+    fn()
+    return max(0, _status_kib("VmHWM") - before) / 1024
+
+
+# ------------------------------------------------------------------------------ models and inputs
+
+def frame_inputs(batch: int, frames: int, hw, device: str, in_channels=3, gbuffer_channels=7, seed=0):
+    """Random radiance in [0, 1) and gBuffer (B, T, C, h, w), reproducible."""
+    gen = torch.Generator().manual_seed(seed)
+    h, w = hw
+    x = torch.rand(batch, frames, in_channels, h, w, generator=gen)
+    g = torch.rand(batch, frames, gbuffer_channels, h, w, generator=gen)
+    return x.to(device), g.to(device)
+
+
+def build(cfg: dict, device: str, perturb: float, seed: int = 0) -> nn.Module:
+    """The model of `cfg` (scale 2) with N(0, perturb) noise on every parameter (module docstring)."""
+    torch.manual_seed(seed)
+    model = instantiate(cfg, scale=2)
+    with torch.no_grad():
+        for p in model.parameters():
+            p.add_(torch.randn_like(p) * perturb)
+    return model.to(device).eval()
+
+
+def macs_per_frame(model_fn, hw, in_channels=3, gbuffer_channels=7) -> int:
+    """Analytic MACs of one frame at LR size hw, counted on the meta device (no compute)."""
+    h, w = hw
+    model, inputs = on_meta(model_fn, lambda d: (torch.zeros(1, 1, in_channels, h, w, device=d),
+                                                 torch.zeros(1, 1, gbuffer_channels, h, w, device=d)))
+    return int(count_macs(model, inputs)["macs"].sum())
+
+
+class ConvStack(nn.Module):
+    """`depth` 3x3 convs + ReLU at `channels` channels, applied to a (B, T, channels, h, w) input: the
+    dense-conv reference. Takes (x, g) like a model and ignores g."""
+
+    def __init__(self, channels: int, depth: int):
+        super().__init__()
+        layers = []
+        for _ in range(depth):
+            layers += [nn.Conv2d(channels, channels, 3, padding=1), nn.ReLU(inplace=True)]
+        self.body = nn.Sequential(*layers)
+
+    def forward(self, x, g=None):
+        b, t = x.shape[:2]
+        return {"final": self.body(x.reshape(b * t, *x.shape[2:])).reshape(b, t, x.shape[2], *x.shape[-2:])}
+
+
+def conv_stack_depth(target_macs: float, hw, channels: int) -> int:
+    """Depth whose MACs (h*w*channels^2*9 per conv) are closest to `target_macs`."""
+    per_conv = hw[0] * hw[1] * channels * channels * 9
+    return max(1, round(target_macs / per_conv))
+
+
+# ------------------------------------------------------------------------------ sections
+
+def _row(section, method, path, size, per, timing=None, **extra) -> dict:
+    row = {"section": section, "method": method, "path": path, "size": size, "per": per}
+    if timing is not None:
+        row.update({k: timing[k] for k in ("ms", "ms min", "ms max")})
+    row.update(extra)
+    return row
+
+
+def _size(hw, scale=2) -> str:
+    h, w = hw
+    return f"{w}x{h} -> {scale * w}x{scale * h}" if scale > 1 else f"{w}x{h}"
+
+
+def inference_rows(label: str, model, macs: int, x, g, paths, device, repeats, warmup) -> list[dict]:
+    """One row per fast path: time, GMac/s, peak memory and the difference from the fp32 output."""
+    rows, reference = [], None
+    for path in paths:
+        row = _row("inference", label, path, _size(x.shape[-2:]), "frame", GMac=macs / 1e9)
+        try:
+            t0 = time.perf_counter()
+            run = prepare(model, path)
+            first = run(x, g)  # compile happens here
+            first_s = time.perf_counter() - t0
+            timing = time_call(lambda: run(x, g), device, repeats, max(0, warmup - 1))
+            row.update({k: timing[k] for k in ("ms", "ms min", "ms max")})
+            row["GMac/s"] = macs / 1e9 / (timing["ms"] / 1000)
+            row["peak MiB"] = peak_memory_mib(lambda: run(x, g), device)
+            out = timing["result"]
+            if reference is None and parse_path(path).name == "fp32":
+                reference = out
+            if reference is not None:
+                row["max abs diff"] = max_abs_diff(out, reference)
+                row["max rel diff"] = row["max abs diff"] / max(float(reference["final"].abs().max()), 1e-12)
+            if parse_path(path).compile:
+                row["note"] = f"first call (compile) {first_s:.1f} s"
+            del first, out
+        except Exception as err:  # a path the machine cannot run (no compiler, no bf16) is a row saying so
+            log.warning("speed: %s %s failed: %s", label, path, err)
+            row["note"] = f"failed: {type(err).__name__}: {str(err).splitlines()[0][:120]}"
+        rows.append(row)
+        log.info("speed: %s %s: %s ms/frame", label, path, row.get("ms"))
+    return rows
+
+
+def training_row(label: str, model, train: dict, loss_weights: dict, lr: float, device, repeats, warmup) -> dict:
+    """Time of one optimisation step (forward, loss, backward, Adam) on a random batch of the training
+    crop, fp32. The loss is the trainer's weighted loss without the perceptual term (no VGG here)."""
+    model = copy.deepcopy(model).train()
+    batch, frames, crop = train["batch"], train["frames"], train["crop"]
+    x, g = frame_inputs(batch, frames, (crop, crop), device, seed=1)
+    target = torch.rand(batch, frames, 3, 2 * crop, 2 * crop, generator=torch.Generator().manual_seed(2)).to(device)
+    optimizer = torch.optim.Adam(model.parameters(), lr=lr)
+    weights = {name: {**w, "perceptual": 0} for name, w in loss_weights.items()}
+
+    def step():
+        optimizer.zero_grad(set_to_none=True)
+        out = model(x, g)
+        loss, _ = weighted_loss(out["final"], target, weights["final"])
+        if out.get("intermediate") is not None and any(weights["intermediate"].values()):
+            loss = loss + weighted_loss(out["intermediate"], target, weights["intermediate"])[0]
+        loss.backward()
+        optimizer.step()
+
+    timing = time_call(step, device, repeats, warmup)
+    return _row("training step", label, "fp32", f"{batch}x{frames} frames of {crop}x{crop} LR", "step", timing,
+                **{"peak MiB": peak_memory_mib(step, device), "note": "Adam, trainer loss without perceptual"})
+
+
+def oidn_row(out_hw, device, repeats, warmup) -> dict | None:
+    """Intel OIDN (quality high, albedo + normal) on one frame at the OUTPUT size; None without pyoidn."""
+    try:
+        from baselines.oidn import OIDN
+    except ImportError as err:
+        log.warning("speed: no OIDN reference (%s)", err)
+        return None
+    oidn = OIDN(scale=1, variant="lr_then_up", quality="high")
+    x, g = frame_inputs(1, 1, out_hw, "cpu", seed=3)
+    timing = time_call(lambda: oidn(x, g), "cpu", repeats, warmup)
+    return _row("reference", "OIDN (albedo + normal)", "its own (fp32)", _size(out_hw, 1), "frame", timing,
+                **{"peak MiB": peak_memory_mib(lambda: oidn(x, g), "cpu"), "time / OIDN": 1.0,
+                   "note": "pyoidn on the CPU, its own threads"})
+
+
+def conv_stack_rows(target_macs: int, hw, channels: int, paths, device, repeats, warmup) -> list[dict]:
+    """The dense-conv reference at the proposed model's MACs, per fast path."""
+    depth = conv_stack_depth(target_macs, hw, channels)
+    torch.manual_seed(0)
+    stack = ConvStack(channels, depth).to(device).eval()
+    x = torch.rand(1, 1, channels, *hw, generator=torch.Generator().manual_seed(4)).to(device)
+    macs = macs_per_frame(lambda: ConvStack(channels, depth), hw, in_channels=channels)
+    rows = inference_rows(f"3x3 conv stack ({depth} x {channels} ch)", stack, macs, x, None, paths, device,
+                          repeats, warmup)
+    for row in rows:
+        row["section"], row["size"] = "reference", _size(hw, 1)
+    return rows
+
+
+def deform_rows(channels: int, sizes, device, repeats, warmup) -> list[dict]:
+    """bench.nn.DeformConv2d vs nn.Conv2d of the same shape (channels -> channels, 3x3), forward only:
+    the inference sampler (gather; contiguous and channels_last input) and the training one
+    (grid_sample, taken whenever autograd needs a gradient; forward time only)."""
+    rows = []
+    for hw in sizes:
+        torch.manual_seed(0)
+        conv = nn.Conv2d(channels, channels, 3, padding=1).to(device)
+        deform = DeformConv2d(channels, channels).to(device)
+        nn.init.normal_(deform.offset_conv.weight, std=0.1)  # real offsets, not the zero init
+        x = torch.randn(1, channels, *hw, generator=torch.Generator().manual_seed(5)).to(device)
+        x_cl = x.contiguous(memory_format=torch.channels_last)
+        x_grad = x.clone().requires_grad_(True)
+        macs = hw[0] * hw[1] * channels * channels * 9
+        cases = [("nn.Conv2d", "fp32", lambda: conv(x), torch.no_grad),
+                 ("DeformConv2d (gather sampler)", "fp32", lambda: deform(x), torch.no_grad),
+                 ("DeformConv2d (gather sampler)", "channels_last", lambda: deform(x_cl), torch.no_grad),
+                 ("DeformConv2d (grid_sample sampler, autograd on)", "fp32", lambda: deform(x_grad),
+                  torch.enable_grad)]
+        conv_ms = None
+        for method, path, fn, mode in cases:
+            with mode():
+                timing = time_call(fn, device, repeats, warmup)
+            conv_ms = conv_ms or timing["ms"]
+            rows.append(_row("deformable conv", f"{method} {channels}->{channels} 3x3", path, _size(hw, 1),
+                             "layer call", timing, GMac=macs / 1e9, **{"GMac/s": macs / 1e9 / (timing["ms"] / 1000),
+                                                                        "time / plain conv": timing["ms"] / conv_ms}))
+    return rows
+
+
+def tiled_rows(label: str, model, x, g, tile: int, overlap: int, device, repeats, warmup,
+               untiled=None, uhd_hw=None) -> list[dict]:
+    """Tiled inference at the input size (max difference from `untiled`, the fp32 output) and,
+    with uhd_hw, at that LR size (a 4K output): time and peak memory (fp32)."""
+    note = f"tile {tile}, overlap {overlap} LR px"
+    run = lambda: tiled_predict(model, x, g, tile=tile, overlap=overlap)
+    timing = time_call(run, device, repeats, warmup)
+    row = _row("tiled", label, "fp32", _size(x.shape[-2:]), "frame", timing, note=note,
+               **{"peak MiB": peak_memory_mib(run, device)})
+    if untiled is not None:
+        row["max abs diff"] = max_abs_diff(timing["result"], untiled)
+        row["max rel diff"] = row["max abs diff"] / max(float(untiled["final"].abs().max()), 1e-12)
+    rows = [row]
+    if uhd_hw:
+        x4, g4 = frame_inputs(1, 1, uhd_hw, device, seed=6)
+        run4 = lambda: tiled_predict(model, x4, g4, tile=tile, overlap=overlap)
+        timing4 = time_call(run4, device, repeats=1, warmup=0)
+        rows.append(_row("tiled", label, "fp32", _size(uhd_hw), "frame", timing4, note=note,
+                         **{"peak MiB": peak_memory_mib(run4, device)}))
+        del x4, g4
+    return rows
+
+
+# ------------------------------------------------------------------------------ the experiment
+
+def _ratios(table: pd.DataFrame) -> pd.DataFrame:
+    """time / OIDN for every per-frame inference row; GMac/s / conv stack per fast path."""
+    oidn = table.loc[table["method"].str.startswith("OIDN"), "ms"]
+    if len(oidn):
+        frames = table["section"].isin(["inference", "tiled"])
+        table.loc[frames, "time / OIDN"] = table.loc[frames, "ms"] / float(oidn.iloc[0])
+    stack = table[table["method"].str.startswith("3x3 conv stack")].set_index("path")["GMac/s"]
+    inference = table["section"] == "inference"
+    table.loc[inference, "GMac/s / conv stack"] = [
+        gmacs / stack.get(path, float("nan")) for gmacs, path in table.loc[inference, ["GMac/s", "path"]].to_numpy()]
+    return table
+
+
+def run(ctx, name: str = "speed", models: list[str] | None = None, input_hw=(540, 960),
+        paths: list[str] | None = None, repeats: int = 5, warmup: int = 1, threads: int | None = None,
+        train: dict | None = None, oidn: bool = True, conv_stack_channels: int = 32,
+        deform: dict | None = None, tiled: dict | None = None, perturb: float = 0.02,
+        caption: str = "") -> pd.DataFrame:
+    """CLI entry (conf/experiment/speed.yaml documents every parameter). Returns the table, which is
+    rewritten after every section, so an interrupted run leaves what it measured."""
+    device = str(ctx.device)
+    previous_threads = torch.get_num_threads()
+    if threads:
+        torch.set_num_threads(int(threads))
+    out_dir = Path(ctx.results_dir) / name / device_tag(device)
+    caption = (caption + " " if caption else "") + (
+        f"Speed on {machine_caption(device)}; scale {ctx.scale} widths, untrained weights. ms: wall clock, median "
+        f"(min, max) of {repeats} warm calls; GMac: analytic multiply-accumulates per frame; path: fp32 reference "
+        "or bench.infer fast path (bf16 = autocast bfloat16); diffs vs the fp32 output (tiled: vs untiled); peak MiB: "
+        "memory one call adds. Ratios: model time / OIDN at the output size; model GMac/s / a 3x3 conv stack of "
+        "the proposed model's GMac on the same path; deformable conv time / nn.Conv2d of the same shape.")
+    rows, table = [], None
+    try:
+        for section in _sections(ctx, models or MODELS, tuple(input_hw), paths or PATHS, repeats, warmup,
+                                 train or {}, oidn, conv_stack_channels, deform or {}, tiled or {}, perturb, device):
+            rows += section
+            table = _ratios(pd.DataFrame(rows, columns=COLUMNS))
+            write_table(table, out_dir, digits=3, caption=caption)
+    finally:
+        torch.set_num_threads(previous_threads)
+    log.info("speed: table in %s", out_dir)
+    return table
+
+
+def _sections(ctx, models, input_hw, paths, repeats, warmup, train, oidn, stack_channels, deform, tiled,
+              perturb, device):
+    """Rows, section by section: the reference points first (quick, and every ratio needs them), then
+    one model at a time."""
+    if oidn:
+        row = oidn_row((2 * input_hw[0], 2 * input_hw[1]), device, repeats, warmup)
+        yield [row] if row else []
+    if stack_channels and "srd" in ctx.models:
+        ours_macs = macs_per_frame(lambda: instantiate(ctx.models["srd"], scale=2), input_hw)
+        yield conv_stack_rows(ours_macs, input_hw, stack_channels, paths, device, repeats, warmup)
+    if deform.get("enabled", True):
+        yield deform_rows(deform.get("channels", 32), [tuple(s) for s in deform.get("sizes", [[270, 480], [540, 960]])],
+                          device, repeats, warmup)
+    x, g = frame_inputs(1, 1, input_hw, device)
+    train = {"batch": ctx.train.get("batch_size", 4), "frames": ctx.train.get("seq_len", 5),
+             "crop": ctx.train.get("crop", 32), **{k: v for k, v in train.items() if v is not None}}
+    tile_models = (tiled.get("models") or models) if tiled.get("enabled", True) else []
+    for name in models:
+        cfg = ctx.models[name]
+        label = LABELS.get(name, name)
+        model = build(cfg, device, perturb)
+        macs = macs_per_frame(lambda: instantiate(cfg, scale=2), input_hw)
+        rows = inference_rows(label, model, macs, x, g, paths, device, repeats, warmup)
+        if train.get("enabled", True):
+            rows.append(training_row(label, model, train, ctx.train["loss"], ctx.train.get("lr", 6e-4), device,
+                                     repeats, warmup))
+        if name in tile_models:
+            untiled = prepare(model)(x, g)
+            uhd = tuple(tiled.get("uhd_input_hw", (1080, 1920))) if tiled.get("uhd", True) else None
+            rows += tiled_rows(label, model, x, g, tiled.get("tile", 512), tiled.get("overlap", 128), device,
+                               repeats, warmup, untiled, uhd)
+        yield rows

@@ -1,0 +1,186 @@
+"""Fast paths and tiled inference (bench/infer.py) and the speed experiment, at tiny sizes.
+
+Every fast path must give the reference (fp32) output: to float rounding for inference_mode and
+channels_last, within 5% of the output's range for bf16 (bfloat16 keeps ~3 significant digits and
+errors add up through a few dozen layers). Tiled inference must equal untiled inference for conv-only
+models once the overlap covers the receptive radius, and stream recurrent models tile by tile.
+"""
+import pandas as pd
+import pytest
+import torch
+from hydra import compose, initialize_config_dir
+
+from baselines.cfm import CFMNet
+from baselines.edsr import EDSR
+from baselines.kpcn import KPCN
+from baselines.rae import RAE
+from bench.cli import CONF_DIR, run_experiment
+from bench.experiments.speed import PATHS, device_tag, peak_memory_mib
+from bench.infer import (frames_channels_last, parse_path, prepare, receptive_radius, tiled_predict)
+from bench.models.srd import SRDNet
+
+TINY = {
+    "srd": lambda: SRDNet(channels=4, cond_channels=4),
+    "edsr": lambda: EDSR(channels=4, blocks=2),
+    "rae": lambda: RAE(width=4),
+    "kpcn": lambda: KPCN(channels=3, layers=3, filter_size=5),
+    "cfm": lambda: CFMNet(channels=4, blocks=2, cond_channels=4, cond_hidden=4, deformable_blocks=1),
+}
+CONV_ONLY = ["edsr", "kpcn", "cfm"]
+
+
+@pytest.fixture(autouse=True)
+def one_thread():
+    """Small ops on a busy 2-core machine: one thread avoids waiting for the other core."""
+    threads = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(threads)
+
+
+def tiny_model(name, seed=0):
+    """A tiny model with noise on every weight: zero-initialised branches (CFM, deformable offsets,
+    residual output convs) then compute, so the comparisons see every layer."""
+    torch.manual_seed(seed)
+    model = TINY[name]()
+    with torch.no_grad():
+        for p in model.parameters():
+            p.add_(torch.randn_like(p) * 0.02)
+    return model.eval()
+
+
+def inputs(frames=2, h=20, w=28, seed=1):
+    gen = torch.Generator().manual_seed(seed)
+    return torch.rand(1, frames, 3, h, w, generator=gen), torch.rand(1, frames, 7, h, w, generator=gen)
+
+
+# ---- fast paths -----------------------------------------------------------------------------------
+
+def test_parse_path_combines_switches_and_rejects_unknown_ones():
+    assert parse_path("fp32") == parse_path("fp32") and not parse_path("fp32").inference_mode
+    combo = parse_path("channels_last+bf16")
+    assert combo.channels_last and combo.bf16 and combo.inference_mode and not combo.compile
+    with pytest.raises(ValueError, match="fp16"):
+        parse_path("fp16")
+
+
+def test_frames_channels_last_keeps_values_and_makes_frames_nhwc():
+    x = torch.randn(2, 3, 4, 5, 6)
+    y = frames_channels_last(x)
+    assert torch.equal(x, y)
+    assert y[:, 1].stride(1) == 1 and frames_channels_last(x[:1])[:, 1].is_contiguous(memory_format=torch.channels_last)
+    assert y.reshape(6, 4, 5, 6).is_contiguous(memory_format=torch.channels_last)
+
+
+@pytest.mark.parametrize("name", list(TINY))
+@pytest.mark.parametrize("path,tolerance", [("inference_mode", 0.0), ("channels_last", 1e-5),
+                                            ("bf16", 0.05), ("channels_last+bf16", 0.05)])
+def test_fast_path_equals_reference(name, path, tolerance):
+    model = tiny_model(name)
+    x, g = inputs()
+    reference = prepare(model, "fp32")(x, g)
+    out = prepare(model, path)(x, g)
+    assert out.keys() == reference.keys()
+    for key, ref in reference.items():
+        assert out[key].dtype == torch.float32 and out[key].is_contiguous()
+        spread = float(ref.max() - ref.min())
+        assert float((out[key] - ref).abs().max()) <= tolerance * spread + 1e-6, (key, path)
+
+
+def test_prepare_leaves_the_model_untouched():
+    model = tiny_model("edsr")
+    prepare(model, "channels_last")
+    assert model.head.weight.is_contiguous()
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("name", ["edsr", "srd"])
+def test_compiled_path_equals_reference(name):
+    """torch.compile takes about a minute per model on 2 CPU cores, hence slow."""
+    model = tiny_model(name)
+    x, g = inputs(frames=1)
+    torch.testing.assert_close(prepare(model, "compile")(x, g)["final"], prepare(model)(x, g)["final"],
+                               atol=1e-5, rtol=1e-5)
+
+
+# ---- tiled inference ------------------------------------------------------------------------------
+
+@pytest.mark.parametrize("name", CONV_ONLY)
+def test_tiled_equals_untiled_once_overlap_covers_the_receptive_radius(name):
+    model = tiny_model(name)
+    radius = receptive_radius(model, *inputs(frames=1, h=48, w=48))
+    assert 0 < radius < 24
+    x, g = inputs(frames=2, h=40, w=52)
+    untiled = prepare(model)(x, g)["final"]
+    tiled = tiled_predict(model, x, g, tile=8, overlap=radius, align=1)
+    assert tiled.shape == untiled.shape
+    assert float((tiled - untiled).abs().max()) < 1e-5
+    too_small = tiled_predict(model, x, g, tile=8, overlap=0, align=1)
+    assert float((too_small - untiled).abs().max()) > 1e-3  # the check can fail: seams without context
+
+
+@pytest.mark.parametrize("name", ["srd", "rae"])
+def test_tiled_streams_recurrent_models_with_a_state_per_tile(name):
+    """With an overlap covering the frame every tile sees the whole frame: the result must be the
+    untiled one exactly, across frames (each tile carries its own state). With less context the
+    U-Net's global view makes it differ a little, and the difference shrinks with the overlap."""
+    model = tiny_model(name)
+    x, g = inputs(frames=3, h=40, w=72)
+    untiled = prepare(model)(x, g)["final"]
+    whole = tiled_predict(model, x, g, tile=32, overlap=96, align=32)
+    torch.testing.assert_close(whole, untiled, atol=1e-5, rtol=0)
+    errors = [float((tiled_predict(model, x, g, tile=32, overlap=o, align=32) - untiled).abs().max())
+              for o in (0, 32)]
+    assert errors[1] <= errors[0]
+
+
+def test_tiled_runs_a_fast_path():
+    model = tiny_model("edsr")
+    x, g = inputs(frames=1, h=24, w=24)
+    out = tiled_predict(model, x, g, tile=8, overlap=16, align=8, path="channels_last")
+    torch.testing.assert_close(out, prepare(model)(x, g)["final"], atol=1e-5, rtol=0)
+    with pytest.raises(ValueError, match="compile"):
+        tiled_predict(model, x, g, path="compile")
+
+
+# ---- the speed experiment -------------------------------------------------------------------------
+
+def test_peak_memory_sees_a_large_allocation():
+    assert peak_memory_mib(lambda: torch.ones(64 * 2 ** 20 // 4).add_(1), "cpu") > 48
+
+
+def test_device_tag_is_a_directory_name():
+    tag = device_tag("cpu")
+    assert tag.startswith("cpu-") and tag == tag.lower() and "/" not in tag and " " not in tag
+
+
+def test_speed_experiment_writes_every_section(tmp_path):
+    overrides = ["scale=smoke", f"runs_dir={tmp_path / 'runs'}", f"results_dir={tmp_path / 'results'}",
+                 "device=cpu", "models.srd.channels=4", "models.srd.cond_channels=4", "models.edsr.channels=4",
+                 "models.edsr.blocks=2", "models.rae.width=4", "models.kpcn.channels=2", "models.kpcn.layers=3",
+                 "models.cfm.channels=4", "models.cfm.blocks=2", "models.cfm.cond_hidden=4",
+                 "models.cfm.cond_channels=4", "experiment.input_hw=[24,40]", "experiment.repeats=1",
+                 "experiment.threads=1", "experiment.train={batch:1,frames:2,crop:16}",
+                 "experiment.deform={channels:4,sizes:[[16,24]]}",
+                 "experiment.tiled={tile:16,overlap:32,uhd_input_hw:[40,64]}"]
+    with initialize_config_dir(config_dir=CONF_DIR, version_base=None):
+        cfg = compose("config", overrides=["+experiment=speed", *overrides])
+    run_experiment(cfg)
+    out = tmp_path / "results" / "speed" / device_tag("cpu")
+    for ext in ("csv", "md", "tex"):
+        assert (out / f"table.{ext}").stat().st_size > 0
+    table = pd.read_csv(out / "table.csv")
+    labels = ["Ours", "EDSR", "RAE", "KPCN", "CFM"]
+    inference = table[table.section == "inference"]
+    assert sorted(zip(inference.method, inference.path)) == sorted((m, p) for m in labels for p in PATHS)
+    assert inference[["ms", "GMac", "GMac/s", "time / OIDN", "GMac/s / conv stack"]].notna().all().all()
+    assert (inference["max rel diff"] < 0.05).all() and inference["note"].isna().all()  # no path failed
+    assert sorted(table.loc[table.section == "training step", "method"]) == sorted(labels)
+    tiled = table[table.section == "tiled"]
+    assert sorted(tiled.method) == sorted(labels * 2) and set(tiled["size"]) == {"40x24 -> 80x48", "64x40 -> 128x80"}
+    references = table.loc[table.section == "reference", "method"]
+    assert references.str.startswith("OIDN").sum() == 1 and references.str.startswith("3x3 conv stack").sum() == len(PATHS)
+    deform = table[table.section == "deformable conv"]
+    assert len(deform) == 4 and deform["time / plain conv"].notna().all()
+    caption = (out / "table.md").read_text().splitlines()[0]
+    assert "torch " + torch.__version__ in caption and "1 torch threads" in caption
