@@ -14,6 +14,7 @@ from bench.cli import CONF_DIR, run_experiment
 from bench.experiments.table import expand_rows
 from bench.models.srd import SRDNet, SRDStage, load_stage
 from bench.paper import paper_values
+from conftest import smoke_overrides
 
 TABLES = ["sr_denoise", "dilation", "stage_order", "deform", "sota", "ipt", "deform_num", "perceptual",
           "generalization"]
@@ -23,9 +24,7 @@ PAPER_TABLES = {"sr_denoise", "dilation", "stage_order", "deform", "sota", "ipt"
 @pytest.fixture(scope="module")
 def dirs(tmp_path_factory):
     root = tmp_path_factory.mktemp("tables")
-    overrides = ["scale=smoke", f"runs_dir={root / 'runs'}", f"results_dir={root / 'results'}",
-                 f"data_dir={root / 'data'}", "progress=false", "train.steps=4", "train.checkpoint_every=2",
-                 "vgg.weights=null", "vgg.allow_random=true"]
+    overrides = smoke_overrides(root) + ["vgg.weights=null", "vgg.allow_random=true"]
     return overrides, root
 
 

@@ -8,14 +8,14 @@ from hydra import compose, initialize_config_dir
 
 from bench.cli import CONF_DIR, run_experiment
 from bench.experiments.stability import INPUT_CASES, metric_rows
+from conftest import smoke_overrides
 
 
 @pytest.fixture(scope="module")
 def stability_table(tmp_path_factory):
     root = tmp_path_factory.mktemp("stability")
-    overrides = ["scale=smoke", f"runs_dir={root / 'runs'}", f"results_dir={root / 'results'}",
-                 f"data_dir={root / 'data'}", "progress=false", "train.steps=4", "train.checkpoint_every=4",
-                 "experiment.models=[srd,rae,kpcn,bilinear,oidn_lr]", "experiment.long_frames=12"]
+    overrides = smoke_overrides(root) + ["experiment.models=[srd,rae,kpcn,bilinear,oidn_lr]",
+                                         "experiment.long_frames=12"]
     with initialize_config_dir(config_dir=CONF_DIR, version_base=None):
         cfg = compose("config", overrides=["+experiment=stability", *overrides])
     run_experiment(cfg)
