@@ -25,6 +25,7 @@ import torch
 import torch.nn.functional as F
 
 from bench.evaluate import predict
+from bench.hdr import to_network
 from bench.experiments.pipeline import (Context, dataset, ensure_data, is_learned, model_config,
                                         trained_model)
 from bench.metrics import psnr, relmse, ssim
@@ -137,7 +138,6 @@ def _deform_rows(model, x, g, hdr) -> list[dict]:
         with torch.no_grad():
             for layer in layers:
                 layer.offset_conv.bias.fill_(value)
-        from bench.hdr import to_network
         out = m(to_network(x, hdr), g)["final"]
         out.square().mean().backward()
         grads = all(p.grad is None or _finite(p.grad) for p in m.parameters())

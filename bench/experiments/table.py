@@ -22,7 +22,7 @@ import pandas as pd
 
 from bench.experiments.figure import crop_figure
 from bench.experiments.flops import frame_inputs
-from bench.experiments.pipeline import Context, ensure_data, model_config, row
+from bench.experiments.pipeline import Context, build_model, ensure_data, is_learned, model_config, row
 from bench.macs import count_macs, on_meta
 from bench.metrics import HIGHER_IS_BETTER, LOWER_IS_BETTER, RELMSE_FORMULA
 from bench.paper import TABLES, paper_values
@@ -72,11 +72,9 @@ def passes_for(rows: list[dict], default_task: str) -> set[str]:
 
 def gmac(ctx: Context, r: dict, input_hw=(540, 960)) -> float | None:
     """Analytic GMac of a row's model per 960x540 LR frame (None for non-learned rows)."""
-    from hydra.utils import instantiate
     cfg = model_config(ctx, r["model"], r.get("overrides"))
-    scale = get_task(r["task"]).scale
-    model, inputs = on_meta(lambda: instantiate(cfg, scale=scale), frame_inputs(cfg, input_hw))
-    if sum(p.numel() for p in model.parameters()) == 0:
+    model, inputs = on_meta(lambda: build_model(cfg, get_task(r["task"]).scale), frame_inputs(cfg, input_hw))
+    if not is_learned(model):
         return None
     return float(count_macs(model, inputs)["macs"].sum()) / 1e9
 
