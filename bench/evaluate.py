@@ -30,7 +30,7 @@ def predict(model, x_lin: torch.Tensor, g: torch.Tensor, hdr: str, sanitize: boo
     return from_network(model(to_network(x_lin, hdr), g)["final"], hdr)
 
 
-def _sync(device: str) -> None:
+def sync(device: str) -> None:
     """CUDA kernels run asynchronously: wait for them before reading the clock."""
     if str(device).startswith("cuda"):
         torch.cuda.synchronize()
@@ -52,13 +52,13 @@ def evaluate(model, dataset, task: Task, *, hdr: str = "clamp", device: str = "c
         item = dataset[index]
         x, g, y = (item[k].unsqueeze(0).to(device) for k in (task.x, task.g, task.y))
         predict(model, x[:, :1], g[:, :1], hdr)  # warm-up: first-call allocation is not inference time
-        _sync(device)
+        sync(device)
         t0 = time.perf_counter()
         if getattr(model, "recurrent", False):
             pred = predict(model, x, g, hdr)
         else:  # frame by frame: bounded memory (KPCN's kernels at 1080p), same result
             pred = torch.cat([predict(model, x[:, t:t + 1], g[:, t:t + 1], hdr) for t in range(x.shape[1])], 1)
-        _sync(device)
+        sync(device)
         per_frame_ms = 1000 * (time.perf_counter() - t0) / x.shape[1]
         scores = all_metrics(pred[0].cpu(), y[0].cpu())
         meta = item.get("meta", {})

@@ -42,6 +42,7 @@ import torch
 import torch.nn as nn
 from hydra.utils import instantiate
 
+from bench.evaluate import sync
 from bench.infer import max_abs_diff, parse_path, prepare, tiled_predict
 from bench.losses import weighted_loss
 from bench.macs import count_macs, on_meta
@@ -83,23 +84,18 @@ def machine_caption(device: str) -> str:
     return f"{where}, torch {torch.__version__}"
 
 
-def _sync(device: str) -> None:
-    if str(device).startswith("cuda"):
-        torch.cuda.synchronize()
-
-
 def time_call(fn, device: str, repeats: int = 5, warmup: int = 1) -> dict:
     """Median, min and max milliseconds of `repeats` calls of fn() after `warmup` untimed ones, and the
     last call's result (to compare outputs without an extra call)."""
     result = None
     for _ in range(warmup):
         result = fn()
-    _sync(device)
+    sync(device)
     times = []
     for _ in range(max(1, repeats)):
         t0 = time.perf_counter()
         result = fn()
-        _sync(device)
+        sync(device)
         times.append(1000 * (time.perf_counter() - t0))
     return {"ms": statistics.median(times), "ms min": min(times), "ms max": max(times), "result": result}
 
@@ -119,11 +115,11 @@ def peak_memory_mib(fn, device: str) -> float:
     """Peak memory one call of fn() adds to what is allocated before it, in MiB (module docstring).
     NaN on a CPU system without /proc (the resident-set peak cannot be reset there)."""
     if str(device).startswith("cuda"):
-        _sync(device)
+        sync(device)
         before = torch.cuda.memory_allocated(device)
         torch.cuda.reset_peak_memory_stats(device)
         fn()
-        _sync(device)
+        sync(device)
         return (torch.cuda.max_memory_allocated(device) - before) / 2 ** 20
     try:
         _release_free_memory()

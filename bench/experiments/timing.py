@@ -42,7 +42,7 @@ from bench import render, runs
 from bench.datagen import derive_seed, frame_view
 from bench.dataset import SequenceDataset
 from bench.errors import UserError
-from bench.evaluate import predict
+from bench.evaluate import predict, sync
 from bench.experiments.pipeline import (Context, build_model, ensure_data, is_learned, model_config,
                                         recorded_training, trained_model)
 from bench.metrics import HIGHER_IS_BETTER, LOWER_IS_BETTER, RELMSE_FORMULA, all_metrics, mse
@@ -265,11 +265,6 @@ def network_device(ctx: Context, model) -> str:
     return f"{ctx.device} fp32" + (f", {torch.get_num_threads()} threads" if ctx.device == "cpu" else "")
 
 
-def _sync(device: str) -> None:
-    if str(device).startswith("cuda"):
-        torch.cuda.synchronize()
-
-
 @torch.no_grad()
 def timed_prediction(model, x, g, hdr: str, device: str, repeats: int) -> tuple[torch.Tensor, float]:
     """(last frame of the prediction (3, H, W), median seconds per frame over `repeats` warm runs).
@@ -279,12 +274,12 @@ def timed_prediction(model, x, g, hdr: str, device: str, repeats: int) -> tuple[
         x, g = x[:, -1:], g[:, -1:]
     x, g = x.to(device), g.to(device)
     pred = predict(model, x, g, hdr)  # warm-up: first-call allocation is not inference time
-    _sync(device)
+    sync(device)
     seconds = []
     for _ in range(max(1, repeats)):
         t0 = time.perf_counter()
         pred = predict(model, x, g, hdr)
-        _sync(device)
+        sync(device)
         seconds.append(time.perf_counter() - t0)
     return pred[0, -1].float().cpu(), float(np.median(seconds)) / x.shape[1]
 
