@@ -4,12 +4,15 @@ A run is identified by a hash of the part of its config that determines its resu
 model arguments, data spec, training schedule, seed, ...), not by paths, worker counts or labels. A run
 whose hash is recorded with status "complete" is reused instead of recomputed; `force=True` recomputes.
 An interrupted run keeps its directory (status "running"), so whatever it checkpointed can be resumed.
+While a process computes a run it holds an exclusive lock on the run's directory: a second process (another
+table, another shard of a sweep) that asks for the same run waits for it and then reuses it.
 
 Layout: ``<runs_dir>/<kind>/<hash>/run.json`` plus the run's own artifacts beside it.
 `load()` turns every record into one tidy DataFrame, from which tables are views.
 """
 from __future__ import annotations
 
+import fcntl
 import getpass
 import hashlib
 import importlib.metadata
@@ -43,6 +46,7 @@ class Run:
     record: dict = field(default_factory=dict)
     reused: bool = False
     _t0: float = field(default_factory=time.perf_counter, repr=False)
+    _lock: object = field(default=None, repr=False)
 
     @property
     def metrics(self) -> dict:
@@ -53,6 +57,11 @@ class Run:
         tmp.write_text(json.dumps(_encode(self.record), indent=2, sort_keys=True, allow_nan=False,
                                   default=_json_default))
         tmp.replace(self.dir / RECORD)
+
+    def release(self) -> None:
+        if self._lock is not None:
+            self._lock.close()  # closing the file drops its flock
+            self._lock = None
 
 
 _NONFINITE = {"inf": math.inf, "-inf": -math.inf, "nan": math.nan}
@@ -110,9 +119,16 @@ def begin(runs_dir: str | Path, kind: str, identity: dict, config: dict | None =
             return done
     h = config_hash(identity)
     run_dir = Path(runs_dir) / kind / h
+    ensure_writable(run_dir)
+    lock = _acquire(run_dir.parent / f".{h}.lock")
+    if not force:  # another process may have completed it while we waited for the lock
+        done = lookup(runs_dir, kind, identity)
+        if done is not None:
+            lock.close()
+            return done
     if force and run_dir.exists():
         shutil.rmtree(run_dir)
-    ensure_writable(run_dir)
+    run_dir.mkdir(parents=True, exist_ok=True)
     earlier = _read(run_dir / RECORD) if (run_dir / RECORD).exists() else {}
     record = {
         "kind": kind, "hash": h, "label": label, "status": "running", "identity": identity,
@@ -121,9 +137,27 @@ def begin(runs_dir: str | Path, kind: str, identity: dict, config: dict | None =
     }
     if earlier:  # an interrupted or failed run resumes: its earlier time still counts
         record["resumed_wall_time_s"] = earlier.get("wall_time_s", 0.0) or 0.0
-    run = Run(kind, h, run_dir, record)
+    run = Run(kind, h, run_dir, record, _lock=lock)
     run.save()
     return run
+
+
+_HELD: dict[str, object] = {}  # this process's locks: a run begun again after an error reuses its own lock
+
+
+def _acquire(path: Path):
+    """An exclusive lock on `path`, waiting for another process that holds it (the OS drops a dead
+    process's lock, so an interrupted run never blocks anyone)."""
+    key = str(path.resolve())
+    if key in _HELD and not _HELD[key].closed:
+        _HELD[key].close()
+    handle = _HELD[key] = open(path, "a")
+    try:
+        fcntl.flock(handle, fcntl.LOCK_EX | fcntl.LOCK_NB)
+    except BlockingIOError:
+        print(f"[runs] waiting for another process computing {path.parent.name}/{path.stem[1:]}", flush=True)
+        fcntl.flock(handle, fcntl.LOCK_EX)
+    return handle
 
 
 def complete(run: Run, metrics: dict, **extra) -> Run:
@@ -134,6 +168,7 @@ def complete(run: Run, metrics: dict, **extra) -> Run:
     run.record["status"] = "complete"
     run.record["finished"] = time.strftime("%Y-%m-%dT%H:%M:%S%z")
     run.save()
+    run.release()
     return run
 
 
@@ -142,6 +177,7 @@ def fail(run: Run, message: str) -> Run:
     run.record["error"] = message
     run.record["wall_time_s"] = run.record.get("resumed_wall_time_s", 0.0) + time.perf_counter() - run._t0
     run.save()
+    run.release()
     return run
 
 

@@ -58,3 +58,40 @@ def test_unwritable_runs_dir_gives_clear_error(tmp_path):
     blocker.write_text("not a directory")
     with pytest.raises(PermissionError, match="not writable"):
         runs.begin(blocker / "sub", "train", {"m": 1})
+
+
+def _compute_in_child(runs_dir, started, release):
+    run = runs.begin(runs_dir, "train", {"a": 1})
+    started.set()
+    release.wait(30)
+    runs.complete(run, {"loss": 0.5, "by": "child"})
+
+
+def test_second_process_waits_for_a_run_in_progress_then_reuses_it(tmp_path):
+    import multiprocessing as mp
+    import threading
+
+    ctx = mp.get_context("spawn")
+    started, release = ctx.Event(), ctx.Event()
+    child = ctx.Process(target=_compute_in_child, args=(str(tmp_path), started, release))
+    child.start()
+    assert started.wait(60)
+    result = {}
+    waiter = threading.Thread(target=lambda: result.update(run=runs.begin(tmp_path, "train", {"a": 1})))
+    waiter.start()
+    waiter.join(1.0)
+    assert waiter.is_alive(), "begin() must wait while another process computes the same run"
+    release.set()
+    waiter.join(30)
+    child.join(30)
+    assert result["run"].reused and result["run"].metrics["by"] == "child"
+
+
+def test_a_run_begun_again_in_the_same_process_does_not_deadlock(tmp_path):
+    first = runs.begin(tmp_path, "train", {"a": 1})
+    runs.fail(first, "boom")
+    again = runs.begin(tmp_path, "train", {"a": 1})
+    assert not again.reused
+    third = runs.begin(tmp_path, "train", {"a": 1})  # the earlier one never released (e.g. an exception)
+    runs.complete(third, {"loss": 1.0})
+    assert runs.begin(tmp_path, "train", {"a": 1}).reused
