@@ -14,20 +14,36 @@ import pandas as pd
 import torch
 
 from bench.hdr import from_network, to_network
+from bench.infer import REFERENCE, prepare, tiled_predict
 from bench.metrics import all_metrics
 from bench.sanitize import sanitize_inputs
 from bench.tasks import Task
 
 
 @torch.no_grad()
-def predict(model, x_lin: torch.Tensor, g: torch.Tensor, hdr: str, sanitize: bool = True) -> torch.Tensor:
+def predict(model, x_lin: torch.Tensor, g: torch.Tensor, hdr: str, sanitize: bool = True,
+            forward=None) -> torch.Tensor:
     """Linear-radiance prediction for one batch of sequences (B, T, C, h, w), on sanitized inputs
-    (bench.sanitize; `sanitize=False` only to show what happens without it)."""
+    (bench.sanitize; `sanitize=False` only to show what happens without it). `forward(x, g)` runs the
+    model another way (a fast path or tiles, see `runner`); by default `model` itself."""
     if sanitize:
         x_lin, g = sanitize_inputs(x_lin, g)
+    forward = forward or model
     if getattr(model, "linear_hdr", False):
-        return model(x_lin, g)["final"]
-    return from_network(model(to_network(x_lin, hdr), g)["final"], hdr)
+        return forward(x_lin, g)["final"]
+    return from_network(forward(to_network(x_lin, hdr), g)["final"], hdr)
+
+
+def runner(model, path: str = REFERENCE, tile: int | None = None):
+    """The forward function `predict` uses: `model` itself (fp32, untiled), or a fast path of
+    bench.infer (e.g. "bf16", "channels_last+bf16") and/or tiled inference with `tile` LR pixels per
+    tile. External methods (OIDN, which takes linear radiance) always run their own way."""
+    if getattr(model, "linear_hdr", False) or not isinstance(model, torch.nn.Module):
+        return None
+    if tile:
+        overlap = min(128, tile)
+        return lambda x, g: {"final": tiled_predict(model, x, g, tile=tile, overlap=overlap, path=path)}
+    return None if path == REFERENCE else prepare(model, path)
 
 
 def sync(device: str) -> None:
@@ -39,25 +55,28 @@ def sync(device: str) -> None:
 @torch.no_grad()
 def evaluate(model, dataset, task: Task, *, hdr: str = "clamp", device: str = "cpu",
              out_dir: str | Path | None = None, save_exr: bool = False,
-             write_exr=None) -> tuple[pd.DataFrame, dict]:
+             write_exr=None, path: str = REFERENCE, tile: int | None = None) -> tuple[pd.DataFrame, dict]:
     """Score `model` on every frame of `dataset` (items: full-frame sequences).
 
     Returns (per-image rows, aggregate metrics). With `save_exr`, `write_exr(path, {name: HxWxC array})`
-    writes each output frame beside the metrics in `out_dir/frames/`.
+    writes each output frame beside the metrics in `out_dir/frames/`. `path` and `tile` choose how the
+    model runs (see `runner`): fp32 untiled is the reference every table uses unless told otherwise.
     """
     if hasattr(model, "eval"):
         model.to(device).eval()
+    forward = runner(model, path, tile)
     rows = []
     for index in range(len(dataset)):
         item = dataset[index]
         x, g, y = (item[k].unsqueeze(0).to(device) for k in (task.x, task.g, task.y))
-        predict(model, x[:, :1], g[:, :1], hdr)  # warm-up: first-call allocation is not inference time
+        predict(model, x[:, :1], g[:, :1], hdr, forward=forward)  # warm-up: first-call allocation is not inference time
         sync(device)
         t0 = time.perf_counter()
         if getattr(model, "recurrent", False):
-            pred = predict(model, x, g, hdr)
+            pred = predict(model, x, g, hdr, forward=forward)
         else:  # frame by frame: bounded memory (KPCN's kernels at 1080p), same result
-            pred = torch.cat([predict(model, x[:, t:t + 1], g[:, t:t + 1], hdr) for t in range(x.shape[1])], 1)
+            pred = torch.cat([predict(model, x[:, t:t + 1], g[:, t:t + 1], hdr, forward=forward)
+                              for t in range(x.shape[1])], 1)
         sync(device)
         per_frame_ms = 1000 * (time.perf_counter() - t0) / x.shape[1]
         scores = all_metrics(pred[0].cpu(), y[0].cpu())

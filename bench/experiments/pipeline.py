@@ -29,6 +29,7 @@ from bench.dataset import SequenceDataset
 from bench.errors import UserError
 from bench.evaluate import evaluate
 from bench.exrio import write_exr
+from bench.infer import REFERENCE
 from bench.macs import count_params
 from bench.models.srd import SRDNet, SRDStage, load_stage
 from bench.tasks import CASCADE_STAGES, Task, get_task
@@ -274,6 +275,9 @@ def evaluated(ctx: Context, cfg: dict, task: Task, seed: int, split: str, label:
     identity = {"trained": trained, "split": split, "data": data_fingerprint(ctx), "hdr": ctx.train["hdr"]}
     if ctx.eval.get("save_exr"):
         identity["frames"] = True  # output frames are an artifact of their own run
+    fast_path, tile = ctx.eval.get("path", REFERENCE), ctx.eval.get("tile")
+    if fast_path != REFERENCE or tile:  # only a non-default way of running changes the identity
+        identity.update(path=fast_path, tile=tile)
     run = runs.begin(ctx.runs_dir, "eval", identity, seed=seed, device=ctx.device, label=label,
                      force=ctx.force)
     if run.reused:
@@ -283,7 +287,7 @@ def evaluated(ctx: Context, cfg: dict, task: Task, seed: int, split: str, label:
         load_weights(model, train_run.dir, ctx.device)
     _, metrics = evaluate(model, dataset(ctx, split, task, training=False), task, hdr=ctx.train["hdr"],
                           device=ctx.device, out_dir=run.dir, save_exr=ctx.eval.get("save_exr", False),
-                          write_exr=write_exr)
+                          write_exr=write_exr, path=fast_path, tile=tile)
     metrics["params"] = count_params(model)
     metrics["train_run"] = trained if isinstance(trained, str) else None
     metrics["vgg"] = (train_run.record["identity"].get("vgg") if train_run else None)
@@ -306,6 +310,10 @@ def row(ctx: Context, label: str, model: str, overrides: dict | None = None, tas
         if len(values) > 1:
             out[f"{metric} std"] = float(values.std(ddof=1))
     out["params"] = results[0].metrics.get("params", 0)
+    # what this row cost to compute, whenever it was computed (a reused run keeps its recorded time)
+    out["train (min)"] = float(np.mean([runs.wall_time_s(ctx.runs_dir, "train", r.metrics.get("train_run"))
+                                        for r in results])) / 60
+    out["eval (min)"] = float(np.mean([r.record.get("wall_time_s") or 0.0 for r in results])) / 60
     vgg = results[0].metrics.get("vgg")
     out["vgg"] = f"VGG16 {vgg['layer']} from {vgg['weights']}" if vgg else None
     out["runs"] = " ".join(r.hash for r in results)
