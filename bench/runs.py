@@ -106,6 +106,16 @@ def lookup(runs_dir: str | Path, kind: str, identity: dict) -> Run | None:
     return Run(kind, h, path.parent, record, reused=True)
 
 
+def wall_time_s(runs_dir: str | Path, kind: str, hashes: str | None) -> float:
+    """Recorded wall time of runs named by hash ("a+b" for several, e.g. a Cascade's stages); 0 for none."""
+    total = 0.0
+    for h in (hashes or "").split("+"):
+        path = Path(runs_dir) / kind / h / RECORD
+        if h and path.exists():
+            total += _read(path).get("wall_time_s") or 0.0
+    return total
+
+
 def begin(runs_dir: str | Path, kind: str, identity: dict, config: dict | None = None,
           seed: int | None = None, device: str = "cpu", label: str = "", force: bool = False) -> Run:
     """Reuse a complete run, or open (or re-open, to resume) its directory for computing.

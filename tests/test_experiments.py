@@ -11,7 +11,7 @@ from hydra import compose, initialize_config_dir
 from omegaconf import OmegaConf
 
 from bench.cli import CONF_DIR, run_experiment
-from bench.experiments.table import expand_rows
+from bench.experiments.table import expand_rows, paper_agreement
 from bench.models.srd import SRDNet, SRDStage, load_stage
 from bench.paper import paper_values
 from conftest import smoke_overrides
@@ -100,6 +100,10 @@ def test_all_runs_the_listed_tables_and_reuses_them(dirs):
     assert "4 of 4 rows reused" in log and "6 of 6 rows reused" in log
     summary = pd.read_csv(root / "results" / "all" / "table.csv")
     assert list(summary["experiment"]) == ["ipt", "deform_num"]
+    assert (summary["compute (min)"] > 0).all()  # recorded when the runs were computed, not this reuse
+    assert summary["relMSE order as paper"].str.fullmatch(r"\d+/\d+").all()
+    ipt = pd.read_csv(root / "results" / "ipt" / "table.csv")
+    assert (ipt["train (min)"] > 0).all() and (ipt["eval (min)"] > 0).all()
 
 
 def test_sweep_expands_in_order():
@@ -125,3 +129,14 @@ def test_cascade_stages_assemble_into_one_net(stage_order):
         torch.testing.assert_close(p, dict(source.named_parameters())[name])
     with pytest.raises(ValueError):
         load_stage(SRDNet(**kw), "sr", {"net.dn.out.weight": torch.zeros(1)})
+
+
+def test_paper_agreement_counts_pairs_ordered_as_in_the_paper_within_a_task():
+    table = pd.DataFrame({
+        "task": ["sr", "sr", "sr", "denoise", "denoise"],
+        "PSNR": [30.0, 31.0, 29.0, 25.0, 26.0],
+        "paper PSNR": [30.5, 31.5, 31.6, 28.0, 27.0],   # sr: (0,1) agree, (0,2) and (1,2) disagree
+        "SSIM": [0.9, 0.8, 0.7, 0.6, 0.5],
+        "paper SSIM": [0.95, 0.95, None, 0.9, 0.8],    # tie and missing value are left out
+    })
+    assert paper_agreement(table) == {"PSNR": (1, 4), "SSIM": (1, 1)}

@@ -93,6 +93,29 @@ def with_paper(table: pd.DataFrame, rows: list[dict], paper_table: str | None) -
     return table
 
 
+def paper_agreement(table: pd.DataFrame) -> dict[str, tuple[int, int]]:
+    """Per metric, (pairs of rows ordered as in the paper, pairs compared): every two rows of the same
+    task that both have our value and the paper's; pairs the paper ties are left out."""
+    out = {}
+    groups = table.groupby("task") if "task" in table else [(None, table)]
+    for metric in ("relMSE", "PSNR", "SSIM"):
+        if f"paper {metric}" not in table:
+            continue
+        agree = total = 0
+        for _, group in groups:
+            known = group.dropna(subset=[metric, f"paper {metric}"])
+            ours, paper = known[metric].to_numpy(float), known[f"paper {metric}"].to_numpy(float)
+            for i in range(len(known)):
+                for j in range(i + 1, len(known)):
+                    if paper[i] == paper[j]:
+                        continue
+                    total += 1
+                    agree += (ours[i] - ours[j]) * (paper[i] - paper[j]) > 0
+        if total:
+            out[metric] = (int(agree), total)
+    return out
+
+
 def run(ctx: Context, name: str, rows: list[dict], caption: str = "", task: str = "srd",
         split: str | None = None, paper: str | None = "auto", gmac_column: bool = False,
         figure: bool = True) -> pd.DataFrame:
@@ -107,7 +130,8 @@ def run(ctx: Context, name: str, rows: list[dict], caption: str = "", task: str 
     if table["task"].nunique() == 1:  # a single task goes in the caption, not a column
         table = table.drop(columns=["task"])
     if gmac_column:
-        table.insert(2, "GMac", [gmac(ctx, r) for r in rows])
+        after = "SSIM std" if "SSIM std" in table else "SSIM"
+        table.insert(table.columns.get_loc(after) + 1, "GMac", [gmac(ctx, r) for r in rows])
     paper_table = (name if name in TABLES else None) if paper == "auto" else paper
     table = with_paper(table, rows, paper_table)
     loss = ctx.train["loss"]["final"]
@@ -121,9 +145,15 @@ def run(ctx: Context, name: str, rows: list[dict], caption: str = "", task: str 
         notes += f" GMac: multiply-accumulates per 960x540 input frame at this scale's widths (budget {ctx.budget_gmac:g})."
     if paper_table:
         notes += " 'paper' columns: the published values (Wei et al., same metrics, their data and scale)."
+        agreement = paper_agreement(table)
+        if agreement:
+            notes += " Pairs of rows ordered as in the paper: " + ", ".join(
+                f"{m} {a}/{n}" for m, (a, n) in agreement.items()) + "."
     vgg = sorted({v for v in table.pop("vgg") if isinstance(v, str)})
     if vgg:
         notes += f" Perceptual loss features: {'; '.join(vgg)}."
+    notes += (" train/eval (min): wall time of each row's runs as recorded in the run store (a run shared "
+              "with another table was computed once; a seed average for several seeds).")
     out_dir = ctx.results_dir / name
     write_table(table.drop(columns=["reused"]), out_dir, caption=f"{caption} {notes}".strip(),
                 lower_is_better=LOWER_IS_BETTER, higher_is_better=HIGHER_IS_BETTER)
