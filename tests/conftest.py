@@ -5,4 +5,4 @@ def smoke_overrides(root, steps=4):
     """Hydra overrides for a fast smoke-scale run whose runs, results and data stay under `root`."""
     return ["scale=smoke", f"runs_dir={root / 'runs'}", f"results_dir={root / 'results'}",
             f"data_dir={root / 'data'}", "progress=false", f"train.steps={steps}",
-            f"train.checkpoint_every={steps}"]
+            f"train.checkpoint_every={steps}", "data.splits.train.sequences=4"]

@@ -67,7 +67,7 @@ def test_configured_widths_meet_the_scale_budget(scale):
 def smoke_dirs(tmp_path_factory):
     root = tmp_path_factory.mktemp("smoke")
     return [f"runs_dir={root / 'runs'}", f"results_dir={root / 'results'}", f"data_dir={root / 'data'}",
-            "progress=false"], root
+            "progress=false", "train.steps=50", "data.splits.train.sequences=4"], root  # `make run`, shorter
 
 
 def test_smoke_end_to_end_then_reuse(smoke_dirs):
