@@ -52,11 +52,35 @@ class KernelFilter(nn.Module):
         return output.numel() * self.filter_size ** 2
 
 
+def bilinear_stencil(scale: int, filter_size: int) -> torch.Tensor:
+    """(s*s, k*k) weights over the k x k LR neighbourhood that reproduce F.interpolate(bilinear,
+    align_corners=False) for each HR sub-pixel (row-major sub-pixel order, as pixel_shuffle reads it)."""
+    centre = filter_size // 2
+    taps_1d = torch.zeros(scale, filter_size)
+    for sub in range(scale):
+        pos = (sub + 0.5) / scale - 0.5          # LR offset of the sub-pixel from its pixel's centre
+        left = int(torch.floor(torch.tensor(pos)))
+        frac = pos - left
+        taps_1d[sub, centre + left] += 1 - frac
+        taps_1d[sub, centre + left + 1] += frac
+    return torch.einsum("ay,bx->abyx", taps_1d, taps_1d).reshape(scale * scale, filter_size * filter_size)
+
+
+def start_as_bilinear(last_conv: nn.Conv2d, scale: int, filter_size: int, share: float) -> None:
+    """Make every predicted kernel start as `share` x the bilinear stencil + (1 - share) x a k x k box:
+    zero weights, log-probabilities as bias. share = 1 would start exactly at "Input bilinear", but its
+    other taps would get (softmax) gradients near zero and never widen into a denoising kernel."""
+    probs = share * bilinear_stencil(scale, filter_size) + (1 - share) / filter_size ** 2
+    nn.init.zeros_(last_conv.weight)
+    with torch.no_grad():
+        last_conv.bias.copy_(probs.log().reshape(-1))
+
+
 class KPCN(nn.Module):
     recurrent = False
 
     def __init__(self, in_channels=3, gbuffer_channels=7, scale=2, channels=100, layers=9, kernel_size=5,
-                 filter_size=21):
+                 filter_size=21, bilinear_start: float = 0.0):
         super().__init__()
         if filter_size % 2 == 0:
             raise ValueError("filter_size must be odd (kernels are centred on the pixel)")
@@ -68,6 +92,8 @@ class KPCN(nn.Module):
         convs.append(nn.Conv2d(channels, scale * scale * filter_size ** 2, kernel_size, padding=pad))
         self.net = nn.Sequential(*convs)
         self.filter = KernelFilter(filter_size)
+        if bilinear_start:
+            start_as_bilinear(convs[-1], scale, filter_size, bilinear_start)
 
     def kernels(self, x, g):
         """Per-pixel kernels (N, s*s, k*k, h, w), each summing to one over its k*k taps."""

@@ -101,6 +101,21 @@ def test_kpcn_kernels_are_normalized(scale):
     assert torch.allclose(out, expected, atol=1e-5)
 
 
+@pytest.mark.parametrize("scale", [2, 3, 4])
+def test_kpcn_bilinear_start_is_the_input_bilinear_row(scale):
+    """share -> 1 gives F.interpolate(bilinear) exactly, border included; a smaller share mixes in a box."""
+    torch.manual_seed(0)
+    x, g = inputs(b=1, t=2, h=9, w=11)
+    with torch.no_grad():
+        near = KPCN(scale=scale, channels=4, layers=3, filter_size=7, bilinear_start=1 - 1e-7)(x, g)["final"]
+        mixed = KPCN(scale=scale, channels=4, layers=3, filter_size=7, bilinear_start=0.9)
+        weights = mixed.kernels(x, g)
+    assert torch.allclose(near, Bilinear(scale=scale)(x)["final"], atol=1e-5)
+    centre_tap = weights[0, :, 7 * 3 + 3]  # the pixel itself; the bilinear stencil gives it the most weight
+    assert torch.allclose(weights.sum(dim=2), torch.ones(()), atol=1e-5)
+    assert (weights.amin(dim=2) >= 0.1 / 49 - 1e-6).all() and (centre_tap > 0.25).all()
+
+
 def test_kpcn_filter_matches_explicit_sum():
     """Each HR sub-pixel is the kernel-weighted sum of the LR neighbourhood (checked at one pixel)."""
     torch.manual_seed(0)
