@@ -12,6 +12,8 @@ on filtered radiance, keeping the kernel-prediction principle. Input is radiance
 gBuffer; width (`channels`) is chosen to the compute budget. With k = 21 the last layer (5x5, C to
 s*s*441 channels) dominates the MACs, so the budget leaves KPCN narrow.
 """
+import math
+
 import torch
 import torch.nn as nn
 import torch.nn.functional as F
@@ -56,13 +58,13 @@ def bilinear_stencil(scale: int, filter_size: int) -> torch.Tensor:
     """(s*s, k*k) weights over the k x k LR neighbourhood that reproduce F.interpolate(bilinear,
     align_corners=False) for each HR sub-pixel (row-major sub-pixel order, as pixel_shuffle reads it)."""
     centre = filter_size // 2
-    taps_1d = torch.zeros(scale, filter_size)
+    taps_1d = [[0.0] * filter_size for _ in range(scale)]  # plain floats: models are also built on "meta"
     for sub in range(scale):
         pos = (sub + 0.5) / scale - 0.5          # LR offset of the sub-pixel from its pixel's centre
-        left = int(torch.floor(torch.tensor(pos)))
-        frac = pos - left
-        taps_1d[sub, centre + left] += 1 - frac
-        taps_1d[sub, centre + left + 1] += frac
+        left = math.floor(pos)
+        taps_1d[sub][centre + left] += 1 - (pos - left)
+        taps_1d[sub][centre + left + 1] += pos - left
+    taps_1d = torch.tensor(taps_1d, device="cpu")
     return torch.einsum("ay,bx->abyx", taps_1d, taps_1d).reshape(scale * scale, filter_size * filter_size)
 
 
@@ -73,7 +75,7 @@ def start_as_bilinear(last_conv: nn.Conv2d, scale: int, filter_size: int, share:
     probs = share * bilinear_stencil(scale, filter_size) + (1 - share) / filter_size ** 2
     nn.init.zeros_(last_conv.weight)
     with torch.no_grad():
-        last_conv.bias.copy_(probs.log().reshape(-1))
+        last_conv.bias.copy_(probs.log().reshape(-1).to(last_conv.bias.device))
 
 
 class KPCN(nn.Module):
