@@ -69,7 +69,8 @@ def evaluate(model, dataset, task: Task, *, hdr: str = "clamp", device: str = "c
     for index in range(len(dataset)):
         item = dataset[index]
         x, g, y = (item[k].unsqueeze(0).to(device) for k in (task.x, task.g, task.y))
-        predict(model, x[:, :1], g[:, :1], hdr, forward=forward)  # warm-up: first-call allocation is not inference time
+        # warm-up: first-call allocation is not inference time
+        predict(model, x[:, :1], g[:, :1], hdr, forward=forward)
         sync(device)
         t0 = time.perf_counter()
         if getattr(model, "recurrent", False):
