@@ -24,12 +24,13 @@ from baselines import fold_time, unfold_time, with_gbuffer
 class KernelFilter(nn.Module):
     """Apply per-pixel kernels: out[n, s, c] = sum_tap w[n, s, tap] * x_pad[n, c, neighbourhood(tap)].
 
-    im2col (F.unfold) of the k x k neighbourhoods, then one batched contraction over the taps, in bands
-    of rows so the unfolded input stays under `max_elements` (a 1080p frame would need 2.7 GB at once).
-    A loop over taps with slicing is far slower to train: each slice's backward allocates a full-size
-    gradient (33 s per training step at the cpu scale, against well under a second here).
-    The contraction is a batched matmul, so FlopCounterMode counts it; `macs` declares the same for the
-    analytic count.
+    Pixel-major: the k x k neighbourhoods of a band of rows are gathered from the padded input by
+    strided views (one copy, (pixels, C, k*k)), and each pixel's kernels are contracted with them in
+    one batched matmul (pixels, S, k*k) @ (pixels, k*k, C). Bands bound the gathered
+    neighbourhoods to `max_elements` values (a 1080p frame would need 2.7 GB at once). A loop over taps
+    with slicing is far slower to train: each slice's backward allocates a full-size gradient (33 s per
+    training step at the cpu scale, against well under a second here). The contraction is a batched
+    matmul, so FlopCounterMode counts it; `macs` declares the same for the analytic count.
     """
 
     def __init__(self, filter_size, max_elements=1 << 25):
@@ -38,16 +39,28 @@ class KernelFilter(nn.Module):
 
     def forward(self, x, weights):
         """x: (N, C, h, w); weights: (N, S, k*k, h, w), normalized over k*k -> (N, S, C, h, w)."""
-        k, (n, c, h, w) = self.filter_size, x.shape
-        pad = F.pad(x, (k // 2,) * 4, mode="replicate")
+        n, c, h, w = x.shape
+        k, pad = self.filter_size, self.pad(x)
         rows = max(1, self.max_elements // max(1, n * c * k * k * w))
-        bands = []
-        for top in range(0, h, rows):
-            bottom = min(h, top + rows)
-            cols = F.unfold(pad[:, :, top:bottom + k - 1], k).view(n, c, k * k, (bottom - top) * w)
-            wts = weights[:, :, :, top:bottom].reshape(n, weights.shape[1], k * k, (bottom - top) * w)
-            bands.append(torch.einsum("nckp,nskp->nscp", cols, wts).reshape(n, -1, c, bottom - top, w))
-        return torch.cat(bands, dim=-2)
+        bands = [self.filter_rows(pad, weights[..., top:top + rows, :].permute(0, 3, 4, 1, 2), top)
+                 for top in range(0, h, rows)]
+        return torch.cat(bands, dim=1).permute(0, 3, 4, 1, 2)
+
+    def pad(self, x):
+        """(N, C, h+k-1, w+k-1), contiguous: x replicate-padded by k // 2; the input of filter_rows."""
+        return F.pad(x, (self.filter_size // 2,) * 4, mode="replicate").contiguous()
+
+    def filter_rows(self, pad, weights, row0):
+        """Rows row0..row0+rows-1 of the filtered image, (N, rows, w, S, C), from the whole padded input
+        `pad` (from self.pad) and those rows' kernels `weights` (N, rows, w, S, k*k)."""
+        k, (n, rows, w, s, taps) = self.filter_size, weights.shape
+        c = pad.shape[1]
+        # (N, C, rows, w, k, k) views of the neighbourhoods -> one copy (pixels, C, k*k), copying runs of
+        # k contiguous values
+        hood = pad[:, :, row0:row0 + rows + k - 1].unfold(2, k, 1).unfold(3, k, 1)
+        cols = hood.permute(0, 2, 3, 1, 4, 5).reshape(n * rows * w, c, taps)
+        out = torch.bmm(weights.reshape(n * rows * w, s, taps), cols.to(weights.dtype).transpose(1, 2))
+        return out.view(n, rows, w, s, c)
 
     def macs(self, inputs, output):
         """One MAC per output value per tap."""
@@ -94,6 +107,7 @@ class KPCN(nn.Module):
         convs.append(nn.Conv2d(channels, scale * scale * filter_size ** 2, kernel_size, padding=pad))
         self.net = nn.Sequential(*convs)
         self.filter = KernelFilter(filter_size)
+        self.band_elements = 1 << 22  # kernel weights per band of rows in forward (16 MB in float32)
         if bilinear_start:
             start_as_bilinear(convs[-1], scale, filter_size, bilinear_start)
 
@@ -103,12 +117,40 @@ class KPCN(nn.Module):
         n, _, h, w = logits.shape
         return logits.view(n, self.scale ** 2, self.filter_size ** 2, h, w).softmax(dim=2)
 
+    def _kernel_bands(self, features):
+        """(first row, kernels (N, rows, w, s*s, k*k) of rows first..) per band of rows: the last conv
+        and the softmax on `band_elements` kernel weights at a time, pixel-major. Equal to kernels(),
+        but a 1080p frame's 1764 x h x w logits (3.7 GB in float32) never exist at once, and each band
+        is filtered while in cache."""
+        last = self.net[-1]
+        pad = last.padding[0]
+        n, _, h, w = features.shape
+        rows = max(1, self.band_elements // (n * last.out_channels * w))
+        # zero rows, as the conv's own padding; channels-last, so the logits come out pixel-major
+        padded = F.pad(features, (0, 0, pad, pad)).contiguous(memory_format=torch.channels_last)
+        for top in range(0, h, rows):
+            bottom = min(h, top + rows)
+            logits = F.conv2d(padded[:, :, top:bottom + 2 * pad], last.weight, last.bias, padding=(0, pad))
+            logits = logits.permute(0, 2, 3, 1).reshape(n, bottom - top, w, self.scale ** 2, self.filter_size ** 2)
+            yield top, logits.softmax(dim=-1)
+
+    def macs(self, inputs, output):
+        """The last conv and the kernel filtering, which forward runs band by band as a functional conv
+        and KernelFilter.filter_rows (bench.macs protocol; FlopCounterMode sees both)."""
+        x = inputs[0]
+        pixels = x.shape[0] * x.shape[1] * x.shape[-2] * x.shape[-1]
+        last = self.net[-1]
+        conv = pixels * last.out_channels * last.in_channels * last.kernel_size[0] * last.kernel_size[1]
+        return conv + pixels * self.scale ** 2 * 3 * self.filter_size ** 2
+
     def forward(self, x, g):
         b = x.shape[0]
-        weights = self.kernels(x, g)
-        radiance = fold_time(x)[:, :3]
-        filtered = self.filter(radiance, weights)  # (N, s*s, 3, h, w)
-        n, _, c, h, w = filtered.shape
-        # pixel_shuffle wants channel index c*s*s + sub-pixel
-        out = F.pixel_shuffle(filtered.transpose(1, 2).reshape(n, c * self.scale ** 2, h, w), self.scale)
-        return {"final": unfold_time(out, b)}
+        features = self.net[:-1](fold_time(with_gbuffer(x, g, self.gbuffer_channels)))
+        radiance = self.filter.pad(fold_time(x)[:, :3])
+        filtered = torch.cat([self.filter.filter_rows(radiance, weights, top)
+                              for top, weights in self._kernel_bands(features)], dim=1)  # (N, h, w, s*s, 3)
+        n, h, w, _, c = filtered.shape
+        s = self.scale
+        # sub-pixel (i, j) of LR pixel (y, x) is HR pixel (s*y + i, s*x + j), as pixel_shuffle places it
+        out = filtered.view(n, h, w, s, s, c).permute(0, 5, 1, 3, 2, 4).reshape(n, c, s * h, s * w)
+        return {"final": unfold_time(out.to(x.dtype), b)}

@@ -15,6 +15,7 @@ import hydra
 from omegaconf import DictConfig, OmegaConf
 
 from bench.errors import UserError
+from bench.infer import keep_freed_memory
 from bench.runs import ensure_writable
 from bench.experiments import KINDS
 
@@ -118,6 +119,8 @@ def run_experiment(cfg: DictConfig) -> None:
 
 @hydra.main(config_path=CONF_DIR, config_name="config", version_base=None)
 def main(cfg: DictConfig) -> None:
+    if cfg.get("keep_freed_memory", True):
+        keep_freed_memory()
     try:
         run_experiment(cfg)
     except (UserError, PermissionError, FileNotFoundError) as err:

@@ -245,3 +245,22 @@ def test_kpcn_filter_bands_equal_one_pass():
     bx, bw = torch.autograd.grad(banded.square().sum(), (x, w))
     torch.testing.assert_close(bx, gx)
     torch.testing.assert_close(bw, gw)
+
+
+def test_kpcn_forward_by_bands_equals_whole_kernels():
+    """forward runs the last conv, softmax and filter band by band; one-row bands give the result of
+    the whole-frame kernels() + KernelFilter, gradients included."""
+    torch.manual_seed(0)
+    model = KPCN(channels=4, layers=3, filter_size=5, bilinear_start=0.5).double()
+    for p in model.parameters():
+        p.data.add_(torch.randn_like(p) * 0.1)
+    x = torch.rand(1, 2, 3, 7, 6, dtype=torch.float64, requires_grad=True)
+    g = torch.rand(1, 2, 7, 7, 6, dtype=torch.float64)
+    radiance = x.reshape(2, 3, 7, 6)
+    filtered = model.filter(radiance, model.kernels(x, g))  # (N, 4, 3, h, w)
+    whole = F.pixel_shuffle(filtered.transpose(1, 2).reshape(2, 12, 7, 6), 2).view(1, 2, 3, 14, 12)
+    model.band_elements = 1  # one row per band
+    banded = model(x, g)["final"]
+    torch.testing.assert_close(banded, whole)
+    gx = torch.autograd.grad(whole.square().sum(), x)[0]
+    torch.testing.assert_close(torch.autograd.grad(banded.square().sum(), x)[0], gx)

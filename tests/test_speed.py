@@ -5,6 +5,7 @@ channels_last, within 5% of the output's range for bf16 (bfloat16 keeps ~3 signi
 errors add up through a few dozen layers). Tiled inference must equal untiled inference for conv-only
 models once the overlap covers the receptive radius, and stream recurrent models tile by tile.
 """
+import platform
 import pandas as pd
 import pytest
 import torch
@@ -184,3 +185,12 @@ def test_speed_experiment_writes_every_section(tmp_path):
     assert len(deform) == 4 and deform["time / plain conv"].notna().all()
     caption = (out / "table.md").read_text().splitlines()[0]
     assert "torch " + torch.__version__ in caption and "1 torch threads" in caption
+
+
+def test_keep_freed_memory_applies_once_on_glibc():
+    """The CLI's allocator setting: applies on glibc (Linux CI), is idempotent and reported."""
+    from bench.infer import freed_memory_kept, keep_freed_memory
+    applied = keep_freed_memory()
+    assert keep_freed_memory() == applied == freed_memory_kept()
+    if platform.libc_ver()[0] == "glibc":
+        assert applied

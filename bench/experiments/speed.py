@@ -29,7 +29,6 @@ from __future__ import annotations
 
 import contextlib
 import copy
-import ctypes
 import logging
 import platform
 import re
@@ -43,7 +42,7 @@ import torch.nn as nn
 from hydra.utils import instantiate
 
 from bench.evaluate import sync
-from bench.infer import max_abs_diff, parse_path, prepare, tiled_predict
+from bench.infer import freed_memory_kept, max_abs_diff, parse_path, prepare, release_free_memory, tiled_predict
 from bench.losses import weighted_loss
 from bench.macs import count_macs, on_meta
 from bench.nn import DeformConv2d
@@ -80,7 +79,8 @@ def machine_caption(device: str) -> str:
     if str(device).startswith("cuda"):
         where = f"{torch.cuda.get_device_name(torch.device(device))} (CUDA {torch.version.cuda})"
     else:
-        where = f"{device_tag(device)[4:]} CPU, {torch.get_num_threads()} torch threads"
+        where = (f"{device_tag(device)[4:]} CPU, {torch.get_num_threads()} torch threads, glibc malloc "
+                 f"{'keeping freed memory' if freed_memory_kept() else 'default (mmap per big tensor)'}")
     return f"{where}, torch {torch.__version__}"
 
 
@@ -105,12 +105,6 @@ def _status_kib(field: str) -> int:
     return int(found.group(1)) if found else 0
 
 
-def _release_free_memory() -> None:
-    """Return freed heap memory to the OS (glibc malloc_trim), so the next peak starts from what is live."""
-    with contextlib.suppress(OSError, AttributeError):
-        ctypes.CDLL("libc.so.6").malloc_trim(0)
-
-
 def peak_memory_mib(fn, device: str) -> float:
     """Peak memory one call of fn() adds to what is allocated before it, in MiB (module docstring).
     NaN on a CPU system without /proc (the resident-set peak cannot be reset there)."""
@@ -122,7 +116,7 @@ def peak_memory_mib(fn, device: str) -> float:
         sync(device)
         return (torch.cuda.max_memory_allocated(device) - before) / 2 ** 20
     try:
-        _release_free_memory()
+        release_free_memory()
         before = _status_kib("VmRSS")
         Path("/proc/self/clear_refs").write_text("5")  # resets VmHWM to the current resident set
     except OSError:

@@ -89,5 +89,7 @@ class RecurrentBlock(nn.Module):
         y = F.leaky_relu(self.conv_in(x), self.negative_slope)
         if skip is not None:
             y = y + skip
-        y = F.leaky_relu(self.conv_rec(torch.cat((y, hidden), dim=1)), self.negative_slope)
+        # the state in y's dtype: a zero state made from a float32 input would turn the concat (and
+        # under bf16 autocast, a copy back for the conv) into float32 at the level's full size
+        y = F.leaky_relu(self.conv_rec(torch.cat((y, hidden.to(y.dtype)), dim=1)), self.negative_slope)
         return F.leaky_relu(self.conv_out(y), self.negative_slope)

@@ -9,20 +9,24 @@ Tap k of output pixel (y, x) reads the input at
     (y - padding + i*dilation + dy_k,  x - padding + j*dilation + dx_k)
 with bilinear interpolation; every bilinear corner outside the image contributes zero.
 
-Implementation: an im2col whose columns are bilinear samples, contracted with the weight in one matmul
-per strip of output rows (no Python loop over taps or pixels; strips keep the samples in cache). Two
-samplers fill the columns; they agree to float rounding (tests/test_layers.py):
-  - gather, when no gradient is needed (inference): the four bilinear corners of every sample are rows
-    of a zero-bordered channels-last copy of x, summed with their weights by ONE
-    `F.embedding_bag(mode="sum", per_sample_weights=...)` per strip (fbgemm's weighted gather on CPU).
-    Positions are used in pixels, never normalised, and the matmul writes the output directly in x's
-    memory format (contiguous or channels_last). About 2x faster than grid_sample in forward.
-  - grid_sample, when autograd needs a gradient (training): one F.grid_sample per strip. Its backward
-    is about 2x faster than embedding_bag's (which sorts the indices), and gradients flow to input,
-    offsets, mask, weight and bias.
-Measured forward time / a plain nn.Conv2d of the same shape (32->32, 3x3, at 270x480 and 540x960, one
-thread, on a 2-core machine shared with other jobs, so +-50%): gather 2.7-5x, grid_sample 4.4-7.6x
-(+experiment=speed reports it for the machine it runs on).
+Implementation: two samplers, by whether autograd needs a gradient; they agree to float rounding
+(tests/test_layers.py). Neither loops over taps or pixels in Python; both work in strips of output rows.
+  - gather, inference. Bilinear sampling is linear, so the weight goes first: a 1x1 conv (oneDNN, the
+    3x3 conv's MACs) turns the zero-padded input rows a strip's samples touch into a table of K*O
+    values per pixel (tap k's weight times x there), and each output pixel is ONE bag of its K taps x
+    4 corners of that table, summed with the bilinear weights by `F.embedding_bag(mode="sum",
+    per_sample_weights=...)` (fbgemm's weighted gather). The bag sum IS the output pixel: no K*C-wide
+    im2col is gathered, and the output comes out channels-last. Positions stay in pixels, at least
+    float32. With small offsets a strip touches its own rows plus a few (about +10% of the table
+    conv at 1080p); with offsets as large as the frame, every row.
+  - grid_sample, training: an im2col whose columns are sampled by one F.grid_sample per strip, then one
+    matmul. Its backward is about 2x faster than embedding_bag's (which sorts the indices), and
+    gradients flow to input, offsets, mask, weight and bias.
+Measured forward time / a plain nn.Conv2d of the same shape (32->32, 3x3, channels-last, 2 threads, glibc
+keeping freed memory; see bench.infer.keep_freed_memory): gather at 1920x1088 6x in fp32 and 8x in bf16
+(the old im2col gather: 7.8x and 16x), at 960x544 5.8x and 9.6x. The 3x3 conv computes in registers; the
+deformable conv writes and gathers a 9x wider table, so it stays memory-bound. +experiment=speed reports
+the ratio for the machine it runs on.
 Stride 1 and groups 1 only (all the networks here use "same"-size convs).
 """
 import torch
@@ -33,6 +37,9 @@ import torch.nn.functional as F
 # Output rows are processed in strips whose sampled block holds about this many values: a 4 MB strip
 # stays in cache and reuses allocator memory, ~2x faster on CPU than one image-sized gather.
 _STRIP_VALUES = 1 << 20
+# The gather sampler takes strips of about this many bilinear corners: each strip's table (the input
+# rows it touches times K*O) is recomputed, so taller strips repeat fewer halo rows but index more.
+_GATHER_INDICES = 1 << 21
 
 
 # ---- grid_sample sampler (differentiable) --------------------------------------------------------
@@ -77,79 +84,105 @@ def _deform_by_grid_sample(x, offset, weight, mask, padding, dilation, strip):
 
 # ---- gather sampler (inference) ------------------------------------------------------------------
 
-def _pixel_positions(offset, kh, kw, padding, dilation, row0):
-    """Sampling positions in input pixels, (B, 2 (y, x), rows, W_out, K), for output rows
-    row0..row0+rows-1 held by offset (B, 2*K, rows, W_out). At least float32: a bfloat16 position
-    cannot address a pixel of a 1080p row."""
-    b, _, rows, out_w = offset.shape
-    taps = kh * kw
-    dtype, device = torch.promote_types(offset.dtype, torch.float32), offset.device
-    pos = offset.to(dtype).view(b, taps, 2, rows, out_w).permute(0, 2, 3, 4, 1).contiguous()
-    tap_y = (torch.arange(kh, dtype=dtype, device=device) * dilation - padding).repeat_interleave(kw)
-    tap_x = (torch.arange(kw, dtype=dtype, device=device) * dilation - padding).repeat(kh)
-    pos[:, 0] += torch.arange(row0, row0 + rows, dtype=dtype, device=device).view(rows, 1, 1) + tap_y
-    pos[:, 1] += torch.arange(out_w, dtype=dtype, device=device).view(out_w, 1) + tap_x
-    return pos
+def _padded_input(x):
+    """x zero-padded by 1 pixel before and 2 after each axis, channels-last: both bilinear corners of
+    any position in [-1, H] x [-1, W] are cells of it (a position + 1 is its cell coordinate)."""
+    return F.pad(x, (1, 2, 1, 2)).contiguous(memory_format=torch.channels_last)
 
 
-def _padded_rows(x):
-    """x (B, C, H, W) as the rows of a channels-last table with a zero border of 1 pixel before and 2
-    after each axis, (B*(H+3)*(W+3), C): both corners of any position in [-1, H] x [-1, W] exist."""
-    return F.pad(x.permute(0, 2, 3, 1), (0, 0, 1, 2, 1, 2)).reshape(-1, x.shape[1])
+def _tap_products(padded, weight, row0, row1):
+    """The weight applied before sampling, on the padded rows row0..row1-1: the table
+    Y[b, y, x, k, o] = sum_c weight[o, c, k] * padded[b, c, y, x] for every tap k, as rows
+    (B*(row1-row0)*(W+3)*K, O). One 1x1 conv (the 3x3 conv's MACs per row, run by oneDNN): a sample
+    of Y at a position equals the tap's weight times x sampled there, since bilinear interpolation is
+    linear. The border rows are zero: a corner outside the image contributes 0."""
+    out_ch, in_ch, kh, kw = weight.shape
+    pointwise = weight.permute(2, 3, 0, 1).reshape(kh * kw * out_ch, in_ch, 1, 1)  # channel k*O + o
+    taps = F.conv2d(padded[:, :, row0:row1], pointwise)
+    return taps.contiguous(memory_format=torch.channels_last).permute(0, 2, 3, 1).reshape(-1, out_ch)
 
 
-def _gather_bags(h, w, pos):
-    """The four bilinear corners of every sample as rows of the _padded_rows table: flat int64 indices
-    and weights, 4 per sample in pos's order, corners (dy, dx) row-major.
+def _tap_grid(kh, kw, padding, dilation, rows, out_w, device):
+    """(rows, W_out, K, 2): position (y, x) + 1 of every tap of output pixel (row, column), rows from 0
+    (+1: the coordinates of the padded input's cells)."""
+    tap_y = (torch.arange(kh, device=device) * dilation - padding + 1).repeat_interleave(kw)
+    tap_x = (torch.arange(kw, device=device) * dilation - padding + 1).repeat(kh)
+    ys = torch.arange(rows, device=device).view(rows, 1, 1) + tap_y
+    xs = torch.arange(out_w, device=device).view(1, out_w, 1) + tap_x
+    return torch.stack(torch.broadcast_tensors(ys, xs), dim=-1).float()
+
+
+def _bags(offset, grid, row0, in_h, in_w):
+    """The bilinear samples of output rows row0..row0+rows-1, whose offsets are offset
+    (B, 2*K, rows, W_out), grid = _tap_grid(..., rows, ...): (index, weight, first, last) where
+    first..last are the padded-input rows the samples touch, and index, weight give 4*K rows of the
+    _tap_products table of those rows per output pixel (4 bilinear corners x K taps), as flat int64
+    indices and weights ordered (b, row, column, corner, tap) (a bag's order does not matter to its sum).
 
     A position outside [-1, H] x [-1, W] is clamped to that border: both of its corners then lie in
     the zero border (or the inner one has weight 0), so it reads 0, as bilinear sampling with zero
-    padding does. A NaN position reads row 0 with NaN weights, so NaN propagates."""
-    b = pos.shape[0]
-    pos = pos.clone()
-    pos[:, 0].clamp_(-1, h)
-    pos[:, 1].clamp_(-1, w)
-    corner = pos.floor()
-    frac = (pos - corner).view(b, 2, -1)
-    cell = corner.nan_to_num_(-1.0).view(b, 2, -1).long() + 1  # (row, column) in the padded table
-    row_stride = w + 3
-    top_left = cell[:, 0] * row_stride + cell[:, 1]
+    padding does. A NaN position reads cell (0, 0) with NaN weights, so NaN propagates to its pixel."""
+    b, _, rows, out_w = offset.shape
+    taps = grid.shape[-2]
+    device = offset.device
+    # positions + 1 (cells of the padded input, never negative: truncation is floor), at least float32:
+    # a bfloat16 position cannot address a pixel of a 1080p row. A view of offset when it is channels_last.
+    pos = offset.permute(0, 2, 3, 1).reshape(b, rows, out_w, taps, 2).to(torch.promote_types(offset.dtype, torch.float32))
+    pos = pos + grid
+    pos[..., 0] += row0
+    pos[..., 0].clamp_(0, in_h + 1)
+    pos[..., 1].clamp_(0, in_w + 1)
+    frac = torch.frac(pos)
+    cell = pos.nan_to_num_(0.0).long()
+    if cell.is_meta:  # shape-only run (MAC counting): every row
+        first, last = 0, in_h + 1
+    else:
+        first, last = int(cell[..., 0].min()), int(cell[..., 0].max()) + 1  # + 1: the lower corners
+    row_stride = in_w + 3
+    # the table row of the tap at the top-left corner: (cell row * row_stride + cell column) * K + tap
+    top_left = torch.add(cell[..., 1], cell[..., 0] - first, alpha=row_stride).mul_(taps)
+    top_left += torch.arange(taps, device=device)
     if b > 1:
-        top_left += torch.arange(b, device=pos.device).view(b, 1) * ((h + 3) * row_stride)
-    top_left, fy, fx = top_left.view(-1), frac[:, 0].reshape(-1), frac[:, 1].reshape(-1)
+        top_left += (torch.arange(b, device=device) * ((last + 1 - first) * row_stride * taps)).view(b, 1, 1, 1)
+    fy, fx = frac.unbind(-1)
     gy, gx = 1 - fy, 1 - fx
-    # written column by column: a broadcast (S, 2, 1) x (S, 1, 2) product or a stack along the last
-    # axis is 2-10x slower on CPU
-    index = torch.empty(top_left.numel(), 4, dtype=torch.int64, device=pos.device)
-    weight = torch.empty(top_left.numel(), 4, dtype=pos.dtype, device=pos.device)
-    for column, (step, wy, wx) in enumerate(((0, gy, gx), (1, gy, fx), (row_stride, fy, gx),
+    index = torch.empty(b, rows, out_w, 4, taps, dtype=torch.int64, device=device)
+    weight = torch.empty(b, rows, out_w, 4, taps, dtype=frac.dtype, device=device)
+    for corner, (step, wy, wx) in enumerate(((0, gy, gx), (1, gy, fx), (row_stride, fy, gx),
                                             (row_stride + 1, fy, fx))):
-        torch.add(top_left, step, out=index[:, column])
-        torch.mul(wy, wx, out=weight[:, column])
-    return index.view(-1), weight
+        torch.add(top_left, step * taps, out=index[:, :, :, corner])
+        torch.mul(wy, wx, out=weight[:, :, :, corner])
+    return index.view(-1), weight.view(-1), first, last
 
 
-def _deform_by_gather(x, offset, weight, mask, padding, dilation, strip, channels_last):
-    """(B, O, H_out*W_out), or (B, H_out*W_out, O) when channels_last, without bias; columns gathered
-    by embedding_bag (see module docstring). No autograd support needed (inference only)."""
+def _deform_by_gather(x, offset, weight, mask, padding, dilation, strip):
+    """(B, H_out, W_out, O) (channels-last order) without bias. Per strip of output rows: the bilinear
+    corners of its samples (_bags), the weight applied to the input rows they touch (_tap_products:
+    the strip's rows plus a few for small offsets, every row in the worst case), then each output
+    pixel is ONE bag of its K taps x 4 corners of that table, summed by
+    `F.embedding_bag(mode="sum", per_sample_weights=...)` (fbgemm's weighted gather on CPU). No
+    autograd support needed (inference only)."""
     b, c, in_h, in_w = x.shape
     out_ch, _, kh, kw = weight.shape
     taps, out_h, out_w = kh * kw, offset.shape[-2], offset.shape[-1]
-    table = _padded_rows(x)
-    weight_matrix = weight.permute(0, 2, 3, 1).reshape(out_ch, taps * c)  # column k*C + c
-    outs = []
+    padded = _padded_input(x)
+    out = None
+    grid = _tap_grid(kh, kw, padding, dilation, min(strip, out_h), out_w, x.device)
     for r0 in range(0, out_h, strip):
         rows = min(strip, out_h - r0)
-        pos = _pixel_positions(offset[:, :, r0:r0 + rows], kh, kw, padding, dilation, r0)
-        index, corner_weight = _gather_bags(in_h, in_w, pos)
+        index, corner_weight, first, last = _bags(offset[:, :, r0:r0 + rows], grid[:rows], r0, in_h, in_w)
+        table = _tap_products(padded, weight, first, last + 1)
+        if out is None:
+            out = torch.empty(b, out_h, out_w, out_ch, dtype=table.dtype, device=x.device)
         if mask is not None:
-            corner_weight = corner_weight * mask[:, :, r0:r0 + rows].permute(0, 2, 3, 1).reshape(-1, 1)
+            corner_weight = (corner_weight.view(b, rows, out_w, 4, taps)
+                             * mask[:, :, r0:r0 + rows].permute(0, 2, 3, 1).unsqueeze(3)).view(-1)
         # 1-D int64 indices with bag offsets: fbgemm's fast path (int32 or 2-D bags are 2-8x slower)
-        bags = torch.arange(0, index.numel(), 4, device=x.device)
-        samples = F.embedding_bag(index, table, bags, per_sample_weights=corner_weight.view(-1).to(table.dtype),
-                                  mode="sum").view(b, rows * out_w, taps * c)
-        outs.append(samples @ weight_matrix.t() if channels_last else weight_matrix @ samples.transpose(1, 2))
-    return torch.cat(outs, dim=1 if channels_last else 2) if len(outs) > 1 else outs[0]
+        bags = torch.arange(0, index.numel(), 4 * taps, device=x.device)
+        out[:, r0:r0 + rows] = F.embedding_bag(index, table, bags, mode="sum",
+                                               per_sample_weights=corner_weight.to(table.dtype)
+                                               ).view(b, rows, out_w, out_ch)
+    return out
 
 
 def deform_conv2d(x, offset, weight, bias=None, padding=1, dilation=1, mask=None):
@@ -170,19 +203,20 @@ def deform_conv2d(x, offset, weight, bias=None, padding=1, dilation=1, mask=None
     out_w = in_w + 2 * padding - dilation * (kw - 1)
     if offset.shape != (b, 2 * taps, out_h, out_w):
         raise ValueError(f"offset must be {(b, 2 * taps, out_h, out_w)}, got {tuple(offset.shape)}")
-    strip = max(1, _STRIP_VALUES // (b * c * taps * out_w))
-    if x.is_meta:  # shape-only runs (MAC counting): no cache to fit, and meta ops cost per call
-        strip = out_h
     needs_grad = torch.is_grad_enabled() and any(
         t is not None and t.requires_grad for t in (x, offset, weight, bias, mask))
     if needs_grad:
+        strip = out_h if x.is_meta else max(1, _STRIP_VALUES // (b * c * taps * out_w))
         out = _deform_by_grid_sample(x, offset, weight, mask, padding, dilation, strip)
     else:
+        # shape-only runs (MAC counting) take one strip: no cache to fit, and meta ops cost per call
+        strip = out_h if x.is_meta else max(1, _GATHER_INDICES // (b * 4 * taps * out_w))
+        out = _deform_by_gather(x, offset, weight, mask, padding, dilation, strip)
+        if bias is not None:
+            out += bias.to(out.dtype)
+        out = out.permute(0, 3, 1, 2)
         channels_last = not x.is_contiguous() and x.is_contiguous(memory_format=torch.channels_last)
-        out = _deform_by_gather(x, offset, weight, mask, padding, dilation, strip, channels_last)
-        if channels_last:
-            out = out if bias is None else out + bias
-            return out.view(b, out_h, out_w, out_ch).permute(0, 3, 1, 2)
+        return out if channels_last else out.contiguous()
     if bias is not None:
         out = out + bias.view(1, out_ch, 1)
     return out.view(b, out_ch, out_h, out_w)
@@ -214,6 +248,15 @@ class DeformConv2d(nn.Module):
             self.mask_conv = nn.Conv2d(in_ch, taps, 1)
             nn.init.zeros_(self.mask_conv.weight)
             nn.init.zeros_(self.mask_conv.bias)
+
+    def macs(self, inputs, output):
+        """MACs of the weight product as the inference sampler runs it (bench.macs protocol): the 1x1 conv
+        of _tap_products over the zero-padded input, (H+3)*(W+3) pixels x K*O x C, which is the conv's
+        H*W*O*C*K plus the border (+0.4% at 1920x1088). Strips of real data also recompute a few halo
+        rows each (+10% at 1080p with small offsets); those are time, not counted MACs."""
+        x = inputs[0]
+        out_ch, in_ch, kh, kw = self.weight.shape
+        return x.shape[0] * (x.shape[2] + 3) * (x.shape[3] + 3) * kh * kw * out_ch * in_ch
 
     def extra_macs(self, inputs, output):
         """MACs of the bilinear sampling (4 per sampled value), which MAC counters that see only
