@@ -183,6 +183,14 @@ def test_speed_experiment_writes_every_section(tmp_path):
     assert references.str.startswith("OIDN").sum() == 1 and references.str.startswith("3x3 conv stack").sum() == len(PATHS)
     deform = table[table.section == "deformable conv"]
     assert len(deform) == 4 and deform["time / plain conv"].notna().all()
+    profile = table[table.section == "profile"].set_index("method")
+    assert profile.loc["Ours: whole frame", "path"] == PATHS[-1]
+    # inclusive times: a class's time is within its frame's, and its parts' within its own
+    assert (profile["ms"] <= profile.loc["Ours: whole frame", "ms"] * 1.001).all()
+    assert profile.loc["Ours: DeformConv2d", "ms"] <= profile.loc["Ours: DecoderBlock", "ms"] * 1.001
+    # every MAC of the frame belongs to some module class: the top-level stages add up to the whole
+    stages = profile.loc[["Ours: SRStage", "Ours: RecurrentDenoiser", "Ours: ConditionNet"], "GMac"].sum()
+    assert stages == pytest.approx(profile.loc["Ours: whole frame", "GMac"], rel=0.02)
     caption = (out / "table.md").read_text().splitlines()[0]
     assert "torch " + torch.__version__ in caption and "1 torch threads" in caption
 

@@ -34,6 +34,7 @@ import platform
 import re
 import statistics
 import time
+from collections import defaultdict
 from pathlib import Path
 
 import pandas as pd
@@ -146,12 +147,17 @@ def build(cfg: dict, device: str, perturb: float, seed: int = 0) -> nn.Module:
     return model.to(device).eval()
 
 
-def macs_per_frame(model_fn, hw, in_channels=3, gbuffer_channels=7) -> int:
-    """Analytic MACs of one frame at LR size hw, counted on the meta device (no compute)."""
+def macs_table(model_fn, hw, in_channels=3, gbuffer_channels=7) -> pd.DataFrame:
+    """bench.macs rows (layer, macs, ...) of one frame at LR size hw, counted on the meta device."""
     h, w = hw
     model, inputs = on_meta(model_fn, lambda d: (torch.zeros(1, 1, in_channels, h, w, device=d),
                                                  torch.zeros(1, 1, gbuffer_channels, h, w, device=d)))
-    return int(count_macs(model, inputs)["macs"].sum())
+    return count_macs(model, inputs)
+
+
+def macs_per_frame(model_fn, hw, in_channels=3, gbuffer_channels=7) -> int:
+    """Analytic MACs of one frame at LR size hw, counted on the meta device (no compute)."""
+    return int(macs_table(model_fn, hw, in_channels, gbuffer_channels)["macs"].sum())
 
 
 class ConvStack(nn.Module):
@@ -328,6 +334,65 @@ def tiled_rows(label: str, model, x, g, tile: int, overlap: int, device, repeats
     return rows
 
 
+def profile_rows(label: str, model, macs_table: pd.DataFrame, x, g, path: str, device, repeats, warmup) -> list[dict]:
+    """Where one frame's time goes: per module class, the wall time of its calls in one frame (median
+    of `repeats` frames after `warmup`), inclusive of the modules nested in them (a DecoderBlock's time
+    includes its DeformConv2d's), next to the MACs of those modules (from `macs_table`, bench.macs
+    rows named by module path), so a class whose share of time exceeds its share of MACs stands out.
+    Hooks synchronise CUDA; their own cost is a few microseconds per call."""
+    if parse_path(path).compile:
+        raise ValueError("profile: hooks do not see inside a compiled module; choose a path without compile")
+    run = prepare(model, path)
+    names = defaultdict(list)
+    for module_name, module in run.net.named_modules():
+        if module is not run.net:
+            names[type(module).__name__].append(module_name)
+    frame, starts = defaultdict(float), {}
+    calls = defaultdict(int)
+
+    def before(module, args):
+        sync(device)
+        starts[id(module)] = time.perf_counter()
+
+    def after(module, args, out):
+        sync(device)
+        frame[type(module).__name__] += time.perf_counter() - starts.pop(id(module))
+        calls[type(module).__name__] += 1
+
+    modules = [m for m in run.net.modules() if m is not run.net]
+    handles = [m.register_forward_pre_hook(before) for m in modules] + [m.register_forward_hook(after) for m in modules]
+    per_frame, totals = [], defaultdict(list)
+    try:
+        for i in range(warmup + max(1, repeats)):
+            frame.clear()
+            calls.clear()
+            t0 = time.perf_counter()
+            run(x, g)
+            sync(device)
+            if i >= warmup:
+                per_frame.append(time.perf_counter() - t0)
+                for cls, seconds in frame.items():
+                    totals[cls].append(seconds)
+    finally:
+        for handle in handles:
+            handle.remove()
+    whole_ms = 1000 * statistics.median(per_frame)
+    macs_of = {cls: sum(int(macs_table.loc[(macs_table["layer"] == n) | macs_table["layer"].str.startswith(n + "."),
+                                           "macs"].sum()) for n in module_names)
+               for cls, module_names in names.items()}
+    size = _size(x.shape[-2:])
+    rows = [_row("profile", f"{label}: whole frame", path, size, "frame", GMac=sum(macs_table["macs"]) / 1e9,
+                 ms=whole_ms, note=f"median of {len(per_frame)} frames with hooks on every module")]
+    for cls in sorted(totals, key=lambda c: -statistics.median(totals[c])):
+        ms = 1000 * statistics.median(totals[cls])
+        gmac = macs_of.get(cls, 0) / 1e9
+        rows.append(_row("profile", f"{label}: {cls}", path, size, "frame", GMac=gmac, ms=ms,
+                         **{"GMac/s": gmac / (ms / 1000) if gmac else float("nan"),
+                            "note": f"{calls[cls]} calls; {100 * ms / whole_ms:.0f}% of the time, "
+                                    f"{100 * gmac * 1e9 / max(1, sum(macs_table['macs'])):.0f}% of the MACs; inclusive"}))
+    return rows
+
+
 # ------------------------------------------------------------------------------ the experiment
 
 def _ratios(table: pd.DataFrame) -> pd.DataFrame:
@@ -347,7 +412,7 @@ def run(ctx, name: str = "speed", models: list[str] | None = None, input_hw=(540
         paths: list[str] | None = None, repeats: int = 5, warmup: int = 1, threads: int | None = None,
         train: dict | None = None, oidn: bool = True, conv_stack_channels: int = 32,
         deform: dict | None = None, tiled: dict | None = None, perturb: float = 0.02,
-        caption: str = "") -> pd.DataFrame:
+        profile: dict | None = None, caption: str = "") -> pd.DataFrame:
     """CLI entry (conf/experiment/speed.yaml documents every parameter). Returns the table, which is
     rewritten after every section, so an interrupted run leaves what it measured."""
     device = str(ctx.device)
@@ -364,7 +429,8 @@ def run(ctx, name: str = "speed", models: list[str] | None = None, input_hw=(540
     rows, table = [], None
     try:
         for section in _sections(ctx, models or MODELS, tuple(input_hw), paths or PATHS, repeats, warmup,
-                                 train or {}, oidn, conv_stack_channels, deform or {}, tiled or {}, perturb, device):
+                                 train or {}, oidn, conv_stack_channels, deform or {}, tiled or {}, perturb,
+                                 profile or {}, device):
             rows += section
             table = _ratios(pd.DataFrame(rows, columns=COLUMNS))
             write_table(table, out_dir, digits=3, caption=caption)
@@ -375,7 +441,7 @@ def run(ctx, name: str = "speed", models: list[str] | None = None, input_hw=(540
 
 
 def _sections(ctx, models, input_hw, paths, repeats, warmup, train, oidn, stack_channels, deform, tiled,
-              perturb, device):
+              perturb, profile, device):
     """Rows, section by section: the reference points first (quick, and every ratio needs them), then
     one model at a time."""
     if oidn:
@@ -400,6 +466,9 @@ def _sections(ctx, models, input_hw, paths, repeats, warmup, train, oidn, stack_
         if train.get("enabled", True):
             rows.append(training_row(label, model, train, ctx.train["loss"], ctx.train.get("lr", 6e-4), device,
                                      repeats, warmup))
+        if name in (profile.get("models") or []):
+            rows += profile_rows(label, model, macs_table(lambda: instantiate(cfg, scale=2), input_hw), x, g,
+                                 profile.get("path") or paths[-1], device, repeats, warmup)
         if name in tile_models:
             untiled = prepare(model)(x, g)
             uhd = tuple(tiled.get("uhd_input_hw", (1080, 1920))) if tiled.get("uhd", True) else None
