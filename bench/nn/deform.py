@@ -23,7 +23,7 @@ Implementation: two samplers, by whether autograd needs a gradient; they agree t
     matmul. Its backward is about 2x faster than embedding_bag's (which sorts the indices), and
     gradients flow to input, offsets, mask, weight and bias.
 Measured forward time / a plain nn.Conv2d of the same shape (32->32, 3x3, channels-last, 2 threads, glibc
-keeping freed memory; see bench.infer.keep_freed_memory): gather at 1920x1088 6x in fp32 and 8x in bf16
+keeping freed memory; see bench.infer.keep_freed_memory): gather at 1920x1088 6x in fp32 and 8-9x in bf16
 (the old im2col gather: 7.8x and 16x), at 960x544 5.8x and 9.6x. The 3x3 conv computes in registers; the
 deformable conv writes and gathers a 9x wider table, so it stays memory-bound. +experiment=speed reports
 the ratio for the machine it runs on.
