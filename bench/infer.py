@@ -135,9 +135,10 @@ def keep_freed_memory() -> bool:
     Why: by default every tensor over 32 MB is a fresh mmap, and its first write page-faults every
     4 KiB page. At 1920x1080 with 32 channels every activation is such a tensor; on the 2-core
     machine this repository is measured on that made a 3x3 conv 1.4-1.8x slower and the proposed
-    model about 1.7x slower (7.2 s -> 4.3 s per frame, bf16). The price: the process keeps its peak
-    heap (explicit malloc_trim still returns free pages) and may fragment it. The CLI calls this
-    (config key keep_freed_memory); a library user can call it too."""
+    model about 1.5x slower (6.4 s -> 4.3 s per frame, bf16, same code). The price: the process
+    keeps its peak heap (explicit malloc_trim still returns free pages) and may fragment it: 4K
+    tiled fp32 peaked at 6.0 GB with it against 3.4 GB without (tiled_predict trims between tiles).
+    The CLI calls this (config key keep_freed_memory); a library user can call it too."""
     if _KEPT:
         return _KEPT[0]
     try:
