@@ -90,14 +90,19 @@ def _padded_input(x):
     return F.pad(x, (1, 2, 1, 2)).contiguous(memory_format=torch.channels_last)
 
 
-def _tap_products(padded, weight, row0, row1):
+def _pointwise(weight):
+    """The (O, C, kh, kw) weight as a 1x1 conv weight (K*O, C, 1, 1), output channel k*O + o."""
+    out_ch, in_ch, kh, kw = weight.shape
+    return weight.permute(2, 3, 0, 1).reshape(kh * kw * out_ch, in_ch, 1, 1)
+
+
+def _tap_products(padded, pointwise, out_ch, row0, row1):
     """The weight applied before sampling, on the padded rows row0..row1-1: the table
     Y[b, y, x, k, o] = sum_c weight[o, c, k] * padded[b, c, y, x] for every tap k, as rows
-    (B*(row1-row0)*(W+3)*K, O). One 1x1 conv (the 3x3 conv's MACs per row, run by oneDNN): a sample
-    of Y at a position equals the tap's weight times x sampled there, since bilinear interpolation is
-    linear. The border rows are zero: a corner outside the image contributes 0."""
-    out_ch, in_ch, kh, kw = weight.shape
-    pointwise = weight.permute(2, 3, 0, 1).reshape(kh * kw * out_ch, in_ch, 1, 1)  # channel k*O + o
+    (B*(row1-row0)*(W+3)*K, O), with pointwise = _pointwise(weight). One 1x1 conv (the 3x3 conv's
+    MACs per row, run by oneDNN): a sample of Y at a position equals the tap's weight times x sampled
+    there, since bilinear interpolation is linear. The border rows are zero: a corner outside the
+    image contributes 0."""
     taps = F.conv2d(padded[:, :, row0:row1], pointwise)
     return taps.contiguous(memory_format=torch.channels_last).permute(0, 2, 3, 1).reshape(-1, out_ch)
 
@@ -165,13 +170,13 @@ def _deform_by_gather(x, offset, weight, mask, padding, dilation, strip):
     b, c, in_h, in_w = x.shape
     out_ch, _, kh, kw = weight.shape
     taps, out_h, out_w = kh * kw, offset.shape[-2], offset.shape[-1]
-    padded = _padded_input(x)
+    padded, pointwise = _padded_input(x), _pointwise(weight)
     out = None
     grid = _tap_grid(kh, kw, padding, dilation, min(strip, out_h), out_w, x.device)
     for r0 in range(0, out_h, strip):
         rows = min(strip, out_h - r0)
         index, corner_weight, first, last = _bags(offset[:, :, r0:r0 + rows], grid[:rows], r0, in_h, in_w)
-        table = _tap_products(padded, weight, first, last + 1)
+        table = _tap_products(padded, pointwise, out_ch, first, last + 1)
         if out is None:
             out = torch.empty(b, out_h, out_w, out_ch, dtype=table.dtype, device=x.device)
         if mask is not None:
