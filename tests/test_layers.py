@@ -1,6 +1,7 @@
 """Tests for bench.nn: deformable conv, CFM, residual blocks, pixel shuffle, VGG16 features."""
 import itertools
 import os
+import shutil
 import time
 from pathlib import Path
 
@@ -158,8 +159,8 @@ def test_deform_speed_vs_conv2d():
 
 @pytest.mark.parametrize("dilation,modulated", [(1, False), (2, True)])
 def test_deform_inference_and_training_samplers_agree(dilation, modulated):
-    """Without autograd the columns come from an embedding_bag gather, with it from grid_sample
-    (bench/nn/deform.py): the two must agree, with offsets reaching far outside the image."""
+    """Without autograd (float64: the eager gather sampler) and with it (grid_sample), see
+    bench/nn/deform.py: the two must agree, with offsets reaching far outside the image."""
     g = torch.Generator().manual_seed(4)
     x = torch.randn(2, 3, 9, 11, generator=g, dtype=torch.float64)
     w = torch.randn(4, 3, 3, 3, generator=g, dtype=torch.float64)
@@ -203,6 +204,126 @@ def test_deform_propagates_nan_offsets_to_their_pixel_only():
     with torch.no_grad():
         out = deform_conv2d(x, offset, w)
     assert torch.isnan(out[0, :, 2, 3]).all() and torch.isnan(out).sum() == 3
+
+
+# ---- the compiled columns sampler (bench/nn/deform_columns.cpp, the CPU inference default) -------
+
+@pytest.fixture
+def columns_only(monkeypatch):
+    """Fails the test if the kernel is not built where a compiler exists, and if anything falls back
+    to the eager gather sampler."""
+    import bench.nn.deform as deform
+    from bench.nn.native import deform_library
+    if deform_library() is None:
+        if os.environ.get("SRD_BENCH_NATIVE") == "0" or not (shutil.which("g++") or shutil.which("c++")):
+            pytest.skip("the compiled sampler is off or there is no C++ compiler")
+        pytest.fail("a C++ compiler is here, but bench/nn/deform_columns.cpp did not build")
+
+    def no_gather(*args, **kwargs):
+        raise AssertionError("the eager gather sampler ran instead of the compiled one")
+    monkeypatch.setattr(deform, "_deform_by_gather", no_gather)
+    return deform
+
+
+# channels 3: the scalar loop; 16: one vector per corner; 32, 64: bfloat16 pairs (see the .cpp)
+@pytest.mark.parametrize("channels,dilation,modulated", [(3, 1, False), (16, 2, True), (32, 1, True), (64, 1, False)])
+def test_columns_sampler_matches_brute_force(columns_only, channels, dilation, modulated):
+    g = torch.Generator().manual_seed(7)
+    x = torch.randn(2, channels, 6, 7, generator=g)
+    w = torch.randn(5, channels, 3, 3, generator=g) / channels ** 0.5
+    bias = torch.randn(5, generator=g)
+    # up to +-4 px: many corners outside the 6x7 image, on every side
+    offset = (torch.rand(2, 18, 6, 7, generator=g) - 0.5) * 8
+    mask = torch.rand(2, 9, 6, 7, generator=g) if modulated else None
+    ref = brute_force_deform(x.double(), offset.double(), w.double(), bias.double(), dilation, dilation,
+                             None if mask is None else mask.double()).float()
+    with torch.no_grad():
+        out = deform_conv2d(x, offset, w, bias, dilation, dilation, mask)
+        torch.testing.assert_close(out, ref, atol=2e-5, rtol=1e-5)
+        # channels-last input and offsets (as DeformConv2d gives them), one-row strips
+        columns_only._COLUMN_PIXELS = 1
+        nhwc = lambda t: t.contiguous(memory_format=torch.channels_last)
+        out_cl = deform_conv2d(nhwc(x), nhwc(offset), w, bias, dilation, dilation, mask)
+        assert out_cl.is_contiguous(memory_format=torch.channels_last)
+        torch.testing.assert_close(out_cl, ref, atol=2e-5, rtol=1e-5)
+
+
+@pytest.mark.parametrize("channels", [5, 16, 32, 64])
+@pytest.mark.parametrize("input_dtype", [torch.float32, torch.bfloat16])
+def test_columns_sampler_bf16_autocast(columns_only, channels, input_dtype):
+    """Under bf16 autocast: float32 or bfloat16 features in, bfloat16 columns and output, within
+    bfloat16 rounding of the float64 reference (a channel permuted in the bf16 pair path would not be)."""
+    g = torch.Generator().manual_seed(8)
+    x = torch.randn(1, channels, 9, 40, generator=g).to(input_dtype).contiguous(memory_format=torch.channels_last)
+    w = torch.randn(6, channels, 3, 3, generator=g) / channels ** 0.5
+    offset = (torch.rand(1, 18, 9, 40, generator=g) - 0.5) * 4
+    ref = brute_force_deform(x.double(), offset.double(), w.double(), None, 1, 1)
+    with torch.no_grad(), torch.autocast("cpu", dtype=torch.bfloat16):
+        out = deform_conv2d(x, offset.to(input_dtype), w)
+    assert out.dtype == torch.bfloat16
+    offset_rounding = 0 if input_dtype == torch.float32 else 1  # bf16 offsets move positions too
+    err = float((out.double() - ref).abs().max() / ref.abs().max())
+    assert err < 0.02 + 0.03 * offset_rounding, err
+
+
+def test_columns_sampler_extreme_offsets(columns_only):
+    """Huge and infinite offsets clamp to the border and read zeros; NaN spoils its own pixel only."""
+    x, w = torch.randn(1, 32, 6, 6), torch.randn(4, 32, 3, 3)
+    offset = torch.zeros(1, 18, 6, 6)
+    offset[0, 0, 1, 1], offset[0, 1, 2, 2], offset[0, 2, 3, 3] = 1e9, float("-inf"), float("inf")
+    far = offset.clone()
+    far[0, 0, 1, 1], far[0, 1, 2, 2], far[0, 2, 3, 3] = 100.0, -100.0, 100.0
+    with torch.no_grad():
+        torch.testing.assert_close(deform_conv2d(x, offset, w), deform_conv2d(x, far, w))
+        torch.testing.assert_close(deform_conv2d(x, far, w), brute_force_deform(x.double(), far.double(),
+                                   w.double(), None, 1, 1).float(), atol=1e-4, rtol=1e-5)
+        offset[0, 7, 4, 5] = float("nan")
+        out = deform_conv2d(x, offset, w)
+    assert torch.isnan(out[0, :, 4, 5]).all() and torch.isnan(out).sum() == 4
+
+
+def test_columns_and_gather_samplers_agree():
+    """The compiled sampler and the eager gather (its fallback) give the same layer output."""
+    from bench.nn import eager_gather, inference_sampler
+    layer = DeformConv2d(32, 32, modulated=True)
+    torch.nn.init.normal_(layer.offset_conv.weight, std=0.5)
+    torch.nn.init.normal_(layer.mask_conv.weight, std=0.5)
+    x = torch.randn(2, 32, 11, 13).contiguous(memory_format=torch.channels_last)
+    with torch.no_grad():
+        default = layer(x)
+        with eager_gather():
+            assert inference_sampler(x) == "gather"
+            eager = layer(x)
+    torch.testing.assert_close(default, eager, atol=1e-5, rtol=1e-5)
+
+
+def test_columns_kernel_build_cache_and_fallback(monkeypatch, tmp_path):
+    """Built once into SRD_BENCH_CACHE; off with SRD_BENCH_NATIVE=0; a failed build warns and returns
+    None (the eager sampler then runs), and the layer still computes the same thing."""
+    from bench.nn import native
+    if not (shutil.which("g++") or shutil.which("c++")):
+        pytest.skip("no C++ compiler")
+    monkeypatch.setenv("SRD_BENCH_CACHE", str(tmp_path))
+    try:
+        native.deform_library.cache_clear()
+        assert native.deform_library() is not None
+        assert len(list(tmp_path.glob("deform_columns-*.so"))) == 1
+        native.deform_library.cache_clear()
+        monkeypatch.setenv("SRD_BENCH_NATIVE", "0")
+        assert native.deform_library() is None
+        native.deform_library.cache_clear()
+        monkeypatch.delenv("SRD_BENCH_NATIVE")
+        monkeypatch.setenv("CXX", str(tmp_path / "no-such-compiler"))
+        monkeypatch.setenv("SRD_BENCH_CACHE", str(tmp_path / "empty"))
+        with pytest.warns(UserWarning, match="eager sampler"):
+            assert native.deform_library() is None
+        x, w, offset = torch.randn(1, 4, 5, 5), torch.randn(3, 4, 3, 3), torch.rand(1, 18, 5, 5)
+        with torch.no_grad():
+            out = deform_conv2d(x, offset, w)
+        torch.testing.assert_close(out, brute_force_deform(x.double(), offset.double(), w.double(), None, 1, 1).float(),
+                                   atol=1e-5, rtol=1e-5)
+    finally:
+        native.deform_library.cache_clear()
 
 # ---- CFM, residual blocks, pixel shuffle ----------------------------------------------------------
 

@@ -46,7 +46,7 @@ from bench.evaluate import sync
 from bench.infer import freed_memory_kept, max_abs_diff, parse_path, prepare, release_free_memory, tiled_predict
 from bench.losses import weighted_loss
 from bench.macs import count_macs, on_meta
-from bench.nn import DeformConv2d
+from bench.nn import DeformConv2d, eager_gather, inference_sampler
 from bench.tables import write_table
 
 log = logging.getLogger("bench")
@@ -282,9 +282,11 @@ def conv_stack_rows(target_macs: int, hw, channels: int, paths, device, repeats,
 
 
 def deform_rows(channels: int, sizes, device, repeats, warmup) -> list[dict]:
-    """bench.nn.DeformConv2d vs nn.Conv2d of the same shape (channels -> channels, 3x3), forward only:
-    the inference sampler (gather; contiguous and channels_last input) and the training one
-    (grid_sample, taken whenever autograd needs a gradient; forward time only)."""
+    """bench.nn.DeformConv2d vs nn.Conv2d of the same shape (channels -> channels, 3x3), forward only, on
+    three paths (fp32, channels_last, channels_last+bf16), each ratio against the conv on the same path:
+    the inference sampler this machine takes (the compiled columns one on CPU where it builds), the eager
+    gather sampler (its fallback, and the one before it), and the training sampler (grid_sample, taken
+    whenever autograd needs a gradient; forward time only, fp32)."""
     rows = []
     for hw in sizes:
         torch.manual_seed(0)
@@ -293,21 +295,30 @@ def deform_rows(channels: int, sizes, device, repeats, warmup) -> list[dict]:
         nn.init.normal_(deform.offset_conv.weight, std=0.1)  # real offsets, not the zero init
         x = torch.randn(1, channels, *hw, generator=torch.Generator().manual_seed(5)).to(device)
         x_cl = x.contiguous(memory_format=torch.channels_last)
-        x_grad = x.clone().requires_grad_(True)
         macs = hw[0] * hw[1] * channels * channels * 9
-        cases = [("nn.Conv2d", "fp32", lambda: conv(x), torch.no_grad),
-                 ("DeformConv2d (gather sampler)", "fp32", lambda: deform(x), torch.no_grad),
-                 ("DeformConv2d (gather sampler)", "channels_last", lambda: deform(x_cl), torch.no_grad),
-                 ("DeformConv2d (grid_sample sampler, autograd on)", "fp32", lambda: deform(x_grad),
-                  torch.enable_grad)]
-        conv_ms = None
-        for method, path, fn, mode in cases:
+        sampler = inference_sampler(x)
+
+        def row(method, path, fn, conv_ms=None, mode=torch.no_grad):
             with mode():
                 timing = time_call(fn, device, repeats, warmup)
-            conv_ms = conv_ms or timing["ms"]
             rows.append(_row("deformable conv", f"{method} {channels}->{channels} 3x3", path, _size(hw, 1),
-                             "layer call", timing, GMac=macs / 1e9, **{"GMac/s": macs / 1e9 / (timing["ms"] / 1000),
-                                                                        "time / plain conv": timing["ms"] / conv_ms}))
+                             "layer call", timing, GMac=macs / 1e9, **{
+                                 "GMac/s": macs / 1e9 / (timing["ms"] / 1000),
+                                 "time / plain conv": timing["ms"] / (conv_ms or timing["ms"])}))
+            return timing["ms"]
+
+        for path, inputs, bf16 in (("fp32", x, False), ("channels_last", x_cl, False),
+                                   ("channels_last+bf16", x_cl, True)):
+            with torch.autocast(torch.device(device).type, dtype=torch.bfloat16, enabled=bf16):
+                conv_ms = row("nn.Conv2d", path, lambda: conv(inputs))
+                row(f"DeformConv2d ({sampler} sampler)", path, lambda: deform(inputs), conv_ms)
+                if sampler != "gather":
+                    with eager_gather():
+                        row("DeformConv2d (eager gather sampler)", path, lambda: deform(inputs), conv_ms)
+                if path == "fp32":
+                    x_grad = inputs.clone().requires_grad_(True)
+                    row("DeformConv2d (grid_sample sampler, autograd on)", path, lambda: deform(x_grad), conv_ms,
+                        torch.enable_grad)
     return rows
 
 

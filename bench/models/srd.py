@@ -36,9 +36,8 @@ Default (the paper's final model, stage_order="sr_dn"):
   with the next frame's features at that level (RAE); it is zero at the start of every forward call.
 
 Cost of the default model at 960x540 input: 0.518 M parameters, 264.7 GMac in convs and the
-deformable convs' weight products, plus 3.2 GMac of bilinear sampling: 267.8 GMac; bench.macs counts
-268.0, because the deformable convs' inference sampler applies the weight on their zero-padded input
-(DeformConv2d.macs) (paper Table 5: 258.29 GMac). The paper does not give the size of its gBuffer
+deformable convs' weight products, plus 3.2 GMac of bilinear sampling: 267.8 GMac, as bench.macs counts
+it (paper Table 5: 258.29 GMac). The paper does not give the size of its gBuffer
 encoder or of the CFM layers: with `cond_channels=16` conditioning channels (16 for the ConditionNet output and the CFM 1x1 convs) the
 model lands within +3% of the paper's 260 GMac budget (32 would be 282.6, +8.7%; 8 would be 260.5).
 The input is padded from 540 to 544 rows (+0.7%).

@@ -9,29 +9,42 @@ Tap k of output pixel (y, x) reads the input at
     (y - padding + i*dilation + dy_k,  x - padding + j*dilation + dx_k)
 with bilinear interpolation; every bilinear corner outside the image contributes zero.
 
-Implementation: two samplers, by whether autograd needs a gradient; they agree to float rounding
-(tests/test_layers.py). Neither loops over taps or pixels in Python; both work in strips of output rows.
-  - gather, inference. Bilinear sampling is linear, so the weight goes first: a 1x1 conv (oneDNN, the
-    3x3 conv's MACs) turns the zero-padded input rows a strip's samples touch into a table of K*O
-    values per pixel (tap k's weight times x there), and each output pixel is ONE bag of its K taps x
-    4 corners of that table, summed with the bilinear weights by `F.embedding_bag(mode="sum",
-    per_sample_weights=...)` (fbgemm's weighted gather). The bag sum IS the output pixel: no K*C-wide
-    im2col is gathered, and the output comes out channels-last. Positions stay in pixels, at least
-    float32. With small offsets a strip touches its own rows plus a few (about +10% of the table
-    conv at 1080p); with offsets as large as the frame, every row.
+Implementation: three samplers, by device, dtype and whether autograd needs a gradient; they agree to
+float rounding (tests/test_layers.py). None loops over taps or pixels in Python; all work in strips of
+output rows.
+  - columns, inference on CPU in float32/bfloat16 (the default there). Per strip of ~8k output pixels, a
+    compiled kernel (deform_columns.cpp, built on first use by bench.nn.native) samples the im2col
+    columns (pixels, K*C): positions and corner weights 16 pixels at a time in vector registers, each
+    tap's 4-corner sum as a few vector FMAs, corners outside the image read as zero. One 1x1 conv
+    (oneDNN, the 3x3 conv's MACs) turns them into the output while they are still in cache. Nothing
+    per corner is written to memory. The kernel runs on torch's own OpenMP threads (a second pool
+    fights torch's spinning workers for the cores: 1.5x slower).
+  - gather, inference elsewhere (CUDA, float64, or no C++ compiler). Bilinear sampling is linear, so
+    the weight goes first: a 1x1 conv turns the zero-padded input rows a strip's samples touch into a
+    table of K*O values per pixel (tap k's weight times x there), and each output pixel is ONE bag of
+    its K taps x 4 corners of that table, summed with the bilinear weights by
+    `F.embedding_bag(mode="sum", per_sample_weights=...)`. The output comes out channels-last.
+    Positions stay in pixels, at least float32. With small offsets a strip touches its own rows plus
+    a few (about +10% of the table conv at 1080p); with offsets as large as the frame, every row.
   - grid_sample, training: an im2col whose columns are sampled by one F.grid_sample per strip, then one
     matmul. Its backward is about 2x faster than embedding_bag's (which sorts the indices), and
     gradients flow to input, offsets, mask, weight and bias.
 Measured forward time / a plain nn.Conv2d of the same shape (32->32, 3x3, channels-last, 2 threads, glibc
-keeping freed memory; see bench.infer.keep_freed_memory): gather at 1920x1088 6x in fp32 and 8-9x in bf16
-(the old im2col gather: 7.8x and 16x), at 960x544 5.8x and 9.6x. The 3x3 conv computes in registers; the
-deformable conv writes and gathers a 9x wider table, so it stays memory-bound. +experiment=speed reports
-the ratio for the machine it runs on.
+keeping freed memory; see bench.infer.keep_freed_memory): columns at 1920x1080 2.1-2.5x in fp32 and
+2.6-2.7x in bf16, at 960x540 2.2-2.8x and 2.5-3.1x (run-to-run noise); the eager gather 6x and 8-9x. What
+is left above the conv: the sampling (about 110 ms of a 1080p bf16 layer's 260 ms) and a 1x1 conv over
+288 channels that oneDNN runs ~25% slower than the 3x3 conv. +experiment=speed reports the ratio for
+the machine it runs on.
 Stride 1 and groups 1 only (all the networks here use "same"-size convs).
 """
+import contextlib
+import ctypes
+
 import torch
 import torch.nn as nn
 import torch.nn.functional as F
+
+from .native import deform_library
 
 
 # Output rows are processed in strips whose sampled block holds about this many values: a 4 MB strip
@@ -40,6 +53,9 @@ _STRIP_VALUES = 1 << 20
 # The gather sampler takes strips of about this many bilinear corners: each strip's table (the input
 # rows it touches times K*O) is recomputed, so taller strips repeat fewer halo rows but index more.
 _GATHER_INDICES = 1 << 21
+# The compiled sampler's strips hold about this many output pixels: their columns (pixels x K*C values,
+# 4.7 MB in bf16 at 32 channels) stay in cache for the conv that reads them.
+_COLUMN_PIXELS = 1 << 13
 
 
 # ---- grid_sample sampler (differentiable) --------------------------------------------------------
@@ -139,10 +155,7 @@ def _bags(offset, grid, row0, in_h, in_w):
     pos[..., 1].clamp_(0, in_w + 1)
     frac = torch.frac(pos)
     cell = pos.nan_to_num_(0.0).long()
-    if cell.is_meta:  # shape-only run (MAC counting): every row
-        first, last = 0, in_h + 1
-    else:
-        first, last = int(cell[..., 0].min()), int(cell[..., 0].max()) + 1  # + 1: the lower corners
+    first, last = int(cell[..., 0].min()), int(cell[..., 0].max()) + 1  # + 1: the lower corners
     row_stride = in_w + 3
     # the table row of the tap at the top-left corner: (cell row * row_stride + cell column) * K + tap
     top_left = torch.add(cell[..., 1], cell[..., 0] - first, alpha=row_stride).mul_(taps)
@@ -190,6 +203,79 @@ def _deform_by_gather(x, offset, weight, mask, padding, dilation, strip):
     return out
 
 
+_DTYPE_CODES = {torch.float32: 0, torch.bfloat16: 1}  # deform_gather.cpp's dtype codes
+
+
+_use_columns_kernel = True  # False inside eager_gather()
+
+
+@contextlib.contextmanager
+def eager_gather():
+    """Inference takes the eager gather sampler even where the compiled one applies (to compare them)."""
+    global _use_columns_kernel
+    previous, _use_columns_kernel = _use_columns_kernel, False
+    try:
+        yield
+    finally:
+        _use_columns_kernel = previous
+
+
+def _columns_kernel_applies(*tensors):
+    """The compiled columns kernel applies: CPU tensors (None allowed) of float32/bfloat16, and the kernel
+    built (and not inside eager_gather())."""
+    return (_use_columns_kernel
+            and all(t is None or (t.device.type == "cpu" and t.dtype in _DTYPE_CODES) for t in tensors)
+            and deform_library() is not None)
+
+
+def inference_sampler(x) -> str:
+    """The sampler deform_conv2d takes without autograd for input x: "columns" or "gather"."""
+    return "columns" if _columns_kernel_applies(x) else "gather"
+
+
+def _strides(t):
+    return (ctypes.c_int64 * 4)(*t.stride())
+
+
+def _deform_by_columns(x, offset, weight, bias, mask, padding, dilation, strip):
+    """(B, H_out, W_out, O) (channels-last order) WITH bias: per strip of output rows, the im2col columns
+    (B*rows*W_out, K*C) sampled by the compiled kernel (deform_columns.cpp: positions, corner weights
+    and 4-corner sums in registers; corners outside the image read zero), then one 1x1 conv of them
+    (oneDNN; the weight reordered to columns k*C + c). The strip's columns stay in cache between the two."""
+    b, c, in_h, in_w = x.shape
+    out_ch, _, kh, kw = weight.shape
+    taps, out_h, out_w = kh * kw, offset.shape[-2], offset.shape[-1]
+    threads = torch.get_num_threads()
+    cols_dtype = torch.get_autocast_dtype("cpu") if torch.is_autocast_enabled("cpu") else x.dtype
+    image = x.permute(0, 2, 3, 1).contiguous()  # (B, H, W, C): no copy when x is channels_last
+    # cast once here, not by autocast in every strip's conv
+    matrix = weight.permute(0, 2, 3, 1).reshape(out_ch, taps * c, 1, 1).to(cols_dtype)
+    bias = None if bias is None else bias.to(cols_dtype)
+    tap_y = (torch.arange(kh) * dilation - padding).repeat_interleave(kw)
+    tap_x = (torch.arange(kw) * dilation - padding).repeat(kh)
+    offset_strides = _strides(offset)
+    mask_strides = None if mask is None else _strides(mask)
+    cols = torch.empty(b * min(strip, out_h) * out_w, taps * c, dtype=cols_dtype, device=x.device)
+    out = None
+    for r0 in range(0, out_h, strip):
+        rows = min(strip, out_h - r0)
+        n = b * rows * out_w
+        status = 0 if x.is_meta else deform_library().deform_columns(
+            image.data_ptr(), _DTYPE_CODES[image.dtype], c, b, in_h, in_w,
+            offset.data_ptr(), _DTYPE_CODES[offset.dtype], offset_strides,
+            None if mask is None else mask.data_ptr(), 0 if mask is None else _DTYPE_CODES[mask.dtype], mask_strides,
+            cols.data_ptr(), _DTYPE_CODES[cols.dtype], r0, rows, out_w, taps, tap_y.data_ptr(), tap_x.data_ptr(),
+            threads)
+        if status != 0:
+            raise ValueError(f"deform_columns failed ({status}) for {c} channels")
+        # the strip's columns as a channels-last (1, K*C, 1, n) image: the conv reads them in place
+        strip_out = F.conv2d(cols[:n].view(1, 1, n, taps * c).permute(0, 3, 1, 2), matrix, bias)
+        if out is None:  # its dtype is the conv's, which autocast decides
+            out = torch.empty(b, out_h, out_w, out_ch, dtype=strip_out.dtype, device=x.device)
+        out[:, r0:r0 + rows] = strip_out.permute(0, 2, 3, 1).reshape(b, rows, out_w, out_ch)
+    return out
+
+
 def deform_conv2d(x, offset, weight, bias=None, padding=1, dilation=1, mask=None):
     """Deformable 2D convolution, stride 1, groups 1.
 
@@ -214,11 +300,16 @@ def deform_conv2d(x, offset, weight, bias=None, padding=1, dilation=1, mask=None
         strip = out_h if x.is_meta else max(1, _STRIP_VALUES // (b * c * taps * out_w))
         out = _deform_by_grid_sample(x, offset, weight, mask, padding, dilation, strip)
     else:
-        # shape-only runs (MAC counting) take one strip: no cache to fit, and meta ops cost per call
-        strip = out_h if x.is_meta else max(1, _GATHER_INDICES // (b * 4 * taps * out_w))
-        out = _deform_by_gather(x, offset, weight, mask, padding, dilation, strip)
-        if bias is not None:
-            out += bias.to(out.dtype)
+        # shape-only runs (MAC counting) take the columns path, whether or not the kernel builds, so the
+        # counted MACs are the default CPU path's (DeformConv2d.macs), in one strip (meta ops cost per call)
+        if x.is_meta or _columns_kernel_applies(x, offset, weight, bias, mask):
+            strip = out_h if x.is_meta else max(1, _COLUMN_PIXELS // (b * out_w))
+            out = _deform_by_columns(x, offset, weight, bias, mask, padding, dilation, strip)
+        else:
+            strip = max(1, _GATHER_INDICES // (b * 4 * taps * out_w))
+            out = _deform_by_gather(x, offset, weight, mask, padding, dilation, strip)
+            if bias is not None:
+                out += bias.to(out.dtype)
         out = out.permute(0, 3, 1, 2)
         channels_last = not x.is_contiguous() and x.is_contiguous(memory_format=torch.channels_last)
         return out if channels_last else out.contiguous()
@@ -255,13 +346,12 @@ class DeformConv2d(nn.Module):
             nn.init.zeros_(self.mask_conv.bias)
 
     def macs(self, inputs, output):
-        """MACs of the weight product as the inference sampler runs it (bench.macs protocol): the 1x1 conv
-        of _tap_products over the zero-padded input, (H+3)*(W+3) pixels x K*O x C, which is the conv's
-        H*W*O*C*K plus the border (+0.4% at 1920x1088). Strips of real data also recompute a few halo
-        rows each (+10% at 1080p with small offsets); those are time, not counted MACs."""
-        x = inputs[0]
+        """MACs of the weight product (bench.macs protocol): the conv's count, output pixels x O x C*K,
+        which the default CPU sampler runs as its 1x1 conv over the columns (and shape-only runs take
+        that path). The eager gather sampler (CUDA, float64) applies the weight on the zero-padded
+        input and its strips' halo rows instead (+0.4% and about +10% at 1080p): time, not MACs."""
         out_ch, in_ch, kh, kw = self.weight.shape
-        return x.shape[0] * (x.shape[2] + 3) * (x.shape[3] + 3) * kh * kw * out_ch * in_ch
+        return output.shape[0] * output.shape[2] * output.shape[3] * kh * kw * out_ch * in_ch
 
     def extra_macs(self, inputs, output):
         """MACs of the bilinear sampling (4 per sampled value), which MAC counters that see only

@@ -1,0 +1,281 @@
+// Bilinear sampling of the deformable conv's inference sampler (bench/nn/deform.py): the im2col
+// columns of a strip of output pixels, col[p][k*C + ch] = mask_k(p) * x[ch] sampled bilinearly at tap
+// k's position of pixel p, which one 1x1 conv (oneDNN, the 3x3 conv's MACs) then turns into the
+// output. Eager PyTorch needs index and weight tensors for every corner (36 per pixel, written and read
+// back); here positions, weights and the 4-corner sums stay in registers, C channels at a time, and
+// the strip's columns stay in cache for the conv that follows.
+//
+// Plain C ABI (called through ctypes, no torch headers: compiles in about two seconds). Tensors come as
+// base pointers plus element strides; float32 or bfloat16 (dtype codes below); sums in float32.
+// Semantics of the eager sampler: every bilinear corner outside the image reads zero, positions are
+// clamped to [-1, H] x [-1, W] first (so huge or infinite offsets read zeros), and a NaN position
+// gives NaN columns (so a NaN pixel).
+#include <algorithm>
+#include <cmath>
+#include <cstdint>
+#include <cstring>
+#include <vector>
+
+#if defined(__AVX512BF16__)
+#include <immintrin.h>
+#endif
+
+namespace {
+
+enum Dtype : int32_t { kFloat32 = 0, kBFloat16 = 1 };
+
+inline float to_float(float v) { return v; }
+inline float to_float(uint16_t bits) {  // bfloat16
+    uint32_t u = static_cast<uint32_t>(bits) << 16;
+    float f;
+    std::memcpy(&f, &u, sizeof f);
+    return f;
+}
+
+inline void store(float* dst, float v) { *dst = v; }
+inline void store(uint16_t* dst, float v) {  // to bfloat16, round to nearest even as torch does
+    uint32_t u;
+    std::memcpy(&u, &v, sizeof u);
+    *dst = (u & 0x7fffffffu) > 0x7f800000u ? uint16_t{0x7fc0}
+                                           : static_cast<uint16_t>((u + 0x7fffu + ((u >> 16) & 1u)) >> 16);
+}
+
+// A 4-D tensor (b, channel, row, col) given by its base pointer, dtype and element strides.
+struct View {
+    const void* data;
+    int32_t dtype;
+    int64_t s0, s1, s2, s3;
+    // n values along the last axis from (b, ch, r, c), as float32
+    void run(int64_t b, int64_t ch, int64_t r, int64_t c, int64_t n, float* dst) const {
+        const int64_t i = b * s0 + ch * s1 + r * s2 + c * s3;
+        if (dtype == kBFloat16) {
+            const uint16_t* src = static_cast<const uint16_t*>(data) + i;
+            for (int64_t j = 0; j < n; ++j) dst[j] = to_float(src[j * s3]);
+        } else {
+            const float* src = static_cast<const float*>(data) + i;
+            for (int64_t j = 0; j < n; ++j) dst[j] = src[j * s3];
+        }
+    }
+};
+
+struct Geometry {
+    int64_t in_h, in_w, out_w, taps;
+    const int64_t* tap_y;  // per tap k = i*kw + j: i*dilation - padding
+    const int64_t* tap_x;  // j*dilation - padding
+};
+
+// Runs fn(begin, end) over [0, count) split among `threads` OpenMP threads. bench/nn/native.py links
+// this file against the libgomp torch already loaded, so these are torch's own pool threads: a second
+// pool would fight torch's spinning workers for the cores after every torch op.
+template <typename Fn>
+void parallel_for(int64_t count, int32_t threads, const Fn& fn) {
+    threads = static_cast<int32_t>(std::max<int64_t>(1, std::min<int64_t>(threads, count)));
+#pragma omp parallel for num_threads(threads) schedule(static, 1)
+    for (int32_t t = 0; t < threads; ++t) fn(count * t / threads, count * (t + 1) / threads);
+}
+
+// 16 floats: GCC lowers these vector types to the widest registers -march=native has (AVX-512 here).
+typedef float FloatVec __attribute__((vector_size(64)));
+typedef uint32_t WordVec __attribute__((vector_size(64)));
+typedef uint16_t HalfVec __attribute__((vector_size(32)));
+typedef int32_t IntVec __attribute__((vector_size(64)));
+
+inline FloatVec load16(const float* p) {
+    FloatVec v;
+    std::memcpy(&v, p, sizeof v);
+    return v;
+}
+inline FloatVec load16(const uint16_t* p) {  // bfloat16 -> float32: the bits go to the high half
+    HalfVec h;
+    std::memcpy(&h, p, sizeof h);
+    return reinterpret_cast<FloatVec>(__builtin_convertvector(h, WordVec) << 16);
+}
+inline void store16(float* p, FloatVec v) { std::memcpy(p, &v, sizeof v); }
+inline void store16(uint16_t* p, FloatVec v) {  // round to nearest even; NaN stays NaN
+#if defined(__AVX512BF16__)
+    const __m256bh h = _mm512_cvtneps_pbh(reinterpret_cast<__m512>(v));  // one instruction, same rounding
+    std::memcpy(p, &h, sizeof h);
+#else
+    const WordVec u = reinterpret_cast<WordVec>(v);
+    const WordVec nan = (u & 0x7fffffffu) > 0x7f800000u;  // all ones where NaN
+    const WordVec rounded = ((u + 0x7fffu + ((u >> 16) & 1u)) & ~nan) | (0x7fc00000u & nan);
+    const HalfVec h = __builtin_convertvector(rounded >> 16, HalfVec);
+    std::memcpy(p, &h, sizeof h);
+#endif
+}
+
+// bfloat16 pairs: a 64-byte load holds 32 channels as 16 words (channel 2i low, 2i + 1 high). Their
+// float32 values are the words shifted up (even channels) and masked (odd channels): one load and two
+// integer ops, where widening 16 values at a time costs a slow cross-lane op per load.
+inline WordVec load_pairs(const uint16_t* p) {
+    WordVec u;
+    std::memcpy(&u, p, sizeof u);
+    return u;
+}
+inline FloatVec even_channels(WordVec u) { return reinterpret_cast<FloatVec>(u << 16); }
+inline FloatVec odd_channels(WordVec u) { return reinterpret_cast<FloatVec>(u & 0xffff0000u); }
+inline WordVec rounded_bits(FloatVec v) {  // the bfloat16 of v in the high half (nearest even; NaN stays NaN)
+    const WordVec u = reinterpret_cast<WordVec>(v);
+    const WordVec nan = (u & 0x7fffffffu) > 0x7f800000u;
+    return ((u + 0x7fffu + ((u >> 16) & 1u)) & ~nan) | (0x7fc00000u & nan);
+}
+inline void store_pairs(uint16_t* p, FloatVec even, FloatVec odd) {  // back to channel order
+#if defined(__AVX512BF16__) && defined(__AVX512BW__)
+    // one rounding instruction for both halves (even channels low, odd high), one 16-bit interleave
+    static const __m512i kInterleave = _mm512_set_epi16(31, 15, 30, 14, 29, 13, 28, 12, 27, 11, 26, 10, 25, 9, 24, 8,
+                                                        23, 7, 22, 6, 21, 5, 20, 4, 19, 3, 18, 2, 17, 1, 16, 0);
+    const __m512i halves = reinterpret_cast<__m512i>(
+        _mm512_cvtne2ps_pbh(reinterpret_cast<__m512>(odd), reinterpret_cast<__m512>(even)));
+    const __m512i packed = _mm512_permutexvar_epi16(kInterleave, halves);
+#else
+    const WordVec packed = (rounded_bits(odd) & 0xffff0000u) | (rounded_bits(even) >> 16);
+#endif
+    std::memcpy(p, &packed, sizeof packed);
+}
+
+constexpr int kLanes = 16;  // pixels whose sample positions are computed together (one vector each)
+
+// Bilinear samples of one tap for up to kLanes consecutive pixels of a row, computed lane-parallel
+// (the loop below vectorizes): corner weights (mask folded in) and the top-left corner's pixel index,
+// with `inside` bit j set when corner j (00, 01, 10, 11) lies in the image. Positions are clamped to
+// [-1, H] x [-1, W]; a NaN position gets NaN weights and no corner inside, so its columns are NaN.
+struct TapSamples {
+    float w[4][kLanes];
+    int32_t index[kLanes];
+    int32_t inside[kLanes];
+};
+
+inline void tap_samples(const float* dy, const float* dx, const float* m, float row, float col0, int64_t H,
+                        int64_t W, TapSamples& s) {
+    static_assert(kLanes == 16, "one FloatVec per lane group");
+    const FloatVec lane = {0, 1, 2, 3, 4, 5, 6, 7, 8, 9, 10, 11, 12, 13, 14, 15};
+    const FloatVec top = FloatVec{} + static_cast<float>(H), right = FloatVec{} + static_cast<float>(W);
+    const FloatVec low = FloatVec{} - 1.f, zero = {};
+    FloatVec py = row + load16(dy), px = col0 + lane + load16(dx);
+    const IntVec nan = (py != py) | (px != px);  // all ones where NaN
+    py = nan ? zero : (py < low ? low : (py > top ? top : py));
+    px = nan ? zero : (px < low ? low : (px > right ? right : px));
+    // floor: truncate, then step down where that rounded a negative value up
+    IntVec y0 = __builtin_convertvector(py, IntVec), x0 = __builtin_convertvector(px, IntVec);
+    y0 += __builtin_convertvector(y0, FloatVec) > py;  // true is -1
+    x0 += __builtin_convertvector(x0, FloatVec) > px;
+    const FloatVec fy = py - __builtin_convertvector(y0, FloatVec), fx = px - __builtin_convertvector(x0, FloatVec);
+    const FloatVec scale = nan ? zero + NAN : load16(m);
+    const FloatVec w[4] = {(1 - fy) * (1 - fx) * scale, (1 - fy) * fx * scale, fy * (1 - fx) * scale, fy * fx * scale};
+    const IntVec index = y0 * static_cast<int32_t>(W) + x0;
+    // y0 is in [-1, H], so the top row is inside when 0 <= y0 < H and the bottom one when y0 + 1 < H
+    const int32_t h = static_cast<int32_t>(H), wd = static_cast<int32_t>(W);
+    const IntVec top_in = (y0 >= 0) & (y0 < h), bottom_in = y0 + 1 < h;
+    const IntVec left_in = (x0 >= 0) & (x0 < wd), right_in = x0 + 1 < wd;
+    const IntVec inside = ~nan & (((top_in & left_in) & 1) | ((top_in & right_in) & 2) | ((bottom_in & left_in) & 4) |
+                                  ((bottom_in & right_in) & 8));
+    for (int j = 0; j < 4; ++j) std::memcpy(s.w[j], &w[j], sizeof w[j]);
+    std::memcpy(s.index, &index, sizeof index);
+    std::memcpy(s.inside, &inside, sizeof inside);
+}
+
+// Columns of output pixels [begin, end) of the strip (pixel p = (b*rows + r - row0)*out_w + c), in
+// groups of up to kLanes pixels of one row: per tap, the positions lane-parallel (tap_samples), then
+// per pixel the 4-corner sum. kC (a multiple of 16) fixes the channel count at compile time: that sum
+// is then a few vector registers with no loop-carried dependency, so pixels overlap in the pipeline;
+// kC = 0 is the scalar loop for any channel count. Corners outside the image read a zero row (never
+// a border pixel with weight 0: a NaN or Inf there must not leak in).
+template <int kC, typename TIn, typename TOut>
+void columns(const TIn* x, int64_t channels, const View& offset, const View* mask, const Geometry& g, TOut* cols,
+             int64_t row0, int64_t rows, int64_t begin, int64_t end) {
+    static const TIn kZeros[1024] = {};
+    const int64_t C = kC > 0 ? kC : channels;
+    const int64_t H = g.in_h, W = g.in_w;
+    float dy[kLanes] = {}, dx[kLanes] = {}, m[kLanes];
+    std::fill(m, m + kLanes, 1.f);
+    TapSamples s;
+    for (int64_t p = begin; p < end;) {
+        const int64_t c0 = p % g.out_w, b = p / g.out_w / rows, r = row0 + p / g.out_w % rows;
+        const int64_t n = std::min<int64_t>({kLanes, g.out_w - c0, end - p});
+        const TIn* image = x + b * H * W * C;
+        for (int64_t k = 0; k < g.taps; ++k) {
+            offset.run(b, 2 * k, r, c0, n, dy);
+            offset.run(b, 2 * k + 1, r, c0, n, dx);
+            if (mask) mask->run(b, k, r, c0, n, m);
+            tap_samples(dy, dx, m, static_cast<float>(r + g.tap_y[k]), static_cast<float>(c0 + g.tap_x[k]), H, W, s);
+            for (int64_t i = 0; i < n; ++i) {
+                TOut* col = cols + (p + i) * g.taps * C + k * C;
+                const float w00 = s.w[0][i], w01 = s.w[1][i], w10 = s.w[2][i], w11 = s.w[3][i];
+                const TIn* corner = image + static_cast<int64_t>(s.index[i]) * C;
+                const int32_t inside = s.inside[i];
+                const TIn* v00 = inside & 1 ? corner : kZeros;
+                const TIn* v01 = inside & 2 ? corner + C : kZeros;
+                const TIn* v10 = inside & 4 ? corner + W * C : kZeros;
+                const TIn* v11 = inside & 8 ? corner + (W + 1) * C : kZeros;
+                if constexpr (kC % 32 == 0 && kC > 0 && sizeof(TIn) == 2 && sizeof(TOut) == 2) {
+                    for (int64_t ch = 0; ch < kC; ch += 32) {
+                        const WordVec a = load_pairs(v00 + ch), bb = load_pairs(v01 + ch);
+                        const WordVec cc = load_pairs(v10 + ch), d = load_pairs(v11 + ch);
+                        store_pairs(col + ch,
+                                    (w00 * even_channels(a) + w01 * even_channels(bb)) +
+                                        (w10 * even_channels(cc) + w11 * even_channels(d)),
+                                    (w00 * odd_channels(a) + w01 * odd_channels(bb)) +
+                                        (w10 * odd_channels(cc) + w11 * odd_channels(d)));
+                    }
+                } else if constexpr (kC > 0) {
+                    for (int64_t ch = 0; ch < kC; ch += 16)
+                        store16(col + ch, (w00 * load16(v00 + ch) + w01 * load16(v01 + ch)) +
+                                          (w10 * load16(v10 + ch) + w11 * load16(v11 + ch)));
+                } else {
+                    for (int64_t ch = 0; ch < C; ++ch)
+                        store(col + ch, (w00 * to_float(v00[ch]) + w01 * to_float(v01[ch])) +
+                                        (w10 * to_float(v10[ch]) + w11 * to_float(v11[ch])));
+                }
+            }
+        }
+        p += n;
+    }
+}
+
+template <typename TIn, typename TOut>
+void columns_dispatch(const void* x, int64_t channels, const View& offset, const View* mask, const Geometry& g,
+                      void* cols, int64_t row0, int64_t rows, int64_t batch, int32_t threads) {
+    const auto* in = static_cast<const TIn*>(x);
+    auto* out = static_cast<TOut*>(cols);
+    parallel_for(batch * rows * g.out_w, threads, [&](int64_t begin, int64_t end) {
+        switch (channels) {  // the channel counts of the networks here, then a generic loop
+            case 16: columns<16>(in, channels, offset, mask, g, out, row0, rows, begin, end); break;
+            case 32: columns<32>(in, channels, offset, mask, g, out, row0, rows, begin, end); break;
+            case 64: columns<64>(in, channels, offset, mask, g, out, row0, rows, begin, end); break;
+            default: columns<0>(in, channels, offset, mask, g, out, row0, rows, begin, end);
+        }
+    });
+}
+
+}  // namespace
+
+extern "C" {
+
+// cols (batch*rows*out_w, taps*channels), contiguous, for output rows row0..row0+rows-1 of
+// x (batch, in_h, in_w, channels) contiguous (channels-last). offset (batch, 2*taps, out_h, out_w) and
+// mask (batch, taps, out_h, out_w) come with element strides; mask may be null. Returns 0; -1 when
+// channels is above what the generic loop holds (1024); -2 when a frame has 2^31 pixels or more.
+int32_t deform_columns(const void* x, int32_t x_dtype, int64_t channels, int64_t batch, int64_t in_h, int64_t in_w,
+                       const void* offset, int32_t offset_dtype, const int64_t* offset_strides,
+                       const void* mask, int32_t mask_dtype, const int64_t* mask_strides,
+                       void* cols, int32_t cols_dtype, int64_t row0, int64_t rows, int64_t out_w,
+                       int64_t taps, const int64_t* tap_y, const int64_t* tap_x, int32_t threads) {
+    if (channels > 1024) return -1;
+    if ((in_h + 1) * (in_w + 2) >= (int64_t{1} << 31)) return -2;  // pixel indices are int32
+    const View off{offset, offset_dtype, offset_strides[0], offset_strides[1], offset_strides[2], offset_strides[3]};
+    View mask_view{mask, mask_dtype, 0, 0, 0, 0};
+    if (mask) mask_view = View{mask, mask_dtype, mask_strides[0], mask_strides[1], mask_strides[2], mask_strides[3]};
+    const View* m = mask ? &mask_view : nullptr;
+    const Geometry g{in_h, in_w, out_w, taps, tap_y, tap_x};
+    if (x_dtype == kBFloat16 && cols_dtype == kBFloat16)
+        columns_dispatch<uint16_t, uint16_t>(x, channels, off, m, g, cols, row0, rows, batch, threads);
+    else if (x_dtype == kBFloat16)
+        columns_dispatch<uint16_t, float>(x, channels, off, m, g, cols, row0, rows, batch, threads);
+    else if (cols_dtype == kBFloat16)
+        columns_dispatch<float, uint16_t>(x, channels, off, m, g, cols, row0, rows, batch, threads);
+    else
+        columns_dispatch<float, float>(x, channels, off, m, g, cols, row0, rows, batch, threads);
+    return 0;
+}
+
+}  // extern "C"
