@@ -206,18 +206,18 @@ def test_deform_propagates_nan_offsets_to_their_pixel_only():
     assert torch.isnan(out[0, :, 2, 3]).all() and torch.isnan(out).sum() == 3
 
 
-# ---- the compiled columns sampler (bench/nn/deform_columns.cpp, the CPU inference default) -------
+# ---- the compiled columns sampler (bench/nn/cpu_kernels.cpp, the CPU inference default) -------
 
 @pytest.fixture
 def columns_only(monkeypatch):
     """Fails the test if the kernel is not built where a compiler exists, and if anything falls back
     to the eager gather sampler."""
     import bench.nn.deform as deform
-    from bench.nn.native import deform_library
-    if deform_library() is None:
+    from bench.nn.native import cpu_kernels
+    if cpu_kernels() is None:
         if os.environ.get("SRD_BENCH_NATIVE") == "0" or not (shutil.which("g++") or shutil.which("c++")):
             pytest.skip("the compiled sampler is off or there is no C++ compiler")
-        pytest.fail("a C++ compiler is here, but bench/nn/deform_columns.cpp did not build")
+        pytest.fail("a C++ compiler is here, but bench/nn/cpu_kernels.cpp did not build")
 
     def no_gather(*args, **kwargs):
         raise AssertionError("the eager gather sampler ran instead of the compiled one")
@@ -305,25 +305,25 @@ def test_columns_kernel_build_cache_and_fallback(monkeypatch, tmp_path):
         pytest.skip("no C++ compiler")
     monkeypatch.setenv("SRD_BENCH_CACHE", str(tmp_path))
     try:
-        native.deform_library.cache_clear()
-        assert native.deform_library() is not None
-        assert len(list(tmp_path.glob("deform_columns-*.so"))) == 1
-        native.deform_library.cache_clear()
+        native.cpu_kernels.cache_clear()
+        assert native.cpu_kernels() is not None
+        assert len(list(tmp_path.glob("cpu_kernels-*.so"))) == 1
+        native.cpu_kernels.cache_clear()
         monkeypatch.setenv("SRD_BENCH_NATIVE", "0")
-        assert native.deform_library() is None
-        native.deform_library.cache_clear()
+        assert native.cpu_kernels() is None
+        native.cpu_kernels.cache_clear()
         monkeypatch.delenv("SRD_BENCH_NATIVE")
         monkeypatch.setenv("CXX", str(tmp_path / "no-such-compiler"))
         monkeypatch.setenv("SRD_BENCH_CACHE", str(tmp_path / "empty"))
-        with pytest.warns(UserWarning, match="eager sampler"):
-            assert native.deform_library() is None
+        with pytest.warns(UserWarning, match="eager code"):
+            assert native.cpu_kernels() is None
         x, w, offset = torch.randn(1, 4, 5, 5), torch.randn(3, 4, 3, 3), torch.rand(1, 18, 5, 5)
         with torch.no_grad():
             out = deform_conv2d(x, offset, w)
         torch.testing.assert_close(out, brute_force_deform(x.double(), offset.double(), w.double(), None, 1, 1).float(),
                                    atol=1e-5, rtol=1e-5)
     finally:
-        native.deform_library.cache_clear()
+        native.cpu_kernels.cache_clear()
 
 # ---- CFM, residual blocks, pixel shuffle ----------------------------------------------------------
 
@@ -336,6 +336,58 @@ def test_cfm_identity_at_init_and_formula():
     gamma = torch.einsum("oc,bchw->bohw", cfm.gamma.weight[:, :, 0, 0], cond) + cfm.gamma.bias.view(1, -1, 1, 1)
     beta = torch.einsum("oc,bchw->bohw", cfm.beta.weight[:, :, 0, 0], cond) + cfm.beta.bias.view(1, -1, 1, 1)
     torch.testing.assert_close(cfm(x, cond), x * (1 + gamma) + beta, atol=1e-5, rtol=1e-5)
+
+
+@pytest.mark.parametrize("channels", [16, 32, 64])
+def test_cfm_fused_kernel_matches_formula(channels):
+    """Channels-last inference on CPU takes the compiled CFM (+ ReLU): the formula to float rounding in
+    float32, to bfloat16 rounding under autocast; NaN in x stays in its pixel, through the ReLU too."""
+    from bench.nn import cfm as cfm_module
+    if cfm_module.cpu_kernels() is None:
+        pytest.skip("the compiled kernels are off or did not build (test_columns_kernel_build_cache_and_fallback)")
+    g = torch.Generator().manual_seed(9)
+    cfm = CFM(channels, 16)
+    for p in cfm.parameters():
+        torch.nn.init.normal_(p, std=0.3, generator=g)
+    nhwc = lambda t: t.contiguous(memory_format=torch.channels_last)
+    x, cond = nhwc(torch.randn(2, channels, 5, 7, generator=g)), nhwc(torch.randn(2, 16, 5, 7, generator=g))
+    x[1, 3, 2, 4] = float("nan")
+    gamma = torch.einsum("oc,bchw->bohw", cfm.gamma.weight[:, :, 0, 0], cond) + cfm.gamma.bias.view(1, -1, 1, 1)
+    beta = torch.einsum("oc,bchw->bohw", cfm.beta.weight[:, :, 0, 0], cond) + cfm.beta.bias.view(1, -1, 1, 1)
+    ref = (x * (1 + gamma) + beta).detach()
+    with torch.no_grad():
+        assert cfm_module._fused_kernel_applies(x, cond, cfm.gamma.weight)
+        plain, relu = cfm(x, cond), cfm(x, cond, relu=True)
+        with torch.autocast("cpu", dtype=torch.bfloat16):
+            low = cfm(x.bfloat16(), cond.bfloat16(), relu=True)
+    assert plain.is_contiguous(memory_format=torch.channels_last) and low.dtype == torch.bfloat16
+    torch.testing.assert_close(plain, ref, atol=1e-5, rtol=1e-5, equal_nan=True)
+    torch.testing.assert_close(relu, F.relu(ref), atol=1e-5, rtol=1e-5, equal_nan=True)
+    assert torch.isnan(relu).sum() == 1 and torch.isnan(low).sum() == 1
+    finite = ~torch.isnan(ref)
+    assert float((low.float() - F.relu(ref))[finite].abs().max()) < 0.02 * float(ref[finite].abs().max())
+
+
+def test_cfm_eager_where_the_kernel_does_not_apply():
+    """Other widths (eager's blocked conv is faster there), contiguous inputs and autograd stay eager,
+    and give the same function."""
+    from bench.nn import cfm as cfm_module
+    cfm = CFM(35, 8)
+    for p in cfm.parameters():
+        torch.nn.init.normal_(p, std=0.3)
+    x, cond = torch.randn(1, 35, 4, 6), torch.randn(1, 8, 4, 6)
+    nhwc = lambda t: t.contiguous(memory_format=torch.channels_last)
+    assert not cfm_module._fused_kernel_applies(nhwc(x), nhwc(cond), cfm.gamma.weight)
+    cfm32 = CFM(32, 8)
+    x32 = torch.randn(1, 32, 4, 6)
+    with torch.no_grad():
+        assert not cfm_module._fused_kernel_applies(x32, cond, cfm32.gamma.weight)  # not channels-last
+    assert not cfm_module._fused_kernel_applies(nhwc(x32), nhwc(cond), cfm32.gamma.weight)  # autograd on
+    out = cfm32(nhwc(x32), nhwc(cond), relu=True)
+    out.sum().backward()
+    assert cfm32.gamma.weight.grad is not None
+    with torch.no_grad():
+        torch.testing.assert_close(cfm32(nhwc(x32), nhwc(cond), relu=True), out.detach(), atol=1e-5, rtol=1e-5)
 
 
 def test_condition_net_shape():

@@ -93,12 +93,9 @@ class DecoderBlock(nn.Module):
 
     def forward(self, x, skip, cond=None):
         y = self.conv1(torch.cat((x, skip), dim=1))
-        if self.cfm1 is not None:
-            y = self.cfm1(y, cond)
-        y = self.conv2(F.relu(y))
-        if self.cfm2 is not None:
-            y = self.cfm2(y, cond)
-        return F.relu(y)
+        y = self.cfm1(y, cond, relu=True) if self.cfm1 is not None else F.relu(y)
+        y = self.conv2(y)
+        return self.cfm2(y, cond, relu=True) if self.cfm2 is not None else F.relu(y)
 
 
 class RecurrentDenoiser(nn.Module):

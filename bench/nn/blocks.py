@@ -34,9 +34,8 @@ class ResBlock(nn.Module):
 
     def forward(self, x, cond=None):
         y = self.conv1(x)
-        if self.cfm1 is not None:
-            y = self.cfm1(y, cond)
-        y = self.conv2(self.act(y))
+        y = self.cfm1(y, cond, relu=True) if self.cfm1 is not None else self.act(y)
+        y = self.conv2(y)
         if self.cfm2 is not None:
             y = self.cfm2(y, cond)
         return x + self.res_scale * y

@@ -4,10 +4,17 @@ CFM modulates features with a per-pixel affine transform predicted from auxiliar
     CFM(x, cond) = x * (1 + gamma(cond)) + beta(cond)
 Xu et al. write x * gamma + beta; predicting 1 + gamma with zero-initialized 1x1 convs makes a fresh
 module the identity, so adding CFM does not perturb the He-initialized backbone at the start.
+
+The blocks here follow CFM by ReLU, so CFM takes `relu=True` to apply it in the same pass. Inference on
+CPU with channels-last features of 16, 32 or 64 channels runs the whole thing as one compiled kernel
+(cpu_kernels.cpp, see bench.nn.native): 1.8-3.5x faster than the eager ops for the proposed model's CFM
+(32 channels, 16 conditioning) at 1080p, which are memory-bound there.
 """
 import torch
 import torch.nn as nn
 import torch.nn.functional as F
+
+from .native import cpu_kernels
 
 
 class CFM(nn.Module):
@@ -26,13 +33,50 @@ class CFM(nn.Module):
         cond = inputs[1]
         return (cond.numel() // cond.shape[1]) * (self.gamma.out_channels + self.beta.out_channels) * cond.shape[1]
 
-    def forward(self, x, cond):
+    def forward(self, x, cond, relu=False):
+        """CFM(x, cond), then ReLU when relu (the blocks here always follow CFM by ReLU but once)."""
+        if _fused_kernel_applies(x, cond, self.gamma.weight):
+            return _fused_cfm(x, cond, self.gamma, self.beta, relu)
         # gamma and beta as ONE conv and the affine as x + beta + x * gamma (two passes over x, not four):
         # the same function, about 3x faster at full HR resolution on CPU
         gamma_beta = F.conv2d(cond, torch.cat((self.gamma.weight, self.beta.weight)),
                               torch.cat((self.gamma.bias, self.beta.bias)))
         gamma, beta = gamma_beta.chunk(2, dim=1)
-        return torch.addcmul(x + beta, x, gamma)
+        y = torch.addcmul(x + beta, x, gamma)
+        return F.relu(y, inplace=True) if relu else y
+
+
+_DTYPE_CODES = {torch.float32: 0, torch.bfloat16: 1}  # cpu_kernels.cpp's dtype codes
+_FUSED_CHANNELS = (16, 32, 64)
+
+
+def _fused_kernel_applies(x, cond, weight):
+    """Inference on CPU with channels-last x and cond of one dtype (float32/bfloat16), x of 16, 32 or 64
+    channels (the widths the kernel is compiled for, and where it wins: 1.2-5x faster than eager at
+    540p/1080p; at 35 channels eager's blocked conv wins), kernel built."""
+    return (not (torch.is_grad_enabled() and (x.requires_grad or cond.requires_grad or weight.requires_grad))
+            and x.device.type == "cpu" and x.dtype in _DTYPE_CODES and cond.dtype == x.dtype
+            and x.shape[1] in _FUSED_CHANNELS
+            and x.is_contiguous(memory_format=torch.channels_last)
+            and cond.is_contiguous(memory_format=torch.channels_last) and cpu_kernels() is not None)
+
+
+def _fused_cfm(x, cond, gamma, beta, relu):
+    """The whole CFM (and ReLU) in one pass per pixel (cpu_kernels.cpp: gamma and beta stay in
+    registers; eager writes the 2C-channel gamma/beta map and two intermediates at full resolution).
+    Output: x's dtype, channels-last; sums in float32 (under bf16 autocast eager rounds gamma, beta and
+    x + beta to bf16 on the way: the kernel is the more exact of the two)."""
+    b, c, h, w = x.shape
+    cond_ch = cond.shape[1]
+    weight = torch.cat((gamma.weight, beta.weight)).view(2 * c, cond_ch).t().float().contiguous()
+    bias = torch.cat((gamma.bias, beta.bias)).float().contiguous()
+    out = torch.empty_like(x, memory_format=torch.channels_last)
+    status = cpu_kernels().cfm_affine(x.data_ptr(), cond.data_ptr(), _DTYPE_CODES[x.dtype], b * h * w, c, cond_ch,
+                                      weight.data_ptr(), bias.data_ptr(), int(relu), out.data_ptr(),
+                                      torch.get_num_threads())
+    if status != 0:
+        raise ValueError(f"cfm_affine failed ({status}) for {c} channels")
+    return out
 
 
 class ConditionNet(nn.Module):

@@ -13,7 +13,7 @@ Implementation: three samplers, by device, dtype and whether autograd needs a gr
 float rounding (tests/test_layers.py). None loops over taps or pixels in Python; all work in strips of
 output rows.
   - columns, inference on CPU in float32/bfloat16 (the default there). Per strip of ~8k output pixels, a
-    compiled kernel (deform_columns.cpp, built on first use by bench.nn.native) samples the im2col
+    compiled kernel (cpu_kernels.cpp, built on first use by bench.nn.native) samples the im2col
     columns (pixels, K*C): positions and corner weights 16 pixels at a time in vector registers, each
     tap's 4-corner sum as a few vector FMAs, corners outside the image read as zero. One 1x1 conv
     (oneDNN, the 3x3 conv's MACs) turns them into the output while they are still in cache. Nothing
@@ -44,7 +44,7 @@ import torch
 import torch.nn as nn
 import torch.nn.functional as F
 
-from .native import deform_library
+from .native import cpu_kernels
 
 
 # Output rows are processed in strips whose sampled block holds about this many values: a 4 MB strip
@@ -225,7 +225,7 @@ def _columns_kernel_applies(*tensors):
     built (and not inside eager_gather())."""
     return (_use_columns_kernel
             and all(t is None or (t.device.type == "cpu" and t.dtype in _DTYPE_CODES) for t in tensors)
-            and deform_library() is not None)
+            and cpu_kernels() is not None)
 
 
 def inference_sampler(x) -> str:
@@ -239,7 +239,7 @@ def _strides(t):
 
 def _deform_by_columns(x, offset, weight, bias, mask, padding, dilation, strip):
     """(B, H_out, W_out, O) (channels-last order) WITH bias: per strip of output rows, the im2col columns
-    (B*rows*W_out, K*C) sampled by the compiled kernel (deform_columns.cpp: positions, corner weights
+    (B*rows*W_out, K*C) sampled by the compiled kernel (cpu_kernels.cpp: positions, corner weights
     and 4-corner sums in registers; corners outside the image read zero), then one 1x1 conv of them
     (oneDNN; the weight reordered to columns k*C + c). The strip's columns stay in cache between the two."""
     b, c, in_h, in_w = x.shape
@@ -260,7 +260,7 @@ def _deform_by_columns(x, offset, weight, bias, mask, padding, dilation, strip):
     for r0 in range(0, out_h, strip):
         rows = min(strip, out_h - r0)
         n = b * rows * out_w
-        status = 0 if x.is_meta else deform_library().deform_columns(
+        status = 0 if x.is_meta else cpu_kernels().deform_columns(
             image.data_ptr(), _DTYPE_CODES[image.dtype], c, b, in_h, in_w,
             offset.data_ptr(), _DTYPE_CODES[offset.dtype], offset_strides,
             None if mask is None else mask.data_ptr(), 0 if mask is None else _DTYPE_CODES[mask.dtype], mask_strides,

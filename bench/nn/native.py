@@ -1,9 +1,16 @@
-"""The compiled part of the deformable conv's inference sampler (deform_columns.cpp), built on first use.
+"""bench/nn's compiled CPU inference kernels (cpu_kernels.cpp: the deformable conv's sampling, the
+fused CFM), built on first use.
 
 The kernel has a plain C ABI and no torch headers, so it compiles in about a second with the system's
 C++ compiler, for this CPU (-march=native), into a cache keyed by the source, the flags, the compiler
-and the CPU. Where there is no compiler, or SRD_BENCH_NATIVE=0, `deform_library()` is None and
-bench.nn.deform falls back to its eager PyTorch sampler (same results, slower).
+and the CPU. Where there is no compiler, or SRD_BENCH_NATIVE=0, `cpu_kernels()` is None and
+the layers fall back to eager PyTorch (same results, slower).
+
+The kernel parallelises with OpenMP and is linked against libgomp by soname. torch is imported
+before it is loaded (this module imports it), and torch's wheel ships libgomp.so.1, so the loader binds
+the kernel to that already-loaded copy: the kernel's parallel regions run on torch's own worker
+threads. A second thread pool would fight torch's spinning workers for the cores after every torch
+op (measured: 1.5x slower layer).
 
 Environment: SRD_BENCH_NATIVE=0 turns the kernel off; SRD_BENCH_CACHE sets the cache folder
 (default ~/.cache/srd-bench); CXX picks the compiler.
@@ -19,13 +26,16 @@ import tempfile
 import warnings
 from pathlib import Path
 
-SOURCE = Path(__file__).with_name("deform_columns.cpp")
+import torch  # noqa: F401  (loads torch's libgomp before the kernel, see above)
+
+SOURCE = Path(__file__).with_name("cpu_kernels.cpp")
 FLAGS = ("-O3", "-march=native", "-std=c++20", "-shared", "-fPIC", "-fopenmp")
 
 _i64, _i32, _ptr = ctypes.c_int64, ctypes.c_int32, ctypes.c_void_p
-_SIGNATURES = {  # name: (argument types, result type), as in deform_columns.cpp
+_SIGNATURES = {  # name: (argument types, result type), as in cpu_kernels.cpp
     "deform_columns": ([_ptr, _i32, _i64, _i64, _i64, _i64, _ptr, _i32, _ptr, _ptr, _i32, _ptr, _ptr, _i32, _i64,
                         _i64, _i64, _i64, _ptr, _ptr, _i32], _i32),
+    "cfm_affine": ([_ptr, _ptr, _i32, _i64, _i64, _i64, _ptr, _ptr, _i32, _ptr, _i32], _i32),
 }
 
 
@@ -50,24 +60,24 @@ def _compile(compiler: str, target: Path) -> None:
 
 
 @functools.cache
-def deform_library() -> ctypes.CDLL | None:
+def cpu_kernels() -> ctypes.CDLL | None:
     """The compiled kernel (built once per source, flags, compiler and CPU), or None where it cannot be."""
     if os.environ.get("SRD_BENCH_NATIVE", "1") == "0":
         return None
     compiler = os.environ.get("CXX") or shutil.which("g++") or shutil.which("c++")
     if compiler is None:
-        warnings.warn("no C++ compiler found: the deformable conv uses its slower eager sampler", stacklevel=2)
+        warnings.warn("no C++ compiler found: deformable conv and CFM run their slower eager code", stacklevel=2)
         return None
     key = hashlib.sha256("\n".join([SOURCE.read_text(), *FLAGS, compiler, _cpu_identity()]).encode()).hexdigest()
-    target = Path(os.environ.get("SRD_BENCH_CACHE", Path.home() / ".cache" / "srd-bench")) / f"deform_columns-{key[:16]}.so"
+    target = Path(os.environ.get("SRD_BENCH_CACHE", Path.home() / ".cache" / "srd-bench")) / f"cpu_kernels-{key[:16]}.so"
     try:
         if not target.exists():
             _compile(compiler, target)
         lib = ctypes.CDLL(str(target))
     except (OSError, subprocess.CalledProcessError) as err:
         detail = getattr(err, "stderr", "") or str(err)
-        warnings.warn(f"deform_columns.cpp did not build ({detail.strip()[:500]}): the deformable conv uses "
-                      "its slower eager sampler", stacklevel=2)
+        warnings.warn(f"cpu_kernels.cpp did not build ({detail.strip()[:500]}): deformable conv and CFM "
+                      "run their slower eager code", stacklevel=2)
         return None
     for name, (argtypes, restype) in _SIGNATURES.items():
         getattr(lib, name).argtypes, getattr(lib, name).restype = argtypes, restype
