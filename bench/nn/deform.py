@@ -29,11 +29,13 @@ output rows.
   - grid_sample, training: an im2col whose columns are sampled by one F.grid_sample per strip, then one
     matmul. Its backward is about 2x faster than embedding_bag's (which sorts the indices), and
     gradients flow to input, offsets, mask, weight and bias.
-Measured forward time / a plain nn.Conv2d of the same shape (32->32, 3x3, channels-last, 2 threads, glibc
-keeping freed memory; see bench.infer.keep_freed_memory): columns at 1920x1080 2.1-2.5x in fp32 and
-2.6-2.7x in bf16, at 960x540 2.2-2.8x and 2.5-3.1x (run-to-run noise); the eager gather 6x and 8-9x. What
-is left above the conv: the sampling (about 110 ms of a 1080p bf16 layer's 260 ms) and a 1x1 conv over
-288 channels that oneDNN runs ~25% slower than the 3x3 conv. +experiment=speed reports the ratio for
+Measured forward time / a plain nn.Conv2d of the same shape and layout (32->32, 3x3, 2 threads, glibc
+keeping freed memory, see bench.infer.keep_freed_memory; results/paper/speed and runs of the same day):
+columns with channels-last input 2.1-2.8x in fp32 and 2.6-3.0x in bf16 at 480x270 to 1920x1080; the
+eager gather 5.4-6.3x and 7.4-8.7x. Contiguous (NCHW) fp32 input: 3.4-4.7x, since the sampler works
+channels-last and converts the input and the output (the conv it is compared with does not). What is
+left above the conv: the sampling (about 110 ms of a 1080p bf16 layer's 260 ms) and a 1x1 conv over
+288 channels that oneDNN runs ~25% slower than the 3x3 conv. +experiment=speed reports the ratios for
 the machine it runs on.
 Stride 1 and groups 1 only (all the networks here use "same"-size convs).
 """
