@@ -208,16 +208,22 @@ def test_deform_propagates_nan_offsets_to_their_pixel_only():
 
 # ---- the compiled columns sampler (bench/nn/cpu_kernels.cpp, the CPU inference default) -------
 
-@pytest.fixture
-def columns_only(monkeypatch):
-    """Fails the test if the kernel is not built where a compiler exists, and if anything falls back
-    to the eager gather sampler."""
-    import bench.nn.deform as deform
+def require_cpu_kernels():
+    """Skips where the compiled kernels are switched off or no compiler exists (the eager code then
+    runs, and the other tests cover it); fails where a compiler exists but the kernels did not build."""
     from bench.nn.native import cpu_kernels
     if cpu_kernels() is None:
         if os.environ.get("SRD_BENCH_NATIVE") == "0" or not (shutil.which("g++") or shutil.which("c++")):
-            pytest.skip("the compiled sampler is off or there is no C++ compiler")
+            pytest.skip("the compiled kernels are off or there is no C++ compiler")
         pytest.fail("a C++ compiler is here, but bench/nn/cpu_kernels.cpp did not build")
+
+
+@pytest.fixture
+def columns_only(monkeypatch):
+    """The compiled kernels (require_cpu_kernels), and a failure if anything falls back to the eager
+    gather sampler."""
+    import bench.nn.deform as deform
+    require_cpu_kernels()
 
     def no_gather(*args, **kwargs):
         raise AssertionError("the eager gather sampler ran instead of the compiled one")
@@ -343,8 +349,7 @@ def test_cfm_fused_kernel_matches_formula(channels):
     """Channels-last inference on CPU takes the compiled CFM (+ ReLU): the formula to float rounding in
     float32, to bfloat16 rounding under autocast; NaN in x stays in its pixel, through the ReLU too."""
     from bench.nn import cfm as cfm_module
-    if cfm_module.cpu_kernels() is None:
-        pytest.skip("the compiled kernels are off or did not build (test_columns_kernel_build_cache_and_fallback)")
+    require_cpu_kernels()
     g = torch.Generator().manual_seed(9)
     cfm = CFM(channels, 16)
     for p in cfm.parameters():

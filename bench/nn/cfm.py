@@ -14,7 +14,7 @@ import torch
 import torch.nn as nn
 import torch.nn.functional as F
 
-from .native import cpu_kernels
+from .native import DTYPE_CODES, cpu_kernels
 
 
 class CFM(nn.Module):
@@ -34,7 +34,7 @@ class CFM(nn.Module):
         return (cond.numel() // cond.shape[1]) * (self.gamma.out_channels + self.beta.out_channels) * cond.shape[1]
 
     def forward(self, x, cond, relu=False):
-        """CFM(x, cond), then ReLU when relu (the blocks here always follow CFM by ReLU but once)."""
+        """CFM(x, cond), then ReLU when relu (every CFM here but a ResBlock's second one is followed by ReLU)."""
         if _fused_kernel_applies(x, cond, self.gamma.weight):
             return _fused_cfm(x, cond, self.gamma, self.beta, relu)
         # gamma and beta as ONE conv and the affine as x + beta + x * gamma (two passes over x, not four):
@@ -46,7 +46,6 @@ class CFM(nn.Module):
         return F.relu(y, inplace=True) if relu else y
 
 
-_DTYPE_CODES = {torch.float32: 0, torch.bfloat16: 1}  # cpu_kernels.cpp's dtype codes
 _FUSED_CHANNELS = (16, 32, 64)
 
 
@@ -55,7 +54,7 @@ def _fused_kernel_applies(x, cond, weight):
     channels (the widths the kernel is compiled for, and where it wins: 1.2-5x faster than eager at
     540p/1080p; at 35 channels eager's blocked conv wins), kernel built."""
     return (not (torch.is_grad_enabled() and (x.requires_grad or cond.requires_grad or weight.requires_grad))
-            and x.device.type == "cpu" and x.dtype in _DTYPE_CODES and cond.dtype == x.dtype
+            and x.device.type == "cpu" and x.dtype in DTYPE_CODES and cond.dtype == x.dtype
             and x.shape[1] in _FUSED_CHANNELS
             and x.is_contiguous(memory_format=torch.channels_last)
             and cond.is_contiguous(memory_format=torch.channels_last) and cpu_kernels() is not None)
@@ -71,7 +70,7 @@ def _fused_cfm(x, cond, gamma, beta, relu):
     weight = torch.cat((gamma.weight, beta.weight)).view(2 * c, cond_ch).t().float().contiguous()
     bias = torch.cat((gamma.bias, beta.bias)).float().contiguous()
     out = torch.empty_like(x, memory_format=torch.channels_last)
-    status = cpu_kernels().cfm_affine(x.data_ptr(), cond.data_ptr(), _DTYPE_CODES[x.dtype], b * h * w, c, cond_ch,
+    status = cpu_kernels().cfm_affine(x.data_ptr(), cond.data_ptr(), DTYPE_CODES[x.dtype], b * h * w, c, cond_ch,
                                       weight.data_ptr(), bias.data_ptr(), int(relu), out.data_ptr(),
                                       torch.get_num_threads())
     if status != 0:

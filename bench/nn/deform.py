@@ -46,7 +46,7 @@ import torch
 import torch.nn as nn
 import torch.nn.functional as F
 
-from .native import cpu_kernels
+from .native import DTYPE_CODES, cpu_kernels
 
 
 # Output rows are processed in strips whose sampled block holds about this many values: a 4 MB strip
@@ -205,9 +205,6 @@ def _deform_by_gather(x, offset, weight, mask, padding, dilation, strip):
     return out
 
 
-_DTYPE_CODES = {torch.float32: 0, torch.bfloat16: 1}  # deform_gather.cpp's dtype codes
-
-
 _use_columns_kernel = True  # False inside eager_gather()
 
 
@@ -226,7 +223,7 @@ def _columns_kernel_applies(*tensors):
     """The compiled columns kernel applies: CPU tensors (None allowed) of float32/bfloat16, and the kernel
     built (and not inside eager_gather())."""
     return (_use_columns_kernel
-            and all(t is None or (t.device.type == "cpu" and t.dtype in _DTYPE_CODES) for t in tensors)
+            and all(t is None or (t.device.type == "cpu" and t.dtype in DTYPE_CODES) for t in tensors)
             and cpu_kernels() is not None)
 
 
@@ -263,10 +260,10 @@ def _deform_by_columns(x, offset, weight, bias, mask, padding, dilation, strip):
         rows = min(strip, out_h - r0)
         n = b * rows * out_w
         status = 0 if x.is_meta else cpu_kernels().deform_columns(
-            image.data_ptr(), _DTYPE_CODES[image.dtype], c, b, in_h, in_w,
-            offset.data_ptr(), _DTYPE_CODES[offset.dtype], offset_strides,
-            None if mask is None else mask.data_ptr(), 0 if mask is None else _DTYPE_CODES[mask.dtype], mask_strides,
-            cols.data_ptr(), _DTYPE_CODES[cols.dtype], r0, rows, out_w, taps, tap_y.data_ptr(), tap_x.data_ptr(),
+            image.data_ptr(), DTYPE_CODES[image.dtype], c, b, in_h, in_w,
+            offset.data_ptr(), DTYPE_CODES[offset.dtype], offset_strides,
+            None if mask is None else mask.data_ptr(), 0 if mask is None else DTYPE_CODES[mask.dtype], mask_strides,
+            cols.data_ptr(), DTYPE_CODES[cols.dtype], r0, rows, out_w, taps, tap_y.data_ptr(), tap_x.data_ptr(),
             threads)
         if status != 0:
             raise ValueError(f"deform_columns failed ({status}) for {c} channels")

@@ -1,18 +1,17 @@
 """bench/nn's compiled CPU inference kernels (cpu_kernels.cpp: the deformable conv's sampling, the
 fused CFM), built on first use.
 
-The kernel has a plain C ABI and no torch headers, so it compiles in about a second with the system's
-C++ compiler, for this CPU (-march=native), into a cache keyed by the source, the flags, the compiler
-and the CPU. Where there is no compiler, or SRD_BENCH_NATIVE=0, `cpu_kernels()` is None and
+The kernels have a plain C ABI and no torch headers, so they compile in a few seconds with the
+system's C++ compiler, for this CPU (-march=native), into a cache keyed by the source, the flags, the
+compiler and the CPU. Where there is no compiler, or SRD_BENCH_NATIVE=0, `cpu_kernels()` is None and
 the layers fall back to eager PyTorch (same results, slower).
 
-The kernel parallelises with OpenMP and is linked against libgomp by soname. torch is imported
-before it is loaded (this module imports it), and torch's wheel ships libgomp.so.1, so the loader binds
-the kernel to that already-loaded copy: the kernel's parallel regions run on torch's own worker
-threads. A second thread pool would fight torch's spinning workers for the cores after every torch
+The kernels parallelise with OpenMP and are linked against libgomp by soname. torch is imported
+before they are loaded (this module imports it), and torch's wheel ships libgomp.so.1, so the loader
+binds them to that already-loaded copy: their parallel regions run on torch's own worker threads. A second thread pool would fight torch's spinning workers for the cores after every torch
 op (measured: 1.5x slower layer).
 
-Environment: SRD_BENCH_NATIVE=0 turns the kernel off; SRD_BENCH_CACHE sets the cache folder
+Environment: SRD_BENCH_NATIVE=0 turns the kernels off; SRD_BENCH_CACHE sets the cache folder
 (default ~/.cache/srd-bench); CXX picks the compiler.
 """
 import ctypes
@@ -26,10 +25,12 @@ import tempfile
 import warnings
 from pathlib import Path
 
-import torch  # noqa: F401  (loads torch's libgomp before the kernel, see above)
+import torch  # also loads torch's libgomp before the kernels (see above)
 
 SOURCE = Path(__file__).with_name("cpu_kernels.cpp")
 FLAGS = ("-O3", "-march=native", "-std=c++20", "-shared", "-fPIC", "-fopenmp")
+
+DTYPE_CODES = {torch.float32: 0, torch.bfloat16: 1}  # the kernels' dtype codes (enum Dtype in the .cpp)
 
 _i64, _i32, _ptr = ctypes.c_int64, ctypes.c_int32, ctypes.c_void_p
 _SIGNATURES = {  # name: (argument types, result type), as in cpu_kernels.cpp
