@@ -20,7 +20,6 @@
 #include <cmath>
 #include <cstdint>
 #include <cstring>
-#include <vector>
 
 #if defined(__AVX512BF16__)
 #include <immintrin.h>
@@ -96,16 +95,18 @@ inline FloatVec load16(const uint16_t* p) {  // bfloat16 -> float32: the bits go
     std::memcpy(&h, p, sizeof h);
     return reinterpret_cast<FloatVec>(__builtin_convertvector(h, WordVec) << 16);
 }
+inline WordVec rounded_bits(FloatVec v) {  // the bfloat16 of v in the high half (nearest even; NaN stays NaN)
+    const WordVec u = reinterpret_cast<WordVec>(v);
+    const WordVec nan = (u & 0x7fffffffu) > 0x7f800000u;
+    return ((u + 0x7fffu + ((u >> 16) & 1u)) & ~nan) | (0x7fc00000u & nan);
+}
 inline void store16(float* p, FloatVec v) { std::memcpy(p, &v, sizeof v); }
 inline void store16(uint16_t* p, FloatVec v) {  // round to nearest even; NaN stays NaN
 #if defined(__AVX512BF16__)
     const __m256bh h = _mm512_cvtneps_pbh(reinterpret_cast<__m512>(v));  // one instruction, same rounding
     std::memcpy(p, &h, sizeof h);
 #else
-    const WordVec u = reinterpret_cast<WordVec>(v);
-    const WordVec nan = (u & 0x7fffffffu) > 0x7f800000u;  // all ones where NaN
-    const WordVec rounded = ((u + 0x7fffu + ((u >> 16) & 1u)) & ~nan) | (0x7fc00000u & nan);
-    const HalfVec h = __builtin_convertvector(rounded >> 16, HalfVec);
+    const HalfVec h = __builtin_convertvector(rounded_bits(v) >> 16, HalfVec);
     std::memcpy(p, &h, sizeof h);
 #endif
 }
@@ -120,11 +121,6 @@ inline WordVec load_pairs(const uint16_t* p) {
 }
 inline FloatVec even_channels(WordVec u) { return reinterpret_cast<FloatVec>(u << 16); }
 inline FloatVec odd_channels(WordVec u) { return reinterpret_cast<FloatVec>(u & 0xffff0000u); }
-inline WordVec rounded_bits(FloatVec v) {  // the bfloat16 of v in the high half (nearest even; NaN stays NaN)
-    const WordVec u = reinterpret_cast<WordVec>(v);
-    const WordVec nan = (u & 0x7fffffffu) > 0x7f800000u;
-    return ((u + 0x7fffu + ((u >> 16) & 1u)) & ~nan) | (0x7fc00000u & nan);
-}
 inline void store_pairs(uint16_t* p, FloatVec even, FloatVec odd) {  // back to channel order
 #if defined(__AVX512BF16__) && defined(__AVX512BW__)
     // one rounding instruction for both halves (even channels low, odd high), one 16-bit interleave
