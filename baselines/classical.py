@@ -2,8 +2,9 @@
 
 The paper's Table 5 lists "Input Bilinear" (resize the noisy 540p input to 1080p) as the floor every
 learned method must beat. Both classes follow the model contract of ARCHITECTURE.md (call with x, g;
-return {"final": ...}), ignore the gBuffer and have no parameters, so the trainer skips them. They work
-in whatever domain they are handed (interpolation is applied to the values as given).
+return {"final": ...}), ignore the gBuffer and have no parameters, so the trainer skips them. They run
+on linear HDR radiance (`linear_hdr`: the evaluator hands them the linear input, never a clamped or
+tone-mapped one), so the rows score interpolation itself, highlights included.
 """
 import torch.nn as nn
 import torch.nn.functional as F
@@ -15,6 +16,7 @@ class _Interpolate(nn.Module):
     """Upsample x by `scale` with F.interpolate(mode, align_corners=False); T is folded into the batch."""
 
     recurrent = False
+    linear_hdr = True
     mode = "bilinear"
 
     def __init__(self, in_channels=3, gbuffer_channels=7, scale=2):

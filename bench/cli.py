@@ -36,7 +36,7 @@ def make_context(cfg: DictConfig):
                    budget_gmac=plain["scale"]["budget_gmac"], seeds=list(plain["seeds"]),
                    device=plain["device"], workers=plain["workers"], force=plain["force"],
                    progress=plain["progress"], vgg=plain["vgg"],
-                   render_data=plain["render_data"])
+                   render_data=plain["render_data"], model_lr=plain.get("model_lr") or {})
 
 
 def resolve_device(device: str) -> str:

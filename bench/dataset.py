@@ -33,6 +33,7 @@ __all__ = ["SequenceDataset", "augment_sequence", "to_network", "from_network", 
 
 GBUF_SIZES = {"albedo": 3, "normal": 3, "roughness": 1}
 DEFAULT_ROUGHNESS = 1.0  # value of a left-out roughness pass (every BSDF diffuse)
+CACHE_BYTES = 2 << 30    # decoded frames a dataset object keeps in memory (the whole cpu training split: ~0.3 GB)
 
 
 def _layer_of(buffer):
@@ -75,18 +76,34 @@ def augment_sequence(item, hflip, vflip, rot90):
     return out
 
 
+def _family_balanced(sequences, n):
+    """Names of `n` sequences taken in turn from each scene family (the record's `family`, else the
+    whole name), so a smaller training set keeps every kind of room."""
+    by_family = {}
+    for name, frames in sequences.items():
+        by_family.setdefault(frames[0].get("family", name), []).append(name)
+    queues = [list(names) for _, names in sorted(by_family.items())]
+    chosen = []
+    while len(chosen) < n and any(queues):
+        for queue in queues:
+            if queue and len(chosen) < n:
+                chosen.append(queue.pop(0))
+    return sorted(chosen)
+
+
 class SequenceDataset(Dataset):
     """Sequences of frames of one split of a dataset directory.
 
     root: dataset directory with manifest.json. split: 'train' / 'val' / 'generalization' / ....
     buffers: keys to load. seq_len: frames per item (None: whole sequences; shorter: every window of
     seq_len consecutive frames is an item). crop: LR crop size (None: full frames). augment: random
-    flips / quarter turns. Random crops and augmentations draw from a generator seeded by (seed, index,
+    flips / quarter turns. max_sequences: keep only that many sequences, taken in turn from each scene
+    family (None: all). Random crops and augmentations draw from a generator seeded by (seed, index,
     number of items drawn so far by this object), so a run is reproducible for a fixed access order.
     """
 
     def __init__(self, root, split, buffers, seq_len=None, crop=None, augment=False, seed=0,
-                 gbuffer_channels=7):
+                 gbuffer_channels=7, cache_bytes=CACHE_BYTES, max_sequences=None):
         self.root = os.fspath(root)
         with open(os.path.join(self.root, "manifest.json")) as f:
             manifest = json.load(f)
@@ -105,6 +122,8 @@ class SequenceDataset(Dataset):
             splits = sorted({r["split"] for r in manifest["frames"]})
             raise ValueError(f"{self.root}: no frames in split {split!r} (has {splits})")
         self.sequences = {k: sorted(v, key=lambda r: r["frame"]) for k, v in sorted(sequences.items())}
+        if max_sequences is not None:
+            self.sequences = {k: self.sequences[k] for k in _family_balanced(self.sequences, int(max_sequences))}
         self.items = []
         for name, frames in self.sequences.items():
             n = len(frames) if seq_len is None else int(seq_len)
@@ -112,6 +131,9 @@ class SequenceDataset(Dataset):
                 raise ValueError(f"{self.root}: sequence {name} has {len(frames)} frames, seq_len={n}")
             self.items += [(name, start, n) for start in range(len(frames) - n + 1)]
         self._draws = 0
+        # Decoded frames kept in memory (up to cache_bytes): a training step reads every one of its
+        # frames again and again, and decoding the EXRs cost more than the model step at the cpu scale.
+        self._cache, self._cache_left = {}, int(cache_bytes)
 
     def __len__(self):
         return len(self.items)
@@ -121,7 +143,18 @@ class SequenceDataset(Dataset):
         return {"lr": base + "_lr.exr", "hr": base + "_hr.exr"}
 
     def _read_frame(self, rec):
-        """Every requested buffer of one frame as (C, H, W) tensors."""
+        """Every requested buffer of one frame as (C, H, W) tensors (from the cache when held)."""
+        key = (rec["sequence"], rec["frame"])
+        if key in self._cache:
+            return self._cache[key]
+        frame = self._decode_frame(rec)
+        size = sum(t.numel() * t.element_size() for t in frame.values())
+        if size <= self._cache_left:
+            self._cache[key], self._cache_left = frame, self._cache_left - size
+        return frame
+
+    def _decode_frame(self, rec):
+        """Every requested buffer of one frame as (C, H, W) tensors, read from its EXRs."""
         paths = self._frame_paths(rec)
         wanted = {"lr": set(), "hr": set()}
         for b in self.buffers:
@@ -173,17 +206,16 @@ class SequenceDataset(Dataset):
         name, start, n = self.items[index]
         frames = self.sequences[name][start:start + n]
         per_frame = [self._read_frame(rec) for rec in frames]
-        item = {b: torch.stack([f[b] for f in per_frame]) for b in self.buffers}
         rng = np.random.default_rng([int(self.seed), int(index), int(draw)])
-        if self.crop is not None:
+        windows = {b: (slice(None), slice(None)) for b in self.buffers}
+        if self.crop is not None:  # crop each frame before stacking: only the crop is copied
             lr_w, lr_h = frames[0]["lr_size"]
             y, x = self._crop_origin(rng, lr_h, lr_w)
             c, s = int(self.crop), self.scale
-            for b in self.buffers:
-                if b.startswith("lr_"):
-                    item[b] = item[b][..., y:y + c, x:x + c]
-                else:  # HR origin = scale x LR origin: pixel areas coincide
-                    item[b] = item[b][..., s * y:s * (y + c), s * x:s * (x + c)]
+            for b in self.buffers:  # HR origin = scale x LR origin: pixel areas coincide
+                k = 1 if b.startswith("lr_") else s
+                windows[b] = (slice(k * y, k * (y + c)), slice(k * x, k * (x + c)))
+        item = {b: torch.stack([f[b][..., windows[b][0], windows[b][1]] for f in per_frame]) for b in self.buffers}
         if self.augment:
             hflip, vflip, rot = bool(rng.integers(2)), bool(rng.integers(2)), int(rng.integers(4))
             if self.crop is None and rot % 2:

@@ -1,7 +1,7 @@
 """The one evaluator: full frames of a split, per-image metrics, aggregates and inference time.
 
 Metrics (bench.metrics): relMSE on linear HDR radiance, PSNR/SSIM on images clamped to [0, 1].
-Methods with `linear_hdr = True` (OIDN) take and return linear radiance; every other model works in the
+Methods with `linear_hdr = True` (OIDN, bilinear, bicubic) take and return linear radiance; every other model works in the
 network domain of `hdr` (bench.hdr) and its output is mapped back to linear before scoring.
 """
 from __future__ import annotations

@@ -1,39 +1,108 @@
-"""The one trainer every learned model goes through (paper Sec. 4.2).
+"""The one trainer every learned model goes through.
 
-Adam (lr 6e-4, betas 0.9/0.99), the learning rate halved at fixed fractions of the schedule, batches of
-T-frame sequences with aligned random crops, the paper's loss weights on the final output and on the
-intermediate (SR-stage) head. Checkpoints atomically and resumes from the last checkpoint; a non-finite
-loss or gradient stops the run with a clear message and leaves the last good checkpoint in place.
+A `Recipe` says how: Adam, a learning-rate schedule (linear warm-up then cosine decay by default; the
+paper's "halve every quarter" as `schedule: halve`), gradient-norm clipping, an exponential moving
+average (EMA) of the weights that validation and evaluation use, batches of T-frame sequences with aligned
+random crops, and the loss weights on the final output and on the intermediate (SR-stage) head.
+
+The trainer checkpoints atomically (weights, EMA, optimizer, step, curves) and resumes bit-exactly from
+its last checkpoint. A non-finite loss or gradient stops the run with a clear message and leaves the last
+good checkpoint in place. With a `validate` callable it scores the EMA weights before the first step,
+every `val_every` steps and at the end, and records the learning curve (`val_curve.csv`: step, training seconds, mean training
+loss since the previous point, and whatever `validate` returns, e.g. val relMSE/PSNR/SSIM).
 """
 from __future__ import annotations
 
+import copy
 import math
 import random
 import time
+from dataclasses import asdict, dataclass, field, fields
 from pathlib import Path
+from typing import Callable
 
 import pandas as pd
 import torch
 from tqdm import tqdm
 
-from bench.hdr import to_network
+from bench.hdr import MODES, to_network
 from bench.losses import weighted_loss
 from bench.macs import count_params
 from bench.sanitize import sanitize_inputs
 from bench.tasks import Task
 
 CHECKPOINT = "checkpoint.pt"
+SCHEDULES = ("cosine", "halve", "constant", "range")
 
 
 class TrainingDiverged(RuntimeError):
     """Raised when the loss or a gradient becomes non-finite."""
 
 
-def lr_at(step: int, steps: int, lr: float, halve_every: float) -> float:
-    """Learning rate at `step`: halved every `halve_every` fraction of the schedule (paper: 0.25)."""
-    if halve_every <= 0:
+@dataclass(frozen=True)
+class Recipe:
+    """How a model is trained (conf/config.yaml `train:`; scales override the sizes).
+
+    Everything here but `checkpoint_every` and the validation settings determines the trained weights,
+    so it is the training part of a run's identity (`identity()`)."""
+    steps: int
+    batch_size: int
+    seq_len: int
+    crop: int
+    loss: dict
+    lr: float = 6e-4
+    betas: tuple = (0.9, 0.99)
+    schedule: str = "cosine"          # cosine: linear warm-up, then cosine to 0 | halve (paper) | constant
+                                      # | range: lr * 1e-4 rising geometrically to lr (a learning-rate range test)
+    warmup: float = 0.05              # fraction of steps of linear warm-up (cosine)
+    halve_every: float = 0.25         # fraction of steps between halvings (halve)
+    clip_grad_norm: float | None = 1.0   # None: no clipping
+    ema: float | None = 0.999         # EMA decay of the weights used for evaluation; None: the raw weights
+    hdr: str = "log1p"                # network domain (bench.hdr)
+    train_sequences: int | None = None   # train on this many sequences of the split, family-balanced (None: all)
+    checkpoint_every: int = 100
+    val_every: int = 0                # score the validation subset every this many steps (0: only at the end)
+    val_sequences: int = 4            # validation sequences scored for the learning curve (0: no curve)
+
+    NOT_IDENTITY = ("checkpoint_every", "val_every", "val_sequences")
+
+    def __post_init__(self):
+        if self.schedule not in SCHEDULES:
+            raise ValueError(f"train.schedule must be one of {SCHEDULES}, got {self.schedule!r}")
+        if self.hdr not in MODES:
+            raise ValueError(f"train.hdr must be one of {MODES}, got {self.hdr!r}")
+
+    @classmethod
+    def from_config(cls, config: dict) -> "Recipe":
+        """The recipe of a `train:` config dict; keys that are not recipe fields are an error."""
+        known = {f.name for f in fields(cls)}
+        unknown = set(config) - known
+        if unknown:
+            raise ValueError(f"unknown train.* keys {sorted(unknown)}; known: {sorted(known)}")
+        values = dict(config)
+        values["betas"] = tuple(values.get("betas", cls.betas))
+        return cls(**values)
+
+    def identity(self) -> dict:
+        return {k: v for k, v in asdict(self).items() if k not in self.NOT_IDENTITY}
+
+
+def lr_at(step: int, recipe: Recipe) -> float:
+    """Learning rate of optimisation step `step` (0-based) of `recipe`."""
+    lr, steps = recipe.lr, recipe.steps
+    if recipe.schedule == "halve":
+        if recipe.halve_every <= 0:
+            return lr
+        return lr * 0.5 ** math.floor(step / (recipe.halve_every * steps))
+    if recipe.schedule == "constant":
         return lr
-    return lr * 0.5 ** math.floor(step / (halve_every * steps))
+    if recipe.schedule == "range":
+        return lr * 10 ** (4 * (step / max(1, steps - 1) - 1))
+    warmup = round(recipe.warmup * steps)
+    if step < warmup:
+        return lr * (step + 1) / warmup
+    progress = (step - warmup) / max(1, steps - warmup)
+    return lr * 0.5 * (1 + math.cos(math.pi * progress))
 
 
 def collate(items: list[dict], keys: list[str]) -> dict[str, torch.Tensor]:
@@ -54,79 +123,135 @@ def batch_loss(model, batch: dict, task: Task, loss_weights: dict, hdr: str, fea
     return total, parts
 
 
-def save_checkpoint(path: Path, model, optimizer, step: int, curve: list, elapsed: float) -> None:
+@torch.no_grad()
+def update_ema(ema_model, model, decay: float, step: int) -> None:
+    """ema <- d * ema + (1 - d) * weights, with d = min(decay, (1 + step) / (10 + step)) so that the
+    average is not dominated by the random initialisation early on (as TensorFlow's and timm's EMA)."""
+    d = min(decay, (1 + step) / (10 + step))
+    ema_params = [p for p in ema_model.parameters()]
+    torch._foreach_lerp_(ema_params, [p.detach() for p in model.parameters()], 1 - d)
+    for e, b in zip(ema_model.buffers(), model.buffers()):
+        e.copy_(b)
+
+
+@dataclass
+class _State:
+    step: int = 0
+    curve: list = field(default_factory=list)       # per step: loss, lr, grad norm, loss parts
+    val_curve: list = field(default_factory=list)   # per validation: step, train_s, loss, metrics
+    train_s: float = 0.0                             # optimisation wall time so far (validation excluded)
+
+
+def save_checkpoint(path: Path, model, ema_model, optimizer, state: _State) -> None:
     tmp = path.with_suffix(".tmp")
-    torch.save({"model": model.state_dict(), "optimizer": optimizer.state_dict(), "step": step,
-                "curve": curve, "elapsed_s": elapsed}, tmp)
+    torch.save({"model": model.state_dict(), "ema": ema_model.state_dict() if ema_model is not None else None,
+                "optimizer": optimizer.state_dict(), "step": state.step, "curve": state.curve,
+                "val_curve": state.val_curve, "elapsed_s": state.train_s}, tmp)
     tmp.replace(path)
 
 
 def load_weights(model, out_dir: str | Path, device: str = "cpu"):
-    """Load a run's trained weights into `model` (in place) and return it."""
+    """Load a run's trained weights into `model` (in place) and return it: the EMA weights when the run
+    kept an average (they are what validation scored), else the raw ones."""
     state = torch.load(Path(out_dir) / CHECKPOINT, map_location=device, weights_only=False)
-    model.load_state_dict(state["model"])
+    model.load_state_dict(state.get("ema") or state["model"])
     return model
 
 
-def train(model, dataset, task: Task, out_dir: str | Path, *, steps: int, batch_size: int,
-          loss_weights: dict, lr: float = 6e-4, betas=(0.9, 0.99), halve_every: float = 0.25,
-          hdr: str = "clamp", features=None, seed: int = 0, device: str = "cpu",
-          checkpoint_every: int = 100, progress: bool = True) -> dict:
-    """Train `model` on `dataset` and return a summary.
+def _resume(path: Path, model, ema_model, optimizer, device) -> _State:
+    if not path.exists():
+        return _State()
+    saved = torch.load(path, map_location=device, weights_only=False)
+    model.load_state_dict(saved["model"])
+    if ema_model is not None:
+        ema_model.load_state_dict(saved.get("ema") or saved["model"])
+    optimizer.load_state_dict(saved["optimizer"])
+    return _State(saved["step"], saved["curve"], saved.get("val_curve", []), saved.get("elapsed_s", 0.0))
+
+
+def _validation_point(state: _State, validate, model) -> dict:
+    since = [c["loss"] for c in state.curve if c["step"] > (state.val_curve[-1]["step"] if state.val_curve else 0)]
+    was_training = model.training
+    model.eval()
+    metrics = validate(model)
+    model.train(was_training)
+    return {"step": state.step, "train_s": state.train_s,
+            "loss": sum(since) / len(since) if since else float("nan"), **metrics}
+
+
+def train(model, dataset, task: Task, out_dir: str | Path, recipe: Recipe, *, features=None, seed: int = 0,
+          device: str = "cpu", progress: bool = True,
+          validate: Callable[[torch.nn.Module], dict] | None = None) -> dict:
+    """Train `model` on `dataset` with `recipe` and return a summary (the model keeps the weights that
+    evaluation uses: the EMA when the recipe keeps one).
 
     `dataset.item(index, draw)` returns a dict of (T, C, H, W) tensors whose random crop/augmentation is
     fixed by `draw`; with the batch indices drawn from (seed, step), every step is reproducible.
+    `validate(model) -> {metric: value}` scores a model in eval mode (the learning curve).
 
-    Resumes from `out_dir/checkpoint.pt` when present. Writes `curve.csv` (loss per step).
+    Resumes from `out_dir/checkpoint.pt` when present. Writes `curve.csv` (per step) and, with
+    `validate`, `val_curve.csv`.
     """
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
     ckpt_path = out_dir / CHECKPOINT
     model.to(device).train()
-    optimizer = torch.optim.Adam(model.parameters(), lr=lr, betas=tuple(betas))
-    step, curve, elapsed0 = 0, [], 0.0
-    if ckpt_path.exists():
-        state = torch.load(ckpt_path, map_location=device, weights_only=False)
-        model.load_state_dict(state["model"])
-        optimizer.load_state_dict(state["optimizer"])
-        step, curve, elapsed0 = state["step"], state["curve"], state.get("elapsed_s", 0.0)
-    resumed_from = step
+    ema_model = copy.deepcopy(model).eval().requires_grad_(False) if recipe.ema else None
+    optimizer = torch.optim.Adam(model.parameters(), lr=recipe.lr, betas=tuple(recipe.betas))
+    state = _resume(ckpt_path, model, ema_model, optimizer, device)
+    resumed_from = state.step
     keys = task.buffers(with_mid=True)
-    # Each step draws its batch from an RNG seeded by (seed, step), so a resumed run sees the same batches.
-    t0 = time.perf_counter()
-    bar = tqdm(total=steps, initial=step, desc=f"train {type(model).__name__}", disable=None if progress else True,
-               
-               dynamic_ncols=True, leave=False, mininterval=1.0)
-    while step < steps:
+    scored = ema_model if ema_model is not None else model
+    val_every = recipe.val_every if validate is not None else 0
+    clip = recipe.clip_grad_norm if recipe.clip_grad_norm else float("inf")
+    if validate is not None and not state.val_curve:  # step 0: where training starts (input bilinear for
+        state.val_curve.append(_validation_point(state, validate, scored))  # models with input_residual)
+    bar = tqdm(total=recipe.steps, initial=state.step, desc=f"train {type(model).__name__}",
+               disable=None if progress else True, dynamic_ncols=True, leave=False, mininterval=1.0)
+    while state.step < recipe.steps:
+        t0 = time.perf_counter()
+        step = state.step
+        # Each step draws its batch from an RNG seeded by (seed, step), so a resumed run sees the same batches.
         rng = random.Random(seed * 1_000_003 + step)
         torch.manual_seed(seed * 1_000_003 + step)
-        items = [dataset.item(rng.randrange(len(dataset)), step * batch_size + slot)
-                 for slot in range(batch_size)]
+        items = [dataset.item(rng.randrange(len(dataset)), step * recipe.batch_size + slot)
+                 for slot in range(recipe.batch_size)]
         batch = {k: v.to(device) for k, v in collate(items, keys).items()}
         for group in optimizer.param_groups:
-            group["lr"] = lr_at(step, steps, lr, halve_every)
-        loss, parts = batch_loss(model, batch, task, loss_weights, hdr, features)
+            group["lr"] = lr_at(step, recipe)
+        loss, parts = batch_loss(model, batch, task, recipe.loss, recipe.hdr, features)
         if not torch.isfinite(loss):
             raise TrainingDiverged(f"non-finite loss ({loss.item()}) at step {step}; the last good checkpoint "
                                    f"is {ckpt_path if ckpt_path.exists() else 'none (diverged before the first)'}")
         optimizer.zero_grad(set_to_none=True)
         loss.backward()
-        grad_norm = torch.nn.utils.clip_grad_norm_(model.parameters(), float("inf"))
+        grad_norm = torch.nn.utils.clip_grad_norm_(model.parameters(), clip)
         if not torch.isfinite(grad_norm):
             raise TrainingDiverged(f"non-finite gradient at step {step}; the last good checkpoint is "
                                    f"{ckpt_path if ckpt_path.exists() else 'none'}")
         optimizer.step()
-        step += 1
-        curve.append({"step": step, "loss": loss.item(), "lr": optimizer.param_groups[0]["lr"],
-                      **{k: v.item() for k, v in parts.items()}})
+        if ema_model is not None:
+            update_ema(ema_model, model, recipe.ema, step)
+        state.step += 1
+        state.train_s += time.perf_counter() - t0
+        state.curve.append({"step": state.step, "loss": loss.item(), "lr": optimizer.param_groups[0]["lr"],
+                            "grad_norm": grad_norm.item(), **{k: v.item() for k, v in parts.items()}})
         bar.update(1)
         bar.set_postfix(loss=f"{loss.item():.4f}")
-        if step % checkpoint_every == 0 or step == steps:
-            save_checkpoint(ckpt_path, model, optimizer, step, curve, elapsed0 + time.perf_counter() - t0)
+        if validate is not None and (state.step == recipe.steps or (val_every and state.step % val_every == 0)):
+            state.val_curve.append(_validation_point(state, validate, scored))
+        if state.step % recipe.checkpoint_every == 0 or state.step == recipe.steps:
+            save_checkpoint(ckpt_path, model, ema_model, optimizer, state)
     bar.close()
-    pd.DataFrame(curve).to_csv(out_dir / "curve.csv", index=False)
-    tail = [c["loss"] for c in curve[-max(1, len(curve) // 10):]]
-    return {"steps": step, "resumed_from_step": resumed_from, "final_loss": sum(tail) / len(tail),
-            "first_loss": curve[0]["loss"] if curve else float("nan"),
-            "train_time_s": elapsed0 + time.perf_counter() - t0,
-            "params": count_params(model)}
+    if ema_model is not None:
+        model.load_state_dict(ema_model.state_dict())
+    pd.DataFrame(state.curve).to_csv(out_dir / "curve.csv", index=False)
+    if state.val_curve:
+        pd.DataFrame(state.val_curve).to_csv(out_dir / "val_curve.csv", index=False)
+    tail = [c["loss"] for c in state.curve[-max(1, len(state.curve) // 10):]]
+    summary = {"steps": state.step, "resumed_from_step": resumed_from, "final_loss": sum(tail) / len(tail),
+               "first_loss": state.curve[0]["loss"] if state.curve else float("nan"),
+               "train_time_s": state.train_s, "params": count_params(model)}
+    if state.val_curve:
+        summary["val"] = {k: v for k, v in state.val_curve[-1].items() if k not in ("step", "train_s", "loss")}
+    return summary

@@ -140,3 +140,45 @@ def test_paper_agreement_counts_pairs_ordered_as_in_the_paper_within_a_task():
         "paper SSIM": [0.95, 0.95, None, 0.9, 0.8],    # tie and missing value are left out
     })
     assert paper_agreement(table) == {"PSNR": (1, 4), "SSIM": (1, 1)}
+
+
+def test_claims_give_each_paper_claim_a_verdict_from_the_recorded_tables(dirs):
+    overrides, root = dirs
+    for name in ("stage_order", "ipt", "deform", "deform_num", "dilation", "sota", "perceptual"):
+        run_experiment(compose_experiment(name, overrides + ["++experiment.figure=false"]))  # reused
+    run_experiment(compose_experiment("claims", overrides))
+    table = pd.read_csv(root / "results" / "claims" / "table.csv")
+    exp = OmegaConf.to_container(compose_experiment("claims", overrides).experiment, resolve=True)
+    assert list(table["claim"].unique()) == [c["claim"] for c in exp["claims"]]
+    assert set(table["verdict"]) <= {"holds", "reversed", "within noise"}
+    assert table["basis"].str.contains("sequences|seeds").all()
+
+
+def test_claim_verdicts_follow_twice_the_standard_error(tmp_path):
+    """Synthetic tables: one seed uses the paired per-sequence SE; several seeds the SE over seeds."""
+    from bench.experiments import claims
+    from bench.experiments.pipeline import Context
+    ctx = Context(scale="t", runs_dir=tmp_path / "runs", results_dir=tmp_path / "results", data_dir=tmp_path,
+                  data_spec={}, train={}, eval={}, models={})
+    per_seq = {"a": [30.0, 31.0, 32.0, 33.0], "b": [29.0, 30.1, 30.9, 32.0], "c": [30.0, 31.2, 31.8, 33.1]}
+    for run, values in per_seq.items():
+        (ctx.runs_dir / "eval" / run).mkdir(parents=True)
+        pd.DataFrame({"sequence": list("wxyz"), "frame": 0, "PSNR": values, "SSIM": 0.5,
+                      "relMSE": 0.1}).to_csv(ctx.runs_dir / "eval" / run / "per_image.csv", index=False)
+    (ctx.results_dir / "t").mkdir(parents=True)
+    pd.DataFrame({"method": ["A", "B", "C", "S1", "S2"], "runs": ["a", "b", "c", "a b", "b c"],
+                  "PSNR": [31.5, 30.5, 31.525, 31.0, 30.0], "PSNR std": [None, None, None, 0.1, 0.1],
+                  "SSIM": 0.5, "SSIM std": [None, None, None, 0.0, 0.0], "relMSE": 0.1,
+                  "relMSE std": [None, None, None, 0.0, 0.0]}).to_csv(ctx.results_dir / "t" / "table.csv", index=False)
+    table = claims.run(ctx, claims=[
+        {"claim": "A beats B", "better": "t:A", "worse": "t:B"},       # +1.0 +- 0.05 per sequence: holds
+        {"claim": "B beats A", "better": "t:B", "worse": "t:A"},       # reversed
+        {"claim": "A beats C", "better": "t:A", "worse": "t:C"},       # -0.025, SE ~0.1: within noise
+        {"claim": "S1 beats S2", "better": "t:S1", "worse": "t:S2"},   # 1.0 vs 2SE = 0.2 over 2 seeds: holds
+        {"claim": "both", "better": "t:A", "worse": ["t:B", "t:C"]}])  # holds + within noise
+    verdicts = table.drop_duplicates("claim").set_index("claim")["verdict"].to_dict()
+    assert verdicts == {"A beats B": "holds", "B beats A": "reversed", "A beats C": "within noise",
+                        "S1 beats S2": "holds", "both": "within noise"}
+    s = table.set_index("claim").loc["S1 beats S2"]
+    assert s["basis"] == "seeds (2, 2)" and s["PSNR 2SE"] == pytest.approx(2 * (0.01 / 2 + 0.01 / 2) ** 0.5)
+    assert table.set_index("claim").loc["A beats B", "basis"] == "4 sequences, 1 seed"

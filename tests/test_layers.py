@@ -529,3 +529,21 @@ def test_recurrent_block_takes_a_float32_zero_state_under_bf16_autocast():
         out16 = block(x, torch.zeros(1, 8, 16, 16, dtype=torch.bfloat16))
     assert seen.dtypes == [torch.bfloat16]
     torch.testing.assert_close(out32, out16, atol=0, rtol=0)
+
+
+def test_training_sampler_reads_zeros_for_huge_and_infinite_offsets():
+    """The differentiable (grid_sample) path agrees with inference on extreme offsets: zeros, not NaN,
+    and finite gradients."""
+    torch.manual_seed(0)
+    x, w = torch.randn(1, 8, 6, 6, requires_grad=True), torch.randn(4, 8, 3, 3)
+    offset = torch.zeros(1, 18, 6, 6)
+    offset[0, 0, 1, 1], offset[0, 1, 2, 2], offset[0, 2, 3, 3] = 1e9, float("-inf"), float("inf")
+    far = offset.clone()
+    far[0, 0, 1, 1], far[0, 1, 2, 2], far[0, 2, 3, 3] = 100.0, -100.0, 100.0
+    offset.requires_grad_(True)
+    out = deform_conv2d(x, offset, w)
+    assert torch.isfinite(out).all()
+    with torch.no_grad():
+        torch.testing.assert_close(out.detach(), deform_conv2d(x, far, w))  # inference path, same result
+    out.square().sum().backward()
+    assert torch.isfinite(x.grad).all() and torch.isfinite(offset.grad).all()

@@ -2,13 +2,14 @@
 import copy
 import json
 
+import pandas as pd
 import pytest
 import torch
 
 from baselines.edsr import EDSR
 from bench.experiments.pipeline import Context, _train_identity
 from bench.tasks import get_task
-from bench.train import CHECKPOINT, TrainingDiverged, load_weights, lr_at, train
+from bench.train import CHECKPOINT, Recipe, TrainingDiverged, load_weights, lr_at, train
 
 TASK = get_task("srd")
 WEIGHTS = {"final": {"edge": 1, "temporal": 1, "spatial": 8, "perceptual": 0},
@@ -42,34 +43,109 @@ def _model():
     return EDSR(channels=8, blocks=2)
 
 
-def _train(data, out_dir, steps=6):
-    return train(_model(), data, TASK, out_dir, steps=steps, batch_size=2, loss_weights=WEIGHTS,
-                 checkpoint_every=3, progress=False)
+def _recipe(steps=6, **changes):
+    return Recipe(steps=steps, batch_size=2, seq_len=2, crop=8, loss=WEIGHTS, checkpoint_every=3,
+                  **{"warmup": 0.2, "val_every": 2, **changes})
 
 
-def test_lr_halves_every_quarter():
-    assert [lr_at(s, 400, 6e-4, 0.25) for s in (0, 99, 100, 200, 300, 399)] == \
+def _train(data, out_dir, steps=6, model=None, **changes):
+    return train(model or _model(), data, TASK, out_dir, _recipe(steps, **changes), progress=False)
+
+
+def test_paper_schedule_halves_every_quarter():
+    recipe = Recipe(steps=400, batch_size=1, seq_len=1, crop=8, loss=WEIGHTS, schedule="halve")
+    assert [lr_at(s, recipe) for s in (0, 99, 100, 200, 300, 399)] == \
         pytest.approx([6e-4, 6e-4, 3e-4, 1.5e-4, 7.5e-5, 7.5e-5])
 
 
+def test_cosine_schedule_warms_up_linearly_then_decays_to_zero():
+    recipe = Recipe(steps=100, batch_size=1, seq_len=1, crop=8, loss=WEIGHTS, lr=1e-3, warmup=0.1)
+    lrs = [lr_at(s, recipe) for s in range(100)]
+    assert lrs[:10] == pytest.approx([1e-4 * (s + 1) for s in range(10)])          # linear warm-up
+    assert lrs[10] == pytest.approx(1e-3)                                            # the peak
+    assert lrs[55] == pytest.approx(0.5e-3, rel=0.05)                               # half way down
+    assert all(a >= b for a, b in zip(lrs[10:], lrs[11:])) and lrs[-1] < 1e-6       # monotone to ~0
+
+
+def test_recipe_rejects_unknown_keys_and_values():
+    with pytest.raises(ValueError, match="unknown train"):
+        Recipe.from_config({"steps": 1, "batch_size": 1, "seq_len": 1, "crop": 8, "loss": WEIGHTS, "lrr": 1})
+    with pytest.raises(ValueError, match="schedule"):
+        Recipe(steps=1, batch_size=1, seq_len=1, crop=8, loss=WEIGHTS, schedule="step")
+
+
+def test_ema_is_the_average_of_the_weights_and_what_the_run_keeps(tmp_path):
+    model = _model()
+    _train(SyntheticSequences(), tmp_path, steps=8, model=model, ema=0.5)
+    state = torch.load(tmp_path / CHECKPOINT, weights_only=False)
+    raw, ema = state["model"], state["ema"]
+    assert any(not torch.equal(raw[k], ema[k]) for k in raw)             # the average lags the weights
+    for k, v in model.state_dict().items():                              # train() leaves the EMA in the model
+        assert torch.equal(v, ema[k])
+    assert all(torch.equal(v, ema[k]) for k, v in load_weights(_model(), tmp_path).state_dict().items())
+
+
+def test_ema_update_follows_its_formula():
+    from bench.train import update_ema
+    a, b = torch.nn.Linear(2, 2), torch.nn.Linear(2, 2)
+    before = a.weight.detach().clone()
+    update_ema(a, b, decay=0.9, step=1000)                               # d = min(0.9, 1001 / 1010) = 0.9
+    assert torch.allclose(a.weight, 0.9 * before + 0.1 * b.weight.detach())
+
+
+def test_gradient_clipping_bounds_the_update_norm(tmp_path):
+    _train(SyntheticSequences(), tmp_path / "c", steps=3, clip_grad_norm=1e-3)
+    curve = torch.load(tmp_path / "c" / CHECKPOINT, weights_only=False)["curve"]
+    assert all(c["grad_norm"] > 1e-3 for c in curve)  # the recorded norm is before clipping ...
+    clipped, free = _model(), _model()
+    _train(SyntheticSequences(), tmp_path / "clip", steps=1, model=clipped, clip_grad_norm=1e-9, ema=None)
+    _train(SyntheticSequences(), tmp_path / "free", steps=1, model=free, clip_grad_norm=None, ema=None)
+    start = _model()
+    moved = lambda m: sum((p - q).abs().sum() for p, q in zip(m.parameters(), start.parameters()))
+    assert moved(clipped) < moved(free)  # ... and a tiny bound makes Adam's first step smaller
+
+
+def test_validation_curve_is_recorded_every_k_steps_and_at_the_end(tmp_path):
+    calls = []
+
+    def validate(model):
+        assert not model.training
+        calls.append(1)
+        return {"PSNR": float(len(calls))}
+    summary = train(_model(), SyntheticSequences(), TASK, tmp_path, _recipe(7, val_every=3), progress=False,
+                    validate=validate)
+    curve = pd.read_csv(tmp_path / "val_curve.csv")
+    assert curve["step"].tolist() == [0, 3, 6, 7] and curve["PSNR"].tolist() == [1, 2, 3, 4]
+    assert (curve["train_s"].diff().dropna() > 0).all() and curve["loss"][1:].notna().all()
+    assert summary["val"] == {"PSNR": 4.0}
+
+
 def test_training_reduces_the_loss(tmp_path):
-    summary = _train(SyntheticSequences(), tmp_path, steps=30)
+    summary = _train(SyntheticSequences(), tmp_path, steps=30, lr=2e-3)
     assert summary["steps"] == 30 and summary["final_loss"] < summary["first_loss"]
     assert (tmp_path / "curve.csv").exists()
 
 
 def test_interrupted_training_resumes_to_the_same_weights(tmp_path):
+    """Bit-exact: weights, EMA, optimizer, schedule and the validation curve."""
     full = _model()
-    train(full, SyntheticSequences(), TASK, tmp_path / "full", steps=6, batch_size=2, loss_weights=WEIGHTS,
-          checkpoint_every=3, progress=False)
+    validate = lambda model: {"w": float(next(model.parameters()).sum())}
+    train(full, SyntheticSequences(), TASK, tmp_path / "full", _recipe(), progress=False, validate=validate)
     with pytest.raises(KeyboardInterrupt):  # dies in step 5, after the checkpoint of step 3
-        _train(SyntheticSequences(interrupt_at_draw=4 * 2), tmp_path / "cut")
+        train(_model(), SyntheticSequences(interrupt_at_draw=4 * 2), TASK, tmp_path / "cut", _recipe(),
+              progress=False, validate=validate)
     assert torch.load(tmp_path / "cut" / CHECKPOINT, weights_only=False)["step"] == 3
-    summary = _train(SyntheticSequences(), tmp_path / "cut")
+    summary = train(_model(), SyntheticSequences(), TASK, tmp_path / "cut", _recipe(), progress=False,
+                    validate=validate)
     assert summary["resumed_from_step"] == 3 and summary["steps"] == 6
     resumed = load_weights(_model(), tmp_path / "cut")
     for a, b in zip(full.state_dict().values(), resumed.state_dict().values()):
         assert torch.equal(a, b)
+    full_state, cut_state = (torch.load(tmp_path / d / CHECKPOINT, weights_only=False) for d in ("full", "cut"))
+    for a, b in zip(full_state["model"].values(), cut_state["model"].values()):
+        assert torch.equal(a, b)
+    assert [c["lr"] for c in full_state["curve"]] == [c["lr"] for c in cut_state["curve"]]
+    assert [c["w"] for c in full_state["val_curve"]] == [c["w"] for c in cut_state["val_curve"]]
 
 
 def test_non_finite_loss_stops_with_a_clear_error_and_keeps_the_last_checkpoint(tmp_path):
@@ -85,9 +161,10 @@ def ctx(tmp_path):
     (tmp_path / "data").mkdir()
     (tmp_path / "data" / "manifest.json").write_text(json.dumps(
         {"spec": {"spp": 8}, "passes": ["lr_noisy"], "frames": [
-            {"split": "train", "sequence": "a", "frame": 0, "settings_hash": "x"}]}))
+            {"split": "train", "sequence": "a", "frame": 0, "settings_hash": "x"},
+            {"split": "val", "sequence": "b", "frame": 0, "settings_hash": "v"}]}))
     train_cfg = {"steps": 10, "batch_size": 2, "seq_len": 2, "crop": 8, "lr": 6e-4, "betas": [0.9, 0.99],
-                 "halve_every": 0.25, "hdr": "clamp", "checkpoint_every": 5, "loss": WEIGHTS}
+                 "halve_every": 0.25, "hdr": "clamp", "checkpoint_every": 5, "loss": WEIGHTS, "val_every": 5}
     return Context(scale="smoke", runs_dir=tmp_path / "runs", results_dir=tmp_path / "results",
                    data_dir=tmp_path / "data", data_spec={"spp": 8}, train=train_cfg, eval={},
                    models={"edsr": {"_target_": "baselines.edsr.EDSR", "channels": 8}})
@@ -98,10 +175,12 @@ def test_train_identity_changes_exactly_with_what_determines_the_result(ctx, tmp
     base = _train_identity(ctx, cfg, TASK, 0, None)
     same = copy.deepcopy(ctx)
     same.train["checkpoint_every"] = 99
+    same.train["val_every"], same.train["val_sequences"] = 3, 9   # how often it is watched, not what it learns
     same.workers, same.progress, same.results_dir = 7, False, tmp_path / "elsewhere"
     assert _train_identity(same, cfg, TASK, 0, None) == base
     changed = []
-    for key, value in (("steps", 11), ("lr", 1e-3), ("crop", 16)):
+    for key, value in (("steps", 11), ("lr", 1e-3), ("crop", 16), ("ema", None), ("schedule", "halve"),
+                       ("clip_grad_norm", 0.5), ("hdr", "log1p")):
         other = copy.deepcopy(ctx)
         other.train[key] = value
         changed.append(_train_identity(other, cfg, TASK, 0, None))
@@ -115,6 +194,18 @@ def test_train_identity_changes_exactly_with_what_determines_the_result(ctx, tmp
     changed.append(_train_identity(ctx, cfg, TASK, 0, None))
     assert all(ident != base for ident in changed)
     assert len({json.dumps(i, sort_keys=True) for i in changed}) == len(changed)
+
+
+def test_train_identity_ignores_the_other_splits(ctx):
+    """Re-rendering validation references (more samples) must not make trained runs stale."""
+    cfg = ctx.models["edsr"]
+    base = _train_identity(ctx, cfg, TASK, 0, None)
+    manifest = json.loads((ctx.data_dir / "manifest.json").read_text())
+    manifest["frames"][1]["settings_hash"] = "v2"
+    (ctx.data_dir / "manifest.json").write_text(json.dumps(manifest))
+    import os
+    os.utime(ctx.data_dir / "manifest.json", ns=(1, 1))  # a new mtime whatever the clock's resolution
+    assert _train_identity(ctx, cfg, TASK, 0, None) == base
 
 
 def test_intermediate_supervision_is_used_only_when_weighted():

@@ -16,7 +16,7 @@ import torch.nn.functional as F
 
 from bench.evaluate import predict
 from bench.experiments.pipeline import (Context, cascade_model, dataset, model_config, trained_model,
-                                        with_training)
+                                        with_training, recipe_of)
 from bench.metrics import relmse
 from bench.tasks import get_task
 
@@ -38,7 +38,7 @@ def tonemap(img: torch.Tensor) -> np.ndarray:
 
 
 def _row_output(ctx: Context, r: dict, x, g, seed: int) -> torch.Tensor:
-    rctx = with_training(ctx, r.get("train"))
+    rctx = with_training(ctx, r.get("train"), r["model"])
     cfg = model_config(ctx, r["model"], r.get("overrides"))
     task = get_task(r["task"])
     if r.get("cascade"):
@@ -47,7 +47,7 @@ def _row_output(ctx: Context, r: dict, x, g, seed: int) -> torch.Tensor:
         model, _ = trained_model(rctx, cfg, task, seed, r["label"])
     if hasattr(model, "eval"):
         model.to(ctx.device).eval()
-    return predict(model, x.to(ctx.device), g.to(ctx.device), rctx.train["hdr"])[0, -1].cpu()
+    return predict(model, x.to(ctx.device), g.to(ctx.device), recipe_of(rctx).hdr)[0, -1].cpu()
 
 
 def crop_figure(ctx: Context, rows: list[dict], path: Path, split: str = "val", size: int = 64) -> Path | None:
@@ -89,6 +89,46 @@ def crop_figure(ctx: Context, rows: list[dict], path: Path, split: str = "val", 
     fig.tight_layout()
     path.parent.mkdir(parents=True, exist_ok=True)
     fig.savefig(path, dpi=120)
+    plt.close(fig)
+    log.info("figure: %s", path)
+    return path
+
+
+def curve_figure(runs_dir: Path, curves: dict[str, list[str]], path: Path, metric: str = "PSNR") -> Path | None:
+    """Learning curves of a table's rows: validation `metric` against training steps and against training
+    wall time, one line per row (seeds of a row share its colour). `curves` maps a row label to the hashes
+    of its training runs; runs without a recorded curve (cascade stages, non-learned rows) are left out."""
+    import matplotlib
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+    import pandas as pd
+
+    fig, (by_step, by_time) = plt.subplots(1, 2, figsize=(11, 4))
+    drawn = 0
+    for i, (label, hashes) in enumerate(curves.items()):
+        for j, h in enumerate(hashes):
+            file = Path(runs_dir) / "train" / h / "val_curve.csv"
+            if not file.exists():
+                continue
+            curve = pd.read_csv(file)
+            style = {"color": f"C{i % 10}", "label": label if j == 0 else None, "alpha": 1.0 if j == 0 else 0.5}
+            by_step.plot(curve["step"], curve[metric], marker=".", **style)
+            by_time.plot(curve["train_s"] / 60, curve[metric], marker=".", **style)
+            drawn += 1
+    if not drawn:
+        plt.close(fig)
+        return None
+    by_step.set_xlabel("training step")
+    by_time.set_xlabel("training wall time (min)")
+    for ax in (by_step, by_time):
+        ax.set_ylabel(f"val {metric} (curve subset)")
+        ax.grid(alpha=0.3)
+    by_step.legend(fontsize=7)
+    fig.suptitle(f"{path.parent.name}: learning curves (EMA weights, validation subset; step 0 = the start)",
+                 fontsize=9)
+    fig.tight_layout()
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(path, dpi=110)
     plt.close(fig)
     log.info("figure: %s", path)
     return path

@@ -21,6 +21,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
+import torch
 from hydra.utils import instantiate
 
 from bench import runs
@@ -33,7 +34,7 @@ from bench.infer import REFERENCE
 from bench.macs import count_params
 from bench.models.srd import SRDNet, SRDStage, load_stage
 from bench.tasks import CASCADE_STAGES, Task, get_task
-from bench.train import TrainingDiverged, load_weights, train
+from bench.train import Recipe, TrainingDiverged, load_weights, train
 
 log = logging.getLogger("bench")
 
@@ -59,6 +60,7 @@ class Context:
     progress: bool = True
     vgg: dict = field(default_factory=dict)
     render_data: bool = True
+    model_lr: dict = field(default_factory=dict)   # model name -> peak learning rate (else train.lr)
 
 
 # ---------------------------------------------------------------- models
@@ -85,8 +87,11 @@ def deep_merge(base: dict, overrides: dict | None) -> dict:
     return out
 
 
-def with_training(ctx: Context, overrides: dict | None) -> Context:
-    """`ctx` with a row's training overrides (e.g. the perceptual weight) merged into its recipe."""
+def with_training(ctx: Context, overrides: dict | None, model: str | None = None) -> Context:
+    """`ctx` with the recipe a row trains with: the model's own learning rate (`model_lr`, from the
+    range test), then the row's training overrides (e.g. the perceptual weight) merged in."""
+    if model in ctx.model_lr:
+        overrides = deep_merge({"lr": ctx.model_lr[model]}, overrides)
     return dataclasses.replace(ctx, train=deep_merge(ctx.train, overrides)) if overrides else ctx
 
 
@@ -100,22 +105,28 @@ def _canonical(value) -> str:
     return json.dumps(value, sort_keys=True, default=str)
 
 
-@functools.lru_cache(maxsize=8)
-def _fingerprint(manifest_path: str, mtime_ns: int) -> str:
+@functools.lru_cache(maxsize=32)
+def _fingerprint(manifest_path: str, mtime_ns: int, split: str | None) -> str:
     manifest = load_manifest(Path(manifest_path).parent)
-    frames = sorted((f["split"], f["sequence"], f["frame"], f.get("settings_hash")) for f in manifest["frames"])
-    return runs.config_hash({"spec": manifest["spec"], "frames": frames})
+    spec = copy.deepcopy(manifest["spec"])
+    if split is not None and isinstance(spec.get("splits"), dict):
+        spec["splits"] = {split: spec["splits"].get(split)}
+    frames = sorted((f["split"], f["sequence"], f["frame"], f.get("settings_hash")) for f in manifest["frames"]
+                    if split is None or f["split"] == split)
+    return runs.config_hash({"spec": spec, "frames": frames})
 
 
-def data_fingerprint(ctx: Context) -> str:
+def data_fingerprint(ctx: Context, split: str | None = None) -> str:
     """Hash of what is on disk (the manifest's spec and every frame's render settings), not of the path:
-    runs trained on it are reused exactly while the data they saw is unchanged."""
+    runs trained on it are reused exactly while the data they saw is unchanged. With `split`, only that
+    split's part of the spec and its frames count: re-rendering the validation references does not make
+    the training runs stale."""
     path = ctx.data_dir / "manifest.json"
     if not path.exists():
         raise UserError(f"data directory {ctx.data_dir} has no manifest.json; render it with "
                         f"`python -m bench +experiment=data scale={ctx.scale}` or point data_dir=... at a "
                         f"dataset in the documented layout (README, 'Dataset layout')")
-    return _fingerprint(str(path.resolve()), path.stat().st_mtime_ns)
+    return _fingerprint(str(path.resolve()), path.stat().st_mtime_ns, split)
 
 
 def ensure_data(ctx: Context, passes: set[str]) -> str:
@@ -147,11 +158,40 @@ def dataset(ctx: Context, split: str, task: Task, training: bool, seed: int = 0)
     buffers = task.buffers(with_mid=training)
     if not training:
         return SequenceDataset(ctx.data_dir, split, buffers)
+    recipe = recipe_of(ctx)
     frames = load_manifest(ctx.data_dir)["spec"].get("seq_len")
-    if frames is not None and ctx.train["seq_len"] > frames:
-        raise UserError(f"train.seq_len={ctx.train['seq_len']} but the dataset's sequences have {frames} frames")
-    return SequenceDataset(ctx.data_dir, split, buffers, seq_len=ctx.train["seq_len"], crop=ctx.train["crop"],
-                           augment=True, seed=seed)
+    if frames is not None and recipe.seq_len > frames:
+        raise UserError(f"train.seq_len={recipe.seq_len} but the dataset's sequences have {frames} frames")
+    return SequenceDataset(ctx.data_dir, split, buffers, seq_len=recipe.seq_len, crop=recipe.crop,
+                           augment=True, seed=seed, max_sequences=recipe.train_sequences)
+
+
+def recipe_of(ctx: Context) -> Recipe:
+    try:
+        return Recipe.from_config(ctx.train)
+    except (TypeError, ValueError) as err:
+        raise UserError(f"train: {err}") from err
+
+
+def validation(ctx: Context, task: Task, sequences: int):
+    """The learning curve's scorer: `validate(model) -> {relMSE, PSNR, SSIM}` on whole frames of
+    `sequences` validation sequences spread over the split (None when there are none to score)."""
+    if sequences <= 0:
+        return None
+    split = ctx.eval.get("split", "val")
+    try:
+        full = dataset(ctx, split, task, training=False)
+    except ValueError:  # no such split in this dataset: no curve, the final table still scores it
+        log.warning("no %r split for the learning curve; training without one", split)
+        return None
+    chosen = sorted({round(i * (len(full) - 1) / max(1, sequences - 1)) for i in range(min(sequences, len(full)))})
+    subset = torch.utils.data.Subset(full, chosen)
+    hdr = recipe_of(ctx).hdr
+
+    def validate(model) -> dict:
+        _, metrics = evaluate(model, subset, task, hdr=hdr, device=ctx.device)
+        return {k: metrics[k] for k in ("relMSE", "PSNR", "SSIM")}
+    return validate
 
 
 # ---------------------------------------------------------------- perceptual features
@@ -188,9 +228,8 @@ def _file_sha256(path: str) -> str:
 
 def _train_identity(ctx: Context, cfg: dict, task: Task, seed: int, vgg_id: dict | None,
                     stage: str | None = None) -> dict:
-    schedule = {k: v for k, v in ctx.train.items() if k not in ("checkpoint_every",)}
-    identity = {"model": cfg, "task": task.name, "train": schedule, "data": data_fingerprint(ctx),
-                "seed": seed, "vgg": vgg_id}
+    identity = {"model": cfg, "task": task.name, "train": recipe_of(ctx).identity(),
+                "data": data_fingerprint(ctx, "train"), "seed": seed, "vgg": vgg_id}
     if stage is not None:
         identity["stage"] = stage
     return identity
@@ -214,7 +253,6 @@ def trained_model(ctx: Context, cfg: dict, task: Task, seed: int, label: str = "
     `evaluated`), and the returned model is untrained: call `load_weights(model, run.dir)` to fill it.
     With `stage` ("sr" or "dn") only that stage of an SRDNet (built at the SRD scale, 2) is trained on
     `task`, through SRDStage."""
-    import torch
     torch.manual_seed(seed)
     model = build_model(cfg, task.scale) if stage is None else SRDStage(_cascade_net(cfg), stage)
     if not is_learned(model):
@@ -227,13 +265,11 @@ def trained_model(ctx: Context, cfg: dict, task: Task, seed: int, label: str = "
     if run.reused:
         log.info("train %s: reusing run %s", label or cfg["_target_"], run.hash)
         return (load_weights(model, run.dir, ctx.device) if load else model), run
-    t = ctx.train
+    recipe = recipe_of(ctx)
     try:
-        summary = train(model, dataset(ctx, "train", task, training=True, seed=seed), task, run.dir,
-                        steps=t["steps"], batch_size=t["batch_size"], loss_weights=t["loss"], lr=t["lr"],
-                        betas=t["betas"], halve_every=t["halve_every"], hdr=t["hdr"], features=features,
-                        seed=seed, device=ctx.device, checkpoint_every=t["checkpoint_every"],
-                        progress=ctx.progress)
+        summary = train(model, dataset(ctx, "train", task, training=True, seed=seed), task, run.dir, recipe,
+                        features=features, seed=seed, device=ctx.device, progress=ctx.progress,
+                        validate=validation(ctx, task, recipe.val_sequences) if stage is None else None)
     except TrainingDiverged as err:
         runs.fail(run, str(err))
         raise UserError(f"training {label or cfg['_target_']} (run {run.dir}) diverged: {err}") from err
@@ -272,7 +308,8 @@ def evaluated(ctx: Context, cfg: dict, task: Task, seed: int, split: str, label:
     else:
         model, train_run = trained_model(ctx, cfg, task, seed, label, load=False)
         trained = train_run.hash if train_run else {"model": cfg, "task": task.name}
-    identity = {"trained": trained, "split": split, "data": data_fingerprint(ctx), "hdr": ctx.train["hdr"]}
+    hdr = recipe_of(ctx).hdr
+    identity = {"trained": trained, "split": split, "data": data_fingerprint(ctx, split), "hdr": hdr}
     if ctx.eval.get("save_exr"):
         identity["frames"] = True  # output frames are an artifact of their own run
     fast_path, tile = ctx.eval.get("path", REFERENCE), ctx.eval.get("tile")
@@ -285,7 +322,7 @@ def evaluated(ctx: Context, cfg: dict, task: Task, seed: int, split: str, label:
         return run
     if train_run is not None and train_run.reused:
         load_weights(model, train_run.dir, ctx.device)
-    _, metrics = evaluate(model, dataset(ctx, split, task, training=False), task, hdr=ctx.train["hdr"],
+    _, metrics = evaluate(model, dataset(ctx, split, task, training=False), task, hdr=hdr,
                           device=ctx.device, out_dir=run.dir, save_exr=ctx.eval.get("save_exr", False),
                           write_exr=write_exr, path=fast_path, tile=tile)
     metrics["params"] = count_params(model)
@@ -300,7 +337,7 @@ def row(ctx: Context, label: str, model: str, overrides: dict | None = None, tas
     `train` overrides the training recipe for this row; `cascade` trains the stages separately."""
     t = get_task(task)
     cfg = model_config(ctx, model, overrides)
-    ctx = with_training(ctx, train)
+    ctx = with_training(ctx, train, model)
     split = split or ctx.eval.get("split", "val")
     results = [evaluated(ctx, cfg, t, seed, split, label, cascade) for seed in ctx.seeds]
     out = {"method": label, "task": task}
@@ -317,5 +354,7 @@ def row(ctx: Context, label: str, model: str, overrides: dict | None = None, tas
     vgg = results[0].metrics.get("vgg")
     out["vgg"] = f"VGG16 {vgg['layer']} from {vgg['weights']}" if vgg else None
     out["runs"] = " ".join(r.hash for r in results)
+    out["train runs"] = " ".join(t for r in results if r.metrics.get("train_run")
+                                 for t in r.metrics["train_run"].split("+"))
     out["reused"] = all(r.reused for r in results)
     return out

@@ -15,6 +15,7 @@ Writes `<results_dir>/stability/table.csv` (one row per case and model) and `tab
 from __future__ import annotations
 
 import copy
+import dataclasses
 import logging
 import math
 import tempfile
@@ -26,8 +27,8 @@ import torch.nn.functional as F
 
 from bench.evaluate import predict
 from bench.hdr import to_network
-from bench.experiments.pipeline import (Context, dataset, ensure_data, is_learned, model_config,
-                                        trained_model)
+from bench.experiments.pipeline import (Context, dataset, ensure_data, is_learned, model_config, recipe_of,
+                                        trained_model, with_training)
 from bench.metrics import psnr, relmse, ssim
 from bench.nn import DeformConv2d
 from bench.tables import write_table
@@ -153,9 +154,10 @@ def _high_lr_row(ctx: Context, model, task, hdr, factor=10.0, steps=5) -> dict:
     m = copy.deepcopy(model)
     with tempfile.TemporaryDirectory() as tmp:
         try:
-            train(m, dataset(ctx, "train", task, training=True), task, tmp, steps=steps,
-                  batch_size=ctx.train["batch_size"], loss_weights=LOSS, lr=factor * ctx.train["lr"],
-                  betas=ctx.train["betas"], hdr=hdr, device="cpu", checkpoint_every=steps, progress=False)
+            base = recipe_of(ctx)
+            recipe = dataclasses.replace(base, steps=steps, loss=LOSS, lr=factor * base.lr, hdr=hdr, warmup=0,
+                                         clip_grad_norm=None, checkpoint_every=steps)
+            train(m, dataset(ctx, "train", task, training=True), task, tmp, recipe, device="cpu", progress=False)
         except TrainingDiverged as err:
             return {"case": f"train at {factor:g}x lr", "finite": True, "train step": f"divergence detected: {err}"[:200]}
     ok = all(_finite(p) for p in m.parameters())
@@ -183,9 +185,10 @@ def metric_rows() -> list[dict]:
 def model_rows(ctx: Context, name: str, seed: int, frames: int, long_frames: int) -> list[dict]:
     task = get_task("srd")
     cfg = model_config(ctx, name)
+    ctx = with_training(ctx, None, name)
     model, _ = trained_model(ctx, cfg, task, seed, f"{name} (stability)")
     model.eval()
-    hdr = ctx.train["hdr"]
+    hdr = recipe_of(ctx).hdr
     item = dataset(ctx, ctx.eval.get("split", "val"), task, training=False)[0]
     x0, g0, ref = (item[k][None, :frames] for k in (task.x, task.g, task.y))
     clean = predict(model, x0, g0, hdr)

@@ -20,7 +20,7 @@ import logging
 
 import pandas as pd
 
-from bench.experiments.figure import crop_figure
+from bench.experiments.figure import crop_figure, curve_figure
 from bench.experiments.flops import frame_inputs
 from bench.experiments.pipeline import Context, build_model, ensure_data, is_learned, model_config, row
 from bench.macs import count_macs, on_meta
@@ -155,10 +155,12 @@ def run(ctx: Context, name: str, rows: list[dict], caption: str = "", task: str 
     notes += (" train/eval (min): wall time of each row's runs as recorded in the run store (a run shared "
               "with another table was computed once; a seed average for several seeds).")
     out_dir = ctx.results_dir / name
+    curves = {label: hashes.split() for label, hashes in zip(table["method"], table.pop("train runs")) if hashes}
     write_table(table.drop(columns=["reused"]), out_dir, caption=f"{caption} {notes}".strip(),
                 lower_is_better=LOWER_IS_BETTER, higher_is_better=HIGHER_IS_BETTER)
     if figure:
         crop_figure(ctx, rows, out_dir / "crops.png", split=split or ctx.eval.get("split", "val"))
+        curve_figure(ctx.runs_dir, curves, out_dir / "curves.png")
     reused = int(table["reused"].sum())
     log.info("%s: %d of %d rows reused from the run store; table in %s", name, reused, len(table), out_dir)
     return table

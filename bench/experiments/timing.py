@@ -44,7 +44,7 @@ from bench.dataset import SequenceDataset
 from bench.errors import UserError
 from bench.evaluate import predict, sync
 from bench.experiments.pipeline import (Context, build_model, ensure_data, is_learned, model_config,
-                                        recorded_training, trained_model)
+                                        recipe_of, recorded_training, trained_model, with_training)
 from bench.metrics import HIGHER_IS_BETTER, LOWER_IS_BETTER, RELMSE_FORMULA, all_metrics, mse
 from bench.tables import write_table
 from bench.tasks import GBUF_LAYERS, get_task
@@ -246,6 +246,7 @@ def resolve_method(ctx: Context, method: dict, train_missing: bool):
     training run, and is trained here only when `train_missing` (training is the tables' job)."""
     task = get_task(method["task"])
     cfg = model_config(ctx, method["model"], method.get("overrides"))
+    ctx = with_training(ctx, None, method["model"])
     seed = ctx.seeds[0]
     if not is_learned(build_model(cfg, task.scale)):
         return build_model(cfg, task.scale)
@@ -306,7 +307,7 @@ def measure_view(ctx: Context, view: View, variant: str, methods: list, bf_spp: 
         for spp in (spp_lists[res] if chosen else []):
             x, g, render_s = input_sequence(ctx, view, renderer, res, spp, stats)
             for m in chosen:
-                pred, network_s = timed_prediction(m["net"], x, g, ctx.train["hdr"], ctx.device, repeats)
+                pred, network_s = timed_prediction(m["net"], x, g, recipe_of(ctx).hdr, ctx.device, repeats)
                 rows.append({"method": m["label"], "input": res.upper(), "spp": spp, "render s": render_s,
                              "network s": network_s, "network on": network_device(ctx, m["net"]),
                              **scores(pred, view.ref)})

@@ -74,6 +74,9 @@ def _sampling_grid(offset, kh, kw, padding, dilation, in_h, in_w, row0=0):
     xs = torch.arange(out_w, dtype=dtype, device=device) - padding
     y = ys.view(1, 1, rows, 1) + tap_i.view(1, -1, 1, 1) + offset[:, :, 0]  # (B, K, rows, W)
     x = xs.view(1, 1, 1, out_w) + tap_j.view(1, -1, 1, 1) + offset[:, :, 1]
+    # Positions outside [-1, H] x [-1, W] are clamped to that border, where bilinear sampling reads 0 (as
+    # the inference samplers do): an infinite offset would otherwise make grid_sample return NaN. NaN stays.
+    y, x = y.clamp(-1, in_h), x.clamp(-1, in_w)
     # align_corners=False convention: pixel centre p maps to (2p + 1) / size - 1 (no division by
     # size - 1, so 1-pixel-wide inputs work).
     grid = torch.stack(((2 * x + 1) / in_w - 1, (2 * y + 1) / in_h - 1), dim=-1)

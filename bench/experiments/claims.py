@@ -1,0 +1,113 @@
+"""`+experiment=claims`: each of the paper's claims as comparisons of recorded table rows, with a verdict.
+
+A claim names pairs of rows, "table:row label" (`better` is the row the paper says wins). For each pair
+and metric the difference is oriented so that a positive value supports the claim, and judged against
+twice its standard error (SE):
+  - with 2+ seeds on both rows: SE over seeds, sqrt(sd_a^2 / n_a + sd_b^2 / n_b) from the table's
+    mean and std columns (training noise and data noise);
+  - with one seed: the paired per-sequence SE, std of the per-sequence mean differences / sqrt(sequences),
+    from the evaluation runs' per_image.csv (data noise only: it does not see how another seed would
+    have trained, so a "holds" on one seed is weaker evidence, and the table says which basis it used).
+Verdict: |difference| < 2 SE is "within noise"; otherwise "holds" or "reversed". A claim made of
+several pairs holds when all of them hold, is reversed when any is reversed, and is within noise else.
+
+The rows are read from the tables' CSVs (views of the run store) and their evaluation runs: run the
+tables first (`+experiment=all` lists claims last). Writes `<results_dir>/claims/table.{csv,md,tex}`.
+"""
+from __future__ import annotations
+
+import logging
+import math
+
+import numpy as np
+import pandas as pd
+
+from bench.errors import UserError
+from bench.experiments.pipeline import Context
+from bench.tables import write_table
+
+log = logging.getLogger("bench")
+
+METRICS = {"PSNR": 1, "SSIM": 1, "relMSE": -1}   # +1: higher is better
+
+
+def _table(ctx: Context, name: str, cache: dict) -> pd.DataFrame:
+    if name not in cache:
+        path = ctx.results_dir / name / "table.csv"
+        if not path.exists():
+            raise UserError(f"claims: {path} does not exist; run `python -m bench +experiment={name} "
+                            f"scale={ctx.scale}` first")
+        cache[name] = pd.read_csv(path)
+    return cache[name]
+
+
+def _row(ctx: Context, ref: str, cache: dict) -> pd.Series:
+    name, _, label = ref.partition(":")
+    table = _table(ctx, name, cache)
+    found = table[table["method"] == label]
+    if found.empty:
+        raise UserError(f"claims: no row {label!r} in {name} (rows: {', '.join(table['method'])})")
+    return found.iloc[0]
+
+
+def _per_sequence(ctx: Context, eval_hash: str, metric: str) -> pd.Series:
+    path = ctx.runs_dir / "eval" / eval_hash / "per_image.csv"
+    if not path.exists():
+        raise UserError(f"claims: evaluation run {eval_hash} has no per_image.csv in {ctx.runs_dir}; "
+                        "rerun its table with this runs_dir")
+    return pd.read_csv(path).groupby("sequence")[metric].mean()
+
+
+def compare(ctx: Context, better: pd.Series, worse: pd.Series, metric: str) -> dict:
+    """Oriented difference, its SE and the basis of the SE for one pair and metric."""
+    sign = METRICS[metric]
+    diff = sign * (float(better[metric]) - float(worse[metric]))
+    runs_b, runs_w = str(better["runs"]).split(), str(worse["runs"]).split()
+    std = f"{metric} std"
+    if len(runs_b) > 1 and len(runs_w) > 1 and std in better and not pd.isna(better[std]):
+        se = math.sqrt(float(better[std]) ** 2 / len(runs_b) + float(worse[std]) ** 2 / len(runs_w))
+        return {"diff": diff, "se": se, "basis": f"seeds ({len(runs_b)}, {len(runs_w)})"}
+    a, b = _per_sequence(ctx, runs_b[0], metric), _per_sequence(ctx, runs_w[0], metric)
+    paired = (a - b).dropna() * sign
+    se = float(paired.std(ddof=1) / np.sqrt(len(paired))) if len(paired) > 1 else float("nan")
+    return {"diff": diff, "se": se, "basis": f"{len(paired)} sequences, 1 seed"}
+
+
+def verdict(diff: float, se: float) -> str:
+    if not math.isfinite(se) or abs(diff) < 2 * se:
+        return "within noise"
+    return "holds" if diff > 0 else "reversed"
+
+
+def combine(verdicts: list[str]) -> str:
+    if all(v == "holds" for v in verdicts):
+        return "holds"
+    return "reversed" if "reversed" in verdicts else "within noise"
+
+
+def run(ctx: Context, name: str = "claims", claims: list[dict] | None = None, metric: str = "PSNR") -> pd.DataFrame:
+    cache, rows = {}, []
+    for claim in claims or []:
+        pairs = [(claim["better"], worse) for worse in
+                 ([claim["worse"]] if isinstance(claim["worse"], str) else claim["worse"])]
+        for better_ref, worse_ref in pairs:
+            better, worse = _row(ctx, better_ref, cache), _row(ctx, worse_ref, cache)
+            row = {"claim": claim["claim"], "better (paper)": better_ref, "worse (paper)": worse_ref}
+            for m in METRICS:
+                c = compare(ctx, better, worse, m)
+                row[f"{m} diff"], row[f"{m} 2SE"], row[f"{m} verdict"] = c["diff"], 2 * c["se"], verdict(c["diff"], c["se"])
+                row["basis"] = c["basis"]
+            rows.append(row)
+    table = pd.DataFrame(rows)
+    table.insert(1, "verdict", table.groupby("claim", sort=False)[f"{metric} verdict"].transform(
+        lambda v: combine(list(v))))
+    write_table(table, ctx.results_dir / name, caption=(
+        f"The paper's claims at scale {ctx.scale}, from the recorded tables. diff: the better row minus the "
+        f"worse one as the paper orders them, signed so that > 0 supports the claim (relMSE: worse minus "
+        f"better). 2SE: twice the standard error, over seeds when both rows have several, else over the "
+        f"per-sequence paired differences of one seed (data noise only). A pair's verdict: within noise when "
+        f"|diff| < 2SE, else holds or reversed. verdict (the claim, on {metric}): holds when every pair "
+        f"holds, reversed when any is reversed, else within noise."))
+    log.info("%s: %d comparisons, %s", name, len(table),
+             ", ".join(f"{c}: {v}" for c, v in table.drop_duplicates("claim")[["claim", "verdict"]].values))
+    return table
