@@ -125,3 +125,27 @@ def test_missing_layer_that_was_not_left_out_is_an_error(tmp_path):
     with pytest.raises(ValueError, match="no frames in split 'val'"):
         SequenceDataset(tmp_path, "val", ["lr_gbuf"])
 
+
+
+def test_decoded_frames_are_cached_and_items_do_not_alias_the_cache(tmp_path):
+    _write_synthetic(tmp_path)
+    data = SequenceDataset(tmp_path, "train", ALL, seq_len=2, crop=4, augment=True, seed=3)
+    first = data.item(0, 5)
+    assert len(data._cache) == 2                              # both frames of the item, decoded once
+    for path in tmp_path.glob("train/seq0/*.exr"):             # the cache serves them from now on
+        path.write_bytes(b"")
+    again = data.item(0, 5)
+    for key in ALL:
+        assert torch.equal(first[key], again[key])
+        again[key].add_(1.0)                                  # an item is its own copy ...
+    assert torch.equal(data.item(0, 5)["lr_noisy"], first["lr_noisy"])  # ... the cache is untouched
+    uncached = SequenceDataset(tmp_path, "train", ALL, seq_len=2, crop=4, cache_bytes=0)
+    with pytest.raises(Exception):
+        uncached.item(0, 5)                                   # without the cache the broken files are read
+
+
+def test_max_sequences_takes_every_family_in_turn():
+    from bench.dataset import _family_balanced
+    sequences = {f"{fam}-{i}": [{"family": fam}] for fam in ("a", "b", "c") for i in range(3)}
+    assert _family_balanced(sequences, 4) == ["a-0", "a-1", "b-0", "c-0"]
+    assert _family_balanced(sequences, 100) == sorted(sequences)

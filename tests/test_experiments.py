@@ -47,6 +47,7 @@ def test_table_runs_at_smoke_and_writes_every_format(dirs, name, caplog):
     for ext in ("csv", "md", "tex"):
         assert (out / f"table.{ext}").stat().st_size > 0
     assert (out / "crops.png").stat().st_size > 0
+    assert (out / "curves.png").stat().st_size > 0    # every table has a learned row with a curve
     table = pd.read_csv(out / "table.csv")
     assert list(table["method"]) == labels
     assert table[["relMSE", "PSNR", "SSIM"]].notna().all().all()

@@ -219,3 +219,15 @@ def test_intermediate_supervision_is_used_only_when_weighted():
     off = {**WEIGHTS, "intermediate": {"edge": 0, "temporal": 0, "spatial": 0, "perceptual": 0}}
     _, parts = batch_loss(model, batch, TASK, off, "clamp")
     assert not any(k.startswith("intermediate.") for k in parts)
+
+
+def test_lr_range_analysis_finds_the_valley_of_a_known_curve():
+    import numpy as np
+    from bench.experiments.lr_range import analyse
+    lr = np.logspace(-5, -1, 400)
+    x = np.log10(lr)
+    loss = 1.0 - 0.5 / (1 + np.exp(-4 * (x + 3.5))) + 2.0 * np.clip(x + 2.0, 0, None) ** 2  # falls, then blows up
+    found = analyse(lr, loss, smoothing=0.0)
+    assert found["lowest-loss lr"] == pytest.approx(10 ** -2.03, rel=0.1)
+    assert found["steepest lr"] == pytest.approx(10 ** -3.5, rel=0.1)
+    assert found["suggested lr"] == pytest.approx(found["lowest-loss lr"] / 10)

@@ -55,7 +55,8 @@ MODELS = ["srd", "edsr", "rae", "kpcn", "cfm"]
 LABELS = {"srd": "Ours", "edsr": "EDSR", "rae": "RAE", "kpcn": "KPCN", "cfm": "CFM"}
 PATHS = ["fp32", "inference_mode", "channels_last", "bf16"]
 COLUMNS = ["section", "method", "path", "size", "per", "ms", "ms min", "ms max", "GMac", "GMac/s",
-           "peak MiB", "time / OIDN", "GMac/s / conv stack", "time / plain conv", "max abs diff",
+           "peak MiB", "time / OIDN", "GMac/s / conv stack", "step / conv stack step", "time / plain conv",
+           "max abs diff",
            "max rel diff", "note"]
 
 
@@ -228,13 +229,15 @@ def inference_rows(label: str, model, macs: int, x, g, paths, device, repeats, w
     return rows
 
 
-def training_row(label: str, model, train: dict, loss_weights: dict, lr: float, device, repeats, warmup) -> dict:
+def training_row(label: str, model, train: dict, loss_weights: dict, lr: float, device, repeats, warmup,
+                 in_channels: int = 3, out_channels: int = 3, scale: int = 2) -> dict:
     """Time of one optimisation step (forward, loss, backward, Adam) on a random batch of the training
     crop, fp32. The loss is the trainer's weighted loss without the perceptual term (no VGG here)."""
     model = copy.deepcopy(model).train()
     batch, frames, crop = train["batch"], train["frames"], train["crop"]
-    x, g = frame_inputs(batch, frames, (crop, crop), device, seed=1)
-    target = torch.rand(batch, frames, 3, 2 * crop, 2 * crop, generator=torch.Generator().manual_seed(2)).to(device)
+    x, g = frame_inputs(batch, frames, (crop, crop), device, seed=1, in_channels=in_channels)
+    target = torch.rand(batch, frames, out_channels, scale * crop, scale * crop,
+                        generator=torch.Generator().manual_seed(2)).to(device)
     optimizer = torch.optim.Adam(model.parameters(), lr=lr)
     weights = {name: {**w, "perceptual": 0} for name, w in loss_weights.items()}
 
@@ -267,17 +270,23 @@ def oidn_row(out_hw, device, repeats, warmup) -> dict | None:
                    "note": "pyoidn on the CPU, its own threads"})
 
 
-def conv_stack_rows(target_macs: int, hw, channels: int, paths, device, repeats, warmup) -> list[dict]:
-    """The dense-conv reference at the proposed model's MACs, per fast path."""
+def conv_stack_rows(target_macs: int, hw, channels: int, paths, device, repeats, warmup,
+                    train: dict | None = None) -> list[dict]:
+    """The dense-conv reference at the proposed model's MACs, per fast path; with `train`, also its
+    training step (forward, L1, backward, Adam) at the training crop: the same MACs per LR pixel as the
+    proposed model's forward."""
     depth = conv_stack_depth(target_macs, hw, channels)
     torch.manual_seed(0)
     stack = ConvStack(channels, depth).to(device).eval()
     x = torch.rand(1, 1, channels, *hw, generator=torch.Generator().manual_seed(4)).to(device)
     macs = macs_per_frame(lambda: ConvStack(channels, depth), hw, in_channels=channels)
-    rows = inference_rows(f"3x3 conv stack ({depth} x {channels} ch)", stack, macs, x, None, paths, device,
-                          repeats, warmup)
+    label = f"3x3 conv stack ({depth} x {channels} ch)"
+    rows = inference_rows(label, stack, macs, x, None, paths, device, repeats, warmup)
     for row in rows:
         row["section"], row["size"] = "reference", _size(hw, 1)
+    if train:
+        rows.append(training_row(label, stack, train, {"final": {"spatial": 1}}, 6e-4, device, repeats, warmup,
+                                 in_channels=channels, out_channels=channels, scale=1))
     return rows
 
 
@@ -412,10 +421,15 @@ def _ratios(table: pd.DataFrame) -> pd.DataFrame:
     if len(oidn):
         frames = table["section"].isin(["inference", "tiled"])
         table.loc[frames, "time / OIDN"] = table.loc[frames, "ms"] / float(oidn.iloc[0])
-    stack = table[table["method"].str.startswith("3x3 conv stack")].set_index("path")["GMac/s"]
+    stack = table[table["method"].str.startswith("3x3 conv stack") & (table["section"] == "reference")]
+    stack = stack.set_index("path")["GMac/s"]
     inference = table["section"] == "inference"
     table.loc[inference, "GMac/s / conv stack"] = [
         gmacs / stack.get(path, float("nan")) for gmacs, path in table.loc[inference, ["GMac/s", "path"]].to_numpy()]
+    steps = table["section"] == "training step"
+    stack_step = table.loc[steps & table["method"].str.startswith("3x3 conv stack"), "ms"]
+    if len(stack_step):
+        table.loc[steps, "step / conv stack step"] = table.loc[steps, "ms"] / float(stack_step.iloc[0])
     return table
 
 
@@ -458,15 +472,17 @@ def _sections(ctx, models, input_hw, paths, repeats, warmup, train, oidn, stack_
     if oidn:
         row = oidn_row((2 * input_hw[0], 2 * input_hw[1]), device, repeats, warmup)
         yield [row] if row else []
+    train_crop = {"batch": ctx.train.get("batch_size", 4), "frames": ctx.train.get("seq_len", 5),
+                  "crop": ctx.train.get("crop", 32), **{k: v for k, v in train.items() if v is not None}}
     if stack_channels and "srd" in ctx.models:
         ours_macs = macs_per_frame(lambda: instantiate(ctx.models["srd"], scale=2), input_hw)
-        yield conv_stack_rows(ours_macs, input_hw, stack_channels, paths, device, repeats, warmup)
+        yield conv_stack_rows(ours_macs, input_hw, stack_channels, paths, device, repeats, warmup,
+                              train_crop if train_crop.get("enabled", True) else None)
     if deform.get("enabled", True):
         yield deform_rows(deform.get("channels", 32), [tuple(s) for s in deform.get("sizes", [[270, 480], [540, 960]])],
                           device, repeats, warmup)
     x, g = frame_inputs(1, 1, input_hw, device)
-    train = {"batch": ctx.train.get("batch_size", 4), "frames": ctx.train.get("seq_len", 5),
-             "crop": ctx.train.get("crop", 32), **{k: v for k, v in train.items() if v is not None}}
+    train = train_crop
     tile_models = (tiled.get("models") or models) if tiled.get("enabled", True) else []
     for name in models:
         cfg = ctx.models[name]
