@@ -36,7 +36,21 @@ def make_context(cfg: DictConfig):
                    budget_gmac=plain["scale"]["budget_gmac"], seeds=list(plain["seeds"]),
                    device=plain["device"], workers=plain["workers"], force=plain["force"],
                    progress=plain["progress"], vgg=plain["vgg"],
-                   render_data=plain["render_data"], model_lr=plain.get("model_lr") or {})
+                   render_data=plain["render_data"], model_lr=plain.get("model_lr") or {},
+                   shard=parse_shard(plain.get("shard")))
+
+
+def parse_shard(value) -> tuple[int, int] | None:
+    """`shard=i/n` (0 <= i < n) -> (i, n); null -> None."""
+    if value is None:
+        return None
+    try:
+        index, count = (int(part) for part in str(value).split("/"))
+    except ValueError:
+        index, count = -1, 0
+    if not 0 <= index < count:
+        raise UserError(f"shard={value!r}: expected i/n with 0 <= i < n, e.g. shard=0/2")
+    return index, count
 
 
 def resolve_device(device: str) -> str:

@@ -36,7 +36,12 @@ SCHEDULES = ("cosine", "halve", "constant", "range")
 
 
 class TrainingDiverged(RuntimeError):
-    """Raised when the loss or a gradient becomes non-finite."""
+    """Raised when the loss or a gradient becomes non-finite; `step` is where, and the run directory's
+    curve.csv holds the loss of every step before it."""
+
+    def __init__(self, message: str, step: int):
+        super().__init__(message)
+        self.step = step
 
 
 @dataclass(frozen=True)
@@ -221,14 +226,17 @@ def train(model, dataset, task: Task, out_dir: str | Path, recipe: Recipe, *, fe
             group["lr"] = lr_at(step, recipe)
         loss, parts = batch_loss(model, batch, task, recipe.loss, recipe.hdr, features)
         if not torch.isfinite(loss):
+            pd.DataFrame(state.curve).to_csv(out_dir / "curve.csv", index=False)
             raise TrainingDiverged(f"non-finite loss ({loss.item()}) at step {step}; the last good checkpoint "
-                                   f"is {ckpt_path if ckpt_path.exists() else 'none (diverged before the first)'}")
+                                   f"is {ckpt_path if ckpt_path.exists() else 'none (diverged before the first)'}",
+                                   step)
         optimizer.zero_grad(set_to_none=True)
         loss.backward()
         grad_norm = torch.nn.utils.clip_grad_norm_(model.parameters(), clip)
         if not torch.isfinite(grad_norm):
+            pd.DataFrame(state.curve).to_csv(out_dir / "curve.csv", index=False)
             raise TrainingDiverged(f"non-finite gradient at step {step}; the last good checkpoint is "
-                                   f"{ckpt_path if ckpt_path.exists() else 'none'}")
+                                   f"{ckpt_path if ckpt_path.exists() else 'none'}", step)
         optimizer.step()
         if ema_model is not None:
             update_ema(ema_model, model, recipe.ema, step)

@@ -7,6 +7,8 @@ from pathlib import Path
 
 import pandas as pd
 import pytest
+
+from bench.errors import UserError
 import torch
 from hydra import compose, initialize_config_dir
 from hydra.utils import instantiate
@@ -165,3 +167,11 @@ def test_data_experiment_summarises_every_split(smoke_dirs):
     assert (table["frames"] > 0).all()
     assert any(c.endswith(" s") for c in table.columns)           # per-pass render seconds
     assert len(list((root / "results" / "data" / "examples").glob("*.png"))) >= 4
+
+
+def test_shard_parses_i_over_n_and_rejects_the_rest():
+    from bench.cli import parse_shard
+    assert parse_shard(None) is None and parse_shard("1/3") == (1, 3)
+    for bad in ("3/3", "-1/2", "a/b", "2"):
+        with pytest.raises(UserError, match="shard="):
+            parse_shard(bad)

@@ -221,13 +221,16 @@ def test_intermediate_supervision_is_used_only_when_weighted():
     assert not any(k.startswith("intermediate.") for k in parts)
 
 
-def test_lr_range_analysis_finds_the_valley_of_a_known_curve():
+def test_lr_range_analysis_finds_the_valley_and_the_divergence_of_a_known_curve():
     import numpy as np
     from bench.experiments.lr_range import analyse
     lr = np.logspace(-5, -1, 400)
     x = np.log10(lr)
-    loss = 1.0 - 0.5 / (1 + np.exp(-4 * (x + 3.5))) + 2.0 * np.clip(x + 2.0, 0, None) ** 2  # falls, then blows up
+    loss = 1.0 - 0.5 / (1 + np.exp(-4 * (x + 3.5))) + 20.0 * np.clip(x + 2.0, 0, None) ** 2  # falls, then blows up
     found = analyse(lr, loss, smoothing=0.0)
-    assert found["lowest-loss lr"] == pytest.approx(10 ** -2.03, rel=0.1)
-    assert found["steepest lr"] == pytest.approx(10 ** -3.5, rel=0.1)
-    assert found["suggested lr"] == pytest.approx(found["lowest-loss lr"] / 10)
+    assert found["lowest-loss lr"] == pytest.approx(10 ** -2.0, rel=0.1)
+    # 4x the minimum (0.5): 20 (x + 2)^2 + 0.5 = 2 at x = -2 + sqrt(0.075)
+    assert found["diverged"] and found["divergence lr"] == pytest.approx(10 ** (-2 + 0.075 ** 0.5), rel=0.05)
+    assert found["suggested lr"] == pytest.approx(found["divergence lr"] / 10)
+    loss[250:] = float("nan")                                    # a NaN loss is a divergence too
+    assert analyse(lr, loss, smoothing=0.0)["divergence lr"] == pytest.approx(lr[250])

@@ -2,9 +2,11 @@
 
 Each model trains `steps` steps with the scale's recipe, except that the learning rate rises
 geometrically from lr_max * 1e-4 to lr_max (`train.schedule=range`); the loss per step is smoothed
-(exponential moving average, `smoothing`) and the test reports where the smoothed loss falls fastest
-(steepest descent per decade) and where it is lowest. The suggested peak rate for the cosine schedule is
-the lowest-loss rate / 10, the usual rule: it leaves a margin below where the loss starts to blow up.
+(exponential moving average, `smoothing`) and the test reports where the smoothed loss is lowest and
+where training diverges: the first rate whose smoothed loss exceeds `blowup` x its minimum so far. The
+suggested peak rate for the cosine schedule is the divergence rate / 10. The textbook rule (lowest-loss
+rate / 10) is not used: at the cpu scale one batch's loss varies 2-4x with its crops, so over a few
+hundred steps the lowest point of the smoothed loss is mostly noise, while the divergence is sharp.
 The runs are ordinary training runs, so a rerun reuses them. Writes `table.{csv,md,tex}` and
 `lr_range.png` to `<results_dir>/lr_range/`; `conf/scale/<scale>.yaml`'s `model_lr` takes the suggestions.
 """
@@ -22,19 +24,18 @@ from bench.tasks import get_task
 log = logging.getLogger("bench")
 
 
-def analyse(lr: np.ndarray, loss: np.ndarray, smoothing: float = 0.9, skip: float = 0.1) -> dict:
-    """Steepest-descent and lowest-loss rates of one range test (the first `skip` fraction of steps is
-    left out: the smoothed loss there still carries its bias towards the first value)."""
+def analyse(lr: np.ndarray, loss: np.ndarray, smoothing: float = 0.9, blowup: float = 4.0) -> dict:
+    """Lowest-loss and divergence rates of one range test, and the suggested peak rate."""
     smooth, avg = np.empty_like(loss), 0.0
     for i, value in enumerate(loss):  # bias-corrected EMA, as fast.ai's LR finder
         avg = smoothing * avg + (1 - smoothing) * value
         smooth[i] = avg / (1 - smoothing ** (i + 1))
-    start = int(skip * len(lr))
-    lowest = start + int(np.argmin(smooth[start:]))
-    slope = np.gradient(smooth, np.log10(lr))
-    steepest = start + int(np.argmin(slope[start:lowest + 1]))
-    return {"lowest-loss lr": float(lr[lowest]), "steepest lr": float(lr[steepest]),
-            "suggested lr": float(lr[lowest] / 10), "smoothed": smooth}
+    lowest_so_far = np.minimum.accumulate(smooth)
+    diverged = np.flatnonzero(~(smooth <= blowup * lowest_so_far))  # NaN counts as diverged
+    diverge = int(diverged[0]) if len(diverged) else len(lr) - 1
+    lowest = int(np.nanargmin(smooth[:diverge + 1]))
+    return {"lowest-loss lr": float(lr[lowest]), "divergence lr": float(lr[diverge]),
+            "diverged": bool(len(diverged)), "suggested lr": float(lr[diverge] / 10), "smoothed": smooth}
 
 
 def run(ctx: Context, name: str = "lr_range", models: list[str] | None = None, steps: int = 200,
@@ -50,18 +51,23 @@ def run(ctx: Context, name: str = "lr_range", models: list[str] | None = None, s
     rows, fig = [], plt.figure(figsize=(6, 4))
     for model in models or []:
         _, run_ = trained_model(test_ctx, model_config(ctx, model), t, ctx.seeds[0], f"{model} (lr range)",
-                                load=False)
+                                load=False, divergence_ends=True)
         curve = pd.read_csv(run_.dir / "curve.csv")
         found = analyse(curve["lr"].to_numpy(float), curve["loss"].to_numpy(float), smoothing)
+        found["diverged"] = found["diverged"] or "diverged_at_step" in run_.metrics  # a non-finite step ended it
         plt.plot(curve["lr"], found.pop("smoothed"), label=model)
-        rows.append({"model": model, **found, "steps": steps, "run": run_.hash})
+        plt.axvline(found["suggested lr"], color=plt.gca().lines[-1].get_color(), ls=":", lw=1)
+        rows.append({"model": model, **found, "steps": len(curve), "run": run_.hash})
     table = pd.DataFrame(rows)
     out = ctx.results_dir / name
     write_table(table, out, caption=(
         f"Learning-rate range test (Smith 2017), scale {ctx.scale}, task {task}: {steps} steps of the scale's "
-        f"recipe with the lr rising geometrically from {lr_max:g}e-4 to {lr_max:g}; loss smoothed by an EMA "
-        f"({smoothing}). suggested = lowest-loss lr / 10, the peak of the cosine schedule."))
+        f"recipe with the lr rising geometrically from {lr_max * 1e-4:g} to {lr_max:g}; loss smoothed by an EMA "
+        f"({smoothing}). divergence: the first lr whose smoothed loss exceeds 4x its minimum so far (diverged "
+        f"false: it never did, the test's top lr is shown); suggested = divergence lr / 10, the peak of the cosine "
+        f"schedule (conf/scale/<scale>.yaml model_lr)."))
     plt.xscale("log")
+    plt.yscale("log")
     plt.xlabel("learning rate")
     plt.ylabel("training loss (smoothed)")
     plt.legend(fontsize=7)

@@ -61,6 +61,7 @@ class Context:
     vgg: dict = field(default_factory=dict)
     render_data: bool = True
     model_lr: dict = field(default_factory=dict)   # model name -> peak learning rate (else train.lr)
+    shard: tuple[int, int] | None = None            # (i, n): a table computes only its rows i, i+n, ...
 
 
 # ---------------------------------------------------------------- models
@@ -246,13 +247,14 @@ def recorded_training(ctx: Context, cfg: dict, task: Task, seed: int) -> runs.Ru
 
 
 def trained_model(ctx: Context, cfg: dict, task: Task, seed: int, label: str = "", load: bool = True,
-                  stage: str | None = None):
+                  stage: str | None = None, divergence_ends: bool = False):
     """The model of `cfg` trained on `task`, from the run store when recorded. Returns (model, run or None).
 
     With load=False a recorded run's weights are not read (the caller may not need them; see
     `evaluated`), and the returned model is untrained: call `load_weights(model, run.dir)` to fill it.
     With `stage` ("sr" or "dn") only that stage of an SRDNet (built at the SRD scale, 2) is trained on
-    `task`, through SRDStage."""
+    `task`, through SRDStage. With `divergence_ends` (a learning-rate range test) a diverging training is
+    recorded complete with the step it diverged at, instead of failing."""
     torch.manual_seed(seed)
     model = build_model(cfg, task.scale) if stage is None else SRDStage(_cascade_net(cfg), stage)
     if not is_learned(model):
@@ -271,6 +273,10 @@ def trained_model(ctx: Context, cfg: dict, task: Task, seed: int, label: str = "
                         features=features, seed=seed, device=ctx.device, progress=ctx.progress,
                         validate=validation(ctx, task, recipe.val_sequences) if stage is None else None)
     except TrainingDiverged as err:
+        if divergence_ends:  # a learning-rate range test: divergence is its result, recorded as such
+            runs.complete(run, {"diverged_at_step": err.step, "divergence": str(err)})
+            log.info("train %s: diverged at step %d (expected in a range test)", label, err.step)
+            return model, run
         runs.fail(run, str(err))
         raise UserError(f"training {label or cfg['_target_']} (run {run.dir}) diverged: {err}") from err
     except BaseException as err:  # interrupted or crashed: the record says so; the checkpoint stays

@@ -124,6 +124,14 @@ def run(ctx: Context, name: str, rows: list[dict], caption: str = "", task: str 
         model_config(ctx, r["model"], r.get("overrides"))
         get_task(r["task"])
     ensure_data(ctx, passes_for(rows, task))
+    if ctx.shard:  # compute this shard's rows only; a run without a shard assembles the table from them
+        index, count = ctx.shard
+        for r in rows[index::count]:
+            row(ctx, r["label"], r["model"], r.get("overrides"), r["task"], r.get("split", split), r.get("train"),
+                r.get("cascade", False))
+        log.info("%s: shard %d/%d computed %d of %d rows; run without shard= to write the table",
+                 name, index, count, len(rows[index::count]), len(rows))
+        return pd.DataFrame()
     table = pd.DataFrame([row(ctx, r["label"], r["model"], r.get("overrides"), r["task"],
                               r.get("split", split), r.get("train"), r.get("cascade", False))
                           for r in rows])
