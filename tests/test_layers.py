@@ -1,4 +1,5 @@
 """Tests for bench.nn: deformable conv, CFM, residual blocks, pixel shuffle, VGG16 features."""
+import contextlib
 import itertools
 import os
 import shutil
@@ -547,3 +548,38 @@ def test_training_sampler_reads_zeros_for_huge_and_infinite_offsets():
         torch.testing.assert_close(out.detach(), deform_conv2d(x, far, w))  # inference path, same result
     out.square().sum().backward()
     assert torch.isfinite(x.grad).all() and torch.isfinite(offset.grad).all()
+
+
+@pytest.mark.parametrize("channels,modulated,dilation", [(16, False, 1), (32, True, 1), (5, True, 2)])
+def test_compiled_training_sampler_matches_grid_sample_forward_and_gradients(columns_only, channels, modulated,
+                                                                             dilation):
+    """The compiled training path (columns forward + compiled backward) against grid_sample's autograd:
+    output and the gradients of input, offsets, mask, weight and bias, with offsets reaching outside
+    the image, clamped far outside and infinite."""
+    from bench.nn import grid_sample_training
+    torch.manual_seed(0)
+    x = torch.randn(2, channels, 7, 9)
+    offset = 3 * torch.randn(2, 18, 7, 9)
+    offset[0, 0, 1, 1], offset[1, 3, 2, 2], offset[0, 5, 3, 3] = 1e9, float("-inf"), float("inf")
+    mask = torch.rand(2, 9, 7, 9) * 2 if modulated else None
+    w, bias = torch.randn(4, channels, 3, 3), torch.randn(4)
+    grads = []
+    for context in (contextlib.nullcontext, grid_sample_training):
+        leaves = [t.clone().requires_grad_(True) if t is not None else None for t in (x, offset, mask, w, bias)]
+        with context():
+            out = deform_conv2d(leaves[0], leaves[1], leaves[3], leaves[4], dilation, dilation, leaves[2])
+        (out * torch.linspace(-1, 1, out.numel()).view_as(out)).sum().backward()
+        grads.append([out.detach()] + [t.grad for t in leaves if t is not None])
+    for fast, reference in zip(*grads):
+        assert torch.isfinite(fast).all()
+        torch.testing.assert_close(fast, reference, atol=2e-4, rtol=1e-4)
+
+
+def test_compiled_training_sampler_is_what_a_model_trains_with(columns_only, monkeypatch):
+    """DeformConv2d in training on CPU float32 takes the compiled path (no grid_sample call)."""
+    layer = DeformConv2d(16, 16)
+    x = torch.randn(1, 16, 8, 8, requires_grad=True)
+    calls, original = [], F.grid_sample
+    monkeypatch.setattr(F, "grid_sample", lambda *a, **k: calls.append(1) or original(*a, **k))
+    layer(x).sum().backward()
+    assert not calls and x.grad is not None

@@ -13,6 +13,12 @@
 // bilinear corner outside the image reads zero, positions are clamped to [-1, H] x [-1, W] first (so
 // huge or infinite offsets read zeros), and a NaN position gives NaN columns (so a NaN pixel).
 //
+// deform_columns_backward: the gradient of deform_columns (training, float32): from the gradient of
+// the columns, the input's (scattered to the 4 corners of every sample), the offsets' (the derivative
+// of the bilinear sample along y and x, summed over channels) and the mask's. Same semantics: a
+// position clamped to the border has zero offset gradient (as torch.clamp's), corners outside the
+// image get nothing, a NaN position gives NaN offset and mask gradients.
+//
 // cfm_affine: conditioned feature modulation (bench/nn/cfm.py), x * (1 + gamma) + beta with gamma and
 // beta 1x1 convs of the conditioning features, optionally followed by ReLU, in one pass per pixel:
 // eager PyTorch writes the 2C-channel gamma/beta map and two intermediates at full resolution.
@@ -234,6 +240,73 @@ void columns(const TIn* x, int64_t channels, const View& offset, const View* mas
     }
 }
 
+// Gradients for images [b_begin, b_end) (see deform_columns_backward). One thread owns an image, so its
+// grad_x rows are written by that thread only. Corners outside the image read a zero row and write
+// their (weight x gradient) to a scratch row that is thrown away: no branch in the channel loops.
+template <int kC>
+void columns_backward(const float* x, int64_t channels, const float* offset, const float* mask, const Geometry& g,
+                      int64_t out_h, const float* grad_cols, float* grad_x, float* grad_offset, float* grad_mask,
+                      int64_t b_begin, int64_t b_end) {
+    static const float kZeros[1024] = {};
+    float sink[1024];
+    const int64_t C = kC > 0 ? kC : channels;
+    const int64_t H = g.in_h, W = g.in_w, K = g.taps, plane = out_h * g.out_w;
+    for (int64_t b = b_begin; b < b_end; ++b) {
+        const float* image = x + b * H * W * C;
+        float* grad_image = grad_x + b * H * W * C;
+        for (int64_t r = 0; r < out_h; ++r) {
+            for (int64_t c = 0; c < g.out_w; ++c) {
+                const int64_t pix = r * g.out_w + c, p = b * plane + pix;
+                for (int64_t k = 0; k < K; ++k) {
+                    const int64_t oy = (b * 2 * K + 2 * k) * plane + pix, ox = oy + plane, om = (b * K + k) * plane + pix;
+                    const float py = static_cast<float>(r + g.tap_y[k]) + offset[oy];
+                    const float px = static_cast<float>(c + g.tap_x[k]) + offset[ox];
+                    if (py != py || px != px) {
+                        grad_offset[oy] = grad_offset[ox] = NAN;
+                        if (mask) grad_mask[om] = NAN;
+                        continue;
+                    }
+                    const bool clamped_y = py < -1.f || py > static_cast<float>(H);
+                    const bool clamped_x = px < -1.f || px > static_cast<float>(W);
+                    const float cy = std::min(std::max(py, -1.f), static_cast<float>(H));
+                    const float cx = std::min(std::max(px, -1.f), static_cast<float>(W));
+                    const int64_t y0 = static_cast<int64_t>(std::floor(cy)), x0 = static_cast<int64_t>(std::floor(cx));
+                    const float fy = cy - static_cast<float>(y0), fx = cx - static_cast<float>(x0);
+                    const float m = mask ? mask[om] : 1.f;
+                    const bool top = y0 >= 0 && y0 < H, bottom = y0 + 1 >= 0 && y0 + 1 < H;
+                    const bool left = x0 >= 0 && x0 < W, right = x0 + 1 >= 0 && x0 + 1 < W;
+                    const int64_t i00 = (y0 * W + x0) * C;
+                    const float* v00 = top && left ? image + i00 : kZeros;
+                    const float* v01 = top && right ? image + i00 + C : kZeros;
+                    const float* v10 = bottom && left ? image + i00 + W * C : kZeros;
+                    const float* v11 = bottom && right ? image + i00 + (W + 1) * C : kZeros;
+                    float* g00 = top && left ? grad_image + i00 : sink;
+                    float* g01 = top && right ? grad_image + i00 + C : sink;
+                    float* g10 = bottom && left ? grad_image + i00 + W * C : sink;
+                    float* g11 = bottom && right ? grad_image + i00 + (W + 1) * C : sink;
+                    const float w00 = (1 - fy) * (1 - fx), w01 = (1 - fy) * fx, w10 = fy * (1 - fx), w11 = fy * fx;
+                    const float* gc = grad_cols + (p * K + k) * C;
+                    float sum_y = 0.f, sum_x = 0.f, sum_m = 0.f;
+                    for (int64_t ch = 0; ch < C; ++ch) {
+                        const float gv = gc[ch], a = v00[ch], bb = v01[ch], cc = v10[ch], d = v11[ch];
+                        sum_m += gv * (w00 * a + w01 * bb + w10 * cc + w11 * d);
+                        sum_y += gv * ((1 - fx) * (cc - a) + fx * (d - bb));
+                        sum_x += gv * ((1 - fy) * (bb - a) + fy * (d - cc));
+                        const float mg = m * gv;
+                        g00[ch] += w00 * mg;
+                        g01[ch] += w01 * mg;
+                        g10[ch] += w10 * mg;
+                        g11[ch] += w11 * mg;
+                    }
+                    grad_offset[oy] = clamped_y ? 0.f : m * sum_y;
+                    grad_offset[ox] = clamped_x ? 0.f : m * sum_x;
+                    if (mask) grad_mask[om] = sum_m;
+                }
+            }
+        }
+    }
+}
+
 template <typename TIn, typename TOut>
 void columns_dispatch(const void* x, int64_t channels, const View& offset, const View* mask, const Geometry& g,
                       void* cols, int64_t row0, int64_t rows, int64_t batch, int32_t threads) {
@@ -331,6 +404,27 @@ int32_t deform_columns(const void* x, int32_t x_dtype, int64_t channels, int64_t
         columns_dispatch<float, uint16_t>(x, channels, off, m, g, cols, row0, rows, batch, threads);
     else
         columns_dispatch<float, float>(x, channels, off, m, g, cols, row0, rows, batch, threads);
+    return 0;
+}
+
+// The gradients of deform_columns over all out_h rows, float32: x (batch, in_h, in_w, channels) and
+// grad_cols (batch*out_h*out_w, taps*channels) contiguous; offset (batch, 2*taps, out_h, out_w) and
+// mask (batch, taps, out_h, out_w; may be null) contiguous. grad_x (like x, zeroed by the caller) is
+// accumulated; grad_offset and grad_mask (like offset and mask) are written. Returns 0; -1 when
+// channels is above 1024.
+int32_t deform_columns_backward(const float* x, int64_t channels, int64_t batch, int64_t in_h, int64_t in_w,
+                                const float* offset, const float* mask, const float* grad_cols, int64_t out_h,
+                                int64_t out_w, int64_t taps, const int64_t* tap_y, const int64_t* tap_x,
+                                float* grad_x, float* grad_offset, float* grad_mask, int32_t threads) {
+    if (channels > 1024) return -1;
+    const Geometry g{in_h, in_w, out_w, taps, tap_y, tap_x};
+    parallel_for(batch, threads, [&](int64_t begin, int64_t end) {
+        switch (channels) {
+            case 16: columns_backward<16>(x, channels, offset, mask, g, out_h, grad_cols, grad_x, grad_offset, grad_mask, begin, end); break;
+            case 32: columns_backward<32>(x, channels, offset, mask, g, out_h, grad_cols, grad_x, grad_offset, grad_mask, begin, end); break;
+            default: columns_backward<0>(x, channels, offset, mask, g, out_h, grad_cols, grad_x, grad_offset, grad_mask, begin, end);
+        }
+    });
     return 0;
 }
 

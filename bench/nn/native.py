@@ -37,6 +37,8 @@ _SIGNATURES = {  # name: (argument types, result type), as in cpu_kernels.cpp
     "deform_columns": ([_ptr, _i32, _i64, _i64, _i64, _i64, _ptr, _i32, _ptr, _ptr, _i32, _ptr, _ptr, _i32, _i64,
                         _i64, _i64, _i64, _ptr, _ptr, _i32], _i32),
     "cfm_affine": ([_ptr, _ptr, _i32, _i64, _i64, _i64, _ptr, _ptr, _i32, _ptr, _i32], _i32),
+    "deform_columns_backward": ([_ptr, _i64, _i64, _i64, _i64, _ptr, _ptr, _ptr, _i64, _i64, _i64, _ptr, _ptr,
+                                 _ptr, _ptr, _ptr, _i32], _i32),
 }
 
 
