@@ -46,7 +46,7 @@ from bench.evaluate import sync
 from bench.infer import freed_memory_kept, max_abs_diff, parse_path, prepare, release_free_memory, tiled_predict
 from bench.losses import weighted_loss
 from bench.macs import count_macs, on_meta
-from bench.nn import DeformConv2d, eager_gather, inference_sampler
+from bench.nn import DeformConv2d, eager_gather, grid_sample_training, inference_sampler
 from bench.tables import write_table
 
 log = logging.getLogger("bench")
@@ -229,8 +229,19 @@ def inference_rows(label: str, model, macs: int, x, g, paths, device, repeats, w
     return rows
 
 
+def training_rows(label: str, model, train: dict, loss_weights: dict, lr: float, device, repeats, warmup) -> list[dict]:
+    """The training step with the deformable convs' default training sampler (compiled on CPU) and,
+    for models that have deformable convs, with the grid_sample sampler it replaced."""
+    rows = [training_row(label, model, train, loss_weights, lr, device, repeats, warmup)]
+    if any(isinstance(m, DeformConv2d) for m in model.modules()):
+        with grid_sample_training():
+            rows.append(training_row(label, model, train, loss_weights, lr, device, repeats, warmup,
+                                     path="fp32, grid_sample sampler"))
+    return rows
+
+
 def training_row(label: str, model, train: dict, loss_weights: dict, lr: float, device, repeats, warmup,
-                 in_channels: int = 3, out_channels: int = 3, scale: int = 2) -> dict:
+                 in_channels: int = 3, out_channels: int = 3, scale: int = 2, path: str = "fp32") -> dict:
     """Time of one optimisation step (forward, loss, backward, Adam) on a random batch of the training
     crop, fp32. The loss is the trainer's weighted loss without the perceptual term (no VGG here)."""
     model = copy.deepcopy(model).train()
@@ -251,7 +262,7 @@ def training_row(label: str, model, train: dict, loss_weights: dict, lr: float, 
         optimizer.step()
 
     timing = time_call(step, device, repeats, warmup)
-    return _row("training step", label, "fp32", f"{batch}x{frames} frames of {crop}x{crop} LR", "step", timing,
+    return _row("training step", label, path, f"{batch}x{frames} frames of {crop}x{crop} LR", "step", timing,
                 **{"peak MiB": peak_memory_mib(step, device), "note": "Adam, trainer loss without perceptual"})
 
 
@@ -491,8 +502,8 @@ def _sections(ctx, models, input_hw, paths, repeats, warmup, train, oidn, stack_
         macs = macs_per_frame(lambda: instantiate(cfg, scale=2), input_hw)
         rows = inference_rows(label, model, macs, x, g, paths, device, repeats, warmup)
         if train.get("enabled", True):
-            rows.append(training_row(label, model, train, ctx.train["loss"], ctx.train.get("lr", 6e-4), device,
-                                     repeats, warmup))
+            rows += training_rows(label, model, train, ctx.train["loss"], ctx.train.get("lr", 6e-4), device,
+                                  repeats, warmup)
         if name in (profile.get("models") or []):
             rows += profile_rows(label, model, macs_table(lambda: instantiate(cfg, scale=2), input_hw), x, g,
                                  profile.get("path") or paths[-1], device, repeats, warmup)
