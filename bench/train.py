@@ -14,6 +14,7 @@ loss since the previous point, and whatever `validate` returns, e.g. val relMSE/
 from __future__ import annotations
 
 import copy
+import logging
 import math
 import random
 import time
@@ -32,6 +33,9 @@ from bench.sanitize import sanitize_inputs
 from bench.tasks import Task
 
 CHECKPOINT = "checkpoint.pt"
+LOG_EVERY_S = 60.0   # without a terminal (logs, clusters) progress is a log line this often
+
+log = logging.getLogger("bench")
 SCHEDULES = ("cosine", "halve", "constant", "range")
 
 
@@ -213,6 +217,8 @@ def train(model, dataset, task: Task, out_dir: str | Path, recipe: Recipe, *, fe
         state.val_curve.append(_validation_point(state, validate, scored))  # models with input_residual)
     bar = tqdm(total=recipe.steps, initial=state.step, desc=f"train {type(model).__name__}",
                disable=None if progress else True, dynamic_ncols=True, leave=False, mininterval=1.0)
+    log_lines = progress and bar.disable  # no bar (not a terminal): a log line every LOG_EVERY_S
+    last_line, first_step, first_s = time.perf_counter(), state.step, state.train_s
     while state.step < recipe.steps:
         t0 = time.perf_counter()
         step = state.step
@@ -246,6 +252,11 @@ def train(model, dataset, task: Task, out_dir: str | Path, recipe: Recipe, *, fe
                             "grad_norm": grad_norm.item(), **{k: v.item() for k, v in parts.items()}})
         bar.update(1)
         bar.set_postfix(loss=f"{loss.item():.4f}")
+        if log_lines and time.perf_counter() - last_line >= LOG_EVERY_S:
+            last_line = time.perf_counter()
+            rate = (state.train_s - first_s) / (state.step - first_step)
+            log.info("train %s: step %d/%d, %.2f s/step, loss %.4f, about %.0f min left", type(model).__name__,
+                     state.step, recipe.steps, rate, loss.item(), rate * (recipe.steps - state.step) / 60)
         if validate is not None and (state.step == recipe.steps or (val_every and state.step % val_every == 0)):
             state.val_curve.append(_validation_point(state, validate, scored))
         if state.step % recipe.checkpoint_every == 0 or state.step == recipe.steps:

@@ -234,3 +234,12 @@ def test_lr_range_analysis_finds_the_valley_and_the_divergence_of_a_known_curve(
     assert found["suggested lr"] == pytest.approx(found["divergence lr"] / 10)
     loss[250:] = float("nan")                                    # a NaN loss is a divergence too
     assert analyse(lr, loss, smoothing=0.0)["divergence lr"] == pytest.approx(lr[250])
+
+
+def test_without_a_terminal_training_logs_its_progress(tmp_path, caplog, monkeypatch):
+    import bench.train
+    monkeypatch.setattr(bench.train, "LOG_EVERY_S", 0.0)  # every step, for the test
+    with caplog.at_level("INFO", logger="bench"):         # pytest's output is not a terminal: no bar
+        train(_model(), SyntheticSequences(), TASK, tmp_path, _recipe(3), progress=True)
+    lines = [r.getMessage() for r in caplog.records if "s/step" in r.getMessage()]
+    assert len(lines) == 3 and lines[-1].startswith("train EDSR: step 3/3,") and "min left" in lines[-1]
