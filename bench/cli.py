@@ -37,7 +37,7 @@ def make_context(cfg: DictConfig):
                    device=plain["device"], workers=plain["workers"], force=plain["force"],
                    progress=plain["progress"], vgg=plain["vgg"],
                    render_data=plain["render_data"], model_lr=plain.get("model_lr") or {},
-                   shard=parse_shard(plain.get("shard")))
+                   shard=parse_shard(plain.get("shard")), reuse_stale=plain["reuse_stale"])
 
 
 def parse_shard(value) -> tuple[int, int] | None:

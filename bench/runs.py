@@ -7,16 +7,24 @@ An interrupted run keeps its directory (status "running"), so whatever it checkp
 While a process computes a run it holds an exclusive lock on the run's directory: a second process (another
 table, another shard of a sweep) that asks for the same run waits for it and then reuses it.
 
+A run also records the fingerprint of the code that determines its result (`code_fingerprint`: the
+project modules it runs, transitively). It is checked at reuse rather than hashed into the identity, so
+that a change to one model's file makes that model's runs stale, not every run, and so that the message
+can name the changed file: a stale run is recomputed (`begin(..., reuse_stale=True)` reuses it anyway).
+
 Layout: ``<runs_dir>/<kind>/<hash>/run.json`` plus the run's own artifacts beside it.
 `load()` turns every record into one tidy DataFrame, from which tables are views.
 """
 from __future__ import annotations
 
+import ast
 import fcntl
+import functools
 import getpass
 import hashlib
 import importlib.metadata
 import json
+import logging
 import math
 import platform
 import shutil
@@ -27,6 +35,8 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 import pandas as pd
+
+log = logging.getLogger("bench")
 
 RECORD = "run.json"
 _LIBRARIES = ("torch", "mitsuba", "drjit", "numpy", "OpenEXR", "pyoidn", "scikit-image", "hydra-core")
@@ -45,6 +55,7 @@ class Run:
     dir: Path
     record: dict = field(default_factory=dict)
     reused: bool = False
+    stale: list = field(default_factory=list)  # code changed since it was recorded (reused on request)
     _t0: float = field(default_factory=time.perf_counter, repr=False)
     _lock: object = field(default=None, repr=False)
 
@@ -117,14 +128,17 @@ def wall_time_s(runs_dir: str | Path, kind: str, hashes: str | None) -> float:
 
 
 def begin(runs_dir: str | Path, kind: str, identity: dict, config: dict | None = None,
-          seed: int | None = None, device: str = "cpu", label: str = "", force: bool = False) -> Run:
+          seed: int | None = None, device: str = "cpu", label: str = "", force: bool = False,
+          code: dict | None = None, reuse_stale: bool = False) -> Run:
     """Reuse a complete run, or open (or re-open, to resume) its directory for computing.
 
     Check `run.reused`: when True the caller must not recompute. With `force`, an existing directory is
-    wiped first so nothing stale (checkpoints, outputs) survives.
+    wiped first so nothing stale (checkpoints, outputs) survives. `code` is the run's code fingerprint
+    (`code_fingerprint`); a recorded run computed with other code is recomputed from scratch, its
+    checkpoints included, unless `reuse_stale`.
     """
     if not force:
-        done = lookup(runs_dir, kind, identity)
+        done = _reusable(runs_dir, kind, identity, code, reuse_stale, label)
         if done is not None:
             return done
     h = config_hash(identity)
@@ -132,24 +146,138 @@ def begin(runs_dir: str | Path, kind: str, identity: dict, config: dict | None =
     ensure_writable(run_dir)
     lock = _acquire(run_dir.parent / f".{h}.lock")
     if not force:  # another process may have completed it while we waited for the lock
-        done = lookup(runs_dir, kind, identity)
+        done = _reusable(runs_dir, kind, identity, code, reuse_stale, label)
         if done is not None:
             lock.close()
             return done
+    earlier = _read(run_dir / RECORD) if (run_dir / RECORD).exists() else {}
+    if earlier and not reuse_stale and code_changes(earlier, code):  # its checkpoints are another code's
+        force = True
     if force and run_dir.exists():
         shutil.rmtree(run_dir)
+        earlier = {}
     run_dir.mkdir(parents=True, exist_ok=True)
-    earlier = _read(run_dir / RECORD) if (run_dir / RECORD).exists() else {}
     record = {
         "kind": kind, "hash": h, "label": label, "status": "running", "identity": identity,
         "config": config if config is not None else identity, "seed": seed, "device": device,
         "started": earlier.get("started", time.strftime("%Y-%m-%dT%H:%M:%S%z")), **provenance(),
     }
+    if code is not None:
+        record["code"] = code
     if earlier:  # an interrupted or failed run resumes: its earlier time still counts
         record["resumed_wall_time_s"] = earlier.get("wall_time_s", 0.0) or 0.0
     run = Run(kind, h, run_dir, record, _lock=lock)
     run.save()
     return run
+
+
+def _reusable(runs_dir, kind: str, identity: dict, code: dict | None, reuse_stale: bool,
+              label: str) -> Run | None:
+    done = lookup(runs_dir, kind, identity)
+    if done is None:
+        return None
+    done.stale = code_changes(done.record, code)
+    if not done.stale:
+        return done
+    changed = ", ".join(done.stale[:4]) + (f" and {len(done.stale) - 4} more" if len(done.stale) > 4 else "")
+    if reuse_stale:
+        log.warning("%s %s: reusing run %s although its code changed since (%s), as reuse_stale=true asks",
+                    kind, label, done.hash, changed)
+        return done
+    log.info("%s %s: recomputing run %s, its code changed since it was recorded (%s); "
+             "reuse_stale=true would reuse it", kind, label, done.hash, changed)
+    return None
+
+
+# ---------------------------------------------------------------- code identity
+
+_ROOT = Path(__file__).resolve().parent.parent
+_PACKAGES = ("bench", "baselines")
+
+
+def code_fingerprint(modules) -> dict:
+    """{path: hash} of the project source files that `modules` (dotted names, or `_target_` strings of
+    a class) run: each module, its packages' `__init__`, and every project module they import,
+    transitively, plus the C++ sources a module names. A Python file is hashed by its syntax tree
+    without docstrings, so comments, formatting and documentation do not make runs stale."""
+    files: set[Path] = set()
+    todo = [m for m in modules if m]
+    while todo:
+        name = todo.pop()
+        path = _module_file(name)
+        if path is None:
+            parent = name.rpartition(".")[0]  # "pkg.module.Class": the module that defines it
+            if parent.split(".")[0] in _PACKAGES:
+                todo.append(parent)
+            continue
+        if path in files:
+            continue
+        files.add(path)
+        todo.extend(_imports(path, name))
+        parts = name.split(".")
+        todo.extend(".".join(parts[:i]) for i in range(1, len(parts)))  # packages run their __init__
+    return {str(p.relative_to(_ROOT)): _source_hash(p) for p in sorted(files)}
+
+
+def code_changes(record: dict, code: dict | None) -> list:
+    """Paths whose code differs between a recorded run and `code` (added, removed or changed); empty
+    when either has no fingerprint (runs recorded before fingerprints are trusted)."""
+    recorded = record.get("code")
+    if not code or not recorded:
+        return []
+    return sorted(p for p in set(recorded) | set(code) if recorded.get(p) != code.get(p))
+
+
+def _module_file(name: str) -> Path | None:
+    if name.split(".")[0] not in _PACKAGES:
+        return None
+    base = _ROOT.joinpath(*name.split("."))
+    for path in (base.with_suffix(".py"), base / "__init__.py"):
+        if path.is_file():
+            return path
+    return None
+
+
+def _imports(path: Path, name: str) -> list:
+    """Project modules `path` imports (and sibling .cpp/.cu sources named in its string constants)."""
+    package = name if path.name == "__init__.py" else name.rpartition(".")[0]
+    found = []
+    for node in ast.walk(ast.parse(path.read_text())):
+        if isinstance(node, ast.Import):
+            found.extend(alias.name for alias in node.names)
+        elif isinstance(node, ast.ImportFrom):
+            base = node.module or ""
+            if node.level:
+                anchor = package.split(".")[:len(package.split(".")) - node.level + 1]
+                base = ".".join(anchor + ([base] if base else []))
+            found.append(base)
+            found.extend(f"{base}.{alias.name}" for alias in node.names)  # `from pkg import module`
+    return [m for m in found if m.split(".")[0] in _PACKAGES]
+
+
+def _source_files(path: Path) -> list:
+    native = set()
+    for node in ast.walk(ast.parse(path.read_text())):
+        if isinstance(node, ast.Constant) and isinstance(node.value, str) \
+                and node.value.endswith((".cpp", ".cu")) and (path.parent / node.value).is_file():
+            native.add(path.parent / node.value)
+    return sorted(native)
+
+
+@functools.lru_cache(maxsize=None)
+def _source_hash(path: Path) -> str:
+    if path.suffix != ".py":
+        return hashlib.sha256(path.read_bytes()).hexdigest()[:16]
+    tree = ast.parse(path.read_text())
+    for node in ast.walk(tree):
+        body = getattr(node, "body", None)
+        if isinstance(body, list) and body and isinstance(body[0], ast.Expr) \
+                and isinstance(body[0].value, ast.Constant) and isinstance(body[0].value.value, str):
+            node.body = body[1:] or [ast.Pass()]
+    digest = hashlib.sha256(ast.dump(tree).encode())
+    for native in _source_files(path):  # a module's compiled kernels are part of it
+        digest.update(native.read_bytes())
+    return digest.hexdigest()[:16]
 
 
 _HELD: dict[str, object] = {}  # this process's locks: a run begun again after an error reuses its own lock

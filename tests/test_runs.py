@@ -95,3 +95,54 @@ def test_a_run_begun_again_in_the_same_process_does_not_deadlock(tmp_path):
     third = runs.begin(tmp_path, "train", {"a": 1})  # the earlier one never released (e.g. an exception)
     runs.complete(third, {"loss": 1.0})
     assert runs.begin(tmp_path, "train", {"a": 1}).reused
+
+
+def test_code_fingerprint_follows_imports_not_the_whole_project():
+    srd = runs.code_fingerprint(["bench.models.srd.SRDNet", "bench.train"])
+    assert {"bench/models/srd.py", "bench/train.py", "bench/nn/deform.py", "bench/losses.py"} <= set(srd)
+    assert "baselines/kpcn.py" not in srd and "bench/experiments/pipeline.py" not in srd
+    kpcn = runs.code_fingerprint(["baselines.kpcn.KPCN"])
+    assert "baselines/kpcn.py" in kpcn and "bench/models/srd.py" not in kpcn
+
+
+def test_source_hash_ignores_comments_and_docstrings_not_code(tmp_path):
+    def source_hash(text, name):
+        path = tmp_path / name
+        path.write_text(text)
+        return runs._source_hash(path)
+    base = source_hash('"""Doc."""\ndef f(x):\n    """What f does."""\n    return x + 1\n', "a.py")
+    assert source_hash('# a comment\ndef f(x):\n\n    return x + 1  # why\n', "b.py") == base
+    assert source_hash('def f(x):\n    return x + 2\n', "c.py") != base
+
+
+def test_a_run_of_changed_code_is_recomputed_unless_reuse_stale(tmp_path):
+    ident = {"model": "z"}
+    old = {"bench/models/srd.py": "aaaa", "bench/train.py": "bbbb"}
+    new = {"bench/models/srd.py": "cccc", "bench/train.py": "bbbb"}
+    run = runs.begin(tmp_path, "train", ident, code=old)
+    (run.dir / "weights.pt").write_text("old code's weights")
+    runs.complete(run, {"PSNR": 30.0})
+    assert runs.begin(tmp_path, "train", ident, code=old).reused
+    kept = runs.begin(tmp_path, "train", ident, code=new, reuse_stale=True)
+    assert kept.reused and kept.stale == ["bench/models/srd.py"]
+    redo = runs.begin(tmp_path, "train", ident, code=new)
+    assert not redo.reused and not (redo.dir / "weights.pt").exists()
+    assert redo.record["code"] == new
+
+
+def test_an_interrupted_run_of_other_code_does_not_resume_its_checkpoint(tmp_path):
+    ident = {"model": "w"}
+    run = runs.begin(tmp_path, "train", ident, code={"bench/train.py": "old"})
+    (run.dir / "checkpoint.pt").write_text("partial, old code")
+    run.release()
+    same = runs.begin(tmp_path, "train", ident, code={"bench/train.py": "old"})
+    assert (same.dir / "checkpoint.pt").exists()
+    same.release()
+    changed = runs.begin(tmp_path, "train", ident, code={"bench/train.py": "new"})
+    assert not (changed.dir / "checkpoint.pt").exists()
+
+
+def test_runs_recorded_before_code_fingerprints_are_trusted(tmp_path):
+    ident = {"model": "v"}
+    runs.complete(runs.begin(tmp_path, "train", ident), {"PSNR": 1.0})
+    assert runs.begin(tmp_path, "train", ident, code={"bench/train.py": "x"}).reused

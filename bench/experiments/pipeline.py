@@ -6,8 +6,9 @@ only what determines its numbers, so two tables that ask for the same row (the p
 Tables 4, 5 and 7) share one run. A Cascade row (paper Table 3) is two runs, one per SRDNet stage, each
 trained alone on its own task (bench.tasks.CASCADE_STAGES) and assembled for evaluation.
 
-Identities hash configuration, not code: after changing a model's code, run with force=true (or clean
-the run store) or the old runs are reused.
+Identities hash configuration; each run also records the fingerprint of the code it ran (the model's
+module, the trainer or evaluator, and what they import: `runs.code_fingerprint`). A recorded run whose
+code has changed since is recomputed, and the log names the changed files; `reuse_stale=true` reuses it.
 """
 from __future__ import annotations
 
@@ -62,6 +63,7 @@ class Context:
     render_data: bool = True
     model_lr: dict = field(default_factory=dict)   # model name -> peak learning rate (else train.lr)
     shard: tuple[int, int] | None = None            # (i, n): a table computes only its rows i, i+n, ...
+    reuse_stale: bool = False                       # reuse runs whose code changed since they were recorded
 
 
 # ---------------------------------------------------------------- models
@@ -94,6 +96,15 @@ def with_training(ctx: Context, overrides: dict | None, model: str | None = None
     if model in ctx.model_lr:
         overrides = deep_merge({"lr": ctx.model_lr[model]}, overrides)
     return dataclasses.replace(ctx, train=deep_merge(ctx.train, overrides)) if overrides else ctx
+
+
+TRAINING_CODE = ("bench.train", "bench.dataset")
+EVALUATION_CODE = ("bench.evaluate", "bench.dataset")
+
+
+def code_of(cfg: dict, *modules: str) -> dict:
+    """Code fingerprint of a run of the model `cfg` that also runs `modules`."""
+    return runs.code_fingerprint([cfg["_target_"], *modules])
 
 
 def is_learned(model) -> bool:
@@ -263,7 +274,7 @@ def trained_model(ctx: Context, cfg: dict, task: Task, seed: int, label: str = "
     features, vgg_id = perceptual_features(ctx) if uses_vgg else (None, None)
     identity = _train_identity(ctx, cfg, task, seed, vgg_id, stage)
     run = runs.begin(ctx.runs_dir, "train", identity, seed=seed, device=ctx.device, label=label,
-                     force=ctx.force)
+                     force=ctx.force, code=code_of(cfg, *TRAINING_CODE), reuse_stale=ctx.reuse_stale)
     if run.reused:
         log.info("train %s: reusing run %s", label or cfg["_target_"], run.hash)
         return (load_weights(model, run.dir, ctx.device) if load else model), run
@@ -321,8 +332,10 @@ def evaluated(ctx: Context, cfg: dict, task: Task, seed: int, split: str, label:
     fast_path, tile = ctx.eval.get("path", REFERENCE), ctx.eval.get("tile")
     if fast_path != REFERENCE or tile:  # only a non-default way of running changes the identity
         identity.update(path=fast_path, tile=tile)
+    # a learned row's numbers also depend on the trainer: retraining it makes its evaluation stale too
+    code = code_of(cfg, *EVALUATION_CODE, *(TRAINING_CODE if train_run is not None or cascade else ()))
     run = runs.begin(ctx.runs_dir, "eval", identity, seed=seed, device=ctx.device, label=label,
-                     force=ctx.force)
+                     force=ctx.force, code=code, reuse_stale=ctx.reuse_stale)
     if run.reused:
         log.info("eval %s: reusing run %s", label, run.hash)
         return run

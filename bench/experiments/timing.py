@@ -203,7 +203,8 @@ def cached_render(ctx: Context, view: View, renderer: Renderer, frame: int, res:
                 "passes": passes, "max_depth": view.max_depth, "variant": renderer.variant,
                 "host": socket.gethostname()}
     run = runs.begin(ctx.runs_dir, "timing", identity, seed=seed, device=_render_device(renderer.variant),
-                     label=f"render {record['sequence']}/{record['frame']} {res} {spp} spp", force=ctx.force)
+                     label=f"render {record['sequence']}/{record['frame']} {res} {spp} spp", force=ctx.force,
+                     code=runs.code_fingerprint(["bench.render"]), reuse_stale=ctx.reuse_stale)
     stats["renders"] += 1
     if run.reused:
         stats["reused"] += 1
