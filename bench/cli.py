@@ -139,4 +139,4 @@ def main(cfg: DictConfig) -> None:
         run_experiment(cfg)
     except (UserError, PermissionError, FileNotFoundError) as err:
         print(f"error: {err}", file=sys.stderr)
-        sys.exit(2)
+        sys.exit(getattr(err, "exit_code", 2))

@@ -31,6 +31,7 @@ def _pu21_inverse(v: torch.Tensor) -> torch.Tensor:
 
 _PU_ONE = float(_pu21(torch.tensor(_PU_SCALE, dtype=torch.float64)))
 _PU_ZERO = float(_pu21(torch.tensor(_PU_RANGE[0], dtype=torch.float64)))
+_PU_TOP = float(_pu21(torch.tensor(_PU_RANGE[1], dtype=torch.float64)))
 
 MODES = ("clamp", "log1p", "pu")
 
@@ -54,6 +55,7 @@ def from_network(y: torch.Tensor, mode: str = "clamp") -> torch.Tensor:
     if mode == "log1p":
         return torch.expm1(y.clamp_min(0.0))
     if mode == "pu":
-        v = y * (_PU_ONE - _PU_ZERO) + _PU_ZERO
-        return (_pu21_inverse(v) / _PU_SCALE).clamp(_PU_RANGE[0] / _PU_SCALE, _PU_RANGE[1] / _PU_SCALE)
+        # clip to the fit's range first: far above it the inverse has a pole (NaN), not a saturation
+        v = (y * (_PU_ONE - _PU_ZERO) + _PU_ZERO).clamp(_PU_ZERO, _PU_TOP)
+        return _pu21_inverse(v) / _PU_SCALE
     raise ValueError(f"unknown HDR transform {mode!r}; choose one of {MODES}")

@@ -310,8 +310,10 @@ def complete(run: Run, metrics: dict, **extra) -> Run:
     return run
 
 
-def fail(run: Run, message: str) -> Run:
-    run.record["status"] = "failed"
+def fail(run: Run, message: str, status: str = "failed") -> Run:
+    """Record that the run stopped without a result ("failed", or "interrupted" on request); its
+    directory stays, so a checkpoint in it can be resumed."""
+    run.record["status"] = status
     run.record["error"] = message
     run.record["wall_time_s"] = run.record.get("resumed_wall_time_s", 0.0) + time.perf_counter() - run._t0
     run.save()

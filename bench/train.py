@@ -13,10 +13,13 @@ loss since the previous point, and whatever `validate` returns, e.g. val relMSE/
 """
 from __future__ import annotations
 
+import contextlib
 import copy
 import logging
 import math
 import random
+import signal
+import threading
 import time
 from dataclasses import asdict, dataclass, field, fields
 from pathlib import Path
@@ -26,6 +29,7 @@ import pandas as pd
 import torch
 from tqdm import tqdm
 
+from bench.errors import UserError
 from bench.hdr import MODES, to_network
 from bench.losses import weighted_loss
 from bench.macs import count_params
@@ -37,6 +41,35 @@ LOG_EVERY_S = 60.0   # without a terminal (logs, clusters) progress is a log lin
 
 log = logging.getLogger("bench")
 SCHEDULES = ("cosine", "halve", "constant", "range")
+
+
+class TrainingInterrupted(UserError):
+    """SIGINT or SIGTERM (Ctrl-C, a scheduler's preemption) stopped a training after a checkpoint."""
+
+    def __init__(self, message: str, signum: int):
+        super().__init__(message)
+        self.exit_code = 128 + signum  # the shell's convention for a process ended by a signal
+
+
+@contextlib.contextmanager
+def _stop_requests():
+    """A list that SIGINT and SIGTERM append to while the block runs, so the training loop can stop
+    between steps with a checkpoint; a second signal stops at once (KeyboardInterrupt)."""
+    received: list[int] = []
+    if threading.current_thread() is not threading.main_thread():  # only the main thread may set handlers
+        yield received
+        return
+
+    def request_stop(signum, frame):
+        if received:
+            raise KeyboardInterrupt(f"second {signal.Signals(signum).name}")
+        received.append(signum)
+    previous = {sig: signal.signal(sig, request_stop) for sig in (signal.SIGINT, signal.SIGTERM)}
+    try:
+        yield received
+    finally:
+        for sig, handler in previous.items():
+            signal.signal(sig, handler)
 
 
 class TrainingDiverged(RuntimeError):
@@ -70,10 +103,11 @@ class Recipe:
     hdr: str = "log1p"                # network domain (bench.hdr)
     train_sequences: int | None = None   # train on this many sequences of the split, family-balanced (None: all)
     checkpoint_every: int = 100
+    checkpoint_every_s: float = 120.0  # also checkpoint when this much wall time passed since the last
     val_every: int = 0                # score the validation subset every this many steps (0: only at the end)
     val_sequences: int = 4            # validation sequences scored for the learning curve (0: no curve)
 
-    NOT_IDENTITY = ("checkpoint_every", "val_every", "val_sequences")
+    NOT_IDENTITY = ("checkpoint_every", "checkpoint_every_s", "val_every", "val_sequences")
 
     def __post_init__(self):
         if self.schedule not in SCHEDULES:
@@ -178,6 +212,12 @@ def _resume(path: Path, model, ema_model, optimizer, device) -> _State:
     return _State(saved["step"], saved["curve"], saved.get("val_curve", []), saved.get("elapsed_s", 0.0))
 
 
+def _write_curves(out_dir: Path, state: _State) -> None:
+    pd.DataFrame(state.curve).to_csv(out_dir / "curve.csv", index=False)
+    if state.val_curve:
+        pd.DataFrame(state.val_curve).to_csv(out_dir / "val_curve.csv", index=False)
+
+
 def _validation_point(state: _State, validate, model) -> dict:
     since = [c["loss"] for c in state.curve if c["step"] > (state.val_curve[-1]["step"] if state.val_curve else 0)]
     was_training = model.training
@@ -218,55 +258,67 @@ def train(model, dataset, task: Task, out_dir: str | Path, recipe: Recipe, *, fe
     bar = tqdm(total=recipe.steps, initial=state.step, desc=f"train {type(model).__name__}",
                disable=None if progress else True, dynamic_ncols=True, leave=False, mininterval=1.0)
     log_lines = progress and bar.disable  # no bar (not a terminal): a log line every LOG_EVERY_S
-    last_line, first_step, first_s = time.perf_counter(), state.step, state.train_s
-    while state.step < recipe.steps:
-        t0 = time.perf_counter()
-        step = state.step
-        # Each step draws its batch from an RNG seeded by (seed, step), so a resumed run sees the same batches.
-        rng = random.Random(seed * 1_000_003 + step)
-        torch.manual_seed(seed * 1_000_003 + step)
-        items = [dataset.item(rng.randrange(len(dataset)), step * recipe.batch_size + slot)
-                 for slot in range(recipe.batch_size)]
-        batch = {k: v.to(device) for k, v in collate(items, keys).items()}
-        for group in optimizer.param_groups:
-            group["lr"] = lr_at(step, recipe)
-        loss, parts = batch_loss(model, batch, task, recipe.loss, recipe.hdr, features)
-        if not torch.isfinite(loss):
-            pd.DataFrame(state.curve).to_csv(out_dir / "curve.csv", index=False)
-            raise TrainingDiverged(f"non-finite loss ({loss.item()}) at step {step}; the last good checkpoint "
-                                   f"is {ckpt_path if ckpt_path.exists() else 'none (diverged before the first)'}",
-                                   step)
-        optimizer.zero_grad(set_to_none=True)
-        loss.backward()
-        grad_norm = torch.nn.utils.clip_grad_norm_(model.parameters(), clip)
-        if not torch.isfinite(grad_norm):
-            pd.DataFrame(state.curve).to_csv(out_dir / "curve.csv", index=False)
-            raise TrainingDiverged(f"non-finite gradient at step {step}; the last good checkpoint is "
-                                   f"{ckpt_path if ckpt_path.exists() else 'none'}", step)
-        optimizer.step()
-        if ema_model is not None:
-            update_ema(ema_model, model, recipe.ema, step)
-        state.step += 1
-        state.train_s += time.perf_counter() - t0
-        state.curve.append({"step": state.step, "loss": loss.item(), "lr": optimizer.param_groups[0]["lr"],
-                            "grad_norm": grad_norm.item(), **{k: v.item() for k, v in parts.items()}})
-        bar.update(1)
-        bar.set_postfix(loss=f"{loss.item():.4f}")
-        if log_lines and time.perf_counter() - last_line >= LOG_EVERY_S:
-            last_line = time.perf_counter()
-            rate = (state.train_s - first_s) / (state.step - first_step)
-            log.info("train %s: step %d/%d, %.2f s/step, loss %.4f, about %.0f min left", type(model).__name__,
-                     state.step, recipe.steps, rate, loss.item(), rate * (recipe.steps - state.step) / 60)
-        if validate is not None and (state.step == recipe.steps or (val_every and state.step % val_every == 0)):
-            state.val_curve.append(_validation_point(state, validate, scored))
-        if state.step % recipe.checkpoint_every == 0 or state.step == recipe.steps:
-            save_checkpoint(ckpt_path, model, ema_model, optimizer, state)
+    if resumed_from:
+        log.info("train %s: resuming from step %d of %d", type(model).__name__, resumed_from, recipe.steps)
+    last_line = last_checkpoint = time.perf_counter()
+    first_step, first_s = state.step, state.train_s
+    with _stop_requests() as stop:  # Ctrl-C or preemption: finish the step, checkpoint, stop
+        while state.step < recipe.steps:
+            t0 = time.perf_counter()
+            step = state.step
+            # Each step draws its batch from an RNG seeded by (seed, step): a resumed run sees the same batches.
+            rng = random.Random(seed * 1_000_003 + step)
+            torch.manual_seed(seed * 1_000_003 + step)
+            items = [dataset.item(rng.randrange(len(dataset)), step * recipe.batch_size + slot)
+                     for slot in range(recipe.batch_size)]
+            batch = {k: v.to(device) for k, v in collate(items, keys).items()}
+            for group in optimizer.param_groups:
+                group["lr"] = lr_at(step, recipe)
+            loss, parts = batch_loss(model, batch, task, recipe.loss, recipe.hdr, features)
+            if not torch.isfinite(loss):
+                pd.DataFrame(state.curve).to_csv(out_dir / "curve.csv", index=False)
+                last = ckpt_path if ckpt_path.exists() else "none (diverged before the first)"
+                raise TrainingDiverged(f"non-finite loss ({loss.item()}) at step {step}; the last good "
+                                       f"checkpoint is {last}", step)
+            optimizer.zero_grad(set_to_none=True)
+            loss.backward()
+            grad_norm = torch.nn.utils.clip_grad_norm_(model.parameters(), clip)
+            if not torch.isfinite(grad_norm):
+                pd.DataFrame(state.curve).to_csv(out_dir / "curve.csv", index=False)
+                raise TrainingDiverged(f"non-finite gradient at step {step}; the last good checkpoint is "
+                                       f"{ckpt_path if ckpt_path.exists() else 'none'}", step)
+            optimizer.step()
+            if ema_model is not None:
+                update_ema(ema_model, model, recipe.ema, step)
+            state.step += 1
+            state.train_s += time.perf_counter() - t0
+            state.curve.append({"step": state.step, "loss": loss.item(), "lr": optimizer.param_groups[0]["lr"],
+                                "grad_norm": grad_norm.item(), **{k: v.item() for k, v in parts.items()}})
+            bar.update(1)
+            bar.set_postfix(loss=f"{loss.item():.4f}")
+            if log_lines and time.perf_counter() - last_line >= LOG_EVERY_S:
+                last_line = time.perf_counter()
+                rate = (state.train_s - first_s) / (state.step - first_step)
+                log.info("train %s: step %d/%d, %.2f s/step, loss %.4f, about %.0f min left",
+                         type(model).__name__, state.step, recipe.steps, rate, loss.item(),
+                         rate * (recipe.steps - state.step) / 60)
+            if validate is not None and (state.step == recipe.steps
+                                         or (val_every and state.step % val_every == 0)):
+                state.val_curve.append(_validation_point(state, validate, scored))
+            if (state.step % recipe.checkpoint_every == 0 or state.step == recipe.steps or stop
+                    or time.perf_counter() - last_checkpoint >= recipe.checkpoint_every_s):
+                save_checkpoint(ckpt_path, model, ema_model, optimizer, state)
+                last_checkpoint = time.perf_counter()
+            if stop and state.step < recipe.steps:
+                bar.close()
+                _write_curves(out_dir, state)
+                name = signal.Signals(stop[0]).name
+                raise TrainingInterrupted(f"{name} at step {state.step} of {recipe.steps}: checkpoint saved in "
+                                          f"{ckpt_path}; run the same command again to resume", stop[0])
     bar.close()
     if ema_model is not None:
         model.load_state_dict(ema_model.state_dict())
-    pd.DataFrame(state.curve).to_csv(out_dir / "curve.csv", index=False)
-    if state.val_curve:
-        pd.DataFrame(state.val_curve).to_csv(out_dir / "val_curve.csv", index=False)
+    _write_curves(out_dir, state)
     tail = [c["loss"] for c in state.curve[-max(1, len(state.curve) // 10):]]
     summary = {"steps": state.step, "resumed_from_step": resumed_from, "final_loss": sum(tail) / len(tail),
                "first_loss": state.curve[0]["loss"] if state.curve else float("nan"),

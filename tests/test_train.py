@@ -1,5 +1,6 @@
 """The shared trainer and the run identities that decide reuse, on synthetic data (no rendering)."""
 import copy
+import time
 import json
 
 import pandas as pd
@@ -44,8 +45,8 @@ def _model():
 
 
 def _recipe(steps=6, **changes):
-    return Recipe(steps=steps, batch_size=2, seq_len=2, crop=8, loss=WEIGHTS, checkpoint_every=3,
-                  **{"warmup": 0.2, "val_every": 2, **changes})
+    return Recipe(steps=steps, batch_size=2, seq_len=2, crop=8, loss=WEIGHTS,
+                  **{"checkpoint_every": 3, "warmup": 0.2, "val_every": 2, **changes})
 
 
 def _train(data, out_dir, steps=6, model=None, **changes):
@@ -180,7 +181,7 @@ def test_train_identity_changes_exactly_with_what_determines_the_result(ctx, tmp
     assert _train_identity(same, cfg, TASK, 0, None) == base
     changed = []
     for key, value in (("steps", 11), ("lr", 1e-3), ("crop", 16), ("ema", None), ("schedule", "halve"),
-                       ("clip_grad_norm", 0.5), ("hdr", "log1p")):
+                       ("clip_grad_norm", 0.5), ("hdr", "pu")):
         other = copy.deepcopy(ctx)
         other.train[key] = value
         changed.append(_train_identity(other, cfg, TASK, 0, None))
@@ -243,3 +244,58 @@ def test_without_a_terminal_training_logs_its_progress(tmp_path, caplog, monkeyp
         train(_model(), SyntheticSequences(), TASK, tmp_path, _recipe(3), progress=True)
     lines = [r.getMessage() for r in caplog.records if "s/step" in r.getMessage()]
     assert len(lines) == 3 and lines[-1].startswith("train EDSR: step 3/3,") and "min left" in lines[-1]
+
+
+def test_checkpoints_also_on_wall_time(tmp_path):
+    with pytest.raises(KeyboardInterrupt):  # dies in step 5; checkpoint_every alone would have saved none
+        train(_model(), SyntheticSequences(interrupt_at_draw=4 * 2), TASK, tmp_path,
+              _recipe(checkpoint_every=100, checkpoint_every_s=0.0), progress=False)
+    assert torch.load(tmp_path / CHECKPOINT, weights_only=False)["step"] == 4
+
+
+_INTERRUPTIBLE = '''
+import sys, time
+sys.path.insert(0, sys.argv[2])
+from test_train import SyntheticSequences, TASK, _model, _recipe
+from bench.train import TrainingInterrupted, train
+
+class Slow(SyntheticSequences):
+    def item(self, index, draw):
+        if draw == 4:
+            print("training", flush=True)
+        time.sleep(0.1)
+        return super().item(index, draw)
+
+try:
+    train(_model(), Slow(), TASK, sys.argv[1], _recipe(steps=40, checkpoint_every=1000), progress=False)
+except TrainingInterrupted as err:
+    print(err, flush=True)
+    sys.exit(err.exit_code)
+'''
+
+
+def test_sigterm_saves_a_checkpoint_and_the_resumed_run_equals_an_uninterrupted_one(tmp_path):
+    """A real process, a real signal: preemption loses nothing and changes nothing."""
+    import signal
+    import subprocess
+    import sys
+    from pathlib import Path
+    cut = tmp_path / "cut"
+    proc = subprocess.Popen([sys.executable, "-c", _INTERRUPTIBLE, str(cut), str(Path(__file__).parent)],
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    assert proc.stdout.readline().strip() == "training"
+    time.sleep(0.5)
+    proc.send_signal(signal.SIGTERM)
+    out, err = proc.communicate(timeout=120)
+    assert proc.returncode == 128 + signal.SIGTERM, err
+    assert "SIGTERM at step" in out and "run the same command again to resume" in out
+    stopped_at = torch.load(cut / CHECKPOINT, weights_only=False)["step"]
+    assert 2 <= stopped_at < 40
+    summary = train(_model(), SyntheticSequences(), TASK, cut, _recipe(steps=40, checkpoint_every=1000),
+                    progress=False)
+    assert summary["resumed_from_step"] == stopped_at
+    full = _model()
+    train(full, SyntheticSequences(), TASK, tmp_path / "full", _recipe(steps=40, checkpoint_every=1000),
+          progress=False)
+    for a, b in zip(full.state_dict().values(), load_weights(_model(), cut).state_dict().values()):
+        assert torch.equal(a, b)

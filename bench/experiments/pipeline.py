@@ -35,7 +35,7 @@ from bench.infer import REFERENCE
 from bench.macs import count_params
 from bench.models.srd import SRDNet, SRDStage, load_stage
 from bench.tasks import CASCADE_STAGES, Task, get_task
-from bench.train import Recipe, TrainingDiverged, load_weights, train
+from bench.train import Recipe, TrainingDiverged, TrainingInterrupted, load_weights, train
 
 log = logging.getLogger("bench")
 
@@ -290,10 +290,16 @@ def trained_model(ctx: Context, cfg: dict, task: Task, seed: int, label: str = "
             return model, run
         runs.fail(run, str(err))
         raise UserError(f"training {label or cfg['_target_']} (run {run.dir}) diverged: {err}") from err
+    except TrainingInterrupted as err:  # stopped on request with a checkpoint: resumable, not failed
+        runs.fail(run, str(err), status="interrupted")
+        raise TrainingInterrupted(f"training {label or cfg['_target_']} stopped by {err}", err.exit_code - 128) \
+            from None
     except BaseException as err:  # interrupted or crashed: the record says so; the checkpoint stays
         runs.fail(run, f"{type(err).__name__}: {err}")
         raise
     runs.complete(run, summary)
+    log.info("train %s: trained in %.1f min (run %s)", label or cfg["_target_"], run.record["wall_time_s"] / 60,
+             run.hash)
     return model, run
 
 
