@@ -1,11 +1,13 @@
 """The one evaluator: full frames of a split, per-image metrics, aggregates and inference time.
 
-Metrics (bench.metrics): relMSE on linear HDR radiance, PSNR/SSIM on images clamped to [0, 1].
+Metrics (bench.metrics): relMSE, robust relMSE and temporal relMSE on linear HDR radiance, PSNR/SSIM on
+images clamped to [0, 1]; each with its standard error over sequences.
 Methods with `linear_hdr = True` (OIDN, bilinear, bicubic) take and return linear radiance; every other model works in the
 network domain of `hdr` (bench.hdr) and its output is mapped back to linear before scoring.
 """
 from __future__ import annotations
 
+import math
 import time
 from pathlib import Path
 
@@ -15,7 +17,7 @@ import torch
 
 from bench.hdr import from_network, to_network
 from bench.infer import REFERENCE, prepare, tiled_predict
-from bench.metrics import all_metrics
+from bench.metrics import METRICS, SEQUENCE_METRICS, all_metrics
 from bench.sanitize import sanitize_inputs
 from bench.tasks import Task
 
@@ -99,10 +101,22 @@ def evaluate(model, dataset, task: Task, *, hdr: str = "clamp", device: str = "c
     return per_image, aggregate(per_image)
 
 
+SCORES = (*METRICS, *SEQUENCE_METRICS)
+
+
 def aggregate(per_image: pd.DataFrame) -> dict:
-    """Mean of each metric over images (a PSNR of +inf, identical images, stays +inf)."""
+    """Mean of each metric over images (a PSNR of +inf, identical images, stays +inf; the temporal
+    relMSE over the frames that have one), and "<metric> se": its standard error over sequences (the
+    frames of one sequence are not independent samples: their per-sequence means are)."""
     out = {"images": int(len(per_image))}
-    for col in ("relMSE", "PSNR", "SSIM", "time_ms"):
+    for col in (*SCORES, "time_ms"):
         if col in per_image:
             out[col] = float(per_image[col].mean())
+    if "sequence" in per_image and len(per_image):
+        by_sequence = per_image.groupby("sequence")
+        out["sequences"] = int(by_sequence.ngroups)
+        for col in SCORES:
+            if col in per_image:
+                means = by_sequence[col].mean().replace([np.inf, -np.inf], np.nan).dropna()
+                out[f"{col} se"] = float(means.std(ddof=1) / np.sqrt(len(means))) if len(means) > 1 else math.nan
     return out

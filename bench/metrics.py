@@ -2,6 +2,13 @@
 
 - relMSE (Rousselle et al. 2011) on linear HDR radiance:
   mean over pixels and channels of (x - r)^2 / (r^2 + eps), eps = 0.01.
+- robust relMSE: relMSE without the 0.1% of pixels with the highest error (per-pixel error averaged over
+  channels), so a few fireflies do not decide a ranking; the outlier rejection of SimpleImageIO's
+  `RelMSE_OutlierRejection` (Grittmann, used with the SeeSharp renderer's papers), whose default also
+  discards 0.1% of the pixels.
+- temporal relMSE (sequences): relMSE of the frame-to-frame change, ((x_t - x_t-1) - (r_t - r_t-1))^2 /
+  (r_t^2 + eps). An error that stays put from frame to frame scores 0; an error that changes (flicker,
+  popping, a recurrent state that drifts) scores its change. The first frame of a sequence has none.
 - PSNR and SSIM on images normalised to [0, 1] (clamped), as the paper reports them.
   SSIM is Wang et al. 2004: 11x11 Gaussian window (sigma 1.5), K1 = 0.01, K2 = 0.03, per channel, averaged
   over the valid (un-padded) region; it equals scikit-image's
@@ -15,6 +22,7 @@ import torch
 import torch.nn.functional as F
 
 RELMSE_EPS = 0.01
+ROBUST_DISCARD = 0.001   # fraction of pixels robust relMSE leaves out (the highest errors)
 RELMSE_FORMULA = "relMSE = mean over pixels and channels of (x-r)^2/(r^2+0.01) on linear HDR"
 
 
@@ -25,6 +33,24 @@ def _as_batch(x: torch.Tensor) -> torch.Tensor:
 def relmse(pred: torch.Tensor, ref: torch.Tensor, eps: float = RELMSE_EPS) -> torch.Tensor:
     pred, ref = _as_batch(pred).double(), _as_batch(ref).double()
     return ((pred - ref) ** 2 / (ref ** 2 + eps)).flatten(1).mean(1)
+
+
+def robust_relmse(pred: torch.Tensor, ref: torch.Tensor, eps: float = RELMSE_EPS,
+                  discard: float = ROBUST_DISCARD) -> torch.Tensor:
+    """relMSE over all but the `discard` fraction of pixels with the highest (channel-mean) error."""
+    pred, ref = _as_batch(pred).double(), _as_batch(ref).double()
+    per_pixel = ((pred - ref) ** 2 / (ref ** 2 + eps)).mean(1).flatten(1)
+    keep = per_pixel.shape[1] - int(per_pixel.shape[1] * discard)
+    return per_pixel.sort(1).values[:, :keep].mean(1)
+
+
+def temporal_relmse(pred: torch.Tensor, ref: torch.Tensor, eps: float = RELMSE_EPS) -> torch.Tensor:
+    """Per frame of a sequence (T, C, H, W): relMSE of the change since the previous frame against the
+    reference's change; NaN for the first frame (nothing to compare with)."""
+    pred, ref = pred.double(), ref.double()
+    change = (pred[1:] - pred[:-1]) - (ref[1:] - ref[:-1])
+    scores = (change ** 2 / (ref[1:] ** 2 + eps)).flatten(1).mean(1)
+    return torch.cat([torch.full((1,), math.nan, dtype=scores.dtype), scores])
 
 
 def mse(pred: torch.Tensor, ref: torch.Tensor) -> torch.Tensor:
@@ -72,11 +98,13 @@ def ssim(pred: torch.Tensor, ref: torch.Tensor, data_range: float = 1.0) -> torc
     return s.flatten(1).mean(1)
 
 
-METRICS = {"relMSE": relmse, "PSNR": psnr, "SSIM": ssim}
-LOWER_IS_BETTER = ("relMSE",)
+METRICS = {"relMSE": relmse, "PSNR": psnr, "SSIM": ssim, "robust relMSE": robust_relmse}
+SEQUENCE_METRICS = {"temporal relMSE": temporal_relmse}
+LOWER_IS_BETTER = ("relMSE", "robust relMSE", "temporal relMSE")
 HIGHER_IS_BETTER = ("PSNR", "SSIM")
 
 
 def all_metrics(pred: torch.Tensor, ref: torch.Tensor) -> dict[str, torch.Tensor]:
-    """relMSE on the linear values given; PSNR/SSIM on them clamped to [0, 1]."""
-    return {name: fn(pred, ref) for name, fn in METRICS.items()}
+    """Per frame of a sequence (T, C, H, W): relMSEs on the linear values given, PSNR/SSIM on them
+    clamped to [0, 1], and the temporal relMSE (NaN for the first frame)."""
+    return {name: fn(pred, ref) for name, fn in {**METRICS, **SEQUENCE_METRICS}.items()}

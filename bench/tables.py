@@ -4,7 +4,8 @@ Metric columns get an arrow (down: lower is better, up: higher is better) and th
 column is bold. Rows can be excluded from the best-of competition (e.g. the paper's numbers shown beside
 ours) with `compete=False` in a boolean column named `compete`; that column is not printed.
 A column "X std" beside a column "X" (several seeds) is printed inside X's cells as "mean ± std" in
-Markdown and LaTeX; the CSV keeps both columns.
+Markdown and LaTeX, and a column "X se" (standard error over the evaluated sequences) as "(se ...)" after
+it; the CSV keeps every column.
 """
 from __future__ import annotations
 
@@ -55,8 +56,13 @@ def _header(col: str, lower: tuple, higher: tuple) -> str:
     return col
 
 
+_INSIDE = (" std", " se")  # suffixes of columns printed inside their metric's cells
+
+
 def _shown(df: pd.DataFrame) -> list:
-    return [c for c in df.columns if c != "compete" and not (str(c).endswith(" std") and str(c)[:-4] in df.columns)]
+    def inside(col: str) -> bool:
+        return any(col.endswith(s) and col[:-len(s)] in df.columns for s in _INSIDE)
+    return [c for c in df.columns if c != "compete" and not inside(str(c))]
 
 
 def _cell(row, col, digits: int) -> str:
@@ -64,6 +70,9 @@ def _cell(row, col, digits: int) -> str:
     std = row.get(f"{col} std")
     if std is not None and not (isinstance(std, float) and math.isnan(std)):
         text += " \u00b1 " + _fmt(std, digits)
+    se = row.get(f"{col} se")
+    if se is not None and not (isinstance(se, float) and math.isnan(se)):
+        text += f" (se {_fmt(se, digits)})"
     return text
 
 

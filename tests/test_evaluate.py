@@ -60,3 +60,25 @@ def test_methods_on_linear_radiance_run_their_own_way():
     from baselines.oidn import OIDN
     from bench.evaluate import runner
     assert runner(OIDN(scale=2), "bf16", tile=32) is None  # OIDN takes linear HDR and runs its own library
+
+
+def test_aggregate_gives_means_over_frames_and_standard_errors_over_sequences():
+    import numpy as np
+    import pandas as pd
+    from bench.evaluate import aggregate
+    per_image = pd.DataFrame({"sequence": ["a", "a", "b", "b", "c", "c"],
+                              "relMSE": [1.0, 3.0, 2.0, 2.0, 6.0, 8.0],
+                              "temporal relMSE": [np.nan, 1.0, np.nan, 2.0, np.nan, 6.0]})
+    out = aggregate(per_image)
+    assert out["relMSE"] == pytest.approx(22 / 6) and out["sequences"] == 3
+    assert out["relMSE se"] == pytest.approx(np.std([2.0, 2.0, 7.0], ddof=1) / np.sqrt(3))
+    assert out["temporal relMSE"] == pytest.approx(3.0)   # the first frames have none
+    assert out["temporal relMSE se"] == pytest.approx(np.std([1.0, 2.0, 6.0], ddof=1) / np.sqrt(3))
+
+
+def test_every_score_is_reported_per_frame():
+    from bench.evaluate import SCORES
+    per_image, metrics = evaluate(_nonzero(EDSR(channels=8, blocks=2)), Frames(t=3), TASK)
+    for name in SCORES:
+        assert name in per_image and f"{name} se" in metrics
+    assert per_image["temporal relMSE"].isna().sum() == 2       # the first frame of each sequence

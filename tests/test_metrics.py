@@ -5,7 +5,7 @@ import pytest
 import torch
 from skimage.metrics import peak_signal_noise_ratio, structural_similarity
 
-from bench.metrics import psnr, relmse, ssim
+from bench.metrics import psnr, relmse, robust_relmse, ssim, temporal_relmse
 
 
 def _pair(seed, shape=(3, 40, 33)):
@@ -58,3 +58,36 @@ def test_identical_images_give_infinite_psnr_and_unit_ssim():
 def test_ssim_rejects_tiny_images():
     with pytest.raises(ValueError, match="larger than"):
         ssim(torch.rand(3, 8, 8), torch.rand(3, 8, 8))
+
+
+@pytest.mark.parametrize("seed", [0, 1])
+def test_robust_relmse_matches_a_numpy_trimmed_mean(seed):
+    pred, ref = _pair(seed, shape=(3, 50, 40))
+    err = ((pred.numpy() - ref.numpy()) ** 2 / (ref.numpy() ** 2 + 0.01)).mean(0).ravel()
+    expected = np.sort(err)[: err.size - int(err.size * 0.001)].mean()  # 2000 pixels: the worst 2 go
+    assert float(robust_relmse(pred, ref)[0]) == pytest.approx(expected, rel=1e-12)
+    assert float(robust_relmse(pred, ref, discard=0.0)[0]) == pytest.approx(float(relmse(pred, ref)[0]))
+
+
+def test_robust_relmse_ignores_a_firefly_that_dominates_relmse():
+    ref = torch.full((1, 3, 40, 50), 0.5, dtype=torch.float64)
+    pred = ref + 0.01
+    firefly = pred.clone()
+    firefly[..., 7, 9] = 1000.0
+    assert relmse(firefly, ref) > 1000 * relmse(pred, ref)
+    assert float(robust_relmse(firefly, ref)[0]) == pytest.approx(float(robust_relmse(pred, ref)[0]))
+
+
+def test_temporal_relmse_scores_flicker_not_a_steady_error():
+    """Two sequences with the same per-frame relMSE: an error that stays put, and one that flickers."""
+    g = torch.Generator().manual_seed(0)
+    t = torch.linspace(0, 1, 6).view(6, 1, 1, 1)
+    ref = 0.2 + 0.5 * t * torch.rand(1, 3, 32, 32, generator=g, dtype=torch.float64)  # a changing scene
+    noise = 0.05 * torch.randn(6, 3, 32, 32, generator=g, dtype=torch.float64)
+    steady, flicker = ref + noise[:1], ref + noise
+    assert float(relmse(steady, ref).mean()) == pytest.approx(float(relmse(flicker, ref).mean()), rel=0.1)
+    steady_t, flicker_t = temporal_relmse(steady, ref), temporal_relmse(flicker, ref)
+    assert math.isnan(steady_t[0]) and math.isnan(flicker_t[0])
+    assert steady_t[1:].abs().max() < 1e-20
+    # independent errors: the change has twice the variance of one frame's error
+    assert float(flicker_t[1:].mean()) == pytest.approx(2 * float(relmse(flicker[1:], ref[1:]).mean()), rel=0.1)

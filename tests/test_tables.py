@@ -27,3 +27,13 @@ def test_infinite_psnr_is_printed_not_nan(tmp_path):
     df = pd.DataFrame([{"method": "identity", "relMSE": 0.0, "PSNR": float("inf"), "SSIM": 1.0}])
     md = write_table(df, tmp_path, higher_is_better=("PSNR",))["md"].read_text()
     assert "inf" in md and "nan" not in md.lower()
+
+
+def test_seed_std_and_sequence_se_are_printed_inside_their_cells(tmp_path):
+    df = pd.DataFrame([{"method": "Ours", "PSNR": 34.5, "PSNR std": 0.1, "PSNR se": 0.25, "SSIM": 0.9,
+                        "SSIM se": 0.02}])
+    paths = write_table(df, tmp_path, higher_is_better=("PSNR", "SSIM"))
+    md = paths["md"].read_text()
+    assert "34.5000 \u00b1 0.1000 (se 0.2500)" in md and "0.9000 (se 0.0200)" in md
+    assert "PSNR se" not in md.splitlines()[0]
+    assert list(pd.read_csv(paths["csv"]).columns) == ["method", "PSNR", "PSNR std", "PSNR se", "SSIM", "SSIM se"]

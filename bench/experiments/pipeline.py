@@ -29,7 +29,7 @@ from bench import runs
 from bench.datagen import build_dataset, load_manifest
 from bench.dataset import SequenceDataset
 from bench.errors import UserError
-from bench.evaluate import evaluate
+from bench.evaluate import SCORES, evaluate
 from bench.exrio import write_exr
 from bench.infer import REFERENCE
 from bench.macs import count_params
@@ -342,6 +342,11 @@ def evaluated(ctx: Context, cfg: dict, task: Task, seed: int, split: str, label:
     code = code_of(cfg, *EVALUATION_CODE, *(TRAINING_CODE if train_run is not None or cascade else ()))
     run = runs.begin(ctx.runs_dir, "eval", identity, seed=seed, device=ctx.device, label=label,
                      force=ctx.force, code=code, reuse_stale=ctx.reuse_stale)
+    missing = [m for m in SCORES if f"{m} se" not in run.metrics] if run.reused else []
+    if missing:  # recorded before the evaluator scored these: evaluating again is cheap, training is not
+        log.info("eval %s: re-evaluating run %s, recorded without %s", label, run.hash, ", ".join(missing))
+        run = runs.begin(ctx.runs_dir, "eval", identity, seed=seed, device=ctx.device, label=label,
+                         force=True, code=code)
     if run.reused:
         log.info("eval %s: reusing run %s", label, run.hash)
         return run
@@ -366,11 +371,13 @@ def row(ctx: Context, label: str, model: str, overrides: dict | None = None, tas
     split = split or ctx.eval.get("split", "val")
     results = [evaluated(ctx, cfg, t, seed, split, label, cascade) for seed in ctx.seeds]
     out = {"method": label, "task": task}
-    for metric in ("relMSE", "PSNR", "SSIM", "time_ms"):
+    for metric in (*SCORES, "time_ms"):
         values = np.array([r.metrics[metric] for r in results], dtype=float)
         out[metric] = float(values.mean())
         if len(values) > 1:
             out[f"{metric} std"] = float(values.std(ddof=1))
+    for metric in SCORES:  # uncertainty over the split's sequences (a seed average for several seeds)
+        out[f"{metric} se"] = float(np.mean([r.metrics[f"{metric} se"] for r in results]))
     out["params"] = results[0].metrics.get("params", 0)
     # what this row cost to compute, whenever it was computed (a reused run keeps its recorded time)
     out["train (min)"] = float(np.mean([runs.wall_time_s(ctx.runs_dir, "train", r.metrics.get("train_run"))

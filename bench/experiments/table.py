@@ -144,7 +144,9 @@ def run(ctx: Context, name: str, rows: list[dict], caption: str = "", task: str 
     table = with_paper(table, rows, paper_table)
     loss = ctx.train["loss"]["final"]
     tasks = ", ".join(dict.fromkeys(r["task"] for r in rows))
-    notes = (f"Task {tasks}. {RELMSE_FORMULA}; PSNR/SSIM on images clamped to [0, 1]. Scale {ctx.scale}, split "
+    notes = (f"Task {tasks}. {RELMSE_FORMULA}; robust relMSE leaves out the 0.1% of pixels with the highest "
+             f"error; temporal relMSE scores the frame-to-frame change against the reference's; PSNR/SSIM on "
+             f"images clamped to [0, 1]; (se ...): standard error over the split's sequences. Scale {ctx.scale}, split "
              f"{split or ctx.eval.get('split', 'val')}, {ctx.train['steps']} training steps, loss g:t:s:p = "
              f"{loss['edge']}:{loss['temporal']}:{loss['spatial']}:{loss['perceptual']} (unless a row says "
              f"otherwise), seeds {list(ctx.seeds)} (mean +- std over seeds when several); time_ms: "

@@ -45,7 +45,7 @@ from bench.errors import UserError
 from bench.evaluate import predict, sync
 from bench.experiments.pipeline import (Context, build_model, ensure_data, is_learned, model_config,
                                         recipe_of, recorded_training, trained_model, with_training)
-from bench.metrics import HIGHER_IS_BETTER, LOWER_IS_BETTER, RELMSE_FORMULA, all_metrics, mse
+from bench.metrics import HIGHER_IS_BETTER, LOWER_IS_BETTER, METRICS, RELMSE_FORMULA, mse
 from bench.tables import write_table
 from bench.tasks import GBUF_LAYERS, get_task
 
@@ -287,7 +287,8 @@ def timed_prediction(model, x, g, hdr: str, device: str, repeats: int) -> tuple[
 
 
 def scores(pred: torch.Tensor, ref: torch.Tensor) -> dict:
-    out = {k: float(v[0]) for k, v in all_metrics(pred[None], ref[None]).items()}
+    """The per-image metrics of one frame (a single frame has no temporal one)."""
+    out = {name: float(fn(pred[None], ref[None])[0]) for name, fn in METRICS.items()}
     out["MSE"] = float(mse(pred[None], ref[None])[0])
     return out
 
