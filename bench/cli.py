@@ -27,9 +27,58 @@ def available_experiments() -> list[str]:
     return sorted(p.stem for p in (Path(CONF_DIR) / "experiment").glob("*.yaml"))
 
 
+_POSITIVE_INTS = ("train.steps", "train.batch_size", "train.seq_len", "train.crop", "train.checkpoint_every",
+                  "workers")
+_NON_NEGATIVE_INTS = ("train.val_every", "train.val_sequences")
+_POSITIVE_NUMBERS = ("train.lr", "train.checkpoint_every_s")
+
+
+def _lookup(plain: dict, dotted: str):
+    value = plain
+    for part in dotted.split("."):
+        value = value.get(part) if isinstance(value, dict) else None
+    return value
+
+
+def _is_int(value) -> bool:
+    return isinstance(value, int) and not isinstance(value, bool)
+
+
+def config_problems(plain: dict) -> list[str]:
+    """What is wrong with a resolved config, one line per bad value: the key, the value, what is allowed."""
+    from bench.infer import parse_path
+    problems = []
+    for key in _POSITIVE_INTS:
+        if not (_is_int(v := _lookup(plain, key)) and v > 0):
+            problems.append(f"{key}={v!r}: expected a positive integer")
+    for key in _NON_NEGATIVE_INTS:
+        if not (_is_int(v := _lookup(plain, key)) and v >= 0):
+            problems.append(f"{key}={v!r}: expected an integer >= 0")
+    for key in _POSITIVE_NUMBERS:
+        if not (isinstance(v := _lookup(plain, key), (int, float)) and not isinstance(v, bool) and v > 0):
+            problems.append(f"{key}={v!r}: expected a positive number")
+    seeds = plain.get("seeds")
+    if not (isinstance(seeds, list) and seeds and all(_is_int(s) for s in seeds)):
+        problems.append(f"seeds={seeds!r}: expected a non-empty list of integers, e.g. seeds=[0,1,2]")
+    for name, lr in (plain.get("model_lr") or {}).items():
+        if not (isinstance(lr, (int, float)) and not isinstance(lr, bool) and lr > 0):
+            problems.append(f"model_lr.{name}={lr!r}: expected a positive number")
+    try:
+        parse_path(_lookup(plain, "eval.path"))
+    except (ValueError, AttributeError) as err:
+        problems.append(f"eval.path={_lookup(plain, 'eval.path')!r}: {err}")
+    tile = _lookup(plain, "eval.tile")
+    if tile is not None and not (_is_int(tile) and tile > 0):
+        problems.append(f"eval.tile={tile!r}: expected null (whole frames) or a positive integer")
+    return problems
+
+
 def make_context(cfg: DictConfig):
     from bench.experiments.pipeline import Context
     plain = OmegaConf.to_container(cfg, resolve=True)
+    problems = config_problems(plain)
+    if problems:
+        raise UserError("bad config (nothing was run):\n  " + "\n  ".join(problems))
     return Context(scale=plain["scale"]["name"], runs_dir=Path(plain["runs_dir"]),
                    results_dir=Path(plain["results_dir"]), data_dir=Path(plain["data_dir"]),
                    data_spec=plain["data"], train=plain["train"], eval=plain["eval"], models=plain["models"],

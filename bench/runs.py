@@ -323,19 +323,35 @@ def fail(run: Run, message: str, status: str = "failed") -> Run:
 
 def load(runs_dir: str | Path = "runs", kind: str | None = None) -> pd.DataFrame:
     """All recorded runs as one tidy DataFrame: a row per run, metrics as `metric.<name>` columns and
-    the identity flattened as `cfg.<dotted.key>` columns."""
+    the identity flattened as `cfg.<dotted.key>` columns. A record left "running" by a process that no
+    longer exists shows as "abandoned" (its checkpoints resume on the next request)."""
     rows = []
     pattern = f"{kind}/*/{RECORD}" if kind else f"*/*/{RECORD}"
     for path in sorted(Path(runs_dir).glob(pattern)):
         record = _read(path)
         row = {k: record.get(k) for k in ("kind", "hash", "label", "status", "seed", "device",
                                           "wall_time_s", "git_commit", "git_dirty", "host", "started")}
+        if row["status"] == "running" and not _computing(path.parent):
+            row["status"] = "abandoned"  # its process is gone (killed, or the machine went away)
         row["dir"] = str(path.parent)
         row.update({f"metric.{k}": v for k, v in (record.get("metrics") or {}).items()
                     if not isinstance(v, (dict, list))})
         row.update({f"cfg.{k}": v for k, v in _flatten(record.get("identity", {})).items()})
         rows.append(row)
     return pd.DataFrame(rows)
+
+
+def _computing(run_dir: Path) -> bool:
+    """Whether some process holds the run's lock now (a record says "running" also after a kill -9)."""
+    lock = run_dir.parent / f".{run_dir.name}.lock"
+    if not lock.exists():
+        return False
+    with open(lock, "a") as handle:  # flock conflicts with any other open file, this process's too
+        try:
+            fcntl.flock(handle, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except BlockingIOError:
+            return True
+    return False
 
 
 def _flatten(d: dict, prefix: str = "") -> dict:

@@ -175,3 +175,35 @@ def test_shard_parses_i_over_n_and_rejects_the_rest():
     for bad in ("3/3", "-1/2", "a/b", "2"):
         with pytest.raises(UserError, match="shard="):
             parse_shard(bad)
+
+
+@pytest.mark.parametrize("override,message", [
+    ("train.steps=0", "train.steps=0: expected a positive integer"),
+    ("train.steps=-5", "train.steps=-5: expected a positive integer"),
+    ("train.steps=abc", "train.steps='abc': expected a positive integer"),
+    ("train.batch_size=0", "train.batch_size=0: expected a positive integer"),
+    ("train.checkpoint_every=0", "train.checkpoint_every=0: expected a positive integer"),
+    ("train.checkpoint_every_s=0", "train.checkpoint_every_s=0: expected a positive number"),
+    ("train.val_every=-1", "train.val_every=-1: expected an integer >= 0"),
+    ("train.lr=0", "train.lr=0: expected a positive number"),
+    ("workers=0", "workers=0: expected a positive integer"),
+    ("seeds=0", "seeds=0: expected a non-empty list of integers"),
+    ("seeds=[]", "seeds=[]: expected a non-empty list of integers"),
+    ("seeds=[a]", "seeds=['a']: expected a non-empty list of integers"),
+    ("+model_lr.srd=-1", "model_lr.srd=-1: expected a positive number"),
+    ("eval.path=turbo", "eval.path='turbo': unknown fast path switch 'turbo'"),
+    ("eval.tile=0", "eval.tile=0: expected null (whole frames) or a positive integer"),
+])
+def test_every_bad_value_is_one_line_naming_key_value_and_rule(tmp_path, override, message):
+    with pytest.raises(UserError) as err:
+        make_context(compose_experiment("smoke", "scale=smoke", override, f"runs_dir={tmp_path}/runs"))
+    assert message in str(err.value) and "nothing was run" in str(err.value)
+    assert not (tmp_path / "runs").exists()
+
+
+def test_a_bad_value_on_the_command_line_ends_in_one_message_before_any_run(tmp_path):
+    out = bench("+experiment=smoke", "scale=smoke", "train.steps=0", "train.batch_size=0",
+                f"runs_dir={tmp_path}/runs", f"results_dir={tmp_path}/results", f"data_dir={tmp_path}/data")
+    assert out.returncode == 2 and "Traceback" not in out.stderr
+    assert "train.steps=0" in out.stderr and "train.batch_size=0" in out.stderr
+    assert not list((tmp_path / "runs").glob("train/*"))

@@ -146,3 +146,16 @@ def test_runs_recorded_before_code_fingerprints_are_trusted(tmp_path):
     ident = {"model": "v"}
     runs.complete(runs.begin(tmp_path, "train", ident), {"PSNR": 1.0})
     assert runs.begin(tmp_path, "train", ident, code={"bench/train.py": "x"}).reused
+
+
+def test_a_run_left_running_by_a_dead_process_shows_as_abandoned(tmp_path):
+    import subprocess
+    import sys
+    from pathlib import Path
+    code = (f"import sys; sys.path.insert(0, {str(Path(runs.__file__).parent.parent)!r}); from bench import runs; "
+            f"runs.begin({str(tmp_path)!r}, 'train', {{'model': 'killed'}}); import os; os._exit(0)")
+    subprocess.run([sys.executable, "-c", code], check=True)   # exits without completing or failing
+    live = runs.begin(tmp_path, "train", {"model": "live"})
+    status = runs.load(tmp_path).set_index("cfg.model")["status"]
+    assert status["killed"] == "abandoned" and status["live"] == "running"
+    live.release()

@@ -352,9 +352,13 @@ def evaluated(ctx: Context, cfg: dict, task: Task, seed: int, split: str, label:
         return run
     if train_run is not None and train_run.reused:
         load_weights(model, train_run.dir, ctx.device)
-    _, metrics = evaluate(model, dataset(ctx, split, task, training=False), task, hdr=hdr,
-                          device=ctx.device, out_dir=run.dir, save_exr=ctx.eval.get("save_exr", False),
-                          write_exr=write_exr, path=fast_path, tile=tile)
+    try:
+        _, metrics = evaluate(model, dataset(ctx, split, task, training=False), task, hdr=hdr,
+                              device=ctx.device, out_dir=run.dir, save_exr=ctx.eval.get("save_exr", False),
+                              write_exr=write_exr, path=fast_path, tile=tile)
+    except BaseException as err:  # the record says so, never "running" forever
+        runs.fail(run, f"{type(err).__name__}: {err}")
+        raise
     metrics["params"] = count_params(model)
     metrics["train_run"] = trained if isinstance(trained, str) else None
     metrics["vgg"] = (train_run.record["identity"].get("vgg") if train_run else None)
