@@ -88,7 +88,7 @@ def _settings_hash(settings):
     return hashlib.sha1(json.dumps(settings, sort_keys=True).encode()).hexdigest()[:12]
 
 
-def _frame_paths(root, split, sequence, frame):
+def frame_paths(root, split, sequence, frame):
     base = os.path.join(root, split, sequence, f"{frame:04d}")
     return base + "_lr.exr", base + "_hr.exr", base + ".json"
 
@@ -156,7 +156,7 @@ def render_sequence(root, job, spec, passes, variant=None):
     sizes = {"lr": (lr_w, lr_h), "hr": (lr_w * scale, lr_h * scale)}
     loaded, records = None, []
     for frame, camera in enumerate(cameras):
-        lr_path, hr_path, rec_path = _frame_paths(root, job["split"], job["sequence"], frame)
+        lr_path, hr_path, rec_path = frame_paths(root, job["split"], job["sequence"], frame)
         paths = {"lr": lr_path, "hr": hr_path}
         record = _load_record(rec_path, digest)
         present = {res: _present_layers(path) if record else set() for res, path in paths.items()}
@@ -305,7 +305,7 @@ def render_user_scene(xml_path, root, lr_width, lr_height, spp=8, ref_spp=256, s
     variant = render.use_variant()
     scene = render.load_scene(os.fspath(xml_path), variant)
     name = os.path.splitext(os.path.basename(os.fspath(xml_path)))[0]
-    lr_path, hr_path, rec_path = _frame_paths(root, split, name, 0)
+    lr_path, hr_path, rec_path = frame_paths(root, split, name, 0)
     seeds = {res: {kind: derive_seed(seed, name, res, code) for kind, code in _BUFFER_CODES.items()}
              for res in ("lr", "hr")}
     record = {"split": split, "family": "user", "scene": name, "scene_seed": int(seed), "sequence": name,
@@ -351,7 +351,7 @@ def export_examples(root, out_dir, split="train", count=4, frame=0):
     records = [r for r in load_manifest(root)["frames"] if r["split"] == split and r["frame"] == frame]
     paths = []
     for rec in records[:count]:
-        lr_path, hr_path, _ = _frame_paths(root, split, rec["sequence"], frame)
+        lr_path, hr_path, _ = frame_paths(root, split, rec["sequence"], frame)
         lr, hr = exrio.read_exr(lr_path), exrio.read_exr(hr_path)
         panels = {"input": tonemap_png(lr["noisy"]),
                   "albedo": (np.clip(lr["albedo"], 0, 1) ** (1 / 2.2) * 255 + 0.5).astype(np.uint8),

@@ -209,6 +209,31 @@ def test_train_identity_ignores_the_other_splits(ctx):
     assert _train_identity(ctx, cfg, TASK, 0, None) == base
 
 
+def test_your_own_data_is_fingerprinted_by_its_files_size_and_mtime(ctx):
+    """render_data=false: a changed pixel (new mtime) or a file of another size is other data; the
+    rendered data's fingerprint (render_data=true) follows its spec and settings only."""
+    import os
+    from bench.experiments.pipeline import data_fingerprint
+    for split, seq in (("train", "a"), ("val", "b")):
+        (ctx.data_dir / split / seq).mkdir(parents=True)
+        for res in ("lr", "hr"):
+            (ctx.data_dir / split / seq / f"0000_{res}.exr").write_bytes(b"exr" * 10)
+    rendered = data_fingerprint(ctx, "train")
+    ctx.render_data = False
+    before = data_fingerprint(ctx, "train")
+    hr = ctx.data_dir / "train" / "a" / "0000_hr.exr"
+    os.utime(hr, ns=(10**18, 10**18))                       # rewritten in place, same size
+    touched = data_fingerprint(ctx, "train")
+    hr.write_bytes(b"exr" * 11)                              # another size
+    os.utime(hr, ns=(10**18, 10**18))
+    resized = data_fingerprint(ctx, "train")
+    assert len({before, touched, resized}) == 3
+    os.utime(ctx.data_dir / "val" / "b" / "0000_lr.exr", ns=(10**18, 10**18))
+    assert data_fingerprint(ctx, "train") == resized          # another split's files do not count
+    ctx.render_data = True
+    assert data_fingerprint(ctx, "train") == rendered
+
+
 def test_intermediate_supervision_is_used_only_when_weighted():
     from bench.models.srd import SRDNet
     from bench.train import batch_loss, collate

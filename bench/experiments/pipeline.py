@@ -18,6 +18,7 @@ import functools
 import hashlib
 import json
 import logging
+import os
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -26,7 +27,7 @@ import torch
 from hydra.utils import instantiate
 
 from bench import runs
-from bench.datagen import build_dataset, load_manifest
+from bench.datagen import build_dataset, frame_paths, load_manifest
 from bench.dataset import SequenceDataset
 from bench.errors import UserError
 from bench.evaluate import SCORES, evaluate
@@ -118,14 +119,17 @@ def _canonical(value) -> str:
 
 
 @functools.lru_cache(maxsize=32)
-def _fingerprint(manifest_path: str, mtime_ns: int, split: str | None) -> str:
+def _fingerprint(manifest_path: str, mtime_ns: int, split: str | None, files: str | None = None) -> str:
     manifest = load_manifest(Path(manifest_path).parent)
     spec = copy.deepcopy(manifest["spec"])
     if split is not None and isinstance(spec.get("splits"), dict):
         spec["splits"] = {split: spec["splits"].get(split)}
     frames = sorted((f["split"], f["sequence"], f["frame"], f.get("settings_hash")) for f in manifest["frames"]
                     if split is None or f["split"] == split)
-    return runs.config_hash({"spec": spec, "frames": frames})
+    identity = {"spec": spec, "frames": frames}
+    if files is not None:
+        identity["files"] = files
+    return runs.config_hash(identity)
 
 
 def data_fingerprint(ctx: Context, split: str | None = None) -> str:
@@ -138,7 +142,23 @@ def data_fingerprint(ctx: Context, split: str | None = None) -> str:
         raise UserError(f"data directory {ctx.data_dir} has no manifest.json; render it with "
                         f"`python -m bench +experiment=data scale={ctx.scale}` or point data_dir=... at a "
                         f"dataset in the documented layout (README, 'Dataset layout')")
-    return _fingerprint(str(path.resolve()), path.stat().st_mtime_ns, split)
+    files = None if ctx.render_data else _file_stats(ctx.data_dir, split)
+    return _fingerprint(str(path.resolve()), path.stat().st_mtime_ns, split, files)
+
+
+def _file_stats(root: Path, split: str | None) -> str:
+    """Your own renders (render_data=false) are fingerprinted by content too: each frame file's size
+    and modification time. Not its bytes: hashing gigabytes at every command would cost more than
+    the check is worth, and editing a frame, re-rendering it or copying a dataset (without `cp -p`)
+    changes its mtime. Rendered data needs none of this: its spec and settings determine the pixels."""
+    stats = []
+    for frame in load_manifest(root)["frames"]:
+        if split is not None and frame["split"] != split:
+            continue
+        for name in frame_paths(root, frame["split"], frame["sequence"], frame["frame"])[:2]:
+            st = os.stat(name) if os.path.exists(name) else None
+            stats.append((name, st.st_size, st.st_mtime_ns) if st else (name, None, None))
+    return runs.config_hash({"files": stats})
 
 
 def ensure_data(ctx: Context, passes: set[str]) -> str:
