@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import importlib
 import logging
+import re
 import sys
 import time
 from pathlib import Path
@@ -156,6 +157,19 @@ def table_summary(table_dir: Path) -> dict:
     return out
 
 
+def _sweep_job_results(cfg: DictConfig) -> None:
+    """With -m (a sweep), each job writes its tables under results_dir/sweeps/<its overrides>, so jobs
+    never overwrite each other's tables; their runs still share the run store."""
+    from hydra.core.hydra_config import HydraConfig
+    from hydra.types import RunMode
+    if not HydraConfig.initialized() or HydraConfig.get().mode != RunMode.MULTIRUN:
+        return
+    job = HydraConfig.get().job
+    folder = re.sub(r"[^\w=.,+-]", "_", job.override_dirname) or f"job{job.num}"
+    cfg.results_dir = str(Path(cfg.results_dir) / "sweeps" / folder)
+    log.info("sweep job %s: tables go to %s", job.num, cfg.results_dir)
+
+
 def run_experiment(cfg: DictConfig) -> None:
     if "experiment" not in cfg:
         raise UserError("choose an experiment: python -m bench +experiment=NAME; available: "
@@ -171,6 +185,7 @@ def run_experiment(cfg: DictConfig) -> None:
         return
     if kind not in KINDS:
         raise UserError(f"experiment kind {kind!r} is unknown; known kinds: {', '.join(KINDS)}")
+    _sweep_job_results(cfg)
     ctx = make_context(cfg)
     ctx.device = resolve_device(ctx.device)
     ensure_writable(ctx.results_dir, "results_dir")

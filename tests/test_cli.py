@@ -207,3 +207,13 @@ def test_a_bad_value_on_the_command_line_ends_in_one_message_before_any_run(tmp_
     assert out.returncode == 2 and "Traceback" not in out.stderr
     assert "train.steps=0" in out.stderr and "train.batch_size=0" in out.stderr
     assert not list((tmp_path / "runs").glob("train/*"))
+
+
+def test_sweep_jobs_write_distinct_tables_with_the_joblib_launcher(tmp_path):
+    """The MAC audit needs no data or training: a cheap sweep of two jobs run in parallel by joblib."""
+    out = bench("-m", "hydra/launcher=joblib", "+experiment=flops", "scale=smoke", "seeds=[0],[1]",
+                f"runs_dir={tmp_path}/runs", f"results_dir={tmp_path}/results", f"data_dir={tmp_path}/data",
+                "progress=false")
+    assert out.returncode == 0, out.stderr[-2000:]
+    tables = sorted(p.parent.parent.name for p in (tmp_path / "results" / "sweeps").glob("*/flops/table.csv"))
+    assert tables == ["seeds=_0_", "seeds=_1_"]
