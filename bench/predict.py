@@ -1,0 +1,187 @@
+"""A trained model outside the benchmark: export a recorded run's weights, apply them to your EXR frames.
+
+    srd-bench export RUN_HASH --out results/cpu/weights/ours.pt      (or python -m bench.predict export ...)
+    srd-bench predict --weights results/cpu/weights/ours.pt --output-dir out/ frame0_lr.exr frame1_lr.exr
+
+An exported file holds the model's config (its `_target_` and arguments), the upsampling factor, the
+network domain (`hdr`) it was trained in, its evaluation weights (the EMA when the recipe kept one), the
+training run's identity, metrics and code fingerprint. A JSON beside it repeats all but the weights and
+adds the file's sha256, which `predict` checks.
+
+`predict` reads each input EXR's layers `noisy` (LR radiance), `albedo`, `normal` and `roughness` (the
+dataset layout's `*_lr.exr`; roughness may be left out: 1.0), treats the inputs as one sequence in the
+order given (a recurrent model keeps its state from frame to frame) and writes `<name>_hr.exr` with the
+layer `output` (linear HDR radiance at the model's scale). Non-finite input values are repaired as in
+every evaluation (bench.sanitize) and counted in the output's header (`srd_nonfinite_repaired`).
+"""
+from __future__ import annotations
+
+import argparse
+import hashlib
+import json
+import sys
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from bench import exrio, runs
+from bench.errors import UserError
+from bench.evaluate import predict as predict_batch
+from bench.evaluate import runner
+from bench.experiments.pipeline import build_model
+from bench.tasks import GBUF_LAYERS, get_task
+from bench.train import load_weights
+
+FORMAT = "srd-bench-weights/1"
+GBUF_SIZES = {"albedo": 3, "normal": 3, "roughness": 1}
+
+
+# ---------------------------------------------------------------- export
+
+def export(run_hash: str, out: str | Path, runs_dir: str | Path = "runs") -> Path:
+    """Write the weights of the complete training run `run_hash` to `out` (+ `out`.json)."""
+    path = Path(runs_dir) / "train" / run_hash / runs.RECORD
+    if not path.exists():
+        raise UserError(f"no training run {run_hash} in {runs_dir} (runs are directories of {Path(runs_dir) / 'train'})")
+    record = json.loads(path.read_text())
+    if record.get("status") != "complete":
+        raise UserError(f"training run {run_hash} is {record.get('status')!r}, not complete: nothing to export")
+    identity = record["identity"]
+    cfg, task = identity["model"], get_task(identity["task"])
+    if identity.get("stage"):
+        raise UserError(f"run {run_hash} trained one stage of a Cascade; export a whole model's run")
+    model = load_weights(build_model(cfg, task.scale), path.parent)
+    meta = {"format": FORMAT, "model": cfg, "task": task.name, "scale": task.scale,
+            "hdr": identity["train"]["hdr"], "run": run_hash, "identity": identity,
+            "metrics": record.get("metrics", {}), "code": record.get("code"),
+            "git_commit": record.get("git_commit"), "git_dirty": record.get("git_dirty")}
+    out = Path(out)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    torch.save({**meta, "state_dict": model.state_dict()}, out)
+    meta["sha256"] = hashlib.sha256(out.read_bytes()).hexdigest()
+    out.with_suffix(out.suffix + ".json").write_text(json.dumps(meta, indent=2, sort_keys=True, default=str))
+    return out
+
+
+def load_exported(path: str | Path):
+    """(model in eval mode, metadata) from an exported weights file; its sha256 is checked against the
+    JSON beside it when there is one."""
+    path = Path(path)
+    if not path.exists():
+        raise UserError(f"weights file {path} does not exist")
+    sidecar = path.with_suffix(path.suffix + ".json")
+    if sidecar.exists():
+        expected = json.loads(sidecar.read_text()).get("sha256")
+        actual = hashlib.sha256(path.read_bytes()).hexdigest()
+        if expected and expected != actual:
+            raise UserError(f"{path}: sha256 {actual[:16]}... does not match {sidecar.name} ({expected[:16]}...): "
+                            "the file is damaged or not the one exported")
+    saved = torch.load(path, map_location="cpu", weights_only=False)
+    if not isinstance(saved, dict) or saved.get("format") != FORMAT:
+        raise UserError(f"{path} is not an SRD-Bench weights file (write one with `srd-bench export RUN`)")
+    model = build_model(saved["model"], saved["scale"])
+    model.load_state_dict(saved["state_dict"])
+    return model.eval(), {k: v for k, v in saved.items() if k != "state_dict"}
+
+
+def from_run(run_hash: str, runs_dir: str | Path = "runs"):
+    """(model, metadata) of a recorded training run, without exporting it."""
+    path = Path(runs_dir) / "train" / run_hash / runs.RECORD
+    if not path.exists():
+        raise UserError(f"no training run {run_hash} in {runs_dir}")
+    identity = json.loads(path.read_text())["identity"]
+    task = get_task(identity["task"])
+    model = load_weights(build_model(identity["model"], task.scale), path.parent)
+    return model.eval(), {"model": identity["model"], "task": task.name, "scale": task.scale,
+                          "hdr": identity["train"]["hdr"], "run": run_hash}
+
+
+# ---------------------------------------------------------------- predict
+
+def read_frame(path: str | Path) -> tuple[torch.Tensor, torch.Tensor]:
+    """(radiance (3, h, w), gBuffer (7, h, w)) of one LR frame in the dataset layout's `*_lr.exr`."""
+    path = Path(path)
+    layers = exrio.exr_layers(path)
+    missing = [name for name in ("noisy", "albedo", "normal") if name not in layers]
+    if missing:
+        raise UserError(f"{path}: missing layers {missing} (has {layers}); an input frame needs `noisy` "
+                        "(LR radiance), `albedo`, `normal` and optionally `roughness`")
+    wanted = ["noisy", "albedo", "normal"] + (["roughness"] if "roughness" in layers else [])
+    images = exrio.read_exr(path, wanted)
+    h, w = images["noisy"].shape[:2]
+    planes = []
+    for name in GBUF_LAYERS:
+        image = images.get(name, np.ones((h, w, 1), np.float32))
+        if image.shape[:2] != (h, w) or image.shape[2] != GBUF_SIZES[name]:
+            raise UserError(f"{path}: layer {name} is {image.shape[1]}x{image.shape[0]}x{image.shape[2]}, "
+                            f"expected {w}x{h}x{GBUF_SIZES[name]} (the gBuffer is at the radiance's resolution)")
+        planes.append(image)
+    if images["noisy"].shape[2] != 3:
+        raise UserError(f"{path}: layer noisy has {images['noisy'].shape[2]} channels, expected RGB")
+    to_tensor = lambda a: torch.from_numpy(np.ascontiguousarray(a.transpose(2, 0, 1)))
+    return to_tensor(images["noisy"]), to_tensor(np.concatenate(planes, -1))
+
+
+def apply(model, meta: dict, inputs: list, output_dir: str | Path, tile: int | None = None) -> list[Path]:
+    """Run `model` on the frames `inputs` (one sequence, in order) and write one HR EXR per frame."""
+    if not inputs:
+        raise UserError("no input frames given")
+    frames = [read_frame(p) for p in inputs]
+    sizes = {tuple(x.shape[1:]) for x, _ in frames}
+    if len(sizes) > 1:
+        raise UserError(f"the input frames are one sequence and must share one size; got {sorted(sizes)}")
+    x = torch.stack([f[0] for f in frames])[None]     # (1, T, 3, h, w)
+    g = torch.stack([f[1] for f in frames])[None]
+    repaired = [int((~torch.isfinite(f[0])).sum() + (~torch.isfinite(f[1])).sum()) for f in frames]
+    with torch.no_grad():
+        if getattr(model, "recurrent", False):
+            out = predict_batch(model, x, g, meta["hdr"], forward=runner(model, tile=tile))
+        else:
+            out = torch.cat([predict_batch(model, x[:, t:t + 1], g[:, t:t + 1], meta["hdr"],
+                                           forward=runner(model, tile=tile)) for t in range(x.shape[1])], 1)
+    output_dir = Path(output_dir)
+    output_dir.mkdir(parents=True, exist_ok=True)
+    written = []
+    for t, source in enumerate(inputs):
+        target = output_dir / (Path(source).name.removesuffix(".exr").removesuffix("_lr") + "_hr.exr")
+        exrio.write_exr(target, {"output": out[0, t].permute(1, 2, 0).numpy().astype(np.float32)},
+                        attributes={"srd_weights": str(meta.get("run")), "srd_nonfinite_repaired": str(repaired[t]),
+                                    "srd_model": meta["model"]["_target_"]})
+        written.append(target)
+    return written
+
+
+# ---------------------------------------------------------------- command line
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(prog="srd-bench", description=__doc__.split("\n")[0])
+    commands = parser.add_subparsers(dest="command", required=True)
+    ex = commands.add_parser("export", help="write a recorded training run's weights to a file")
+    ex.add_argument("run", help="training run hash (runs/train/<hash>)")
+    ex.add_argument("--out", required=True, help="weights file to write (.pt); a .json lands beside it")
+    ex.add_argument("--runs-dir", default="runs")
+    pr = commands.add_parser("predict", help="apply trained weights to LR EXR frames")
+    source = pr.add_mutually_exclusive_group(required=True)
+    source.add_argument("--weights", help="an exported weights file")
+    source.add_argument("--run", help="a recorded training run hash")
+    pr.add_argument("--runs-dir", default="runs")
+    pr.add_argument("--output-dir", required=True)
+    pr.add_argument("--tile", type=int, default=None, help="LR pixels per tile (bounded memory on large frames)")
+    pr.add_argument("inputs", nargs="+", help="LR frames (*_lr.exr), one sequence in order")
+    args = parser.parse_args(argv)
+    try:
+        if args.command == "export":
+            print(export(args.run, args.out, args.runs_dir))
+            return 0
+        model, meta = load_exported(args.weights) if args.weights else from_run(args.run, args.runs_dir)
+        for path in apply(model, meta, args.inputs, args.output_dir, args.tile):
+            print(path)
+        return 0
+    except (UserError, exrio.ExrError) as err:
+        print(f"error: {err}", file=sys.stderr)
+        return 2
+
+
+if __name__ == "__main__":
+    sys.exit(main())

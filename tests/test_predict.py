@@ -1,0 +1,95 @@
+"""`srd-bench export` and `srd-bench predict`: a recorded run's weights applied to EXR frames."""
+import json
+
+import numpy as np
+import pytest
+import torch
+
+from bench import exrio, runs
+from bench.errors import UserError
+from bench.evaluate import predict as predict_batch
+from bench.predict import apply, export, load_exported, main, read_frame
+from bench.tasks import get_task
+from bench.train import Recipe, train
+from test_train import WEIGHTS, SyntheticSequences
+
+CFG = {"_target_": "baselines.edsr.EDSR", "channels": 8, "blocks": 2}
+
+
+@pytest.fixture(scope="module")
+def recorded(tmp_path_factory):
+    """A complete training run of a tiny EDSR in a fresh run store: (runs_dir, hash)."""
+    from bench.experiments.pipeline import build_model
+    root = tmp_path_factory.mktemp("predict")
+    recipe = Recipe(steps=4, batch_size=2, seq_len=2, crop=8, loss=WEIGHTS, hdr="pu", checkpoint_every=2)
+    identity = {"model": CFG, "task": "srd", "train": recipe.identity(), "data": "synthetic", "seed": 0}
+    run = runs.begin(root / "runs", "train", identity)
+    torch.manual_seed(0)
+    summary = train(build_model(CFG, 2), SyntheticSequences(), get_task("srd"), run.dir, recipe, progress=False)
+    runs.complete(run, summary)
+    return root / "runs", run.hash
+
+
+def _frame(path, h=24, w=32, seed=0, layers=("noisy", "albedo", "normal", "roughness")):
+    g = np.random.default_rng(seed)
+    sizes = {"noisy": 3, "albedo": 3, "normal": 3, "roughness": 1}
+    exrio.write_exr(path, {n: g.random((h, w, sizes[n])).astype(np.float32) for n in layers})
+    return path
+
+
+def test_exported_weights_predict_what_the_model_predicts(recorded, tmp_path):
+    runs_dir, run_hash = recorded
+    weights = export(run_hash, tmp_path / "w" / "edsr.pt", runs_dir)
+    meta = json.loads(weights.with_suffix(".pt.json").read_text())
+    assert meta["run"] == run_hash and meta["hdr"] == "pu" and len(meta["sha256"]) == 64
+    model, meta = load_exported(weights)
+    inputs = [_frame(tmp_path / f"000{i}_lr.exr", seed=i) for i in range(2)]
+    image = exrio.read_exr(inputs[1])        # the second frame gets a NaN: repaired and counted
+    image["noisy"][3, 4, 0] = np.nan
+    exrio.write_exr(inputs[1], image)
+    written = apply(model, meta, [str(p) for p in inputs], tmp_path / "out")
+    assert [p.name for p in written] == ["0000_hr.exr", "0001_hr.exr"]
+    out = exrio.read_exr(written[0])["output"]
+    assert out.shape == (48, 64, 3) and np.isfinite(out).all()
+    x, g = read_frame(inputs[0])
+    expected = predict_batch(model, x[None, None], g[None, None], "pu")[0, 0].permute(1, 2, 0).numpy()
+    np.testing.assert_allclose(out, expected, rtol=1e-5, atol=1e-6)
+    import OpenEXR
+    with OpenEXR.File(str(written[1]), header_only=True) as f:
+        assert f.header()["srd_nonfinite_repaired"] == "1"
+
+
+def test_predict_on_the_command_line(recorded, tmp_path, capsys):
+    runs_dir, run_hash = recorded
+    frame = _frame(tmp_path / "0000_lr.exr", layers=("noisy", "albedo", "normal"))   # no roughness: 1.0
+    assert main(["predict", "--run", run_hash, "--runs-dir", str(runs_dir), "--output-dir",
+                 str(tmp_path / "out"), "--tile", "16", str(frame)]) == 0
+    assert (tmp_path / "out" / "0000_hr.exr").exists()
+
+
+@pytest.mark.parametrize("case,message", [
+    ("missing layer", "missing layers ['albedo']"),
+    ("two sizes", "must share one size"),
+    ("damaged weights", "does not match"),
+    ("not weights", "is not an SRD-Bench weights file"),
+    ("unknown run", "no training run"),
+])
+def test_each_bad_input_gets_its_message(recorded, tmp_path, capsys, case, message):
+    runs_dir, run_hash = recorded
+    weights = export(run_hash, tmp_path / "edsr.pt", runs_dir)
+    frames = [_frame(tmp_path / "0000_lr.exr")]
+    args = ["predict", "--weights", str(weights), "--output-dir", str(tmp_path / "out")]
+    if case == "missing layer":
+        frames = [_frame(tmp_path / "bad_lr.exr", layers=("noisy", "normal"))]
+    elif case == "two sizes":
+        frames.append(_frame(tmp_path / "0001_lr.exr", h=16))
+    elif case == "damaged weights":
+        weights.write_bytes(weights.read_bytes()[:-10] + b"0123456789")
+    elif case == "not weights":
+        torch.save({"state_dict": {}}, tmp_path / "other.pt")
+        args[2] = str(tmp_path / "other.pt")
+    elif case == "unknown run":
+        args = ["predict", "--run", "0123456789abcdef", "--runs-dir", str(runs_dir), "--output-dir", str(tmp_path)]
+    assert main(args + [str(p) for p in frames]) == 2
+    err = capsys.readouterr().err
+    assert message in err and err.count("\n") == 1
