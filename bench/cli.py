@@ -16,6 +16,7 @@ import hydra
 from omegaconf import DictConfig, OmegaConf
 
 from bench.errors import UserError
+from bench.exrio import ExrError
 from bench.infer import keep_freed_memory
 from bench.runs import ensure_writable
 from bench.experiments import KINDS
@@ -204,3 +205,7 @@ def main(cfg: DictConfig) -> None:
     except (UserError, PermissionError, FileNotFoundError) as err:
         print(f"error: {err}", file=sys.stderr)
         sys.exit(getattr(err, "exit_code", 2))
+    except ExrError as err:  # a frame damaged after the last check (headers are checked at every start)
+        print(f"error: {err}; `python -m bench +experiment=data scale={cfg.scale.name} verify=true` reads every "
+              "frame and renders the damaged ones again", file=sys.stderr)
+        sys.exit(2)

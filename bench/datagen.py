@@ -99,6 +99,35 @@ def buffer_layers(buffer, gbuf_layers=GBUF_LAYERS):
     return list(gbuf_layers) if kind == "gbuf" else [kind]
 
 
+def damaged_frames(root, frames, passes, decode=False):
+    """(path, what is wrong) for every frame file that is missing, unreadable or lacks a layer its
+    record's buffers need. Reads headers only, unless `decode` (every pixel: also finds a file cut
+    inside its pixel data, at the cost of reading the whole dataset)."""
+    problems = []
+    for rec in frames:
+        left_out = rec.get("left_out") or {}
+        gbuf_layers = [g for g in GBUF_LAYERS if g not in left_out]
+        paths = frame_paths(root, rec["split"], rec["sequence"], rec["frame"])
+        for res, path in zip(("lr", "hr"), paths[:2]):
+            wanted = {layer for b in (rec.get("buffers") or passes) if b.startswith(res)
+                      for layer in buffer_layers(b, gbuf_layers)}
+            if not wanted:
+                continue
+            if not os.path.exists(path):
+                problems.append((path, "missing"))
+                continue
+            try:
+                lacking = wanted - set(exrio.exr_layers(path))
+            except exrio.ExrError:
+                problems.append((path, "unreadable"))
+                continue
+            if lacking:
+                problems.append((path, f"lacks layers {sorted(lacking)}"))
+            elif decode and not exrio.is_valid_exr(path, sorted(wanted)):
+                problems.append((path, "does not decode (truncated or corrupt)"))
+    return problems
+
+
 def _load_record(rec_path, settings_hash):
     """The frame's record if it exists and was rendered with the same settings, else None."""
     try:

@@ -7,10 +7,12 @@ from __future__ import annotations
 
 import json
 import logging
+from pathlib import Path
 
 import pandas as pd
 
-from bench.datagen import export_examples, load_manifest
+from bench.datagen import damaged_frames, export_examples, load_manifest
+from bench.errors import UserError
 from bench.experiments.pipeline import Context, ensure_data
 from bench.tables import write_table
 from bench.tasks import BUFFERS
@@ -33,10 +35,24 @@ def summarize(frames: list[dict]) -> pd.DataFrame:
     return pd.DataFrame(rows)
 
 
-def run(ctx: Context, name: str = "data", passes: list[str] | None = None, examples: int = 4) -> pd.DataFrame:
+def run(ctx: Context, name: str = "data", passes: list[str] | None = None, examples: int = 4,
+        verify: bool = False) -> pd.DataFrame:
+    """With `verify`, every frame is decoded; damaged ones are deleted and rendered again (with
+    render_data=false they are listed and nothing is changed)."""
     ensure_data(ctx, set(passes or BUFFERS))
     root = ctx.data_dir
     manifest = load_manifest(root)
+    if verify:
+        damaged = damaged_frames(root, manifest["frames"], manifest["passes"], decode=True)
+        log.info("data: verified every frame of %s: %d damaged files", root, len(damaged))
+        if damaged and not ctx.render_data:
+            raise UserError(f"data: {len(damaged)} damaged frame files: "
+                            + "; ".join(f"{path}: {why}" for path, why in damaged))
+        for path, _ in damaged:
+            Path(path).unlink(missing_ok=True)
+        if damaged:
+            ensure_data(ctx, set(passes or BUFFERS))
+            manifest = load_manifest(root)
     table = summarize(manifest["frames"])
     out = ctx.results_dir / name
     write_table(table, out, caption=(

@@ -27,7 +27,7 @@ import torch
 from hydra.utils import instantiate
 
 from bench import runs
-from bench.datagen import build_dataset, frame_paths, load_manifest
+from bench.datagen import build_dataset, damaged_frames, frame_paths, load_manifest
 from bench.dataset import SequenceDataset
 from bench.errors import UserError
 from bench.evaluate import SCORES, evaluate
@@ -165,13 +165,23 @@ def ensure_data(ctx: Context, passes: set[str]) -> str:
     """Make sure `data_dir` holds the scale's dataset with at least `passes`, rendering only what is
     missing; returns the data fingerprint. With render_data=false the directory is used as it is."""
     if not ctx.render_data:
-        return data_fingerprint(ctx)
+        fingerprint = data_fingerprint(ctx)
+        manifest = load_manifest(ctx.data_dir)
+        damaged = damaged_frames(ctx.data_dir, manifest["frames"], manifest.get("passes", []))
+        if damaged:
+            raise UserError(f"data: {len(damaged)} damaged frame files in {ctx.data_dir} ({_listed(damaged)}); "
+                            "with render_data=false they are yours to replace (or drop their records from "
+                            "manifest.json)")
+        return fingerprint
     path = ctx.data_dir / "manifest.json"
     if path.exists():
         manifest = load_manifest(ctx.data_dir)
         if _canonical(manifest["spec"]) == _canonical(ctx.data_spec) and passes <= set(manifest["passes"]):
-            log.info("data: %s already holds %s", ctx.data_dir, ", ".join(sorted(passes)))
-            return data_fingerprint(ctx)
+            damaged = damaged_frames(ctx.data_dir, manifest["frames"], manifest["passes"])
+            if not damaged:
+                log.info("data: %s already holds %s", ctx.data_dir, ", ".join(sorted(passes)))
+                return data_fingerprint(ctx)
+            log.warning("data: %d damaged frame files (%s); rendering them again", len(damaged), _listed(damaged))
     identity = {"spec": ctx.data_spec, "passes": sorted(passes)}
     run = runs.begin(ctx.runs_dir, "data", identity, seed=ctx.data_spec.get("seed"), device=ctx.device,
                      label=f"data {ctx.scale}", force=True)  # a data run records one render job
@@ -183,6 +193,12 @@ def ensure_data(ctx: Context, passes: set[str]) -> str:
                         "render_time_s": float(manifest[timing_cols].fillna(0).to_numpy().sum()),
                         "nonfinite_repaired": int(manifest.get("nonfinite_repaired", 0).sum())})
     return data_fingerprint(ctx)
+
+
+def _listed(problems: list, shown: int = 3) -> str:
+    """'path: problem; ...' for (path, problem) pairs, the first `shown` of them."""
+    text = "; ".join(f"{path}: {why}" for path, why in problems[:shown])
+    return text + (f"; and {len(problems) - shown} more" if len(problems) > shown else "")
 
 
 def dataset(ctx: Context, split: str, task: Task, training: bool, seed: int = 0):
