@@ -3,7 +3,6 @@ import contextlib
 import itertools
 import os
 import shutil
-import time
 from pathlib import Path
 
 import numpy as np
@@ -133,28 +132,6 @@ def test_deform_module_starts_as_plain_conv_and_learns_offsets():
 def test_deform_rejects_non_same_padding():
     with pytest.raises(ValueError):
         DeformConv2d(2, 2, kernel_size=3, padding=0)
-
-
-@pytest.mark.slow
-def test_deform_speed_vs_conv2d():
-    """Forward time at (1, 32, 270, 480) vs nn.Conv2d, one thread. Target (later issue): <= 3x."""
-    x = torch.randn(1, 32, 270, 480)
-    conv, deform = torch.nn.Conv2d(32, 32, 3, padding=1), DeformConv2d(32, 32)
-    torch.nn.init.normal_(deform.offset_conv.weight, std=0.1)
-
-    def best(fn):
-        fn()
-        times = []
-        for _ in range(5):
-            t = time.perf_counter()
-            fn()
-            times.append(time.perf_counter() - t)
-        return min(times)
-
-    with torch.no_grad():
-        ratio = best(lambda: deform(x)) / best(lambda: conv(x))
-    print(f"deform/conv forward time ratio: {ratio:.2f}")
-    assert ratio < 8
 
 
 
@@ -483,7 +460,8 @@ def test_vgg_normalizes_and_passes_input_gradients():
 
 
 def _shared_weights_dir():
-    return Path(os.environ.get("SRD_VGG16_WEIGHTS", "/work/shared/weights"))
+    """The directory of the partial torchvision VGG16 files, where a machine has them (not shipped)."""
+    return Path(os.environ.get("SRD_VGG16_WEIGHTS_DIR", ""))
 
 
 @pytest.mark.parametrize("filename,layer,too_deep", [
@@ -493,7 +471,7 @@ def _shared_weights_dir():
 def test_vgg_loads_shared_partial_files(filename, layer, too_deep):
     path = _shared_weights_dir() / filename
     if not path.exists():
-        pytest.skip(f"{path} not present (set SRD_VGG16_WEIGHTS to the directory holding it)")
+        pytest.skip(f"{path} not present (set SRD_VGG16_WEIGHTS_DIR to the directory holding it)")
     model = load_vgg16_features(path, layer)
     state = torch.load(path, map_location="cpu", weights_only=True)
     torch.testing.assert_close(model.features[0].weight, state["0.weight"])

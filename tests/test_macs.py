@@ -7,14 +7,15 @@ import pytest
 import torch
 import torch.nn as nn
 import yaml
-from hydra.utils import instantiate
 
 from baselines.cfm import CFMNet
 from baselines.edsr import EDSR
 from baselines.kpcn import KPCN
 from baselines.rae import RAE
 from bench.experiments.flops import build_table
+from bench.experiments.pipeline import build_model
 from bench.macs import audit, count_macs, fit_width, macs_at, on_meta, torch_counter_macs
+from bench.models.srd import SRDNet
 
 torch.set_num_threads(1)
 
@@ -160,10 +161,10 @@ def test_sota_models_fit_the_budget(name):
     the yaml must hold the fitted width (so training uses the budget-matched model)."""
     cfg = yaml.safe_load((CONF / f"{name}.yaml").read_text())
     arg = SOTA_WIDTH_ARGS[name]
-    width, macs = fit_width(lambda w: instantiate({**cfg, arg: w}), BUDGET, frame_inputs)
+    width, macs = fit_width(lambda w: build_model({**cfg, arg: w}, 2), BUDGET, frame_inputs)
     assert abs(macs / BUDGET - 1) <= 0.05
     assert width == cfg[arg]
-    model, inputs = on_meta(lambda: instantiate(cfg), frame_inputs)
+    model, inputs = on_meta(lambda: build_model(cfg, 2), frame_inputs)
     assert audit(model, inputs)["macs"] == macs
 
 
@@ -189,15 +190,13 @@ def test_build_table_writes_the_audit(tmp_path):
 
 def test_srdnet_audit_small():
     """The proposed model's conv/matmul MACs (deformable convs included) agree with FlopCounterMode."""
-    srd = pytest.importorskip("bench.models.srd")
-    assert audit(srd.SRDNet().eval(), small_inputs("cpu", 20, 36, t=2))["rel_diff"] <= 0.01
+    assert audit(SRDNet().eval(), small_inputs("cpu", 20, 36, t=2))["rel_diff"] <= 0.01
 
 
 @pytest.mark.slow  # ~20 s: the deformable conv's strip loop runs ~1000 times at 1920x1080 even on meta
 def test_srdnet_default_is_within_budget():
     """Checked at its default (the paper's) width, not fitted."""
-    srd = pytest.importorskip("bench.models.srd")
-    model, inputs = on_meta(srd.SRDNet, frame_inputs)
+    model, inputs = on_meta(SRDNet, frame_inputs)
     result = audit(model, inputs)
     deviation = result["macs"] / BUDGET - 1
     print(f"SRDNet default: {result['macs'] / 1e9:.2f} GMac, deviation {100 * deviation:+.2f}%")

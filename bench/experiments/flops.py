@@ -16,8 +16,8 @@ from pathlib import Path
 
 import pandas as pd
 import torch
-from hydra.utils import instantiate
 
+from bench.experiments.pipeline import build_model
 from bench.macs import audit, closest_width, count_params, on_meta
 from bench.tables import write_table
 
@@ -53,12 +53,12 @@ def audit_row(name: str, cfg: dict, budget_macs: float, input_hw, tolerance: flo
     cfg.setdefault("scale", 2)
     inputs_fn = frame_inputs(cfg, input_hw)
     if width_arg:
-        cfg[width_arg], macs = closest_width(lambda width: instantiate({**cfg, width_arg: width}),
+        cfg[width_arg], macs = closest_width(lambda width: build_model({**cfg, width_arg: width}, 2),
                                              budget_macs, inputs_fn, lo=1)
         if abs(macs / budget_macs - 1) > tolerance:
             log.warning("flops: %s: no %s gives MACs within %.0f%% of the budget; closest %d is %+.1f%%",
                         name, width_arg, 100 * tolerance, cfg[width_arg], 100 * (macs / budget_macs - 1))
-    model, inputs = on_meta(lambda: instantiate(cfg), inputs_fn)
+    model, inputs = on_meta(lambda: build_model(cfg, 2), inputs_fn)
     row = {"method": name, "width": f"{width_arg}={cfg[width_arg]}" if width_arg else "default",
            "params": count_params(model)}
     if row["params"] == 0:  # non-learned rows (interpolation, OIDN) are not part of the budget

@@ -40,9 +40,9 @@ from pathlib import Path
 import pandas as pd
 import torch
 import torch.nn as nn
-from hydra.utils import instantiate
 
 from bench.evaluate import sync
+from bench.experiments.pipeline import build_model
 from bench.infer import freed_memory_kept, max_abs_diff, parse_path, prepare, release_free_memory, tiled_predict
 from bench.losses import weighted_loss
 from bench.macs import count_macs, on_meta
@@ -141,7 +141,7 @@ def frame_inputs(batch: int, frames: int, hw, device: str, in_channels=3, gbuffe
 def build(cfg: dict, device: str, perturb: float, seed: int = 0) -> nn.Module:
     """The model of `cfg` (scale 2) with N(0, perturb) noise on every parameter (module docstring)."""
     torch.manual_seed(seed)
-    model = instantiate(cfg, scale=2)
+    model = build_model(cfg, 2)
     with torch.no_grad():
         for p in model.parameters():
             p.add_(torch.randn_like(p) * perturb)
@@ -486,7 +486,7 @@ def _sections(ctx, models, input_hw, paths, repeats, warmup, train, oidn, stack_
     train_crop = {"batch": ctx.train.get("batch_size", 4), "frames": ctx.train.get("seq_len", 5),
                   "crop": ctx.train.get("crop", 32), **{k: v for k, v in train.items() if v is not None}}
     if stack_channels and "srd" in ctx.models:
-        ours_macs = macs_per_frame(lambda: instantiate(ctx.models["srd"], scale=2), input_hw)
+        ours_macs = macs_per_frame(lambda: build_model(ctx.models["srd"], 2), input_hw)
         yield conv_stack_rows(ours_macs, input_hw, stack_channels, paths, device, repeats, warmup,
                               train_crop if train_crop.get("enabled", True) else None)
     if deform.get("enabled", True):
@@ -499,13 +499,13 @@ def _sections(ctx, models, input_hw, paths, repeats, warmup, train, oidn, stack_
         cfg = ctx.models[name]
         label = LABELS.get(name, name)
         model = build(cfg, device, perturb)
-        macs = macs_per_frame(lambda: instantiate(cfg, scale=2), input_hw)
+        macs = macs_per_frame(lambda: build_model(cfg, 2), input_hw)
         rows = inference_rows(label, model, macs, x, g, paths, device, repeats, warmup)
         if train.get("enabled", True):
             rows += training_rows(label, model, train, ctx.train["loss"], ctx.train.get("lr", 6e-4), device,
                                   repeats, warmup)
         if name in (profile.get("models") or []):
-            rows += profile_rows(label, model, macs_table(lambda: instantiate(cfg, scale=2), input_hw), x, g,
+            rows += profile_rows(label, model, macs_table(lambda: build_model(cfg, 2), input_hw), x, g,
                                  profile.get("path") or paths[-1], device, repeats, warmup)
         if name in tile_models:
             untiled = prepare(model)(x, g)

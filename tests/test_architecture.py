@@ -1,0 +1,110 @@
+"""The floors of ARCHITECTURE.md, checked on the source (ast; nothing is imported): a module imports only
+its own floor or lower ones (floor 1 nothing of the project but a sibling in bench/nn and bench/errors),
+with no import cycles; models never import data loading or the run store; metrics and losses never
+import models. The floors are read from ARCHITECTURE.md's table, so the document and the test cannot
+drift apart."""
+import ast
+import re
+from pathlib import Path
+
+import pytest
+
+ROOT = Path(__file__).resolve().parent.parent
+PACKAGES = ("bench", "baselines")
+
+
+def _floors() -> dict[str, int]:
+    """path prefix ('bench/nn/', 'bench/metrics.py', ...) -> floor number, from ARCHITECTURE.md."""
+    floors = {}
+    for line in (ROOT / "ARCHITECTURE.md").read_text().splitlines():
+        match = re.match(r"\|\s*(\d)\s[^|]*\|([^|]*)\|", line)
+        if match:
+            for path in re.findall(r"`((?:bench|baselines)/[\w/.]*)`", match.group(2)):
+                floors[path] = int(match.group(1))
+    return floors
+
+
+FLOORS = _floors()
+SOURCES = sorted(p.relative_to(ROOT).as_posix() for pkg in PACKAGES for p in (ROOT / pkg).rglob("*.py"))
+
+
+def floor_of(path: str) -> int | None:
+    matches = [prefix for prefix in FLOORS if path == prefix or (prefix.endswith("/") and path.startswith(prefix))]
+    return FLOORS[max(matches, key=len)] if matches else None
+
+
+def module_file(name: str) -> str | None:
+    base = ROOT.joinpath(*name.split("."))
+    for path in (base.with_suffix(".py"), base / "__init__.py"):
+        if path.is_file():
+            return path.relative_to(ROOT).as_posix()
+    return None
+
+
+def project_imports(path: str) -> set[str]:
+    """Project source files `path` imports (any `from x import y` where y is a module counts as x.y)."""
+    package = ".".join(Path(path).with_suffix("").parts[:-1]) if not path.endswith("__init__.py") \
+        else ".".join(Path(path).parts[:-1])
+    found = set()
+    for node in ast.walk(ast.parse((ROOT / path).read_text())):
+        names = []
+        if isinstance(node, ast.Import):
+            names = [a.name for a in node.names]
+        elif isinstance(node, ast.ImportFrom):
+            base = node.module or ""
+            if node.level:
+                anchor = package.split(".")[:len(package.split(".")) - node.level + 1]
+                base = ".".join(anchor + ([base] if base else []))
+            names = [f"{base}.{a.name}" for a in node.names] + [base]
+        for name in names:
+            if name.split(".")[0] in PACKAGES:
+                target = module_file(name)
+                if target and target != path and not target.endswith("__init__.py"):
+                    found.add(target)
+    return found
+
+
+def test_every_source_file_has_a_floor():
+    assert [p for p in SOURCES if not p.endswith("__init__.py") and floor_of(p) is None] == []
+
+
+@pytest.mark.parametrize("path", [p for p in SOURCES if not p.endswith("__init__.py")])
+def test_imports_go_down_the_floors(path):
+    mine = floor_of(path)
+    for target in project_imports(path):
+        theirs = floor_of(target)
+        if mine == 1:
+            allowed = target == "bench/errors.py" or (path.startswith("bench/nn/") and target.startswith("bench/nn/"))
+            assert allowed, f"{path} (floor 1) imports {target}"
+        else:
+            assert theirs <= mine, f"{path} (floor {mine}) imports {target} (floor {theirs})"
+
+
+def test_no_import_cycles():
+    graph = {p: project_imports(p) for p in SOURCES}
+    state = {}
+
+    def visit(node, trail):
+        state[node] = "open"
+        for nxt in graph.get(node, ()):
+            assert state.get(nxt) != "open", "import cycle: " + " -> ".join(trail + [nxt])
+            if nxt not in state:
+                visit(nxt, trail + [nxt])
+        state[node] = "done"
+    for node in graph:
+        if node not in state:
+            visit(node, [node])
+
+
+def test_models_never_import_data_loading_or_the_run_store_and_metrics_never_import_models():
+    forbidden_for_models = {"bench/dataset.py", "bench/datagen.py", "bench/runs.py", "bench/render.py"}
+    for path in SOURCES:
+        imports = project_imports(path)
+        if path.startswith(("bench/models/", "baselines/")):
+            assert not imports & forbidden_for_models, f"{path} imports {imports & forbidden_for_models}"
+        if path in ("bench/metrics.py", "bench/losses.py"):
+            assert not [t for t in imports if t.startswith(("bench/models/", "baselines/"))], path
+
+
+def test_the_floor_table_is_read():
+    assert FLOORS["bench/runs.py"] == 1 and FLOORS["bench/experiments/"] == 3 and FLOORS["bench/cli.py"] == 4
