@@ -86,12 +86,7 @@ def crop_figure(ctx: Context, rows: list[dict], path: Path, split: str = "val", 
         title = label if label == "Reference" else f"{label}\nrelMSE {float(relmse(c, ref[crop])):.4f}"
         ax.set_title(title, fontsize=7)
     fig.suptitle(f"{path.parent.name}: {split} frame, crop {size}x{size} at ({top}, {left})", fontsize=8)
-    fig.tight_layout()
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(path, dpi=120)
-    plt.close(fig)
-    log.info("figure: %s", path)
-    return path
+    return _save(fig, path, dpi=120)
 
 
 def curve_figure(runs_dir: Path, curves: dict[str, list[str]], path: Path, metric: str = "PSNR") -> Path | None:
@@ -126,9 +121,14 @@ def curve_figure(runs_dir: Path, curves: dict[str, list[str]], path: Path, metri
     by_step.legend(fontsize=7)
     fig.suptitle(f"{path.parent.name}: learning curves (EMA weights, validation subset; step 0 = the start)",
                  fontsize=9)
+    return _save(fig, path, dpi=110)
+
+
+def _save(fig, path: Path, dpi: int) -> Path:
+    import matplotlib.pyplot as plt
     fig.tight_layout()
     path.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(path, dpi=110)
+    fig.savefig(path, dpi=dpi)
     plt.close(fig)
     log.info("figure: %s", path)
     return path
