@@ -7,7 +7,7 @@ Non-learned: classical.Bilinear, classical.Bicubic, oidn.OIDN.
 
 The paper adapts denoisers by attaching a pixel-shuffle layer at the end and SR models by training them on
 noisy inputs, and matches their compute (~260 GMac at 960x540) by changing channel counts only; the
-width arguments here are what bench/experiments/flops.py fits.
+width arguments here are what bench/experiments/macs.py fits.
 
 This file also holds the two small helpers the baselines share.
 """

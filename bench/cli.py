@@ -177,6 +177,10 @@ def run_experiment(cfg: DictConfig) -> None:
                         + ", ".join(available_experiments()))
     exp = OmegaConf.to_container(cfg.experiment, resolve=True)
     kind = exp.pop("kind", "table")
+    old_name = exp.pop("deprecated_name", None)
+    if old_name:
+        log.warning("+experiment=%s is deprecated: use +experiment=%s (same experiment; results in %s/%s)",
+                    old_name, exp.get("name", kind), cfg.results_dir, exp.get("name", kind))
     if kind == "all":
         from hydra.core.hydra_config import HydraConfig
         overrides = [o for o in HydraConfig.get().overrides.task if not o.lstrip("+").startswith("experiment")]

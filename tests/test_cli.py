@@ -34,7 +34,7 @@ def compose_experiment(name, *overrides):
 def test_every_experiment_composes_at_every_scale(name, scale):
     cfg = compose_experiment(name, f"scale={scale}")
     assert cfg.scale.name == scale
-    assert cfg.experiment.name == name
+    assert cfg.experiment.name == name or cfg.experiment.get("deprecated_name") == name
     ctx = make_context(cfg)                       # every key the experiments read is there
     assert ctx.data_spec and ctx.train["steps"] > 0 and ctx.budget_gmac > 0
 
@@ -61,7 +61,7 @@ def test_every_model_config_is_configured_and_keeps_the_model_contract(name):
 @pytest.mark.parametrize("scale", ["smoke", "cpu", "paper"])
 def test_configured_widths_meet_the_scale_budget(scale):
     """The widths a scale trains with are the ones the MAC audit fits to its budget (+-5%)."""
-    from bench.experiments.flops import SOTA_ROWS, audit_row
+    from bench.experiments.macs import SOTA_ROWS, audit_row
     ctx = make_context(compose_experiment("smoke", f"scale={scale}"))
     for row in SOTA_ROWS:
         cfg = dict(ctx.models[row["model"]])
@@ -154,16 +154,16 @@ def test_unwritable_results_directory_is_a_clear_message(tmp_path):
     assert "not writable" in out.stderr and "Traceback" not in out.stderr
 
 
-def test_flops_experiment_audits_the_sota_models(tmp_path):
-    out = bench("+experiment=flops", "scale=paper", f"results_dir={tmp_path}", f"runs_dir={tmp_path}/runs")
+def test_macs_experiment_audits_the_sota_models(tmp_path):
+    out = bench("+experiment=macs", "scale=paper", f"results_dir={tmp_path}", f"runs_dir={tmp_path}/runs")
     assert out.returncode == 0, out.stderr[-3000:]
-    table = pd.read_csv(tmp_path / "flops" / "table.csv")
+    table = pd.read_csv(tmp_path / "macs" / "table.csv")
     assert list(table["method"]) == ["EDSR", "RAE", "KPCN", "CFM", "Ours"]
     assert (table["budget deviation %"].abs() <= 5).all(), table
     # the two counters agree on conv/matmul work; only declared extra MACs (sampling, filtering) differ
     seen = table["GMac (analytic)"] - table["GMac not seen by torch counter"]
     assert ((seen - table["GMac (torch counter)"]).abs() <= 0.01 * table["GMac (torch counter)"]).all()
-    assert (tmp_path / "flops" / "table.tex").exists() and (tmp_path / "flops" / "stages.csv").exists()
+    assert (tmp_path / "macs" / "table.tex").exists() and (tmp_path / "macs" / "stages.csv").exists()
 
 
 def test_data_experiment_summarises_every_split(smoke_dirs):
@@ -219,9 +219,16 @@ def test_a_bad_value_on_the_command_line_ends_in_one_message_before_any_run(tmp_
 
 def test_sweep_jobs_write_distinct_tables_with_the_joblib_launcher(tmp_path):
     """The MAC audit needs no data or training: a cheap sweep of two jobs run in parallel by joblib."""
-    out = bench("-m", "hydra/launcher=joblib", "+experiment=flops", "scale=smoke", "seeds=[0],[1]",
+    out = bench("-m", "hydra/launcher=joblib", "+experiment=macs", "scale=smoke", "seeds=[0],[1]",
                 f"runs_dir={tmp_path}/runs", f"results_dir={tmp_path}/results", f"data_dir={tmp_path}/data",
                 "progress=false")
     assert out.returncode == 0, out.stderr[-2000:]
-    tables = sorted(p.parent.parent.name for p in (tmp_path / "results" / "sweeps").glob("*/flops/table.csv"))
+    tables = sorted(p.parent.parent.name for p in (tmp_path / "results" / "sweeps").glob("*/macs/table.csv"))
     assert tables == ["seeds=_0_", "seeds=_1_"]
+
+
+def test_the_old_flops_name_still_runs_the_mac_audit_with_a_deprecation_message(tmp_path):
+    out = bench("+experiment=flops", "scale=smoke", f"results_dir={tmp_path}", f"runs_dir={tmp_path}/runs")
+    assert out.returncode == 0, out.stderr[-2000:]
+    assert "+experiment=flops is deprecated: use +experiment=macs" in out.stderr + out.stdout
+    assert (tmp_path / "macs" / "table.csv").exists()

@@ -21,7 +21,7 @@ import logging
 import pandas as pd
 
 from bench.experiments.figure import crop_figure, curve_figure
-from bench.experiments.flops import frame_inputs
+from bench.experiments.macs import frame_inputs
 from bench.experiments.pipeline import Context, build_model, ensure_data, is_learned, model_config, row
 from bench.macs import count_macs, on_meta
 from bench.metrics import HIGHER_IS_BETTER, LOWER_IS_BETTER, RELMSE_FORMULA

@@ -56,7 +56,7 @@ def audit_row(name: str, cfg: dict, budget_macs: float, input_hw, tolerance: flo
         cfg[width_arg], macs = closest_width(lambda width: build_model({**cfg, width_arg: width}, 2),
                                              budget_macs, inputs_fn, lo=1)
         if abs(macs / budget_macs - 1) > tolerance:
-            log.warning("flops: %s: no %s gives MACs within %.0f%% of the budget; closest %d is %+.1f%%",
+            log.warning("macs: %s: no %s gives MACs within %.0f%% of the budget; closest %d is %+.1f%%",
                         name, width_arg, 100 * tolerance, cfg[width_arg], 100 * (macs / budget_macs - 1))
     model, inputs = on_meta(lambda: build_model(cfg, 2), inputs_fn)
     row = {"method": name, "width": f"{width_arg}={cfg[width_arg]}" if width_arg else "default",
@@ -74,12 +74,12 @@ def audit_row(name: str, cfg: dict, budget_macs: float, input_hw, tolerance: flo
 
 
 def build_table(models: dict[str, dict], budget_gmac: float, input_hw=(540, 960),
-                out_dir: Path = Path("results/flops"), caption: str = "") -> pd.DataFrame:
+                out_dir: Path = Path("results/macs"), caption: str = "") -> pd.DataFrame:
     """Audit every model (display name -> instantiate dict, optionally with `width_arg`) and write tables."""
     rows, stages = [], []
     for name, cfg in models.items():
         row, per_stage = audit_row(name, cfg, budget_gmac * 1e9, tuple(input_hw))
-        log.info("flops: %s %s: %s GMac", name, row["width"], row.get("GMac (analytic)"))
+        log.info("macs: %s %s: %s GMac", name, row["width"], row.get("GMac (analytic)"))
         row["per stage (GMac)"] = ", ".join(f"{s} {m / 1e9:.1f}" for s, m in per_stage.items()) or "-"
         rows.append(row)
         stages += [{"method": name, "stage": s, "GMac": m / 1e9} for s, m in per_stage.items()]
@@ -97,7 +97,7 @@ def build_table(models: dict[str, dict], budget_gmac: float, input_hw=(540, 960)
     return table
 
 
-def run(ctx, name: str = "flops", rows: list[dict] | None = None, input_hw=(540, 960), caption: str = ""):
+def run(ctx, name: str = "macs", rows: list[dict] | None = None, input_hw=(540, 960), caption: str = ""):
     """CLI entry: rows are {label, model (a name in ctx.models), width_arg (optional), overrides
     (optional)}; defaults to the paper's Table 5 models. Writes to <results_dir>/<name>/."""
     models = {}
