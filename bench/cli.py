@@ -66,9 +66,9 @@ def config_problems(plain: dict) -> list[str]:
         if not (isinstance(lr, (int, float)) and not isinstance(lr, bool) and lr > 0):
             problems.append(f"model_lr.{name}={lr!r}: expected a positive number")
     try:
-        parse_path(_lookup(plain, "eval.path"))
+        parse_path(_lookup(plain, "eval.fast_path"))
     except (ValueError, AttributeError) as err:
-        problems.append(f"eval.path={_lookup(plain, 'eval.path')!r}: {err}")
+        problems.append(f"eval.fast_path={_lookup(plain, 'eval.fast_path')!r}: {err}")
     tile = _lookup(plain, "eval.tile")
     if tile is not None and not (_is_int(tile) and tile > 0):
         problems.append(f"eval.tile={tile!r}: expected null (whole frames) or a positive integer")
@@ -78,6 +78,10 @@ def config_problems(plain: dict) -> list[str]:
 def make_context(cfg: DictConfig):
     from bench.experiments.pipeline import Context
     plain = OmegaConf.to_container(cfg, resolve=True)
+    if plain["eval"].get("path") is not None:  # the old name, next to file paths in the same docs
+        log.warning("eval.path is deprecated: use eval.fast_path=%s", plain["eval"]["path"])
+        plain["eval"]["fast_path"] = plain["eval"].pop("path")
+    plain["eval"].pop("path", None)
     problems = config_problems(plain)
     if problems:
         raise UserError("bad config (nothing was run):\n  " + "\n  ".join(problems))

@@ -199,7 +199,8 @@ def test_shard_parses_i_over_n_and_rejects_the_rest():
     ("seeds=[]", "seeds=[]: expected a non-empty list of integers"),
     ("seeds=[a]", "seeds=['a']: expected a non-empty list of integers"),
     ("+model_lr.srd=-1", "model_lr.srd=-1: expected a positive number"),
-    ("eval.path=turbo", "eval.path='turbo': unknown fast path switch 'turbo'"),
+    ("eval.fast_path=turbo", "eval.fast_path='turbo': unknown fast path switch 'turbo'"),
+    ("eval.path=turbo", "eval.fast_path='turbo': unknown fast path switch 'turbo'"),   # the old name
     ("eval.tile=0", "eval.tile=0: expected null (whole frames) or a positive integer"),
 ])
 def test_every_bad_value_is_one_line_naming_key_value_and_rule(tmp_path, override, message):

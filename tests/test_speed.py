@@ -197,7 +197,7 @@ def test_speed_experiment_writes_every_section(tmp_path):
     conv = deform[deform.method.str.startswith("nn.Conv2d")]
     assert (conv["time / plain conv"] == 1).all() and len(conv) == 3
     profile = table[table.section == "profile"].set_index("method")
-    assert profile.loc["Ours: whole frame", "path"] == PATHS[-1]
+    assert profile.loc["Ours: whole frame", "fast path"] == PATHS[-1]
     # inclusive times: a class's time is within its frame's, and its parts' within its own
     assert (profile["ms"] <= profile.loc["Ours: whole frame", "ms"] * 1.001).all()
     assert profile.loc["Ours: DeformConv2d", "ms"] <= profile.loc["Ours: DecoderBlock", "ms"] * 1.001

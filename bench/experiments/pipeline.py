@@ -371,9 +371,9 @@ def evaluated(ctx: Context, cfg: dict, task: Task, seed: int, split: str, label:
     identity = {"trained": trained, "split": split, "data": data_fingerprint(ctx, split), "hdr": hdr}
     if ctx.eval.get("save_exr"):
         identity["frames"] = True  # output frames are an artifact of their own run
-    fast_path, tile = ctx.eval.get("path", REFERENCE), ctx.eval.get("tile")
+    fast_path, tile = ctx.eval["fast_path"], ctx.eval.get("tile")
     if fast_path != REFERENCE or tile:  # only a non-default way of running changes the identity
-        identity.update(path=fast_path, tile=tile)
+        identity.update(path=fast_path, tile=tile)  # ("path": the identity key from before the rename)
     # a learned row's numbers also depend on the trainer: retraining it makes its evaluation stale too
     code = code_of(cfg, *EVALUATION_CODE, *(TRAINING_CODE if train_run is not None or cascade else ()))
     run = runs.begin(ctx.runs_dir, "eval", identity, seed=seed, device=ctx.device, label=label,

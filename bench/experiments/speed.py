@@ -54,7 +54,7 @@ log = logging.getLogger("bench")
 MODELS = ["srd", "edsr", "rae", "kpcn", "cfm"]
 LABELS = {"srd": "Ours", "edsr": "EDSR", "rae": "RAE", "kpcn": "KPCN", "cfm": "CFM"}
 PATHS = ["fp32", "inference_mode", "channels_last", "bf16"]
-COLUMNS = ["section", "method", "path", "size", "per", "ms", "ms min", "ms max", "GMac", "GMac/s",
+COLUMNS = ["section", "method", "fast path", "size", "per", "ms", "ms min", "ms max", "GMac", "GMac/s",
            "peak MiB", "time / OIDN", "GMac/s / conv stack", "step / conv stack step", "time / plain conv",
            "max abs diff",
            "max rel diff", "note"]
@@ -186,7 +186,7 @@ def conv_stack_depth(target_macs: float, hw, channels: int) -> int:
 # ------------------------------------------------------------------------------ sections
 
 def _row(section, method, path, size, per, timing=None, **extra) -> dict:
-    row = {"section": section, "method": method, "path": path, "size": size, "per": per}
+    row = {"section": section, "method": method, "fast path": path, "size": size, "per": per}
     if timing is not None:
         row.update({k: timing[k] for k in ("ms", "ms min", "ms max")})
     row.update(extra)
@@ -433,10 +433,10 @@ def _ratios(table: pd.DataFrame) -> pd.DataFrame:
         frames = table["section"].isin(["inference", "tiled"])
         table.loc[frames, "time / OIDN"] = table.loc[frames, "ms"] / float(oidn.iloc[0])
     stack = table[table["method"].str.startswith("3x3 conv stack") & (table["section"] == "reference")]
-    stack = stack.set_index("path")["GMac/s"]
+    stack = stack.set_index("fast path")["GMac/s"]
     inference = table["section"] == "inference"
     table.loc[inference, "GMac/s / conv stack"] = [
-        gmacs / stack.get(path, float("nan")) for gmacs, path in table.loc[inference, ["GMac/s", "path"]].to_numpy()]
+        gmacs / stack.get(path, float("nan")) for gmacs, path in table.loc[inference, ["GMac/s", "fast path"]].to_numpy()]
     steps = table["section"] == "training step"
     stack_step = table.loc[steps & table["method"].str.startswith("3x3 conv stack"), "ms"]
     if len(stack_step):
@@ -445,7 +445,7 @@ def _ratios(table: pd.DataFrame) -> pd.DataFrame:
 
 
 def run(ctx, name: str = "speed", models: list[str] | None = None, input_hw=(540, 960),
-        paths: list[str] | None = None, repeats: int = 5, warmup: int = 1, threads: int | None = None,
+        fast_paths: list[str] | None = None, repeats: int = 5, warmup: int = 1, threads: int | None = None,
         train: dict | None = None, oidn: bool = True, conv_stack_channels: int = 32,
         deform: dict | None = None, tiled: dict | None = None, perturb: float = 0.02,
         profile: dict | None = None, caption: str = "") -> pd.DataFrame:
@@ -464,7 +464,7 @@ def run(ctx, name: str = "speed", models: list[str] | None = None, input_hw=(540
         "the proposed model's GMac on the same path; deformable conv time / nn.Conv2d of the same shape.")
     rows, table = [], None
     try:
-        for section in _sections(ctx, models or MODELS, tuple(input_hw), paths or PATHS, repeats, warmup,
+        for section in _sections(ctx, models or MODELS, tuple(input_hw), fast_paths or PATHS, repeats, warmup,
                                  train or {}, oidn, conv_stack_channels, deform or {}, tiled or {}, perturb,
                                  profile or {}, device):
             rows += section
@@ -506,7 +506,7 @@ def _sections(ctx, models, input_hw, paths, repeats, warmup, train, oidn, stack_
                                   repeats, warmup)
         if name in (profile.get("models") or []):
             rows += profile_rows(label, model, macs_table(lambda: build_model(cfg, 2), input_hw), x, g,
-                                 profile.get("path") or paths[-1], device, repeats, warmup)
+                                 profile.get("fast_path") or paths[-1], device, repeats, warmup)
         if name in tile_models:
             untiled = prepare(model)(x, g)
             uhd = tuple(tiled.get("uhd_input_hw", (1080, 1920))) if tiled.get("uhd", True) else None
