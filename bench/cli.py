@@ -125,7 +125,7 @@ def run_all(tables: list[str], overrides: list[str], summary_dir: Path) -> None:
     trained once (the run store), so a restarted `all` continues where it stopped."""
     import pandas as pd
     from hydra import compose
-    from bench.tables import write_table
+    from bench.table_writer import write_table
     rows = []
     for name in tables:
         if name not in available_experiments() or name == "all":

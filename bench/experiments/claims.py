@@ -24,7 +24,7 @@ import pandas as pd
 
 from bench.errors import UserError
 from bench.experiments.pipeline import Context
-from bench.tables import write_table
+from bench.table_writer import write_table
 
 log = logging.getLogger("bench")
 

@@ -14,7 +14,7 @@ import pandas as pd
 from bench.datagen import damaged_frames, export_examples, load_manifest
 from bench.errors import UserError
 from bench.experiments.pipeline import Context, ensure_data
-from bench.tables import write_table
+from bench.table_writer import write_table
 from bench.tasks import BUFFERS
 
 log = logging.getLogger("bench")

@@ -18,7 +18,7 @@ import numpy as np
 import pandas as pd
 
 from bench.experiments.pipeline import Context, model_config, trained_model, with_training, ensure_data
-from bench.tables import write_table
+from bench.table_writer import write_table
 from bench.tasks import get_task
 
 log = logging.getLogger("bench")

@@ -19,7 +19,7 @@ import torch
 
 from bench.experiments.pipeline import build_model
 from bench.macs import audit, closest_width, count_params, on_meta
-from bench.tables import write_table
+from bench.table_writer import write_table
 
 log = logging.getLogger("bench")
 

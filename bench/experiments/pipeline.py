@@ -298,7 +298,7 @@ def trained_model(ctx: Context, cfg: dict, task: Task, seed: int, label: str = "
     """The model of `cfg` trained on `task`, from the run store when recorded. Returns (model, run or None).
 
     With load=False a recorded run's weights are not read (the caller may not need them; see
-    `evaluated`), and the returned model is untrained: call `load_weights(model, run.dir)` to fill it.
+    `evaluated`) and the model returned is None: build it and `load_weights(model, run.dir)` when needed.
     With `stage` ("sr" or "dn") only that stage of an SRDNet (built at the SRD scale, 2) is trained on
     `task`, through SRDStage. With `divergence_ends` (a learning-rate range test) a diverging training is
     recorded complete with the step it diverged at, instead of failing."""
@@ -313,7 +313,7 @@ def trained_model(ctx: Context, cfg: dict, task: Task, seed: int, label: str = "
                      force=ctx.force, code=code_of(cfg, *TRAINING_CODE), reuse_stale=ctx.reuse_stale)
     if run.reused:
         log.info("train %s: reusing run %s", label or cfg["_target_"], run.hash)
-        return (load_weights(model, run.dir, ctx.device) if load else model), run
+        return (load_weights(model, run.dir, ctx.device) if load else None), run
     recipe = recipe_of(ctx)
     try:
         summary = train(model, dataset(ctx, "train", task, training=True, seed=seed), task, run.dir, recipe,
@@ -386,8 +386,8 @@ def evaluated(ctx: Context, cfg: dict, task: Task, seed: int, split: str, label:
     if run.reused:
         log.info("eval %s: reusing run %s", label, run.hash)
         return run
-    if train_run is not None and train_run.reused:
-        load_weights(model, train_run.dir, ctx.device)
+    if model is None:  # a recorded training whose weights trained_model did not read
+        model = load_weights(build_model(cfg, task.scale), train_run.dir, ctx.device)
     try:
         _, metrics = evaluate(model, dataset(ctx, split, task, training=False), task, hdr=hdr,
                               device=ctx.device, out_dir=run.dir, save_exr=ctx.eval.get("save_exr", False),

@@ -47,7 +47,7 @@ from bench.infer import freed_memory_kept, max_abs_diff, parse_path, prepare, re
 from bench.losses import weighted_loss
 from bench.macs import count_macs, on_meta
 from bench.nn import DeformConv2d, eager_gather, grid_sample_training, inference_sampler
-from bench.tables import write_table
+from bench.table_writer import write_table
 
 log = logging.getLogger("bench")
 

@@ -31,7 +31,7 @@ from bench.experiments.pipeline import (Context, dataset, ensure_data, is_learne
                                         trained_model, with_training)
 from bench.metrics import psnr, relmse, ssim
 from bench.nn import DeformConv2d
-from bench.tables import write_table
+from bench.table_writer import write_table
 from bench.tasks import get_task
 from bench.train import TrainingDiverged, batch_loss, train
 

@@ -1,5 +1,5 @@
 """A metrics table: one row per (model, overrides, task, training overrides), each a recorded run,
-written with `bench.tables.write_table` to `<results_dir>/<name>/table.{csv,tex,md}`, with the paper's
+written with `bench.table_writer.write_table` to `<results_dir>/<name>/table.{csv,tex,md}`, with the paper's
 numbers beside ours and a PNG of crops from a fixed validation frame.
 
 A row of the experiment file:
@@ -26,7 +26,7 @@ from bench.experiments.pipeline import Context, build_model, ensure_data, is_lea
 from bench.macs import count_macs, on_meta
 from bench.metrics import HIGHER_IS_BETTER, LOWER_IS_BETTER, RELMSE_FORMULA
 from bench.paper import TABLES, paper_values
-from bench.tables import write_table
+from bench.table_writer import write_table
 from bench.tasks import CASCADE_STAGES, get_task
 
 log = logging.getLogger("bench")

@@ -46,7 +46,7 @@ from bench.evaluate import predict, sync
 from bench.experiments.pipeline import (Context, build_model, ensure_data, is_learned, model_config,
                                         recipe_of, recorded_training, trained_model, with_training)
 from bench.metrics import HIGHER_IS_BETTER, LOWER_IS_BETTER, METRICS, RELMSE_FORMULA, mse
-from bench.tables import write_table
+from bench.table_writer import write_table
 from bench.tasks import GBUF_LAYERS, get_task
 
 log = logging.getLogger("bench")

@@ -1,6 +1,6 @@
 import pandas as pd
 
-from bench.tables import write_table
+from bench.table_writer import write_table
 
 
 def test_write_table_three_formats_with_best_in_bold(tmp_path):
