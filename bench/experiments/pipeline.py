@@ -54,7 +54,7 @@ class Context:
     train: dict
     eval: dict
     models: dict
-    budget_gmac: float = 260.0
+    budget_gmac: float | None = None                # the scale's MAC budget per 960x540 frame (GMac)
     seeds: list = field(default_factory=lambda: [0])
     device: str = "cpu"
     workers: int = 1
@@ -226,7 +226,7 @@ def validation(ctx: Context, task: Task, sequences: int):
     `sequences` validation sequences spread over the split (None when there are none to score)."""
     if sequences <= 0:
         return None
-    split = ctx.eval.get("split", "val")
+    split = ctx.eval["split"]
     try:
         full = dataset(ctx, split, task, training=False)
     except ValueError:  # no such split in this dataset: no curve, the final table still scores it
@@ -408,7 +408,7 @@ def row(ctx: Context, label: str, model: str, overrides: dict | None = None, tas
     t = get_task(task)
     cfg = model_config(ctx, model, overrides)
     ctx = with_training(ctx, train, model)
-    split = split or ctx.eval.get("split", "val")
+    split = split or ctx.eval["split"]
     results = [evaluated(ctx, cfg, t, seed, split, label, cascade) for seed in ctx.seeds]
     out = {"method": label, "task": task}
     for metric in (*SCORES, "time_ms"):

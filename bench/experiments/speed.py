@@ -51,7 +51,6 @@ from bench.table_writer import write_table
 
 log = logging.getLogger("bench")
 
-MODELS = ["srd", "edsr", "rae", "kpcn", "cfm"]
 LABELS = {"srd": "Ours", "edsr": "EDSR", "rae": "RAE", "kpcn": "KPCN", "cfm": "CFM"}
 PATHS = ["fp32", "inference_mode", "channels_last", "bf16"]
 COLUMNS = ["section", "method", "fast path", "size", "per", "ms", "ms min", "ms max", "GMac", "GMac/s",
@@ -444,7 +443,7 @@ def _ratios(table: pd.DataFrame) -> pd.DataFrame:
     return table
 
 
-def run(ctx, name: str = "speed", models: list[str] | None = None, input_hw=(540, 960),
+def run(ctx, name: str = "speed", models: list[str] = (), input_hw=(540, 960),
         fast_paths: list[str] | None = None, repeats: int = 5, warmup: int = 1, threads: int | None = None,
         train: dict | None = None, oidn: bool = True, conv_stack_channels: int = 32,
         deform: dict | None = None, tiled: dict | None = None, perturb: float = 0.02,
@@ -464,7 +463,7 @@ def run(ctx, name: str = "speed", models: list[str] | None = None, input_hw=(540
         "the proposed model's GMac on the same path; deformable conv time / nn.Conv2d of the same shape.")
     rows, table = [], None
     try:
-        for section in _sections(ctx, models or MODELS, tuple(input_hw), fast_paths or PATHS, repeats, warmup,
+        for section in _sections(ctx, models, tuple(input_hw), fast_paths or PATHS, repeats, warmup,
                                  train or {}, oidn, conv_stack_channels, deform or {}, tiled or {}, perturb,
                                  profile or {}, device):
             rows += section
@@ -502,7 +501,7 @@ def _sections(ctx, models, input_hw, paths, repeats, warmup, train, oidn, stack_
         macs = macs_per_frame(lambda: build_model(cfg, 2), input_hw)
         rows = inference_rows(label, model, macs, x, g, paths, device, repeats, warmup)
         if train.get("enabled", True):
-            rows += training_rows(label, model, train, ctx.train["loss"], ctx.train.get("lr", 6e-4), device,
+            rows += training_rows(label, model, train, ctx.train["loss"], ctx.train["lr"], device,
                                   repeats, warmup)
         if name in (profile.get("models") or []):
             rows += profile_rows(label, model, macs_table(lambda: build_model(cfg, 2), input_hw), x, g,

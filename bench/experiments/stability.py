@@ -36,8 +36,9 @@ from bench.tasks import get_task
 from bench.train import TrainingDiverged, batch_loss, train
 
 log = logging.getLogger("bench")
-LOSS = {"final": {"edge": 1, "temporal": 1, "spatial": 8, "perceptual": 0},
-        "intermediate": {"edge": 1, "temporal": 1, "spatial": 8, "perceptual": 0}}
+def stability_loss(ctx: Context) -> dict:
+    """The scale's loss weights without the perceptual term (the cases need no VGG16 weights)."""
+    return {stage: {**weights, "perceptual": 0} for stage, weights in ctx.train["loss"].items()}
 
 
 def _pixels(x, fraction=0.002, seed=0):
@@ -114,12 +115,12 @@ def _eval_row(model, x, g, hdr, ref=None, clean=None, sanitize=True) -> dict:
     return row
 
 
-def _train_step_row(model, batch, task, hdr, lr=6e-4) -> dict:
+def _train_step_row(model, batch, task, hdr, loss_weights: dict, lr: float) -> dict:
     """One Adam step on a copy of `model`: are the loss, the gradients and the new weights finite?"""
     model = copy.deepcopy(model).train()
     optimizer = torch.optim.Adam(model.parameters(), lr=lr)
     try:
-        loss, _ = batch_loss(model, batch, task, LOSS, hdr)
+        loss, _ = batch_loss(model, batch, task, loss_weights, hdr)
         loss.backward()
     except Exception as err:
         return {"train step": f"error: {type(err).__name__}: {err}"[:200]}
@@ -155,8 +156,8 @@ def _high_lr_row(ctx: Context, model, task, hdr, factor=10.0, steps=5) -> dict:
     with tempfile.TemporaryDirectory() as tmp:
         try:
             base = recipe_of(ctx)
-            recipe = dataclasses.replace(base, steps=steps, loss=LOSS, lr=factor * base.lr, hdr=hdr, warmup=0,
-                                         clip_grad_norm=None, checkpoint_every=steps)
+            recipe = dataclasses.replace(base, steps=steps, loss=stability_loss(ctx), lr=factor * base.lr, hdr=hdr,
+                                         warmup=0, clip_grad_norm=None, checkpoint_every=steps)
             train(m, dataset(ctx, "train", task, training=True), task, tmp, recipe, device="cpu", progress=False)
         except TrainingDiverged as err:
             return {"case": f"train at {factor:g}x lr", "finite": True, "train step": f"divergence detected: {err}"[:200]}
@@ -189,7 +190,7 @@ def model_rows(ctx: Context, name: str, seed: int, frames: int, long_frames: int
     model, _ = trained_model(ctx, cfg, task, seed, f"{name} (stability)")
     model.eval()
     hdr = recipe_of(ctx).hdr
-    item = dataset(ctx, ctx.eval.get("split", "val"), task, training=False)[0]
+    item = dataset(ctx, ctx.eval["split"], task, training=False)[0]
     x0, g0, ref = (item[k][None, :frames] for k in (task.x, task.g, task.y))
     clean = predict(model, x0, g0, hdr)
     rows = []
@@ -200,8 +201,8 @@ def model_rows(ctx: Context, name: str, seed: int, frames: int, long_frames: int
         row["finite without sanitation"] = _eval_row(model, x, g, hdr, sanitize=False).get("finite", False)
         if is_learned(model):
             mid = _resize(ref, (2 * x.shape[-2], 2 * x.shape[-1]))
-            row.update(_train_step_row(model, {"lr_noisy": x, "lr_gbuf": g, "hr_ref": scale_ref,
-                                               "hr_noisy": mid}, task, hdr))
+            batch = {"lr_noisy": x, "lr_gbuf": g, "hr_ref": scale_ref, "hr_noisy": mid}
+            row.update(_train_step_row(model, batch, task, hdr, stability_loss(ctx), recipe_of(ctx).lr))
         rows.append(row)
     for case, hw in SIZES.items():
         x, g = _resize(x0[:, :2], hw), _resize(g0[:, :2], hw)
@@ -248,9 +249,8 @@ def status(row) -> str:
     return "ok" + (f" {value:.3g}" if isinstance(value, float) and not math.isnan(value) else "")
 
 
-def run(ctx: Context, name: str = "stability", models: list[str] | None = None, frames: int = 3,
+def run(ctx: Context, name: str = "stability", models: list[str] = (), frames: int = 3,
         long_frames: int = 100) -> pd.DataFrame:
-    models = models or ["srd", "edsr", "rae", "kpcn", "cfm", "bilinear", "bicubic", "oidn_lr", "oidn_hr"]
     ensure_data(ctx, set(get_task("srd").buffers(with_mid=True)))
     rows = []
     for model_name in models:
