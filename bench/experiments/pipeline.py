@@ -23,6 +23,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
+import pandas as pd
 import torch
 from hydra.utils import instantiate
 
@@ -401,6 +402,20 @@ def evaluated(ctx: Context, cfg: dict, task: Task, seed: int, split: str, label:
     return runs.complete(run, metrics)
 
 
+def last_fifth_gain(curve_csv: Path, metric: str = "PSNR") -> float | None:
+    """How much the validation `metric` rose over the last fifth of a training (the final point minus
+    the point at 80% of the steps, from val_curve.csv): near 0, the curve has flattened; None without
+    a curve."""
+    if not curve_csv.exists():
+        return None
+    curve = pd.read_csv(curve_csv)
+    if len(curve) < 2:
+        return None
+    last = curve.iloc[-1]
+    before = curve[curve["step"] <= 0.8 * last["step"]].iloc[-1]
+    return float(last[metric] - before[metric])
+
+
 def row(ctx: Context, label: str, model: str, overrides: dict | None = None, task: str = "srd",
         split: str | None = None, train: dict | None = None, cascade: bool = False) -> dict:
     """One table row: metrics averaged over `ctx.seeds` (with std when there are several).
@@ -423,6 +438,10 @@ def row(ctx: Context, label: str, model: str, overrides: dict | None = None, tas
     out["train (min)"] = float(np.mean([runs.wall_time_s(ctx.runs_dir, "train", r.metrics.get("train_run"))
                                         for r in results])) / 60
     out["eval (min)"] = float(np.mean([r.record.get("wall_time_s") or 0.0 for r in results])) / 60
+    gains = [last_fifth_gain(ctx.runs_dir / "train" / h / "val_curve.csv") for r in results
+             for h in (r.metrics.get("train_run") or "").split("+") if h]
+    gains = [g for g in gains if g is not None]
+    out["last fifth (dB)"] = float(np.mean(gains)) if gains else None
     vgg = results[0].metrics.get("vgg")
     out["vgg"] = f"VGG16 {vgg['layer']} from {vgg['weights']}" if vgg else None
     out["runs"] = " ".join(r.hash for r in results)

@@ -163,7 +163,9 @@ def run(ctx: Context, name: str, rows: list[dict], caption: str = "", task: str 
     if vgg:
         notes += f" Perceptual loss features: {'; '.join(vgg)}."
     notes += (" train/eval (min): wall time of each row's runs as recorded in the run store (a run shared "
-              "with another table was computed once; a seed average for several seeds).")
+              "with another table was computed once; a seed average for several seeds). last fifth (dB): "
+              "what the validation PSNR (learning curve subset) gained over the last fifth of training, a "
+              "seed average; near 0: the curve has flattened.")
     out_dir = ctx.results_dir / name
     curves = {label: hashes.split() for label, hashes in zip(table["method"], table.pop("train runs")) if hashes}
     write_table(table.drop(columns=["reused"]), out_dir, caption=f"{caption} {notes}".strip(),
