@@ -19,6 +19,7 @@ import torch
 
 from bench.experiments.pipeline import build_model
 from bench.macs import audit, closest_width, count_params, on_meta
+from bench.paper import paper_values
 from bench.table_writer import write_table
 
 log = logging.getLogger("bench")
@@ -31,8 +32,12 @@ SOTA_ROWS = [
     {"label": "CFM", "model": "cfm", "width_arg": "channels"},
     {"label": "Ours", "model": "srd", "width_arg": None},
 ]
-# The paper's Table 5 "FLOPS/GMac" column (960x540 input), shown beside our counts.
-PAPER_GMAC = {"EDSR": 258.10, "RAE": 251.81, "KPCN": 269.42, "CFM": 247.97, "Ours": 258.29}
+
+
+def paper_gmac() -> dict[str, float]:
+    """The paper's Table 5 "FLOPS/GMac" column (960x540 input) by row label, from paper_values.csv."""
+    sota = paper_values("sota").dropna(subset=["GMac"])
+    return dict(zip(sota["row"], sota["GMac"]))
 
 
 def frame_inputs(cfg: dict, input_hw: tuple[int, int]):
@@ -85,7 +90,8 @@ def build_table(models: dict[str, dict], budget_gmac: float, input_hw=(540, 960)
         stages += [{"method": name, "stage": s, "GMac": m / 1e9} for s, m in per_stage.items()]
     table = pd.DataFrame(rows)
     if budget_gmac == 260:  # the paper's numbers are for its budget only
-        table["GMac (paper)"] = [PAPER_GMAC.get(name) for name in table["method"]]
+        published = paper_gmac()
+        table["GMac (paper)"] = [published.get(name) for name in table["method"]]
     out_dir = Path(out_dir)
     h, w = input_hw
     write_table(table, out_dir, caption=caption + (" " if caption else "") + (
