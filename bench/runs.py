@@ -138,7 +138,7 @@ def begin(runs_dir: str | Path, kind: str, identity: dict, config: dict | None =
     checkpoints included, unless `reuse_stale`.
     """
     if not force:
-        done = _reusable(runs_dir, kind, identity, code, reuse_stale, label)
+        done = _reusable(runs_dir, kind, identity, code, reuse_stale, label, quiet=True)
         if done is not None:
             return done
     h = config_hash(identity)
@@ -172,13 +172,16 @@ def begin(runs_dir: str | Path, kind: str, identity: dict, config: dict | None =
 
 
 def _reusable(runs_dir, kind: str, identity: dict, code: dict | None, reuse_stale: bool,
-              label: str) -> Run | None:
+              label: str, quiet: bool = False) -> Run | None:
+    """The complete run to reuse, or None; `quiet`: a first look before the lock, which logs nothing."""
     done = lookup(runs_dir, kind, identity)
     if done is None:
         return None
     done.stale = code_changes(done.record, code)
     if not done.stale:
         return done
+    if quiet and not reuse_stale:
+        return None
     changed = ", ".join(done.stale[:4]) + (f" and {len(done.stale) - 4} more" if len(done.stale) > 4 else "")
     if reuse_stale:
         log.warning("%s %s: reusing run %s although its code changed since (%s), as reuse_stale=true asks",
