@@ -173,7 +173,7 @@ def test_speed_experiment_writes_every_section(tmp_path):
     table = pd.read_csv(out / "table.csv")
     labels = ["Ours", "EDSR", "RAE", "KPCN", "CFM"]
     inference = table[table.section == "inference"]
-    assert sorted(zip(inference.method, inference.path)) == sorted((m, p) for m in labels for p in PATHS)
+    assert sorted(zip(inference.method, inference["fast path"])) == sorted((m, p) for m in labels for p in PATHS)
     assert inference[["ms", "GMac", "GMac/s", "time / OIDN", "GMac/s / conv stack"]].notna().all().all()
     assert (inference["max rel diff"] < 0.05).all() and inference["note"].isna().all()  # no path failed
     steps = table[table.section == "training step"]
@@ -181,7 +181,7 @@ def test_speed_experiment_writes_every_section(tmp_path):
     assert sorted(set(steps.method) - set(stack.method)) == sorted(labels) and len(stack) == 1
     assert stack["step / conv stack step"].iloc[0] == 1 and steps["step / conv stack step"].notna().all()
     # models with deformable convs also time the grid_sample training sampler they had before
-    before = steps[steps.path == "fp32, grid_sample sampler"]
+    before = steps[steps["fast path"] == "fp32, grid_sample sampler"]
     assert sorted(before.method) == ["Ours"]
     tiled = table[table.section == "tiled"]
     assert sorted(tiled.method) == sorted(labels * 2) and set(tiled["size"]) == {"40x24 -> 80x48", "64x40 -> 128x80"}
@@ -193,7 +193,7 @@ def test_speed_experiment_writes_every_section(tmp_path):
     from bench.nn import inference_sampler
     per_path = 3 if inference_sampler(torch.zeros(1)) == "columns" else 2
     assert len(deform) == 3 * per_path + 1 and deform["time / plain conv"].notna().all()
-    assert set(deform.path) == {"fp32", "channels_last", "channels_last+bf16"}
+    assert set(deform["fast path"]) == {"fp32", "channels_last", "channels_last+bf16"}
     conv = deform[deform.method.str.startswith("nn.Conv2d")]
     assert (conv["time / plain conv"] == 1).all() and len(conv) == 3
     profile = table[table.section == "profile"].set_index("method")
