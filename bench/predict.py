@@ -26,6 +26,7 @@ import numpy as np
 import torch
 
 from bench import exrio, runs
+from bench.dataset import DEFAULT_ROUGHNESS, GBUF_SIZES
 from bench.errors import UserError
 from bench.evaluate import predict as predict_batch
 from bench.evaluate import runner
@@ -34,7 +35,6 @@ from bench.tasks import GBUF_LAYERS, get_task
 from bench.train import load_weights
 
 FORMAT = "srd-bench-weights/1"
-GBUF_SIZES = {"albedo": 3, "normal": 3, "roughness": 1}
 
 
 # ---------------------------------------------------------------- export
@@ -112,7 +112,7 @@ def read_frame(path: str | Path) -> tuple[torch.Tensor, torch.Tensor]:
     h, w = images["noisy"].shape[:2]
     planes = []
     for name in GBUF_LAYERS:
-        image = images.get(name, np.ones((h, w, 1), np.float32))
+        image = images.get(name, np.full((h, w, 1), DEFAULT_ROUGHNESS, np.float32))
         if image.shape[:2] != (h, w) or image.shape[2] != GBUF_SIZES[name]:
             raise UserError(f"{path}: layer {name} is {image.shape[1]}x{image.shape[0]}x{image.shape[2]}, "
                             f"expected {w}x{h}x{GBUF_SIZES[name]} (the gBuffer is at the radiance's resolution)")

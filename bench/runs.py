@@ -207,7 +207,7 @@ def code_fingerprint(modules) -> dict:
     todo = [m for m in modules if m]
     while todo:
         name = todo.pop()
-        path = _module_file(name)
+        path = module_file(name)
         if path is None:
             parent = name.rpartition(".")[0]  # "pkg.module.Class": the module that defines it
             if parent.split(".")[0] in _PACKAGES:
@@ -216,7 +216,7 @@ def code_fingerprint(modules) -> dict:
         if path in files:
             continue
         files.add(path)
-        todo.extend(_imports(path, name))
+        todo.extend(project_imports(path, name))
         parts = name.split(".")
         todo.extend(".".join(parts[:i]) for i in range(1, len(parts)))  # packages run their __init__
     return {str(p.relative_to(_ROOT)): _source_hash(p) for p in sorted(files)}
@@ -231,7 +231,7 @@ def code_changes(record: dict, code: dict | None) -> list:
     return sorted(p for p in set(recorded) | set(code) if recorded.get(p) != code.get(p))
 
 
-def _module_file(name: str) -> Path | None:
+def module_file(name: str) -> Path | None:
     if name.split(".")[0] not in _PACKAGES:
         return None
     base = _ROOT.joinpath(*name.split("."))
@@ -241,7 +241,7 @@ def _module_file(name: str) -> Path | None:
     return None
 
 
-def _imports(path: Path, name: str) -> list:
+def project_imports(path: Path, name: str) -> list:
     """Project modules `path` imports (and sibling .cpp/.cu sources named in its string constants)."""
     package = name if path.name == "__init__.py" else name.rpartition(".")[0]
     found = []

@@ -1,13 +1,15 @@
-"""The floors of ARCHITECTURE.md, checked on the source (ast; nothing is imported): a module imports only
+"""The floors of ARCHITECTURE.md, checked on the source (ast, through the run store's import walk;
+nothing is imported): a module imports only
 its own floor or lower ones (floor 1 nothing of the project but a sibling in bench/nn and bench/errors),
 with no import cycles; models never import data loading or the run store; metrics and losses never
 import models. The floors are read from ARCHITECTURE.md's table, so the document and the test cannot
 drift apart."""
-import ast
 import re
 from pathlib import Path
 
 import pytest
+
+from bench import runs
 
 ROOT = Path(__file__).resolve().parent.parent
 PACKAGES = ("bench", "baselines")
@@ -33,34 +35,17 @@ def floor_of(path: str) -> int | None:
     return FLOORS[max(matches, key=len)] if matches else None
 
 
-def module_file(name: str) -> str | None:
-    base = ROOT.joinpath(*name.split("."))
-    for path in (base.with_suffix(".py"), base / "__init__.py"):
-        if path.is_file():
-            return path.relative_to(ROOT).as_posix()
-    return None
-
-
 def project_imports(path: str) -> set[str]:
-    """Project source files `path` imports (any `from x import y` where y is a module counts as x.y)."""
-    package = ".".join(Path(path).with_suffix("").parts[:-1]) if not path.endswith("__init__.py") \
-        else ".".join(Path(path).parts[:-1])
+    """Project source files `path` imports (the run store's import walk, which code identity uses too;
+    `from x import y` where y is a module counts as x.y); package __init__ files are left out."""
+    name = ".".join(Path(path).with_suffix("").parts).removesuffix(".__init__")
     found = set()
-    for node in ast.walk(ast.parse((ROOT / path).read_text())):
-        names = []
-        if isinstance(node, ast.Import):
-            names = [a.name for a in node.names]
-        elif isinstance(node, ast.ImportFrom):
-            base = node.module or ""
-            if node.level:
-                anchor = package.split(".")[:len(package.split(".")) - node.level + 1]
-                base = ".".join(anchor + ([base] if base else []))
-            names = [f"{base}.{a.name}" for a in node.names] + [base]
-        for name in names:
-            if name.split(".")[0] in PACKAGES:
-                target = module_file(name)
-                if target and target != path and not target.endswith("__init__.py"):
-                    found.add(target)
+    for imported in runs.project_imports(ROOT / path, name):
+        target = runs.module_file(imported)
+        if target is not None:
+            relative = target.relative_to(ROOT).as_posix()
+            if relative != path and not relative.endswith("__init__.py"):
+                found.add(relative)
     return found
 
 
