@@ -215,3 +215,10 @@ def test_keep_freed_memory_applies_once_on_glibc():
     assert keep_freed_memory() == applied == freed_memory_kept()
     if platform.libc_ver()[0] == "glibc":
         assert applied
+
+
+def test_the_caption_names_the_cpu_isa():
+    from bench.experiments.speed import cpu_isa, machine_caption
+    isa = cpu_isa()
+    assert any(name in isa for name in ("AVX512-BF16", "AMX-BF16", "AVX-512", "AVX2", "no AVX2", "ISA unknown"))
+    assert isa in machine_caption("cpu")

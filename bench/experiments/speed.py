@@ -75,12 +75,31 @@ def device_tag(device: str) -> str:
     return f"{'cuda' if str(device).startswith('cuda') else 'cpu'}-{slug or 'unknown'}"
 
 
+def cpu_isa() -> str:
+    """The vector ISA that decides the fast paths: whether bf16 runs natively (AVX512-BF16 or AMX) or
+    is emulated (AVX2 only, where it is several times slower than fp32)."""
+    try:
+        found = re.search(r"^flags\s*:\s*(.+)$", Path("/proc/cpuinfo").read_text(), re.MULTILINE)
+    except OSError:
+        found = None
+    flags = set(found.group(1).split()) if found else set()
+    if not flags:
+        return f"ISA unknown ({platform.machine()})"
+    native_bf16 = [name for flag, name in (("avx512_bf16", "AVX512-BF16"), ("amx_bf16", "AMX-BF16"))
+                   if flag in flags]
+    if native_bf16:
+        return " + ".join(native_bf16) + " (bf16 native)"
+    if "avx512f" in flags:
+        return "AVX-512 without BF16 (bf16 emulated)"
+    return "AVX2 only (bf16 emulated)" if "avx2" in flags else "no AVX2 (bf16 emulated)"
+
+
 def machine_caption(device: str) -> str:
-    """Device, library and thread settings of this run, for the caption."""
+    """Device, ISA, library and thread settings of this run, for the caption."""
     if str(device).startswith("cuda"):
         where = f"{torch.cuda.get_device_name(torch.device(device))} (CUDA {torch.version.cuda})"
     else:
-        where = (f"{device_tag(device)[4:]} CPU, {torch.get_num_threads()} torch threads, glibc malloc "
+        where = (f"{device_tag(device)[4:]} CPU, {cpu_isa()}, {torch.get_num_threads()} torch threads, glibc malloc "
                  f"{'keeping freed memory' if freed_memory_kept() else 'default (mmap per big tensor)'}")
     return f"{where}, torch {torch.__version__}"
 
