@@ -134,12 +134,13 @@ def apply(model, meta: dict, inputs: list, output_dir: str | Path, tile: int | N
     x = torch.stack([f[0] for f in frames])[None]     # (1, T, 3, h, w)
     g = torch.stack([f[1] for f in frames])[None]
     repaired = [int((~torch.isfinite(f[0])).sum() + (~torch.isfinite(f[1])).sum()) for f in frames]
+    forward = runner(model, tile=tile)
     with torch.no_grad():
         if getattr(model, "recurrent", False):
-            out = predict_batch(model, x, g, meta["hdr"], forward=runner(model, tile=tile))
-        else:
-            out = torch.cat([predict_batch(model, x[:, t:t + 1], g[:, t:t + 1], meta["hdr"],
-                                           forward=runner(model, tile=tile)) for t in range(x.shape[1])], 1)
+            out = predict_batch(model, x, g, meta["hdr"], forward=forward)
+        else:  # frame by frame: bounded memory, same result
+            out = torch.cat([predict_batch(model, x[:, t:t + 1], g[:, t:t + 1], meta["hdr"], forward=forward)
+                             for t in range(x.shape[1])], 1)
     output_dir = Path(output_dir)
     output_dir.mkdir(parents=True, exist_ok=True)
     written = []

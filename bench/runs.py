@@ -202,9 +202,15 @@ def code_fingerprint(modules) -> dict:
     """{path: hash} of the project source files that `modules` (dotted names, or `_target_` strings of
     a class) run: each module, its packages' `__init__`, and every project module they import,
     transitively, plus the C++ sources a module names. A Python file is hashed by its syntax tree
-    without docstrings, so comments, formatting and documentation do not make runs stale."""
+    without docstrings, so comments, formatting and documentation do not make runs stale. Computed
+    once per process and set of modules (the file hashes are, too)."""
+    return dict(_code_fingerprint(tuple(m for m in modules if m)))
+
+
+@functools.lru_cache(maxsize=None)
+def _code_fingerprint(modules: tuple) -> dict:
     files: set[Path] = set()
-    todo = [m for m in modules if m]
+    todo = list(modules)
     while todo:
         name = todo.pop()
         path = module_file(name)
@@ -242,7 +248,8 @@ def module_file(name: str) -> Path | None:
 
 
 def project_imports(path: Path, name: str) -> list:
-    """Project modules `path` imports (and sibling .cpp/.cu sources named in its string constants)."""
+    """Dotted names of the project modules (or their attributes: `from pkg.mod import Name` gives
+    pkg.mod and pkg.mod.Name) that the source file `path` of module `name` imports."""
     package = name if path.name == "__init__.py" else name.rpartition(".")[0]
     found = []
     for node in ast.walk(ast.parse(path.read_text())):
@@ -258,28 +265,22 @@ def project_imports(path: Path, name: str) -> list:
     return [m for m in found if m.split(".")[0] in _PACKAGES]
 
 
-def _source_files(path: Path) -> list:
-    native = set()
-    for node in ast.walk(ast.parse(path.read_text())):
-        if isinstance(node, ast.Constant) and isinstance(node.value, str) \
-                and node.value.endswith((".cpp", ".cu")) and (path.parent / node.value).is_file():
-            native.add(path.parent / node.value)
-    return sorted(native)
-
-
 @functools.lru_cache(maxsize=None)
 def _source_hash(path: Path) -> str:
     if path.suffix != ".py":
         return hashlib.sha256(path.read_bytes()).hexdigest()[:16]
     tree = ast.parse(path.read_text())
+    native = sorted({path.parent / node.value for node in ast.walk(tree)
+                     if isinstance(node, ast.Constant) and isinstance(node.value, str)
+                     and node.value.endswith((".cpp", ".cu")) and (path.parent / node.value).is_file()})
     for node in ast.walk(tree):
         body = getattr(node, "body", None)
         if isinstance(body, list) and body and isinstance(body[0], ast.Expr) \
                 and isinstance(body[0].value, ast.Constant) and isinstance(body[0].value.value, str):
             node.body = body[1:] or [ast.Pass()]
     digest = hashlib.sha256(ast.dump(tree).encode())
-    for native in _source_files(path):  # a module's compiled kernels are part of it
-        digest.update(native.read_bytes())
+    for source in native:  # a module's compiled kernels are part of it
+        digest.update(source.read_bytes())
     return digest.hexdigest()[:16]
 
 
