@@ -280,6 +280,8 @@ def test_checkpoints_also_on_wall_time(tmp_path):
 
 _INTERRUPTIBLE = '''
 import sys, time
+import torch
+torch.set_num_threads(1)  # the same reduction order as the resuming test process
 sys.path.insert(0, sys.argv[2])
 from test_train import SyntheticSequences, TASK, _model, _recipe
 from bench.train import TrainingInterrupted, train
@@ -316,12 +318,17 @@ def test_sigterm_saves_a_checkpoint_and_the_resumed_run_equals_an_uninterrupted_
     assert "SIGTERM at step" in out and "run the same command again to resume" in out
     stopped_at = torch.load(cut / CHECKPOINT, weights_only=False)["step"]
     assert 2 <= stopped_at < 40
-    summary = train(_model(), SyntheticSequences(), TASK, cut, _recipe(steps=40, checkpoint_every=1000),
-                    progress=False)
+    threads = torch.get_num_threads()
+    torch.set_num_threads(1)  # bit-exact across processes needs one reduction order
+    try:
+        summary = train(_model(), SyntheticSequences(), TASK, cut, _recipe(steps=40, checkpoint_every=1000),
+                        progress=False)
+        full = _model()
+        train(full, SyntheticSequences(), TASK, tmp_path / "full", _recipe(steps=40, checkpoint_every=1000),
+              progress=False)
+    finally:
+        torch.set_num_threads(threads)
     assert summary["resumed_from_step"] == stopped_at
-    full = _model()
-    train(full, SyntheticSequences(), TASK, tmp_path / "full", _recipe(steps=40, checkpoint_every=1000),
-          progress=False)
     for a, b in zip(full.state_dict().values(), load_weights(_model(), cut).state_dict().values()):
         assert torch.equal(a, b)
 
