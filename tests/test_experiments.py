@@ -11,7 +11,7 @@ from hydra import compose, initialize_config_dir
 from omegaconf import OmegaConf
 
 from bench.cli import CONF_DIR, run_experiment
-from bench.experiments.table import expand_rows, paper_agreement
+from bench.experiments.table import expand_rows, paper_agreement, shard_units
 from bench.models.srd import SRDNet, SRDStage, load_stage
 from bench.paper import paper_values
 from conftest import smoke_overrides
@@ -114,6 +114,15 @@ def test_sweep_expands_in_order():
     assert rows[3]["overrides"] == {"blocks": 4, "dilation": 5} and rows[3]["paper"] == "5"
     with pytest.raises(ValueError, match="unknown keys"):
         expand_rows([{"label": "x", "model": "edsr", "overide": {}}])
+
+
+@pytest.mark.parametrize("count", [1, 2, 3, 5])
+def test_shards_cover_every_row_and_seed_once_and_stay_balanced(count):
+    rows = [{"label": "a"}, {"label": "b"}, {"label": "c"}]
+    shards = [[(r["label"], s) for r, s in shard_units(rows, [0, 1, 2], i, count)] for i in range(count)]
+    every = [pair for shard in shards for pair in shard]
+    assert sorted(every) == sorted((r["label"], s) for r in rows for s in (0, 1, 2))
+    assert max(map(len, shards)) - min(map(len, shards)) <= 1
 
 
 @pytest.mark.parametrize("stage_order", ["sr_dn", "dn_sr"])

@@ -64,7 +64,7 @@ class Context:
     vgg: dict = field(default_factory=dict)
     render_data: bool = True
     model_lr: dict = field(default_factory=dict)   # model name -> peak learning rate (else train.lr)
-    shard: tuple[int, int] | None = None            # (i, n): a table computes only its rows i, i+n, ...
+    shard: tuple[int, int] | None = None            # (i, n): a table computes only its (row, seed) runs i, i+n, ...
     reuse_stale: bool = False                       # reuse runs whose code changed since they were recorded
 
 

@@ -15,6 +15,7 @@ A row of the experiment file:
 from __future__ import annotations
 
 import copy
+import dataclasses
 import itertools
 import logging
 
@@ -56,6 +57,12 @@ def expand_rows(rows: list[dict], default_task: str = "srd") -> list[dict]:
                 new["paper"] = str(r["paper"]).format(**fmt)
             out.append(new)
     return out
+
+
+def shard_units(rows: list[dict], seeds: list, index: int, count: int) -> list[tuple[dict, int]]:
+    """Shard `index` of `count`: every count-th (row, seed) pair, so that shards stay balanced when a
+    table has fewer rows than shards or rows of unequal cost."""
+    return [(r, seed) for r in rows for seed in seeds][index::count]
 
 
 def passes_for(rows: list[dict], default_task: str) -> set[str]:
@@ -124,13 +131,14 @@ def run(ctx: Context, name: str, rows: list[dict], caption: str = "", task: str 
         model_config(ctx, r["model"], r.get("overrides"))
         get_task(r["task"])
     ensure_data(ctx, passes_for(rows, task))
-    if ctx.shard:  # compute this shard's rows only; a run without a shard assembles the table from them
+    if ctx.shard:  # compute this shard's runs only; a run without a shard assembles the table from them
         index, count = ctx.shard
-        for r in rows[index::count]:
-            row(ctx, r["label"], r["model"], r.get("overrides"), r["task"], r.get("split", split), r.get("train"),
-                r.get("cascade", False))
-        log.info("%s: shard %d/%d computed %d of %d rows; run without shard= to write the table",
-                 name, index, count, len(rows[index::count]), len(rows))
+        units = shard_units(rows, ctx.seeds, index, count)
+        for r, seed in units:
+            row(dataclasses.replace(ctx, seeds=[seed]), r["label"], r["model"], r.get("overrides"), r["task"],
+                r.get("split", split), r.get("train"), r.get("cascade", False))
+        log.info("%s: shard %d/%d computed %d of %d (row, seed) runs; run without shard= to write the table",
+                 name, index, count, len(units), len(rows) * len(ctx.seeds))
         return pd.DataFrame()
     table = pd.DataFrame([row(ctx, r["label"], r["model"], r.get("overrides"), r["task"],
                               r.get("split", split), r.get("train"), r.get("cascade", False))
