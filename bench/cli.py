@@ -69,6 +69,8 @@ def config_problems(plain: dict) -> list[str]:
         parse_path(_lookup(plain, "eval.fast_path"))
     except (ValueError, AttributeError) as err:
         problems.append(f"eval.fast_path={_lookup(plain, 'eval.fast_path')!r}: {err}")
+    if plain.get("tracking", "none") not in ("mlflow", "none"):
+        problems.append(f"tracking={plain.get('tracking')!r}: expected mlflow or none")
     tile = _lookup(plain, "eval.tile")
     if tile is not None and not (_is_int(tile) and tile > 0):
         problems.append(f"eval.tile={tile!r}: expected null (whole frames) or a positive integer")
@@ -200,8 +202,26 @@ def run_experiment(cfg: DictConfig) -> None:
     ensure_writable(ctx.results_dir, "results_dir")
     ensure_writable(ctx.runs_dir, "runs_dir")
     t0 = time.perf_counter()
-    importlib.import_module(f"bench.experiments.{kind}").run(ctx, **exp)
+    try:
+        importlib.import_module(f"bench.experiments.{kind}").run(ctx, **exp)
+    finally:  # what completed before a failure is worth browsing too
+        mirror_runs(cfg.get("tracking", "none"), ctx.runs_dir, cfg.get("tracking_uri"), ctx.results_dir)
     log.info("%s done in %.1f s", exp.get("name", kind), time.perf_counter() - t0)
+
+
+def mirror_runs(tracking: str, runs_dir: Path, uri: str | None, results_dir: Path) -> None:
+    """Mirror the run store into MLflow (bench.tracking); a tracking failure never fails the command."""
+    if tracking == "none":
+        return
+    try:
+        from bench import tracking as mlflow_view
+        counts = mlflow_view.sync(runs_dir, uri, results_dir)
+        log.info("tracking: %d runs logged to MLflow, %d replaced, %d with new tables, %d unchanged (%s)",
+                 counts["logged"], counts["replaced"], counts["tables"], counts["unchanged"],
+                 uri or mlflow_view.default_uri(runs_dir))
+    except Exception as err:  # noqa: BLE001 - the run store holds the results; MLflow is only their view
+        log.warning("tracking: mirroring runs to MLflow failed (%s: %s); the run store is unaffected",
+                    type(err).__name__, err)
 
 
 @hydra.main(config_path=CONF_DIR, config_name="config", version_base=None)

@@ -24,6 +24,7 @@ complete frames behind.
 """
 import hashlib
 import json
+import logging
 import multiprocessing
 import os
 import socket
@@ -37,6 +38,8 @@ from tqdm import tqdm
 
 from bench import exrio, render, scenes
 from bench.tasks import BUFFERS, GBUF_LAYERS
+
+log = logging.getLogger("bench")
 
 SUFFIXES = {"noisy": ("R", "G", "B"), "ref": ("R", "G", "B"), "albedo": ("R", "G", "B"),
             "normal": ("X", "Y", "Z"), "roughness": ("Y",)}
@@ -267,6 +270,12 @@ def build_dataset(root, spec, passes=BUFFERS, workers=1, progress=True, variant=
     if unknown:
         raise ValueError(f"unknown buffers {sorted(unknown)}; known: {BUFFERS}")
     os.makedirs(root, exist_ok=True)
+    if workers > 1 and multiprocessing.get_start_method(allow_none=True) not in (None, *multiprocessing.get_all_start_methods()):
+        # inside a joblib (loky) sweep job: spawned children would ask for the 'loky' start method, which a
+        # fresh interpreter does not know, and die; one process rendering with all cores instead
+        log.info("render: one process (this process's start method %r cannot spawn render workers)",
+                 multiprocessing.get_start_method())
+        workers = 1
     plan = plan_sequences(spec)
     start = time.perf_counter()
     threads = max(1, (os.cpu_count() or 1) // workers) if workers > 1 else 0

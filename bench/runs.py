@@ -93,7 +93,8 @@ def _decode_metrics(metrics: dict) -> dict:
     return {k: _NONFINITE.get(v, v) if isinstance(v, str) else v for k, v in (metrics or {}).items()}
 
 
-def _read(path: Path) -> dict:
+def read_record(path: Path) -> dict:
+    """A run.json, its non-finite metrics decoded."""
     record = json.loads(path.read_text())
     record["metrics"] = _decode_metrics(record.get("metrics"))
     return record
@@ -111,7 +112,7 @@ def lookup(runs_dir: str | Path, kind: str, identity: dict) -> Run | None:
     path = Path(runs_dir) / kind / h / RECORD
     if not path.exists():
         return None
-    record = _read(path)
+    record = read_record(path)
     if record.get("status") != "complete":
         return None
     return Run(kind, h, path.parent, record, reused=True)
@@ -123,7 +124,7 @@ def wall_time_s(runs_dir: str | Path, kind: str, hashes: str | None) -> float:
     for h in (hashes or "").split("+"):
         path = Path(runs_dir) / kind / h / RECORD
         if h and path.exists():
-            total += _read(path).get("wall_time_s") or 0.0
+            total += read_record(path).get("wall_time_s") or 0.0
     return total
 
 
@@ -150,7 +151,7 @@ def begin(runs_dir: str | Path, kind: str, identity: dict, config: dict | None =
         if done is not None:
             lock.close()
             return done
-    earlier = _read(run_dir / RECORD) if (run_dir / RECORD).exists() else {}
+    earlier = read_record(run_dir / RECORD) if (run_dir / RECORD).exists() else {}
     if earlier and not reuse_stale and code_changes(earlier, code):  # its checkpoints are another code's
         force = True
     if force and run_dir.exists():
@@ -332,7 +333,7 @@ def load(runs_dir: str | Path = "runs", kind: str | None = None) -> pd.DataFrame
     rows = []
     pattern = f"{kind}/*/{RECORD}" if kind else f"*/*/{RECORD}"
     for path in sorted(Path(runs_dir).glob(pattern)):
-        record = _read(path)
+        record = read_record(path)
         row = {k: record.get(k) for k in ("kind", "hash", "label", "status", "seed", "device",
                                           "wall_time_s", "git_commit", "git_dirty", "host", "started")}
         if row["status"] == "running" and not _computing(path.parent):
@@ -340,7 +341,7 @@ def load(runs_dir: str | Path = "runs", kind: str | None = None) -> pd.DataFrame
         row["dir"] = str(path.parent)
         row.update({f"metric.{k}": v for k, v in (record.get("metrics") or {}).items()
                     if not isinstance(v, (dict, list))})
-        row.update({f"cfg.{k}": v for k, v in _flatten(record.get("identity", {})).items()})
+        row.update({f"cfg.{k}": v for k, v in flatten(record.get("identity", {})).items()})
         rows.append(row)
     return pd.DataFrame(rows)
 
@@ -358,12 +359,13 @@ def _computing(run_dir: Path) -> bool:
     return False
 
 
-def _flatten(d: dict, prefix: str = "") -> dict:
+def flatten(d: dict, prefix: str = "") -> dict:
+    """A nested dict as one level, keys joined by '.' (lists as JSON text)."""
     out = {}
     for key, value in d.items():
         name = f"{prefix}{key}"
         if isinstance(value, dict):
-            out.update(_flatten(value, name + "."))
+            out.update(flatten(value, name + "."))
         else:
             out[name] = json.dumps(value) if isinstance(value, list) else value
     return out

@@ -1,4 +1,8 @@
 """Helpers shared by the tests that run experiments at smoke scale."""
+import os
+
+# Mirroring to MLflow costs seconds per command; the tests that check it turn it on (tracking=mlflow).
+os.environ.setdefault("SRD_TRACKING", "none")
 
 
 def smoke_overrides(root, steps=4):

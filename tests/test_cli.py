@@ -1,5 +1,7 @@
 """The command line end to end: config composition, the smoke experiment, run reuse, clear errors."""
+import json
 import os
+import shutil
 import subprocess
 import sys
 import time
@@ -118,6 +120,37 @@ def test_reused_training_is_loaded_for_a_new_evaluation(smoke_dirs):
     pd.testing.assert_frame_equal(before[["method", "relMSE", "PSNR", "SSIM"]],
                                   after[["method", "relMSE", "PSNR", "SSIM"]])
     assert list((root / "runs" / "eval").glob("*/frames/*.exr"))
+
+
+def test_recorded_models_score_another_dataset_without_retraining(smoke_dirs):
+    """eval.data_dir: the smoke data's val split, copied as a user's dataset with the split renamed,
+    scores the same as the original (same frames) with every training reused."""
+    args, root = smoke_dirs
+    mine = root / "mine"
+    shutil.copytree(root / "data", mine)
+    (mine / "val").rename(mine / "holdout")
+    manifest = json.loads((mine / "manifest.json").read_text())
+    for frame in manifest["frames"]:
+        frame["split"] = "holdout" if frame["split"] == "val" else frame["split"]
+    (mine / "manifest.json").write_text(json.dumps(manifest))
+
+    wrong_split = bench("+experiment=smoke", f"eval.data_dir={mine}", *args)
+    assert wrong_split.returncode == 2 and "Traceback" not in wrong_split.stderr
+    assert "no frames in split 'val'" in wrong_split.stderr and "'holdout'" in wrong_split.stderr
+    assert "eval.split=" in wrong_split.stderr
+
+    others = [a for a in args if not a.startswith("results_dir=")]
+    out = bench("+experiment=smoke", f"eval.data_dir={mine}", "eval.split=holdout",
+                f"results_dir={root / 'results_mine'}", *others)
+    assert out.returncode == 0, out.stderr[-3000:]
+    log = out.stdout + out.stderr
+    assert "train Ours: reusing run" in log and "trained in" not in log
+    assert "eval Ours: reusing run" not in log                  # new evaluations: other data
+    before = pd.read_csv(root / "results" / "smoke" / "table.csv")
+    after = pd.read_csv(root / "results_mine" / "smoke" / "table.csv")
+    pd.testing.assert_frame_equal(before[["method", "relMSE", "PSNR", "SSIM"]],
+                                  after[["method", "relMSE", "PSNR", "SSIM"]])
+    assert set(before["runs"]).isdisjoint(after["runs"])
 
 
 def test_unknown_experiment_is_a_clear_message():

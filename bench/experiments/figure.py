@@ -15,8 +15,8 @@ import torch
 import torch.nn.functional as F
 
 from bench.evaluate import predict
-from bench.experiments.pipeline import (Context, cascade_model, dataset, model_config, trained_model,
-                                        with_training, recipe_of)
+from bench.experiments.pipeline import (Context, cascade_model, dataset, evaluation_data, model_config,
+                                        recipe_of, trained_model, with_training)
 from bench.metrics import relmse
 from bench.tasks import get_task
 
@@ -60,7 +60,7 @@ def crop_figure(ctx: Context, rows: list[dict], path: Path, split: str = "val", 
     panels, ref = [], None
     for task_name in dict.fromkeys(r["task"] for r in rows):
         task = get_task(task_name)
-        item = dataset(ctx, split, task, training=False)[0]
+        item = dataset(evaluation_data(ctx), split, task, training=False)[0]
         x, g, y = item[task.x][None], item[task.g][None], item[task.y][-1]
         if ref is None:
             ref = y

@@ -127,6 +127,11 @@ def _fingerprint(manifest_path: str, mtime_ns: int, split: str | None, files: st
         spec["splits"] = {split: spec["splits"].get(split)}
     frames = sorted((f["split"], f["sequence"], f["frame"], f.get("settings_hash")) for f in manifest["frames"]
                     if split is None or f["split"] == split)
+    if not frames and split is not None:
+        splits = sorted({f["split"] for f in manifest["frames"]})
+        raise UserError(f"{Path(manifest_path).parent}: no frames in split {split!r} (it has {splits}); tables "
+                        f"score the split eval.split (e.g. eval.split={([s for s in splits if s != 'train'] or ['NAME'])[0]}), "
+                        "trainings read 'train'")
     identity = {"spec": spec, "frames": frames}
     if files is not None:
         identity["files"] = files
@@ -200,6 +205,14 @@ def _listed(problems: list, shown: int = 3) -> str:
     """'path: problem; ...' for (path, problem) pairs, the first `shown` of them."""
     text = "; ".join(f"{path}: {why}" for path, why in problems[:shown])
     return text + (f"; and {len(problems) - shown} more" if len(problems) > shown else "")
+
+
+def evaluation_data(ctx: Context) -> Context:
+    """The context evaluations read their frames from: `eval.data_dir` when set (another dataset, e.g.
+    your own renders, used as it is), else `data_dir`. Trainings always read `data_dir`, so evaluating
+    recorded models on other data retrains nothing."""
+    other = ctx.eval.get("data_dir")
+    return dataclasses.replace(ctx, data_dir=Path(other), render_data=False) if other else ctx
 
 
 def dataset(ctx: Context, split: str, task: Task, training: bool, seed: int = 0):
@@ -369,7 +382,8 @@ def evaluated(ctx: Context, cfg: dict, task: Task, seed: int, split: str, label:
         model, train_run = trained_model(ctx, cfg, task, seed, label, load=False)
         trained = train_run.hash if train_run else {"model": cfg, "task": task.name}
     hdr = recipe_of(ctx).hdr
-    identity = {"trained": trained, "split": split, "data": data_fingerprint(ctx, split), "hdr": hdr}
+    frames = evaluation_data(ctx)
+    identity = {"trained": trained, "split": split, "data": data_fingerprint(frames, split), "hdr": hdr}
     if ctx.eval.get("save_exr"):
         identity["frames"] = True  # output frames are an artifact of their own run
     fast_path, tile = ctx.eval["fast_path"], ctx.eval.get("tile")
@@ -390,7 +404,7 @@ def evaluated(ctx: Context, cfg: dict, task: Task, seed: int, split: str, label:
     if model is None:  # a recorded training whose weights trained_model did not read
         model = load_weights(build_model(cfg, task.scale), train_run.dir, ctx.device)
     try:
-        _, metrics = evaluate(model, dataset(ctx, split, task, training=False), task, hdr=hdr,
+        _, metrics = evaluate(model, dataset(frames, split, task, training=False), task, hdr=hdr,
                               device=ctx.device, out_dir=run.dir, save_exr=ctx.eval.get("save_exr", False),
                               write_exr=write_exr, path=fast_path, tile=tile)
     except BaseException as err:  # the record says so, never "running" forever

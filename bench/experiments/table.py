@@ -23,7 +23,8 @@ import pandas as pd
 
 from bench.experiments.figure import crop_figure, curve_figure
 from bench.experiments.macs import frame_inputs
-from bench.experiments.pipeline import Context, build_model, ensure_data, is_learned, model_config, row
+from bench.experiments.pipeline import (Context, build_model, ensure_data, evaluation_data, is_learned,
+                                       model_config, row)
 from bench.macs import count_macs, on_meta
 from bench.metrics import HIGHER_IS_BETTER, LOWER_IS_BETTER, RELMSE_FORMULA
 from bench.paper import TABLES, paper_values
@@ -131,6 +132,8 @@ def run(ctx: Context, name: str, rows: list[dict], caption: str = "", task: str 
         model_config(ctx, r["model"], r.get("overrides"))
         get_task(r["task"])
     ensure_data(ctx, passes_for(rows, task))
+    if evaluation_data(ctx) is not ctx:  # evaluations on another dataset: checked before anything trains
+        ensure_data(evaluation_data(ctx), set())
     if ctx.shard:  # compute this shard's runs only; a run without a shard assembles the table from them
         index, count = ctx.shard
         units = shard_units(rows, ctx.seeds, index, count)
