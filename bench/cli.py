@@ -201,6 +201,10 @@ def run_experiment(cfg: DictConfig) -> None:
     ctx.device = resolve_device(ctx.device)
     ensure_writable(ctx.results_dir, "results_dir")
     ensure_writable(ctx.runs_dir, "runs_dir")
+    if (not ctx.render_data or ctx.eval.get("data_dir")) and \
+            ctx.results_dir.resolve().is_relative_to(Path(CONF_DIR).parent):
+        log.warning("your frames' tables and crops go to %s, inside the repository where git would commit "
+                    "them; results_dir=/elsewhere keeps them out", ctx.results_dir)
     t0 = time.perf_counter()
     try:
         importlib.import_module(f"bench.experiments.{kind}").run(ctx, **exp)

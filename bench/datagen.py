@@ -33,6 +33,7 @@ import zlib
 from concurrent.futures import ProcessPoolExecutor, as_completed
 
 import numpy as np
+import OpenEXR
 import pandas as pd
 from tqdm import tqdm
 
@@ -129,6 +130,81 @@ def damaged_frames(root, frames, passes, decode=False):
             elif decode and not exrio.is_valid_exr(path, sorted(wanted)):
                 problems.append((path, "does not decode (truncated or corrupt)"))
     return problems
+
+
+# What the suite reads from a frame record of your own dataset: key -> (check, what it must be).
+FRAME_KEYS = {
+    "split": (lambda v: isinstance(v, str) and v, "a split name (train, val, ...; the folder under the root)"),
+    "sequence": (lambda v: isinstance(v, str) and v, "the sequence's folder name"),
+    "frame": (lambda v: isinstance(v, int) and not isinstance(v, bool) and v >= 0, "the frame index, an integer >= 0"),
+    "scene": (lambda v: isinstance(v, str) and v, "a scene name (per-image results are grouped by it)"),
+}
+OPTIONAL_FRAME_KEYS = {
+    "lr_size": (lambda v: isinstance(v, list) and len(v) == 2 and all(isinstance(n, int) and n > 0 for n in v),
+                "[width, height] of the LR frame (training crops need it)"),
+    "left_out": (lambda v: isinstance(v, dict) and set(v) <= {"roughness"},
+                 'layers the frame has none of, with the reason: only {"roughness": "why"} (read as 1.0)'),
+}
+
+
+def manifest_problems(root, shown=8):
+    """What is wrong with a dataset directory you bring (render_data=false): the manifest, every frame
+    record key the suite reads (FRAME_KEYS, OPTIONAL_FRAME_KEYS) and the frame sizes (HR = scale x LR,
+    from the EXR headers). One line per problem, naming the file and what it must be; at most `shown`
+    lines, then a count."""
+    path = os.path.join(root, "manifest.json")
+    try:
+        with open(path) as f:
+            manifest = json.load(f)
+    except FileNotFoundError:
+        return [f"{path}: missing (README, 'Dataset layout')"]
+    except ValueError as err:
+        return [f"{path}: not JSON ({err})"]
+    if not isinstance(manifest, dict) or not isinstance(manifest.get("frames"), list) or not manifest["frames"]:
+        return [f'{path}: expected an object with "frames": a non-empty list of frame records']
+    spec = manifest.get("spec", {})
+    scale = spec.get("scale", 2) if isinstance(spec, dict) else None
+    if not isinstance(scale, int) or scale < 1:
+        return [f'{path}: "spec" must be an object whose "scale" (HR/LR, default 2) is an integer >= 1']
+    problems = []
+    for i, rec in enumerate(manifest["frames"]):
+        where = f"{path}: frames[{i}]"
+        if not isinstance(rec, dict):
+            problems.append(f"{where}: expected an object (a frame record)")
+            continue
+        for key, (ok, what) in FRAME_KEYS.items():
+            if not ok(rec.get(key)):
+                problems.append(f"{where}: {key!r} is {rec.get(key)!r}; expected {what}")
+        for key, (ok, what) in OPTIONAL_FRAME_KEYS.items():
+            if key in rec and not ok(rec[key]):
+                problems.append(f"{where}: {key!r} is {rec[key]!r}; expected {what}")
+        if all(ok(rec.get(key)) for key, (ok, _) in FRAME_KEYS.items()):
+            problems += _size_problems(root, rec, scale)
+    if len(problems) > shown:
+        problems = problems[:shown] + [f"... and {len(problems) - shown} more"]
+    return problems
+
+
+def _size_problems(root, rec, scale):
+    lr_path, hr_path, _ = frame_paths(root, rec["split"], rec["sequence"], rec["frame"])
+    lr, hr = _exr_size(lr_path), _exr_size(hr_path)
+    out = []
+    if lr and rec.get("lr_size") and list(lr) != list(rec["lr_size"]):
+        out.append(f"{lr_path}: {lr[0]}x{lr[1]} pixels, but its record's lr_size is {rec['lr_size']}")
+    if lr and hr and (hr[0], hr[1]) != (scale * lr[0], scale * lr[1]):
+        out.append(f"{hr_path}: {hr[0]}x{hr[1]} pixels; HR must be {scale}x LR ({lr[0]}x{lr[1]}): "
+                   f"{scale * lr[0]}x{scale * lr[1]} (spec.scale={scale})")
+    return out
+
+
+def _exr_size(path):
+    """(width, height) from an EXR's header; None when missing or unreadable (damaged_frames says which)."""
+    try:
+        with OpenEXR.File(str(path), header_only=True) as f:
+            (x0, y0), (x1, y1) = f.header()["dataWindow"]
+    except Exception:  # noqa: BLE001 - reported by damaged_frames, with the file named
+        return None
+    return int(x1 - x0 + 1), int(y1 - y0 + 1)
 
 
 def _load_record(rec_path, settings_hash):

@@ -28,7 +28,7 @@ import torch
 from hydra.utils import instantiate
 
 from bench import runs
-from bench.datagen import build_dataset, damaged_frames, frame_paths, load_manifest
+from bench.datagen import build_dataset, damaged_frames, frame_paths, load_manifest, manifest_problems
 from bench.dataset import SequenceDataset
 from bench.errors import UserError
 from bench.evaluate import SCORES, evaluate
@@ -122,7 +122,7 @@ def _canonical(value) -> str:
 @functools.lru_cache(maxsize=32)
 def _fingerprint(manifest_path: str, mtime_ns: int, split: str | None, files: str | None = None) -> str:
     manifest = load_manifest(Path(manifest_path).parent)
-    spec = copy.deepcopy(manifest["spec"])
+    spec = copy.deepcopy(manifest.get("spec") or {})  # your own renders may have none
     if split is not None and isinstance(spec.get("splits"), dict):
         spec["splits"] = {split: spec["splits"].get(split)}
     frames = sorted((f["split"], f["sequence"], f["frame"], f.get("settings_hash")) for f in manifest["frames"]
@@ -171,6 +171,10 @@ def ensure_data(ctx: Context, passes: set[str]) -> str:
     """Make sure `data_dir` holds the scale's dataset with at least `passes`, rendering only what is
     missing; returns the data fingerprint. With render_data=false the directory is used as it is."""
     if not ctx.render_data:
+        problems = manifest_problems(ctx.data_dir)
+        if problems:
+            raise UserError(f"data: {ctx.data_dir} is not a dataset in the documented layout (README, 'Dataset "
+                            "layout'):\n  " + "\n  ".join(problems))
         fingerprint = data_fingerprint(ctx)
         manifest = load_manifest(ctx.data_dir)
         damaged = damaged_frames(ctx.data_dir, manifest["frames"], manifest.get("passes", []))
@@ -182,7 +186,7 @@ def ensure_data(ctx: Context, passes: set[str]) -> str:
     path = ctx.data_dir / "manifest.json"
     if path.exists():
         manifest = load_manifest(ctx.data_dir)
-        if _canonical(manifest["spec"]) == _canonical(ctx.data_spec) and passes <= set(manifest["passes"]):
+        if _canonical(manifest.get("spec")) == _canonical(ctx.data_spec) and passes <= set(manifest.get("passes", [])):
             damaged = damaged_frames(ctx.data_dir, manifest["frames"], manifest["passes"])
             if not damaged:
                 log.info("data: %s already holds %s", ctx.data_dir, ", ".join(sorted(passes)))
@@ -221,7 +225,7 @@ def dataset(ctx: Context, split: str, task: Task, training: bool, seed: int = 0)
     if not training:
         return SequenceDataset(ctx.data_dir, split, buffers)
     recipe = recipe_of(ctx)
-    frames = load_manifest(ctx.data_dir)["spec"].get("seq_len")
+    frames = (load_manifest(ctx.data_dir).get("spec") or {}).get("seq_len")
     if frames is not None and recipe.seq_len > frames:
         raise UserError(f"train.seq_len={recipe.seq_len} but the dataset's sequences have {frames} frames")
     return SequenceDataset(ctx.data_dir, split, buffers, seq_len=recipe.seq_len, crop=recipe.crop,
