@@ -77,17 +77,18 @@ def test_configured_widths_meet_the_scale_budget(scale):
 
 @pytest.fixture(scope="module")
 def smoke_dirs(tmp_path_factory):
+    """`make run`, shorter, run once for the module; the tests below read its store in any order."""
     root = tmp_path_factory.mktemp("smoke")
-    return [f"runs_dir={root / 'runs'}", f"results_dir={root / 'results'}", f"data_dir={root / 'data'}",
-            "progress=false", "train.steps=50", "data.splits.train.sequences=4"], root  # `make run`, shorter
+    args = [f"runs_dir={root / 'runs'}", f"results_dir={root / 'results'}", f"data_dir={root / 'data'}",
+            "progress=false", "train.steps=50", "data.splits.train.sequences=4"]
+    t0 = time.perf_counter()
+    first = bench("+experiment=smoke", *args)
+    assert first.returncode == 0, first.stderr[-3000:]
+    return args, root, time.perf_counter() - t0
 
 
 def test_smoke_end_to_end_then_reuse(smoke_dirs):
-    args, root = smoke_dirs
-    t0 = time.perf_counter()
-    first = bench("+experiment=smoke", *args)
-    first_s = time.perf_counter() - t0
-    assert first.returncode == 0, first.stderr[-3000:]
+    args, root, first_s = smoke_dirs
     table_dir = root / "results"
     for ext in ("csv", "tex", "md"):
         assert (table_dir / "smoke" / f"table.{ext}").exists()
@@ -111,7 +112,7 @@ def test_smoke_end_to_end_then_reuse(smoke_dirs):
 def test_reused_training_is_loaded_for_a_new_evaluation(smoke_dirs):
     """A new evaluation of a recorded training (here: with output frames) must use the trained weights:
     same numbers as the first evaluation, and the frames written as EXR."""
-    args, root = smoke_dirs
+    args, root, _ = smoke_dirs
     before = pd.read_csv(root / "results" / "smoke" / "table.csv")
     out = bench("+experiment=smoke", "eval.save_exr=true", *args)
     assert out.returncode == 0, out.stderr[-3000:]
@@ -125,7 +126,7 @@ def test_reused_training_is_loaded_for_a_new_evaluation(smoke_dirs):
 def test_recorded_models_score_another_dataset_without_retraining(smoke_dirs):
     """eval.data_dir: the smoke data's val split, copied as a user's dataset with the split renamed,
     scores the same as the original (same frames) with every training reused."""
-    args, root = smoke_dirs
+    args, root, _ = smoke_dirs
     mine = root / "mine"
     shutil.copytree(root / "data", mine)
     (mine / "val").rename(mine / "holdout")
@@ -200,7 +201,7 @@ def test_macs_experiment_audits_the_sota_models(tmp_path):
 
 
 def test_data_experiment_summarises_every_split(smoke_dirs):
-    args, root = smoke_dirs
+    args, root, _ = smoke_dirs
     out = bench("+experiment=data", "scale=smoke", *args)
     assert out.returncode == 0, out.stderr[-3000:]
     table = pd.read_csv(root / "results" / "data" / "table.csv")

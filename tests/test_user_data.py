@@ -18,18 +18,20 @@ LR = (8, 12)  # h, w
 
 
 def write_dataset(root, frames=2, hr_scale=2, layers_lr=("noisy", "albedo", "normal", "roughness"),
-                  layers_hr=("ref",)):
-    """A user's dataset with one val sequence: LR noisy + gBuffer, HR reference only, no spec."""
+                  layers_hr=("ref",), splits=("val",), lr=LR):
+    """A user's dataset with one sequence per split: LR noisy + gBuffer, HR reference only, no spec."""
     rng = np.random.default_rng(0)
     records = []
-    for t in range(frames):
-        for res, layers, k in (("lr", layers_lr, 1), ("hr", layers_hr, hr_scale)):
-            h, w = LR[0] * k, LR[1] * k
-            data = {name: rng.random((h, w, 1 if name == "roughness" else 3), dtype=np.float32)
-                    for name in layers}
-            write_exr(root / "val" / "seq0" / f"{t:04d}_{res}.exr", data,
-                      suffixes={"normal": ("X", "Y", "Z"), "roughness": ("Y",)})
-        records.append({"split": "val", "sequence": "seq0", "scene": "mine", "frame": t, "lr_size": [LR[1], LR[0]]})
+    for split in splits:
+        for t in range(frames):
+            for res, layers, k in (("lr", layers_lr, 1), ("hr", layers_hr, hr_scale)):
+                h, w = lr[0] * k, lr[1] * k
+                data = {name: rng.random((h, w, 1 if name == "roughness" else 3), dtype=np.float32)
+                        for name in layers}
+                write_exr(root / split / "seq0" / f"{t:04d}_{res}.exr", data,
+                          suffixes={"normal": ("X", "Y", "Z"), "roughness": ("Y",)})
+            records.append({"split": split, "sequence": "seq0", "scene": "mine", "frame": t,
+                            "lr_size": [lr[1], lr[0]]})
     (root / "manifest.json").write_text(json.dumps({"frames": records}))
     return records
 
