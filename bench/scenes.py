@@ -407,114 +407,154 @@ def _pick(kinds):
 
 
 # ----------------------------------------------------------------------------------------------------------
-# Families: each returns (objects by kind, lights, room materials, skylight)
+# Families: one function each, (rng, room size, wall/floor/ceiling already drawn) -> what the family puts
+# in the room: {"objects": {kind: [shape dicts]}, "lights": {...}} and, when it changes them, "floor" or
+# "skylight" (a ceiling opening (cx, cy, half size)). The order of the rng draws is part of the dataset.
+
+ANY_MATERIAL = _pick(("diffuse", "checker", "plastic", "metal", "principled", "glass"))
+
+
+def _living_room(rng, size):
+    return {"objects": {"cube": place_cubes(rng, size, 4, _pick(("diffuse", "principled", "checker"))),
+                        "sphere": place_spheres(rng, size, 3, _pick(("plastic", "metal", "principled")))},
+            "lights": ceiling_lights(rng, size, 1, rng.uniform(0.5, 0.9), 6.0)}
+
+
+def _kitchen(rng, size):
+    return {"objects": {"cube": place_cubes(rng, size, 3, _pick(("plastic", "principled")), height=(0.85, 0.95)),
+                        "cylinder": place_cylinders(rng, size, 5, _pick(("metal",)), height=(0.15, 0.5))},
+            "lights": {**window_light(rng, size, 12.0), **ceiling_lights(rng, size, 1, 0.2, 60.0)}}
+
+
+def _bathroom(rng, size):
+    floor = checker([0.9, 0.9, 0.9], random_color(rng), int(rng.integers(6, 14)))
+    return {"floor": floor,
+            "objects": {"sphere": place_spheres(rng, size, 3, _pick(("glass",)), lift=0.6),
+                        "cylinder": place_cylinders(rng, size, 3, _pick(("glass", "metal"))),
+                        "cube": place_cubes(rng, size, 2, _pick(("plastic",)))},
+            "lights": ceiling_lights(rng, size, 1, 0.12, 250.0)}
+
+
+def _bedroom(rng, size):
+    return {"objects": {"cube": place_cubes(rng, size, 3, _pick(("diffuse", "principled")), height=(0.4, 0.7),
+                                            half_xy=(0.3, 0.9)),
+                        "blob": place_blobs(rng, size, 2, _pick(("diffuse", "principled")))},
+            "lights": ceiling_lights(rng, size, 1, rng.uniform(0.8, 1.2), 3.5)}
+
+
+def _office(rng, size):
+    return {"objects": {"cube": place_cubes(rng, size, 4, _pick(("plastic", "metal")), height=(0.7, 0.8)),
+                        "cylinder": place_cylinders(rng, size, 4, _pick(("plastic", "principled")))},
+            "lights": ceiling_lights(rng, size, 3, 0.15, 50.0)}
+
+
+def _gallery(rng, size):
+    pedestals = place_cubes(rng, size, 4, _pick(("diffuse",)), height=(0.7, 0.85), half_xy=(0.2, 0.25))
+    balls = []
+    for ped in pedestals:  # a metal sphere of random roughness on top of each pedestal
+        m = np.array(ped["to_world"])
+        r = rng.uniform(0.12, 0.2)
+        balls.append(sphere([m[0, 3], m[1, 3], 2 * m[2, 3] + r], r, metal(rng, rng.uniform(0.01, 0.6))))
+    return {"objects": {"cube": pedestals, "sphere": balls}, "lights": ceiling_lights(rng, size, 2, 0.1, 150.0)}
+
+
+def _dining(rng, size):
+    skylight = (size[0] / 2, size[1] / 2, rng.uniform(0.5, 0.9))
+    return {"skylight": skylight,
+            "objects": {"cube": place_cubes(rng, size, 2, _pick(("principled", "diffuse")), height=(0.7, 0.8),
+                                            half_xy=(0.4, 0.8)),
+                        "cylinder": place_cylinders(rng, size, 4, _pick(("glass",)), height=(0.15, 0.3)),
+                        "sphere": place_spheres(rng, size, 4, _pick(("diffuse", "plastic")), radius=(0.05, 0.12))},
+            "lights": {**window_light(rng, size, 8.0), **sky_lights(rng, size, skylight, sun=False)}}
+
+
+def _studio(rng, size):
+    objects = {"blob": place_blobs(rng, size, 4, _pick(("plastic", "principled", "metal")))}
+    # One large soft light and one small hard one.
+    return {"objects": objects,
+            "lights": {"light_soft": ceiling_lights(rng, size, 1, 0.8, 4.0)["light_ceiling_0"],
+                       "light_hard": ceiling_lights(rng, size, 1, 0.1, 150.0)["light_ceiling_0"]}}
+
+
+def _library(rng, size):
+    skylight = (size[0] / 2, size[1] / 2, rng.uniform(0.4, 0.7))
+    return {"skylight": skylight,
+            "objects": {"cube": place_wall_cubes(rng, size, 5, _pick(("principled", "diffuse")))
+                        + place_cubes(rng, size, 2, _pick(("principled", "plastic")))},
+            "lights": sky_lights(rng, size, skylight, sun=True)}
+
+
+def _atrium(rng, size):
+    skylight = (size[0] / 2, size[1] / 2, min(size[0], size[1]) / 2 - 0.6)
+    return {"skylight": skylight,
+            "objects": {"cylinder": place_cylinders(rng, size, 4, _pick(("diffuse", "principled")),
+                                                    radius=(0.1, 0.2), height=(0.6, 1.2)),
+                        "sphere": place_spheres(rng, size, 2, ANY_MATERIAL),
+                        "blob": place_blobs(rng, size, 1, _pick(("glass", "metal")))},
+            "lights": sky_lights(rng, size, skylight, sun=True)}
+
+
+def _torus_hall(rng, size):
+    tori = []
+    for _ in range(4):
+        x, y = _floor_spot(rng, size)
+        major = rng.uniform(0.2, 0.4)
+        minor = major * rng.uniform(0.2, 0.4)
+        v, f = torus_mesh(major, minor)
+        tilt = np.array(frame([x, y, major + minor + 0.05], rng.normal(size=3) * [1, 1, 0.3] + [0, 0, 0.5], 1, 1))
+        tori.append(mesh(v, f, tilt, ANY_MATERIAL(rng)))
+    return {"objects": {"torus": tori}, "lights": ceiling_lights(rng, size, 2, 0.3, 25.0)}
+
+
+def _knot_room(rng, size):
+    knots = []
+    for _ in range(4):
+        x, y = _floor_spot(rng, size)
+        s = rng.uniform(0.3, 0.45)
+        v, f = knot_mesh(int(rng.choice([2, 3])), int(rng.choice([3, 5])), s, s * 0.12)
+        knots.append(mesh(v, f, translate([x, y, s + 0.1]) @ rotate_z(rng.uniform(0, 360)), ANY_MATERIAL(rng)))
+    return {"objects": {"knot": knots},
+            "lights": {**window_light(rng, size, 10.0), **ceiling_lights(rng, size, 1, 0.25, 30.0)}}
+
+
+def _statue_room(rng, size):
+    statues = []
+    for _ in range(5):
+        x, y = _floor_spot(rng, size)
+        v, f = statue_mesh(rng, rng.uniform(0.7, 1.15))
+        statues.append(mesh(v, f, translate([x, y, 0]), _pick(("diffuse", "metal", "principled", "glass"))(rng)))
+    return {"objects": {"statue": statues}, "lights": ceiling_lights(rng, size, 2, 0.15, 80.0)}
+
+
+def _disk_room(rng, size):
+    disks = []
+    for _ in range(8):
+        x, y = _floor_spot(rng, size, margin=0.5)
+        r = rng.uniform(0.25, 0.6)
+        normal = rng.normal(size=3) * [1, 1, 0.5] + [0, 0, 1.0]
+        m = frame([x, y, rng.uniform(0.05, 1.1)], normal, r, r)
+        disks.append({"type": "disk", "to_world": _list(m), "bsdf": _pick(("diffuse", "checker", "metal"))(rng)})
+    return {"objects": {"disk": disks},
+            "lights": {**window_light(rng, size, 10.0), **ceiling_lights(rng, size, 1, 0.5, 8.0)}}
+
+
+FAMILY_CONTENT = {
+    "living_room": _living_room, "kitchen": _kitchen, "bathroom": _bathroom, "bedroom": _bedroom,
+    "office": _office, "gallery": _gallery, "dining": _dining, "studio": _studio, "library": _library,
+    "atrium": _atrium, "torus_hall": _torus_hall, "knot_room": _knot_room, "statue_room": _statue_room,
+    "disk_room": _disk_room,
+}
 
 
 def _family_content(family, rng, size):
-    """Objects (dict kind -> list of shape dicts), lights and room materials of one family."""
-    w, d, h = size
-    wall = diffuse(random_color(rng, (0.0, 0.4), (0.5, 0.85)))
-    floor = checker(random_color(rng), random_color(rng), int(rng.integers(3, 10)))
-    ceiling = diffuse([0.8, 0.8, 0.8])
-    skylight = None
-    any_mat = _pick(("diffuse", "checker", "plastic", "metal", "principled", "glass"))
-    if family == "living_room":
-        objects = {"cube": place_cubes(rng, size, 4, _pick(("diffuse", "principled", "checker"))),
-                   "sphere": place_spheres(rng, size, 3, _pick(("plastic", "metal", "principled")))}
-        lights = ceiling_lights(rng, size, 1, rng.uniform(0.5, 0.9), 6.0)
-    elif family == "kitchen":
-        objects = {"cube": place_cubes(rng, size, 3, _pick(("plastic", "principled")), height=(0.85, 0.95)),
-                   "cylinder": place_cylinders(rng, size, 5, _pick(("metal",)), height=(0.15, 0.5))}
-        lights = {**window_light(rng, size, 12.0), **ceiling_lights(rng, size, 1, 0.2, 60.0)}
-    elif family == "bathroom":
-        floor = checker([0.9, 0.9, 0.9], random_color(rng), int(rng.integers(6, 14)))
-        objects = {"sphere": place_spheres(rng, size, 3, _pick(("glass",)), lift=0.6),
-                   "cylinder": place_cylinders(rng, size, 3, _pick(("glass", "metal"))),
-                   "cube": place_cubes(rng, size, 2, _pick(("plastic",)))}
-        lights = ceiling_lights(rng, size, 1, 0.12, 250.0)
-    elif family == "bedroom":
-        objects = {"cube": place_cubes(rng, size, 3, _pick(("diffuse", "principled")), height=(0.4, 0.7),
-                                       half_xy=(0.3, 0.9)),
-                   "blob": place_blobs(rng, size, 2, _pick(("diffuse", "principled")))}
-        lights = ceiling_lights(rng, size, 1, rng.uniform(0.8, 1.2), 3.5)
-    elif family == "office":
-        objects = {"cube": place_cubes(rng, size, 4, _pick(("plastic", "metal")), height=(0.7, 0.8)),
-                   "cylinder": place_cylinders(rng, size, 4, _pick(("plastic", "principled")))}
-        lights = ceiling_lights(rng, size, 3, 0.15, 50.0)
-    elif family == "gallery":
-        pedestals = place_cubes(rng, size, 4, _pick(("diffuse",)), height=(0.7, 0.85), half_xy=(0.2, 0.25))
-        balls = []
-        for ped in pedestals:  # a metal sphere of random roughness on top of each pedestal
-            m = np.array(ped["to_world"])
-            r = rng.uniform(0.12, 0.2)
-            balls.append(sphere([m[0, 3], m[1, 3], 2 * m[2, 3] + r], r, metal(rng, rng.uniform(0.01, 0.6))))
-        objects = {"cube": pedestals, "sphere": balls}
-        lights = ceiling_lights(rng, size, 2, 0.1, 150.0)
-    elif family == "dining":
-        skylight = (w / 2, d / 2, rng.uniform(0.5, 0.9))
-        objects = {"cube": place_cubes(rng, size, 2, _pick(("principled", "diffuse")), height=(0.7, 0.8),
-                                       half_xy=(0.4, 0.8)),
-                   "cylinder": place_cylinders(rng, size, 4, _pick(("glass",)), height=(0.15, 0.3)),
-                   "sphere": place_spheres(rng, size, 4, _pick(("diffuse", "plastic")), radius=(0.05, 0.12))}
-        lights = {**window_light(rng, size, 8.0), **sky_lights(rng, size, skylight, sun=False)}
-    elif family == "studio":
-        objects = {"blob": place_blobs(rng, size, 4, _pick(("plastic", "principled", "metal")))}
-        # One large soft light and one small hard one.
-        lights = {"light_soft": ceiling_lights(rng, size, 1, 0.8, 4.0)["light_ceiling_0"],
-                  "light_hard": ceiling_lights(rng, size, 1, 0.1, 150.0)["light_ceiling_0"]}
-    elif family == "library":
-        skylight = (w / 2, d / 2, rng.uniform(0.4, 0.7))
-        objects = {"cube": place_wall_cubes(rng, size, 5, _pick(("principled", "diffuse")))
-                   + place_cubes(rng, size, 2, _pick(("principled", "plastic")))}
-        lights = sky_lights(rng, size, skylight, sun=True)
-    elif family == "atrium":
-        skylight = (w / 2, d / 2, min(w, d) / 2 - 0.6)
-        objects = {"cylinder": place_cylinders(rng, size, 4, _pick(("diffuse", "principled")), radius=(0.1, 0.2),
-                                               height=(0.6, 1.2)),
-                   "sphere": place_spheres(rng, size, 2, any_mat),
-                   "blob": place_blobs(rng, size, 1, _pick(("glass", "metal")))}
-        lights = sky_lights(rng, size, skylight, sun=True)
-    elif family == "torus_hall":
-        objects = {"torus": []}
-        for _ in range(4):
-            x, y = _floor_spot(rng, size)
-            major = rng.uniform(0.2, 0.4)
-            minor = major * rng.uniform(0.2, 0.4)
-            v, f = torus_mesh(major, minor)
-            tilt = np.array(frame([x, y, major + minor + 0.05], rng.normal(size=3) * [1, 1, 0.3] + [0, 0, 0.5],
-                                  1, 1))
-            objects["torus"].append(mesh(v, f, tilt, any_mat(rng)))
-        lights = ceiling_lights(rng, size, 2, 0.3, 25.0)
-    elif family == "knot_room":
-        objects = {"knot": []}
-        for _ in range(4):
-            x, y = _floor_spot(rng, size)
-            s = rng.uniform(0.3, 0.45)
-            v, f = knot_mesh(int(rng.choice([2, 3])), int(rng.choice([3, 5])), s, s * 0.12)
-            objects["knot"].append(mesh(v, f, translate([x, y, s + 0.1]) @ rotate_z(rng.uniform(0, 360)),
-                                        any_mat(rng)))
-        lights = {**window_light(rng, size, 10.0), **ceiling_lights(rng, size, 1, 0.25, 30.0)}
-    elif family == "statue_room":
-        objects = {"statue": []}
-        for _ in range(5):
-            x, y = _floor_spot(rng, size)
-            v, f = statue_mesh(rng, rng.uniform(0.7, 1.15))
-            objects["statue"].append(mesh(v, f, translate([x, y, 0]),
-                                          _pick(("diffuse", "metal", "principled", "glass"))(rng)))
-        lights = ceiling_lights(rng, size, 2, 0.15, 80.0)
-    elif family == "disk_room":
-        objects = {"disk": []}
-        for _ in range(8):
-            x, y = _floor_spot(rng, size, margin=0.5)
-            r = rng.uniform(0.25, 0.6)
-            normal = rng.normal(size=3) * [1, 1, 0.5] + [0, 0, 1.0]
-            m = frame([x, y, rng.uniform(0.05, 1.1)], normal, r, r)
-            objects["disk"].append({"type": "disk", "to_world": _list(m),
-                                    "bsdf": _pick(("diffuse", "checker", "metal"))(rng)})
-        lights = {**window_light(rng, size, 10.0), **ceiling_lights(rng, size, 1, 0.5, 8.0)}
-    else:
+    """Objects (dict kind -> list of shape dicts), lights, room materials and skylight of one family."""
+    if family not in FAMILY_CONTENT:
         raise ValueError(f"unknown scene family {family!r}; known: {FAMILIES}")
-    return objects, lights, (floor, wall, ceiling), skylight
+    wall = diffuse(random_color(rng, (0.0, 0.4), (0.5, 0.85)))  # every family draws these first
+    floor = checker(random_color(rng), random_color(rng), int(rng.integers(3, 10)))
+    content = FAMILY_CONTENT[family](rng, size)
+    room = (content.get("floor", floor), wall, diffuse([0.8, 0.8, 0.8]))
+    return content["objects"], content["lights"], room, content.get("skylight")
 
 
 def make_scene(family, seed):
