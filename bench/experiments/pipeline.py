@@ -19,6 +19,8 @@ import hashlib
 import json
 import logging
 import os
+import statistics
+import time
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -31,7 +33,7 @@ from bench import runs
 from bench.datagen import build_dataset, damaged_frames, frame_paths, load_manifest, manifest_problems
 from bench.dataset import SequenceDataset
 from bench.errors import UserError
-from bench.evaluate import SCORES, evaluate
+from bench.evaluate import SCORES, evaluate, sync
 from bench.exrio import write_exr
 from bench.infer import REFERENCE
 from bench.macs import count_params
@@ -66,6 +68,25 @@ class Context:
     model_lr: dict = field(default_factory=dict)   # model name -> peak learning rate (else train.lr)
     shard: tuple[int, int] | None = None            # (i, n): a table computes only its (row, seed) runs i, i+n, ...
     reuse_stale: bool = False                       # reuse runs whose code changed since they were recorded
+
+
+# ---------------------------------------------------------------- timing
+
+def time_call(fn, device: str, repeats: int = 5, warmup: int = 1) -> dict:
+    """Median, min and max milliseconds of `repeats` calls of fn() after `warmup` untimed ones (the
+    device synchronised around each), and the last call's result (to compare outputs without an extra
+    call). The one timing loop of the experiments."""
+    result = None
+    for _ in range(warmup):
+        result = fn()
+    sync(device)
+    times = []
+    for _ in range(max(1, repeats)):
+        t0 = time.perf_counter()
+        result = fn()
+        sync(device)
+        times.append(1000 * (time.perf_counter() - t0))
+    return {"ms": statistics.median(times), "ms min": min(times), "ms max": max(times), "result": result}
 
 
 # ---------------------------------------------------------------- models

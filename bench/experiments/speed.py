@@ -42,7 +42,7 @@ import torch
 import torch.nn as nn
 
 from bench.evaluate import sync
-from bench.experiments.pipeline import build_model
+from bench.experiments.pipeline import build_model, time_call
 from bench.infer import freed_memory_kept, max_abs_diff, parse_path, prepare, release_free_memory, tiled_predict
 from bench.losses import weighted_loss
 from bench.macs import count_macs, on_meta
@@ -102,22 +102,6 @@ def machine_caption(device: str) -> str:
         where = (f"{device_tag(device)[4:]} CPU, {cpu_isa()}, {torch.get_num_threads()} torch threads, glibc malloc "
                  f"{'keeping freed memory' if freed_memory_kept() else 'default (mmap per big tensor)'}")
     return f"{where}, torch {torch.__version__}"
-
-
-def time_call(fn, device: str, repeats: int = 5, warmup: int = 1) -> dict:
-    """Median, min and max milliseconds of `repeats` calls of fn() after `warmup` untimed ones, and the
-    last call's result (to compare outputs without an extra call)."""
-    result = None
-    for _ in range(warmup):
-        result = fn()
-    sync(device)
-    times = []
-    for _ in range(max(1, repeats)):
-        t0 = time.perf_counter()
-        result = fn()
-        sync(device)
-        times.append(1000 * (time.perf_counter() - t0))
-    return {"ms": statistics.median(times), "ms min": min(times), "ms max": max(times), "result": result}
 
 
 def _status_kib(field: str) -> int:

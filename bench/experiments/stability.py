@@ -19,7 +19,6 @@ import dataclasses
 import logging
 import math
 import tempfile
-import time
 
 import pandas as pd
 import torch
@@ -28,7 +27,7 @@ import torch.nn.functional as F
 from bench.evaluate import predict
 from bench.hdr import to_network
 from bench.experiments.pipeline import (Context, dataset, ensure_data, is_learned, model_config, recipe_of,
-                                        trained_model, with_training)
+                                        time_call, trained_model, with_training)
 from bench.metrics import psnr, relmse, ssim
 from bench.nn import DeformConv2d
 from bench.table_writer import write_table
@@ -96,15 +95,10 @@ def _finite(t) -> bool:
     return bool(torch.isfinite(t).all())
 
 
-def _timed(fn):
-    t0 = time.perf_counter()
-    out = fn()
-    return out, 1000 * (time.perf_counter() - t0)
-
-
 def _eval_row(model, x, g, hdr, ref=None, clean=None, sanitize=True) -> dict:
     try:
-        out, ms = _timed(lambda: predict(model, x, g, hdr, sanitize=sanitize))
+        timed = time_call(lambda: predict(model, x, g, hdr, sanitize=sanitize), "cpu", repeats=1, warmup=0)
+        out, ms = timed["result"], timed["ms"]
     except Exception as err:  # a refusal with a message is an acceptable outcome; record it
         return {"finite": False, "error": f"{type(err).__name__}: {err}"[:200]}
     row = {"finite": _finite(out), "max |output|": float(out.abs().nan_to_num(math.inf).max()), "time_ms": ms}

@@ -31,7 +31,6 @@ import logging
 import math
 import os
 import socket
-import time
 from dataclasses import dataclass
 
 import numpy as np
@@ -44,7 +43,7 @@ from bench.dataset import SequenceDataset
 from bench.errors import UserError
 from bench.evaluate import predict, sync
 from bench.experiments.pipeline import (Context, build_model, ensure_data, is_learned, model_config,
-                                        recipe_of, recorded_training, trained_model, with_training)
+                                        recipe_of, recorded_training, time_call, trained_model, with_training)
 from bench.metrics import HIGHER_IS_BETTER, LOWER_IS_BETTER, METRICS, RELMSE_FORMULA, mse
 from bench.table_writer import write_table
 from bench.tasks import GBUF_LAYERS, get_task
@@ -275,15 +274,9 @@ def timed_prediction(model, x, g, hdr: str, device: str, repeats: int) -> tuple[
     if not getattr(model, "recurrent", False):
         x, g = x[:, -1:], g[:, -1:]
     x, g = x.to(device), g.to(device)
-    pred = predict(model, x, g, hdr)  # warm-up: first-call allocation is not inference time
-    sync(device)
-    seconds = []
-    for _ in range(max(1, repeats)):
-        t0 = time.perf_counter()
-        pred = predict(model, x, g, hdr)
-        sync(device)
-        seconds.append(time.perf_counter() - t0)
-    return pred[0, -1].float().cpu(), float(np.median(seconds)) / x.shape[1]
+    # one untimed call first: first-call allocation is not inference time
+    timed = time_call(lambda: predict(model, x, g, hdr), device, repeats=repeats, warmup=1)
+    return timed["result"][0, -1].float().cpu(), timed["ms"] / 1000 / x.shape[1]
 
 
 def scores(pred: torch.Tensor, ref: torch.Tensor) -> dict:
