@@ -78,7 +78,7 @@ def config_problems(plain: dict) -> list[str]:
 
 
 def make_context(cfg: DictConfig):
-    from bench.experiments.pipeline import Context
+    from bench.experiments.pipeline import Context, EvalSpec, VggSpec, recipe_from
     plain = OmegaConf.to_container(cfg, resolve=True)
     if plain["eval"].get("path") is not None:  # the old name, next to file paths in the same docs
         log.warning("eval.path is deprecated: use eval.fast_path=%s", plain["eval"]["path"])
@@ -87,14 +87,18 @@ def make_context(cfg: DictConfig):
     problems = config_problems(plain)
     if problems:
         raise UserError("bad config (nothing was run):\n  " + "\n  ".join(problems))
+    try:
+        evaluation, vgg = EvalSpec(**plain["eval"]), VggSpec(**plain["vgg"])
+    except TypeError as err:  # a key that is not a field (a typo in an override)
+        raise UserError(f"bad config (nothing was run): eval or vgg: {err}") from None
     return Context(scale=plain["scale"]["name"], runs_dir=Path(plain["runs_dir"]),
                    results_dir=Path(plain["results_dir"]), data_dir=Path(plain["data_dir"]),
-                   data_spec=plain["data"], train=plain["train"], eval=plain["eval"], models=plain["models"],
-                   budget_gmac=plain["scale"]["budget_gmac"], seeds=list(plain["seeds"]),
+                   data_spec=plain["data"], train=recipe_from(plain["train"]), eval=evaluation, vgg=vgg,
+                   models=plain["models"], budget_gmac=plain["scale"]["budget_gmac"], seeds=list(plain["seeds"]),
                    device=plain["device"], workers=plain["workers"], force=plain["force"],
-                   progress=plain["progress"], vgg=plain["vgg"],
-                   render_data=plain["render_data"], model_lr=plain.get("model_lr") or {},
-                   shard=parse_shard(plain.get("shard")), reuse_stale=plain["reuse_stale"])
+                   progress=plain["progress"], render_data=plain["render_data"],
+                   model_lr=plain.get("model_lr") or {}, shard=parse_shard(plain.get("shard")),
+                   reuse_stale=plain["reuse_stale"])
 
 
 def parse_shard(value) -> tuple[int, int] | None:
@@ -201,7 +205,7 @@ def run_experiment(cfg: DictConfig) -> None:
     ctx.device = resolve_device(ctx.device)
     ensure_writable(ctx.results_dir, "results_dir")
     ensure_writable(ctx.runs_dir, "runs_dir")
-    if (not ctx.render_data or ctx.eval.get("data_dir")) and \
+    if (not ctx.render_data or ctx.eval.data_dir) and \
             ctx.results_dir.resolve().is_relative_to(Path(CONF_DIR).parent):
         log.warning("your frames' tables and crops go to %s, inside the repository where git would commit "
                     "them; results_dir=/elsewhere keeps them out", ctx.results_dir)

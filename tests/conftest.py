@@ -1,4 +1,5 @@
 """Helpers shared by the tests that run experiments at smoke scale."""
+import dataclasses
 import os
 
 # Mirroring to MLflow costs seconds per command; the tests that check it turn it on (tracking=mlflow).
@@ -10,3 +11,13 @@ def smoke_overrides(root, steps=4):
     return ["scale=smoke", f"runs_dir={root / 'runs'}", f"results_dir={root / 'results'}",
             f"data_dir={root / 'data'}", "progress=false", f"train.steps={steps}",
             f"train.checkpoint_every={steps}", "data.splits.train.sequences=4"]
+
+
+def smoke_context(**fields):
+    """The experiments' Context as the CLI builds it from the real config at smoke scale (`make_context`),
+    with `fields` replaced: tests never restate the config's defaults."""
+    from hydra import compose, initialize_config_dir
+    from bench.cli import CONF_DIR, make_context
+    with initialize_config_dir(config_dir=CONF_DIR, version_base=None):
+        ctx = make_context(compose("config", overrides=["scale=smoke"]))
+    return dataclasses.replace(ctx, **fields)

@@ -38,7 +38,7 @@ def test_every_experiment_composes_at_every_scale(name, scale):
     assert cfg.scale.name == scale
     assert cfg.experiment.name == name or cfg.experiment.get("deprecated_name") == name
     ctx = make_context(cfg)                       # every key the experiments read is there
-    assert ctx.data_spec and ctx.train["steps"] > 0 and ctx.budget_gmac > 0
+    assert ctx.data_spec and ctx.train.steps > 0 and ctx.budget_gmac > 0
 
 
 @pytest.mark.parametrize("name", sorted(p.stem for p in (Path(CONF_DIR) / "model").glob("*.yaml")))

@@ -14,7 +14,7 @@ from bench.cli import CONF_DIR, run_experiment
 from bench.experiments.table import expand_rows, paper_agreement, shard_units
 from bench.models.srd import SRDNet, SRDStage, load_stage
 from bench.paper import paper_values
-from conftest import smoke_overrides
+from conftest import smoke_context, smoke_overrides
 
 TABLES = ["sr_denoise", "dilation", "stage_order", "deform", "sota", "ipt", "deform_num", "perceptual",
           "generalization"]
@@ -175,9 +175,7 @@ def test_claims_give_each_paper_claim_a_verdict_from_the_recorded_tables(dirs):
 def test_claim_verdicts_follow_twice_the_standard_error(tmp_path):
     """Synthetic tables: one seed uses the paired per-sequence SE; several seeds the SE over seeds."""
     from bench.experiments import claims
-    from bench.experiments.pipeline import Context
-    ctx = Context(scale="t", runs_dir=tmp_path / "runs", results_dir=tmp_path / "results", data_dir=tmp_path,
-                  data_spec={}, train={}, eval={}, models={})
+    ctx = smoke_context(scale="t", runs_dir=tmp_path / "runs", results_dir=tmp_path / "results", data_dir=tmp_path)
     per_seq = {"a": [30.0, 31.0, 32.0, 33.0], "b": [29.0, 30.1, 30.9, 32.0], "c": [30.0, 31.2, 31.8, 33.1]}
     for run, values in per_seq.items():
         (ctx.runs_dir / "eval" / run).mkdir(parents=True)

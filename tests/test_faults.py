@@ -6,7 +6,8 @@ import pytest
 
 from bench import datagen, exrio
 from bench.errors import UserError
-from bench.experiments.pipeline import Context, ensure_data
+from bench.experiments.pipeline import ensure_data
+from conftest import smoke_context
 
 SPEC = {"name": "tiny", "seed": 1, "lr_width": 8, "lr_height": 6, "scale": 2, "spp": 1, "ref_spp": 4,
         "seq_len": 2, "max_depth": 4, "splits": {"train": {"families": ["living_room"], "sequences": 1}}}
@@ -14,8 +15,8 @@ PASSES = {"lr_noisy", "lr_gbuf", "hr_ref"}
 
 
 def _ctx(root, render_data=True):
-    return Context(scale="tiny", runs_dir=root / "runs", results_dir=root / "results", data_dir=root / "data",
-                   data_spec=SPEC, train={}, eval={}, models={}, render_data=render_data, progress=False)
+    return smoke_context(scale="tiny", runs_dir=root / "runs", results_dir=root / "results", data_dir=root / "data",
+                         data_spec=SPEC, render_data=render_data, progress=False)
 
 
 @pytest.fixture

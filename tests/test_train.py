@@ -1,5 +1,5 @@
 """The shared trainer and the run identities that decide reuse, on synthetic data (no rendering)."""
-import copy
+import dataclasses
 import time
 import json
 
@@ -8,9 +8,10 @@ import pytest
 import torch
 
 from baselines.edsr import EDSR
-from bench.experiments.pipeline import Context, _train_identity
+from bench.experiments.pipeline import _train_identity, recipe_from
 from bench.tasks import get_task
 from bench.train import CHECKPOINT, Recipe, TrainingDiverged, load_weights, lr_at, train
+from conftest import smoke_context
 
 TASK = get_task("srd")
 WEIGHTS = {"final": {"edge": 1, "temporal": 1, "spatial": 8, "perceptual": 0},
@@ -166,24 +167,23 @@ def ctx(tmp_path):
             {"split": "val", "sequence": "b", "frame": 0, "settings_hash": "v"}]}))
     train_cfg = {"steps": 10, "batch_size": 2, "seq_len": 2, "crop": 8, "lr": 6e-4, "betas": [0.9, 0.99],
                  "halve_every": 0.25, "hdr": "clamp", "checkpoint_every": 5, "loss": WEIGHTS, "val_every": 5}
-    return Context(scale="smoke", runs_dir=tmp_path / "runs", results_dir=tmp_path / "results",
-                   data_dir=tmp_path / "data", data_spec={"spp": 8}, train=train_cfg, eval={},
-                   models={"edsr": {"_target_": "baselines.edsr.EDSR", "channels": 8}})
+    return smoke_context(runs_dir=tmp_path / "runs", results_dir=tmp_path / "results", data_dir=tmp_path / "data",
+                         data_spec={"spp": 8}, train=recipe_from(train_cfg),
+                         models={"edsr": {"_target_": "baselines.edsr.EDSR", "channels": 8}})
 
 
 def test_train_identity_changes_exactly_with_what_determines_the_result(ctx, tmp_path):
     cfg = ctx.models["edsr"]
     base = _train_identity(ctx, cfg, TASK, 0, None)
-    same = copy.deepcopy(ctx)
-    same.train["checkpoint_every"] = 99
-    same.train["val_every"], same.train["val_sequences"] = 3, 9   # how often it is watched, not what it learns
-    same.workers, same.progress, same.results_dir = 7, False, tmp_path / "elsewhere"
+    # how often it is checkpointed and watched, not what it learns
+    same = dataclasses.replace(ctx, train=dataclasses.replace(ctx.train, checkpoint_every=99, val_every=3,
+                                                              val_sequences=9),
+                               workers=7, progress=False, results_dir=tmp_path / "elsewhere")
     assert _train_identity(same, cfg, TASK, 0, None) == base
     changed = []
     for key, value in (("steps", 11), ("lr", 1e-3), ("crop", 16), ("ema", None), ("schedule", "halve"),
                        ("clip_grad_norm", 0.5), ("hdr", "pu")):
-        other = copy.deepcopy(ctx)
-        other.train[key] = value
+        other = dataclasses.replace(ctx, train=dataclasses.replace(ctx.train, **{key: value}))
         changed.append(_train_identity(other, cfg, TASK, 0, None))
     changed.append(_train_identity(ctx, {**cfg, "channels": 9}, TASK, 0, None))
     changed.append(_train_identity(ctx, cfg, TASK, 1, None))

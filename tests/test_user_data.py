@@ -48,7 +48,7 @@ def test_a_minimal_dataset_has_no_problems(tmp_path):
 
 
 @pytest.mark.parametrize("damage, message", [
-    (lambda root: os.remove(root / "manifest.json"), "manifest.json: missing"),
+    (lambda root: os.remove(root / "manifest.json"), "has no manifest.json"),
     (lambda root: (root / "manifest.json").write_text("{frames: oops"), "manifest.json: not JSON"),
     (lambda root: edit_manifest(root, lambda m: m.update(frames=[])), '"frames": a non-empty list'),
     (lambda root: edit_manifest(root, lambda m: m["frames"][1].pop("scene")),

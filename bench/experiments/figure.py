@@ -16,7 +16,7 @@ import torch.nn.functional as F
 
 from bench.evaluate import predict
 from bench.experiments.pipeline import (Context, cascade_model, dataset, evaluation_data, model_config,
-                                        recipe_of, trained_model, with_training)
+                                        trained_model, with_training)
 from bench.metrics import relmse
 from bench.tasks import get_task
 
@@ -47,7 +47,7 @@ def _row_output(ctx: Context, r: dict, x, g, seed: int) -> torch.Tensor:
         model, _ = trained_model(rctx, cfg, task, seed, r["label"])
     if hasattr(model, "eval"):
         model.to(ctx.device).eval()
-    return predict(model, x.to(ctx.device), g.to(ctx.device), recipe_of(rctx).hdr)[0, -1].cpu()
+    return predict(model, x.to(ctx.device), g.to(ctx.device), rctx.train.hdr)[0, -1].cpu()
 
 
 def crop_figure(ctx: Context, rows: list[dict], path: Path, split: str = "val", size: int = 64) -> Path | None:

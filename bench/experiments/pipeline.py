@@ -21,7 +21,7 @@ import logging
 import os
 import statistics
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
@@ -46,28 +46,48 @@ log = logging.getLogger("bench")
 TORCH_HUB_VGG16 = Path.home() / ".cache/torch/hub/checkpoints/vgg16-397923af.pth"
 
 
+@dataclass(frozen=True)
+class EvalSpec:
+    """How tables evaluate (conf/config.yaml `eval:`, where the defaults and their meaning are)."""
+    split: str
+    data_dir: Path | None        # another dataset to score (see evaluation_data); None: data_dir
+    save_exr: bool
+    fast_path: str
+    tile: int | None
+
+
+@dataclass(frozen=True)
+class VggSpec:
+    """The perceptual loss's features (conf/config.yaml `vgg:`)."""
+    weights: str | None
+    layer: str
+    allow_random: bool
+
+
 @dataclass
 class Context:
-    """Everything a table needs, as plain values (built by the CLI from the Hydra config)."""
-    scale: str
+    """Everything a table needs, as typed values built by the CLI from the Hydra config (`make_context`);
+    the defaults live in conf/, not here. `data_spec` and `models` stay dicts: the data description and
+    the model configs (`_target_` + arguments) are recorded and hashed as they are written."""
+    scale: str                                      # the size preset's name (smoke, cpu, paper)
     runs_dir: Path
     results_dir: Path
     data_dir: Path
     data_spec: dict
-    train: dict
-    eval: dict
+    train: Recipe
+    eval: EvalSpec
+    vgg: VggSpec
     models: dict
-    budget_gmac: float | None = None                # the scale's MAC budget per 960x540 frame (GMac)
-    seeds: list = field(default_factory=lambda: [0])
-    device: str = "cpu"
-    workers: int = 1
-    force: bool = False
-    progress: bool = True
-    vgg: dict = field(default_factory=dict)
-    render_data: bool = True
-    model_lr: dict = field(default_factory=dict)   # model name -> peak learning rate (else train.lr)
-    shard: tuple[int, int] | None = None            # (i, n): a table computes only its (row, seed) runs i, i+n, ...
-    reuse_stale: bool = False                       # reuse runs whose code changed since they were recorded
+    budget_gmac: float | None                       # the preset's MAC budget per 960x540 frame (GMac)
+    seeds: list
+    device: str
+    workers: int
+    force: bool
+    progress: bool
+    render_data: bool
+    model_lr: dict                                  # model name -> peak learning rate (else train.lr)
+    shard: tuple[int, int] | None                   # (i, n): a table computes only its (row, seed) runs i, i+n, ...
+    reuse_stale: bool                               # reuse runs whose code changed since they were recorded
 
 
 # ---------------------------------------------------------------- timing
@@ -118,7 +138,16 @@ def with_training(ctx: Context, overrides: dict | None, model: str | None = None
     range test), then the row's training overrides (e.g. the perceptual weight) merged in."""
     if model in ctx.model_lr:
         overrides = deep_merge({"lr": ctx.model_lr[model]}, overrides)
-    return dataclasses.replace(ctx, train=deep_merge(ctx.train, overrides)) if overrides else ctx
+    return dataclasses.replace(ctx, train=recipe_from(deep_merge(dataclasses.asdict(ctx.train), overrides))) \
+        if overrides else ctx
+
+
+def recipe_from(config: dict) -> Recipe:
+    """The training recipe of a `train:` dict, a bad key or value as a UserError."""
+    try:
+        return Recipe.from_config(config)
+    except (TypeError, ValueError) as err:
+        raise UserError(f"train: {err}") from err
 
 
 TRAINING_CODE = ("bench.train", "bench.dataset")
@@ -236,7 +265,7 @@ def evaluation_data(ctx: Context) -> Context:
     """The context evaluations read their frames from: `eval.data_dir` when set (another dataset, e.g.
     your own renders, used as it is), else `data_dir`. Trainings always read `data_dir`, so evaluating
     recorded models on other data retrains nothing."""
-    other = ctx.eval.get("data_dir")
+    other = ctx.eval.data_dir
     return dataclasses.replace(ctx, data_dir=Path(other), render_data=False) if other else ctx
 
 
@@ -245,7 +274,7 @@ def dataset(ctx: Context, split: str, task: Task, training: bool, seed: int = 0)
     buffers = task.buffers(with_mid=training)
     if not training:
         return SequenceDataset(ctx.data_dir, split, buffers)
-    recipe = recipe_of(ctx)
+    recipe = ctx.train
     frames = (load_manifest(ctx.data_dir).get("spec") or {}).get("seq_len")
     if frames is not None and recipe.seq_len > frames:
         raise UserError(f"train.seq_len={recipe.seq_len} but the dataset's sequences have {frames} frames")
@@ -253,19 +282,12 @@ def dataset(ctx: Context, split: str, task: Task, training: bool, seed: int = 0)
                            augment=True, seed=seed, max_sequences=recipe.train_sequences)
 
 
-def recipe_of(ctx: Context) -> Recipe:
-    try:
-        return Recipe.from_config(ctx.train)
-    except (TypeError, ValueError) as err:
-        raise UserError(f"train: {err}") from err
-
-
 def validation(ctx: Context, task: Task, sequences: int):
     """The learning curve's scorer: `validate(model) -> {relMSE, PSNR, SSIM}` on whole frames of
     `sequences` validation sequences spread over the split (None when there are none to score)."""
     if sequences <= 0:
         return None
-    split = ctx.eval["split"]
+    split = ctx.eval.split
     try:
         full = dataset(ctx, split, task, training=False)
     except ValueError:  # no such split in this dataset: no curve, the final table still scores it
@@ -273,7 +295,7 @@ def validation(ctx: Context, task: Task, sequences: int):
         return None
     chosen = sorted({round(i * (len(full) - 1) / max(1, sequences - 1)) for i in range(min(sequences, len(full)))})
     subset = torch.utils.data.Subset(full, chosen)
-    hdr = recipe_of(ctx).hdr
+    hdr = ctx.train.hdr
 
     def validate(model) -> dict:
         _, metrics = evaluate(model, subset, task, hdr=hdr, device=ctx.device)
@@ -286,14 +308,14 @@ def validation(ctx: Context, task: Task, sequences: int):
 def perceptual_features(ctx: Context):
     """(features module or None, identity dict saying which weights and layer are used)."""
     from bench.nn.vgg import load_vgg16_features, random_vgg16_features
-    layer = ctx.vgg.get("layer", "relu3_3")
-    path = ctx.vgg.get("weights") or (str(TORCH_HUB_VGG16) if TORCH_HUB_VGG16.exists() else None)
+    layer = ctx.vgg.layer
+    path = ctx.vgg.weights or (str(TORCH_HUB_VGG16) if TORCH_HUB_VGG16.exists() else None)
     if path:
         if not Path(path).exists():
             raise UserError(f"VGG16 weights file {path} (vgg.weights / SRD_VGG16_WEIGHTS) does not exist")
         return (load_vgg16_features(path, layer).to(ctx.device),
                 {"weights": Path(path).name, "sha256": _file_sha256(str(Path(path).resolve())), "layer": layer})
-    if ctx.vgg.get("allow_random"):
+    if ctx.vgg.allow_random:
         log.warning("perceptual loss uses a fixed-seed RANDOM VGG16 (no weights found); tables will say so")
         return random_vgg16_features(layer, seed=0).to(ctx.device), {"weights": "random(seed=0)", "layer": layer}
     raise UserError("the perceptual loss needs ImageNet VGG16 weights in torchvision's format: set "
@@ -315,7 +337,7 @@ def _file_sha256(path: str) -> str:
 
 def _train_identity(ctx: Context, cfg: dict, task: Task, seed: int, vgg_id: dict | None,
                     stage: str | None = None) -> dict:
-    identity = {"model": cfg, "task": task.name, "train": recipe_of(ctx).identity(),
+    identity = {"model": cfg, "task": task.name, "train": ctx.train.identity(),
                 "data": data_fingerprint(ctx, "train"), "seed": seed, "vgg": vgg_id}
     if stage is not None:
         identity["stage"] = stage
@@ -324,7 +346,7 @@ def _train_identity(ctx: Context, cfg: dict, task: Task, seed: int, vgg_id: dict
 
 def recorded_training(ctx: Context, cfg: dict, task: Task, seed: int) -> runs.Run | None:
     """The complete training run of (cfg, task, seed) in this context, or None; never trains."""
-    uses_vgg = any(w.get("perceptual", 0) > 0 for w in ctx.train["loss"].values())
+    uses_vgg = any(w.get("perceptual", 0) > 0 for w in ctx.train.loss.values())
     try:
         vgg_id = perceptual_features(ctx)[1] if uses_vgg else None
     except UserError:  # no VGG weights: nothing can have been trained with them here either
@@ -345,7 +367,7 @@ def trained_model(ctx: Context, cfg: dict, task: Task, seed: int, label: str = "
     model = build_model(cfg, task.scale) if stage is None else SRDStage(_cascade_net(cfg), stage)
     if not is_learned(model):
         return model, None
-    uses_vgg = any(w.get("perceptual", 0) > 0 for w in ctx.train["loss"].values())
+    uses_vgg = any(w.get("perceptual", 0) > 0 for w in ctx.train.loss.values())
     features, vgg_id = perceptual_features(ctx) if uses_vgg else (None, None)
     identity = _train_identity(ctx, cfg, task, seed, vgg_id, stage)
     run = runs.begin(ctx.runs_dir, "train", identity, seed=seed, device=ctx.device, label=label,
@@ -353,7 +375,7 @@ def trained_model(ctx: Context, cfg: dict, task: Task, seed: int, label: str = "
     if run.reused:
         log.info("train %s: reusing run %s", label or cfg["_target_"], run.hash)
         return (load_weights(model, run.dir, ctx.device) if load else None), run
-    recipe = recipe_of(ctx)
+    recipe = ctx.train
     try:
         summary = train(model, dataset(ctx, "train", task, training=True, seed=seed), task, run.dir, recipe,
                         features=features, seed=seed, device=ctx.device, progress=ctx.progress,
@@ -406,12 +428,12 @@ def evaluated(ctx: Context, cfg: dict, task: Task, seed: int, split: str, label:
     else:
         model, train_run = trained_model(ctx, cfg, task, seed, label, load=False)
         trained = train_run.hash if train_run else {"model": cfg, "task": task.name}
-    hdr = recipe_of(ctx).hdr
+    hdr = ctx.train.hdr
     frames = evaluation_data(ctx)
     identity = {"trained": trained, "split": split, "data": data_fingerprint(frames, split), "hdr": hdr}
-    if ctx.eval.get("save_exr"):
+    if ctx.eval.save_exr:
         identity["frames"] = True  # output frames are an artifact of their own run
-    fast_path, tile = ctx.eval["fast_path"], ctx.eval.get("tile")
+    fast_path, tile = ctx.eval.fast_path, ctx.eval.tile
     if fast_path != REFERENCE or tile:  # only a non-default way of running changes the identity
         identity.update(path=fast_path, tile=tile)  # ("path": the identity key from before the rename)
     # a learned row's numbers also depend on the trainer: retraining it makes its evaluation stale too
@@ -430,7 +452,7 @@ def evaluated(ctx: Context, cfg: dict, task: Task, seed: int, split: str, label:
         model = load_weights(build_model(cfg, task.scale), train_run.dir, ctx.device)
     try:
         _, metrics = evaluate(model, dataset(frames, split, task, training=False), task, hdr=hdr,
-                              device=ctx.device, out_dir=run.dir, save_exr=ctx.eval.get("save_exr", False),
+                              device=ctx.device, out_dir=run.dir, save_exr=ctx.eval.save_exr,
                               write_exr=write_exr, path=fast_path, tile=tile)
     except BaseException as err:  # the record says so, never "running" forever
         runs.fail(run, f"{type(err).__name__}: {err}")
@@ -462,7 +484,7 @@ def row(ctx: Context, label: str, model: str, overrides: dict | None = None, tas
     t = get_task(task)
     cfg = model_config(ctx, model, overrides)
     ctx = with_training(ctx, train, model)
-    split = split or ctx.eval["split"]
+    split = split or ctx.eval.split
     results = [evaluated(ctx, cfg, t, seed, split, label, cascade) for seed in ctx.seeds]
     out = {"method": label, "task": task}
     for metric in (*SCORES, "time_ms"):

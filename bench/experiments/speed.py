@@ -485,8 +485,8 @@ def _sections(ctx, models, input_hw, paths, repeats, warmup, train, oidn, stack_
     if oidn:
         row = oidn_row((2 * input_hw[0], 2 * input_hw[1]), device, repeats, warmup)
         yield [row] if row else []
-    train_crop = {"batch": ctx.train.get("batch_size", 4), "frames": ctx.train.get("seq_len", 5),
-                  "crop": ctx.train.get("crop", 32), **{k: v for k, v in train.items() if v is not None}}
+    train_crop = {"batch": ctx.train.batch_size, "frames": ctx.train.seq_len, "crop": ctx.train.crop,
+                  **{k: v for k, v in train.items() if v is not None}}
     if stack_channels and "srd" in ctx.models:
         ours_macs = macs_per_frame(lambda: build_model(ctx.models["srd"], 2), input_hw)
         yield conv_stack_rows(ours_macs, input_hw, stack_channels, paths, device, repeats, warmup,
@@ -504,7 +504,7 @@ def _sections(ctx, models, input_hw, paths, repeats, warmup, train, oidn, stack_
         macs = macs_per_frame(lambda: build_model(cfg, 2), input_hw)
         rows = inference_rows(label, model, macs, x, g, paths, device, repeats, warmup)
         if train.get("enabled", True):
-            rows += training_rows(label, model, train, ctx.train["loss"], ctx.train["lr"], device,
+            rows += training_rows(label, model, train, ctx.train.loss, ctx.train.lr, device,
                                   repeats, warmup)
         if name in (profile.get("models") or []):
             rows += profile_rows(label, model, macs_table(lambda: build_model(cfg, 2), input_hw), x, g,

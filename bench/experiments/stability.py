@@ -26,8 +26,8 @@ import torch.nn.functional as F
 
 from bench.evaluate import predict
 from bench.hdr import to_network
-from bench.experiments.pipeline import (Context, dataset, ensure_data, is_learned, model_config, recipe_of,
-                                        time_call, trained_model, with_training)
+from bench.experiments.pipeline import (Context, dataset, ensure_data, is_learned, model_config, time_call,
+                                        trained_model, with_training)
 from bench.metrics import psnr, relmse, ssim
 from bench.nn import DeformConv2d
 from bench.table_writer import write_table
@@ -37,7 +37,7 @@ from bench.train import TrainingDiverged, batch_loss, train
 log = logging.getLogger("bench")
 def stability_loss(ctx: Context) -> dict:
     """The scale's loss weights without the perceptual term (the cases need no VGG16 weights)."""
-    return {stage: {**weights, "perceptual": 0} for stage, weights in ctx.train["loss"].items()}
+    return {stage: {**weights, "perceptual": 0} for stage, weights in ctx.train.loss.items()}
 
 
 def _pixels(x, fraction=0.002, seed=0):
@@ -149,7 +149,7 @@ def _high_lr_row(ctx: Context, model, task, hdr, factor=10.0, steps=5) -> dict:
     m = copy.deepcopy(model)
     with tempfile.TemporaryDirectory() as tmp:
         try:
-            base = recipe_of(ctx)
+            base = ctx.train
             recipe = dataclasses.replace(base, steps=steps, loss=stability_loss(ctx), lr=factor * base.lr, hdr=hdr,
                                          warmup=0, clip_grad_norm=None, checkpoint_every=steps)
             train(m, dataset(ctx, "train", task, training=True), task, tmp, recipe, device="cpu", progress=False)
@@ -183,8 +183,8 @@ def model_rows(ctx: Context, name: str, seed: int, frames: int, long_frames: int
     ctx = with_training(ctx, None, name)
     model, _ = trained_model(ctx, cfg, task, seed, f"{name} (stability)")
     model.eval()
-    hdr = recipe_of(ctx).hdr
-    item = dataset(ctx, ctx.eval["split"], task, training=False)[0]
+    hdr = ctx.train.hdr
+    item = dataset(ctx, ctx.eval.split, task, training=False)[0]
     x0, g0, ref = (item[k][None, :frames] for k in (task.x, task.g, task.y))
     clean = predict(model, x0, g0, hdr)
     rows = []
@@ -196,7 +196,7 @@ def model_rows(ctx: Context, name: str, seed: int, frames: int, long_frames: int
         if is_learned(model):
             mid = _resize(ref, (2 * x.shape[-2], 2 * x.shape[-1]))
             batch = {"lr_noisy": x, "lr_gbuf": g, "hr_ref": scale_ref, "hr_noisy": mid}
-            row.update(_train_step_row(model, batch, task, hdr, stability_loss(ctx), recipe_of(ctx).lr))
+            row.update(_train_step_row(model, batch, task, hdr, stability_loss(ctx), ctx.train.lr))
         rows.append(row)
     for case, hw in SIZES.items():
         x, g = _resize(x0[:, :2], hw), _resize(g0[:, :2], hw)

@@ -153,12 +153,12 @@ def run(ctx: Context, name: str, rows: list[dict], caption: str = "", task: str 
         table.insert(table.columns.get_loc(after) + 1, "GMac", [gmac(ctx, r) for r in rows])
     paper_table = (name if name in TABLES else None) if paper == "auto" else paper
     table = with_paper(table, rows, paper_table)
-    loss = ctx.train["loss"]["final"]
+    loss = ctx.train.loss["final"]
     tasks = ", ".join(dict.fromkeys(r["task"] for r in rows))
     notes = (f"Task {tasks}. {RELMSE_FORMULA}; robust relMSE leaves out the 0.1% of pixels with the highest "
              f"error; temporal relMSE scores the frame-to-frame change against the reference's; PSNR/SSIM on "
              f"images clamped to [0, 1]; (se ...): standard error over the split's sequences. Scale {ctx.scale}, split "
-             f"{split or ctx.eval['split']}, {ctx.train['steps']} training steps, loss g:t:s:p = "
+             f"{split or ctx.eval.split}, {ctx.train.steps} training steps, loss g:t:s:p = "
              f"{loss['edge']}:{loss['temporal']}:{loss['spatial']}:{loss['perceptual']} (unless a row says "
              f"otherwise), seeds {list(ctx.seeds)} (mean +- std over seeds when several); time_ms: "
              f"inference per frame on {ctx.device}.")
@@ -182,7 +182,7 @@ def run(ctx: Context, name: str, rows: list[dict], caption: str = "", task: str 
     write_table(table.drop(columns=["reused"]), out_dir, caption=f"{caption} {notes}".strip(),
                 lower_is_better=LOWER_IS_BETTER, higher_is_better=HIGHER_IS_BETTER)
     if figure:
-        crop_figure(ctx, rows, out_dir / "crops.png", split=split or ctx.eval["split"])
+        crop_figure(ctx, rows, out_dir / "crops.png", split=split or ctx.eval.split)
         curve_figure(ctx.runs_dir, curves, out_dir / "curves.png")
     reused = int(table["reused"].sum())
     log.info("%s: %d of %d rows reused from the run store; table in %s", name, reused, len(table), out_dir)

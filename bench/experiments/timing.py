@@ -43,7 +43,7 @@ from bench.dataset import SequenceDataset
 from bench.errors import UserError
 from bench.evaluate import predict, sync
 from bench.experiments.pipeline import (Context, build_model, ensure_data, is_learned, model_config,
-                                        recipe_of, recorded_training, time_call, trained_model, with_training)
+                                        recorded_training, time_call, trained_model, with_training)
 from bench.metrics import HIGHER_IS_BETTER, LOWER_IS_BETTER, METRICS, RELMSE_FORMULA, mse
 from bench.table_writer import write_table
 from bench.tasks import GBUF_LAYERS, get_task
@@ -302,7 +302,7 @@ def measure_view(ctx: Context, view: View, variant: str, methods: list, bf_spp: 
         for spp in (spp_lists[res] if chosen else []):
             x, g, render_s = input_sequence(ctx, view, renderer, res, spp, stats)
             for m in chosen:
-                pred, network_s = timed_prediction(m["net"], x, g, recipe_of(ctx).hdr, ctx.device, repeats)
+                pred, network_s = timed_prediction(m["net"], x, g, ctx.train.hdr, ctx.device, repeats)
                 rows.append({"method": m["label"], "input": res.upper(), "spp": spp, "render s": render_s,
                              "network s": network_s, "network on": network_device(ctx, m["net"]),
                              **scores(pred, view.ref)})
