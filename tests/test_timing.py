@@ -120,3 +120,13 @@ def test_time_end_to_end_then_reuses_its_renders(tiny, caplog):
     assert list(speed["method"]) == ["Ours", "Bilinear", "OIDN HR"] and (speed["spp"] == 4).all()
     assert (speed["speed-up at equal relMSE"] > 0).all()
     assert "log-log slope" in (out / "table.md").read_text()
+
+
+def test_renders_recorded_under_the_old_run_kind_are_adopted(tmp_path):
+    from bench.experiments.timing import RUN_KIND, _adopt_legacy_runs
+    (tmp_path / "timing" / "abc").mkdir(parents=True)
+    (tmp_path / "timing" / "abc" / "run.json").write_text("{}")
+    _adopt_legacy_runs(tmp_path)
+    assert (tmp_path / RUN_KIND / "abc" / "run.json").exists() and not (tmp_path / "timing").exists()
+    _adopt_legacy_runs(tmp_path)  # nothing left to move: a no-op
+    assert (tmp_path / RUN_KIND / "abc" / "run.json").exists()

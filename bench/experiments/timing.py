@@ -51,6 +51,7 @@ from bench.tasks import GBUF_LAYERS, get_task
 log = logging.getLogger("bench")
 
 BRUTE_FORCE = "Path tracing (HR)"
+RUN_KIND = "time"                           # the renders' runs: runs/time/<hash>, named as the experiment
 INPUT_RES = {"srd": "lr", "denoise": "hr"}  # a method's task -> the resolution it renders its input at
 EXPECTED_SLOPE = (-1.3, -0.7)               # MSE of a k-spp image falls as 1/k
 PAPER_SPEEDUP = 4                           # what the paper implies at LR 8 spp
@@ -201,7 +202,7 @@ def cached_render(ctx: Context, view: View, renderer: Renderer, frame: int, res:
                 "camera": record.get("camera"), "size": [width, height], "spp": spp, "seed": seed,
                 "passes": passes, "max_depth": view.max_depth, "variant": renderer.variant,
                 "host": socket.gethostname()}
-    run = runs.begin(ctx.runs_dir, "timing", identity, seed=seed, device=_render_device(renderer.variant),
+    run = runs.begin(ctx.runs_dir, RUN_KIND, identity, seed=seed, device=_render_device(renderer.variant),
                      label=f"render {record['sequence']}/{record['frame']} {res} {spp} spp", force=ctx.force,
                      code=runs.code_fingerprint(["bench.render"]), reuse_stale=ctx.reuse_stale)
     stats["renders"] += 1
@@ -386,13 +387,21 @@ def plot(table: pd.DataFrame, path, title: str) -> None:
 
 # ---------------------------------------------------------------- the experiment
 
-DEFAULT_METHODS = [{"label": "Ours", "model": "srd"}, {"label": "Input bilinear", "model": "bilinear"}]
 
 
-def _methods(ctx: Context, methods: list[dict] | None) -> list[dict]:
+def _adopt_legacy_runs(runs_dir) -> None:
+    """Render runs recorded before the run kind took the experiment's name (runs/timing) move to runs/time;
+    their identities are unchanged, so they are reused."""
+    legacy, current = runs_dir / "timing", runs_dir / RUN_KIND
+    if legacy.is_dir() and not current.exists():
+        legacy.rename(current)
+        log.info("time: moved the recorded renders of %s to %s (the run kind's new name)", legacy, current)
+
+
+def _methods(ctx: Context, methods: list[dict]) -> list[dict]:
     """Methods with their task (default srd), checked before anything is rendered."""
     out = []
-    for m in methods or DEFAULT_METHODS:
+    for m in methods:
         m = {"task": "srd", **m}
         if m["task"] not in INPUT_RES:
             raise UserError(f"time: method {m['label']!r} has task {m['task']!r}; use srd (LR input) or "
@@ -439,10 +448,10 @@ def _caption(ctx, caption, views, variant, train_spp) -> str:
             f"faster and better.")
 
 
-def run(ctx: Context, name: str = "time", caption: str = "Error against run time.", views: int = 4,
-        lr_spp: list | None = None, hr_spp: list | None = None, max_spp: int | None = None,
-        operating_spp: int = 8, repeats: int = 5, train_missing: bool = False,
-        methods: list[dict] | None = None) -> pd.DataFrame:
+def run(ctx: Context, name: str, caption: str, views: int, lr_spp: list, hr_spp: list, max_spp: int | None,
+        operating_spp: int, repeats: int, train_missing: bool, methods: list[dict]) -> pd.DataFrame:
+    """conf/experiment/time.yaml says what each argument is, and its default."""
+    _adopt_legacy_runs(ctx.runs_dir)
     methods = _methods(ctx, methods)
     ensure_data(ctx, _data_passes(methods, train_missing))
     chosen = pick_views(ctx, int(views))
@@ -451,7 +460,7 @@ def run(ctx: Context, name: str = "time", caption: str = "Error against run time
     if len(bf_spp) < 2:
         raise UserError(f"time: the reference has {ref_spp} spp and max_spp={max_spp}: brute force needs at "
                         f"least 1 and 2 spp")
-    spp_lists = {"lr": list(lr_spp or [1, 2, 4, 8, 16]), "hr": list(hr_spp or [1, 2, 4, 8, 16])}
+    spp_lists = {"lr": list(lr_spp), "hr": list(hr_spp)}
     nets = {m["label"]: resolve_method(ctx, m, train_missing) for m in methods}
     kept = [{**m, "net": nets[m["label"]]} for m in methods if nets[m["label"]] is not None]
     variant = render.use_variant("cuda_ad_rgb" if ctx.device == "cuda" else None)
