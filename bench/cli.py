@@ -7,8 +7,10 @@ from __future__ import annotations
 
 import importlib
 import logging
+import os
 import re
 import sys
+import tempfile
 import time
 from pathlib import Path
 
@@ -23,6 +25,23 @@ from bench.experiments import KINDS
 
 log = logging.getLogger("bench")
 CONF_DIR = str(Path(__file__).resolve().parent.parent / "conf")
+
+
+def hydra_output_dir(runs_dir: str) -> str:
+    """Hydra's own output folder (conf/config.yaml `hydra.run.dir`): `<runs_dir>/hydra` when it can be
+    written, else one under the system's temporary folder. Hydra creates it before any of our code runs,
+    so an unwritable runs_dir must not fail there (a traceback) but in run_experiment (one line)."""
+    path = Path(runs_dir) / "hydra"
+    try:
+        path.mkdir(parents=True, exist_ok=True)
+        if os.access(path, os.W_OK):
+            return str(path)
+    except OSError:
+        pass
+    return str(Path(tempfile.gettempdir()) / "srd-bench-hydra")
+
+
+OmegaConf.register_new_resolver("hydra_output_dir", hydra_output_dir, replace=True)
 
 
 def available_experiments() -> list[str]:

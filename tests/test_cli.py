@@ -180,6 +180,15 @@ def test_missing_data_directory_is_a_clear_message(tmp_path):
     assert "has no manifest.json" in out.stderr and "Traceback" not in out.stderr
 
 
+def test_unwritable_runs_directory_is_one_line_not_a_hydra_traceback(tmp_path):
+    """Hydra makes its output folder under runs_dir before our code runs; it must not fail there."""
+    blocker = tmp_path / "file"
+    blocker.write_text("")
+    out = bench("+experiment=macs", "scale=smoke", f"runs_dir={blocker}/runs", f"results_dir={tmp_path}/results")
+    assert out.returncode == 2
+    assert f"runs directory {blocker}/runs is not writable" in out.stderr and "Traceback" not in out.stderr
+
+
 def test_unwritable_results_directory_is_a_clear_message(tmp_path):
     blocker = tmp_path / "file"
     blocker.write_text("")
