@@ -85,7 +85,8 @@ def config_problems(plain: dict) -> list[str]:
         if not (isinstance(lr, (int, float)) and not isinstance(lr, bool) and lr > 0):
             problems.append(f"model_lr.{name}={lr!r}: expected a positive number")
     try:
-        parse_path(_lookup(plain, "eval.fast_path"))
+        if _lookup(plain, "eval.fast_path") != "auto":  # auto: chosen by measurement (bench.measure)
+            parse_path(_lookup(plain, "eval.fast_path"))
     except (ValueError, AttributeError) as err:
         problems.append(f"eval.fast_path={_lookup(plain, 'eval.fast_path')!r}: {err}")
     if plain.get("tracking", "none") not in ("mlflow", "none"):

@@ -19,6 +19,7 @@ from __future__ import annotations
 import argparse
 import hashlib
 import json
+import os
 import sys
 from pathlib import Path
 
@@ -30,11 +31,18 @@ from bench.dataset import DEFAULT_ROUGHNESS, GBUF_SIZES
 from bench.errors import UserError
 from bench.evaluate import predict as predict_batch
 from bench.evaluate import runner
+from bench.infer import REFERENCE
+from bench.measure import AUTO, choose_fast_path
 from bench.experiments.pipeline import build_model
 from bench.tasks import GBUF_LAYERS, get_task
 from bench.train import load_weights
 
 FORMAT = "srd-bench-weights/1"
+
+
+def fast_path_cache() -> Path:
+    """Where predict remembers the fast path it measured ($XDG_CACHE_HOME, else ~/.cache)."""
+    return Path(os.environ.get("XDG_CACHE_HOME") or Path.home() / ".cache") / "srd-bench" / "fast_paths.json"
 
 
 # ---------------------------------------------------------------- export
@@ -123,8 +131,11 @@ def read_frame(path: str | Path) -> tuple[torch.Tensor, torch.Tensor]:
     return to_tensor(images["noisy"]), to_tensor(np.concatenate(planes, -1))
 
 
-def apply(model, meta: dict, inputs: list, output_dir: str | Path, tile: int | None = None) -> list[Path]:
-    """Run `model` on the frames `inputs` (one sequence, in order) and write one HR EXR per frame."""
+def apply(model, meta: dict, inputs: list, output_dir: str | Path, tile: int | None = None,
+          fast_path: str = REFERENCE) -> list[Path]:
+    """Run `model` on the frames `inputs` (one sequence, in order) and write one HR EXR per frame.
+    `fast_path`: a path of bench.infer, or "auto" (the fastest correct one here, bench.measure, its
+    choice cached in `fast_path_cache()`)."""
     if not inputs:
         raise UserError("no input frames given")
     frames = [read_frame(p) for p in inputs]
@@ -134,7 +145,12 @@ def apply(model, meta: dict, inputs: list, output_dir: str | Path, tile: int | N
     x = torch.stack([f[0] for f in frames])[None]     # (1, T, 3, h, w)
     g = torch.stack([f[1] for f in frames])[None]
     repaired = [int((~torch.isfinite(f[0])).sum() + (~torch.isfinite(f[1])).sum()) for f in frames]
-    forward = runner(model, tile=tile)
+    if fast_path == AUTO:
+        first = (x, g) if getattr(model, "recurrent", False) else (x[:, :1], g[:, :1])
+        fast_path, times = choose_fast_path(model, *first, "cpu", fast_path_cache(), {"model": meta["model"]})
+        print(f"fast path: {fast_path} " + " ".join(f"({k} {v:.0f} ms)" if isinstance(v, float) else f"({k}: {v})"
+                                                    for k, v in times.items()), file=sys.stderr)
+    forward = runner(model, path=fast_path, tile=tile)
     with torch.no_grad():
         if getattr(model, "recurrent", False):
             out = predict_batch(model, x, g, meta["hdr"], forward=forward)
@@ -169,6 +185,8 @@ def main(argv: list[str] | None = None) -> int:
     pr.add_argument("--runs-dir", default="runs")
     pr.add_argument("--output-dir", required=True)
     pr.add_argument("--tile", type=int, default=None, help="LR pixels per tile (bounded memory on large frames)")
+    pr.add_argument("--fast-path", default=AUTO, help="fp32, a bench.infer path (channels_last, bf16, ...) or auto "
+                                                      "(default: the fastest correct one on this machine, measured once)")
     pr.add_argument("inputs", nargs="+", help="LR frames (*_lr.exr), one sequence in order")
     args = parser.parse_args(argv)
     try:
@@ -176,7 +194,7 @@ def main(argv: list[str] | None = None) -> int:
             print(export(args.run, args.out, args.runs_dir))
             return 0
         model, meta = load_exported(args.weights) if args.weights else from_run(args.run, args.runs_dir)
-        for path in apply(model, meta, args.inputs, args.output_dir, args.tile):
+        for path in apply(model, meta, args.inputs, args.output_dir, args.tile, args.fast_path):
             print(path)
         return 0
     except (UserError, exrio.ExrError) as err:

@@ -1,9 +1,12 @@
 """Helpers shared by the tests that run experiments at smoke scale."""
 import dataclasses
 import os
+import tempfile
 
 # Mirroring to MLflow costs seconds per command; the tests that check it turn it on (tracking=mlflow).
 os.environ.setdefault("SRD_TRACKING", "none")
+# What the suite caches per machine (predict's measured fast path) stays out of the user's home.
+os.environ["XDG_CACHE_HOME"] = tempfile.mkdtemp(prefix="srd-bench-test-cache-")
 
 
 def smoke_overrides(root, steps=4):

@@ -123,6 +123,21 @@ def test_reused_training_is_loaded_for_a_new_evaluation(smoke_dirs):
     assert list((root / "runs" / "eval").glob("*/frames/*.exr"))
 
 
+def test_fast_path_auto_is_measured_and_recorded_as_the_path_it_chose(smoke_dirs):
+    args, root, _ = smoke_dirs
+    others = [a for a in args if not a.startswith("results_dir=")]
+    out = bench("+experiment=smoke", "eval.fast_path=auto", f"results_dir={root / 'results_auto'}", *others)
+    assert out.returncode == 0, out.stderr[-3000:]
+    assert "eval Ours: fast_path=auto chose " in out.stdout + out.stderr
+    chosen = json.loads((root / "runs" / "fast_paths.json").read_text())
+    (entry,) = chosen.values()
+    fp32 = pd.read_csv(root / "results" / "smoke" / "table.csv").set_index("method")
+    auto = pd.read_csv(root / "results_auto" / "smoke" / "table.csv").set_index("method")
+    record = json.loads((root / "runs" / "eval" / auto.loc["Ours", "runs"] / "run.json").read_text())
+    assert record["identity"].get("path", "fp32") == entry["path"]
+    assert abs(auto.loc["Ours", "PSNR"] - fp32.loc["Ours", "PSNR"]) < 0.05
+
+
 def test_recorded_models_score_another_dataset_without_retraining(smoke_dirs):
     """eval.data_dir: the smoke data's val split, copied as a user's dataset with the split renamed,
     scores the same as the original (same frames) with every training reused."""

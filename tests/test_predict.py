@@ -8,7 +8,7 @@ import torch
 from bench import exrio, runs
 from bench.errors import UserError
 from bench.evaluate import predict as predict_batch
-from bench.predict import apply, export, load_exported, main, read_frame
+from bench.predict import apply, export, fast_path_cache, load_exported, main, read_frame
 from bench.tasks import get_task
 from bench.train import Recipe, train
 from test_train import WEIGHTS, SyntheticSequences
@@ -65,6 +65,19 @@ def test_predict_on_the_command_line(recorded, tmp_path, capsys):
     assert main(["predict", "--run", run_hash, "--runs-dir", str(runs_dir), "--output-dir",
                  str(tmp_path / "out"), "--tile", "16", str(frame)]) == 0
     assert (tmp_path / "out" / "0000_hr.exr").exists()
+
+
+def test_predict_measures_the_fast_path_once_and_its_output_matches_fp32(recorded, tmp_path, capsys):
+    runs_dir, run_hash = recorded
+    frame = _frame(tmp_path / "0000_lr.exr")
+    common = ["predict", "--run", run_hash, "--runs-dir", str(runs_dir), str(frame)]
+    assert main([*common, "--output-dir", str(tmp_path / "fp32"), "--fast-path", "fp32"]) == 0
+    assert main([*common, "--output-dir", str(tmp_path / "auto")]) == 0            # auto is the default
+    assert "fast path: " in capsys.readouterr().err
+    assert fast_path_cache().exists()
+    fp32 = exrio.read_exr(tmp_path / "fp32" / "0000_hr.exr")["output"]
+    auto = exrio.read_exr(tmp_path / "auto" / "0000_hr.exr")["output"]
+    assert np.abs(auto - fp32).max() <= 0.02 * np.abs(fp32).max() + 1e-6
 
 
 @pytest.mark.parametrize("case,message", [

@@ -218,7 +218,8 @@ def test_keep_freed_memory_applies_once_on_glibc():
 
 
 def test_the_caption_names_the_cpu_isa():
-    from bench.experiments.speed import cpu_isa, machine_caption
+    from bench.experiments.speed import machine_caption
+    from bench.measure import cpu_isa
     isa = cpu_isa()
     assert any(name in isa for name in ("AVX512-BF16", "AMX-BF16", "AVX-512", "AVX2", "no AVX2", "ISA unknown"))
     assert isa in machine_caption("cpu")

@@ -19,8 +19,6 @@ import hashlib
 import json
 import logging
 import os
-import statistics
-import time
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -33,10 +31,11 @@ from bench import runs
 from bench.datagen import build_dataset, damaged_frames, frame_paths, load_manifest, manifest_problems
 from bench.dataset import SequenceDataset
 from bench.errors import UserError
-from bench.evaluate import SCORES, evaluate, sync
+from bench.evaluate import SCORES, evaluate
 from bench.exrio import write_exr
 from bench.infer import REFERENCE
 from bench.macs import count_params
+from bench.measure import AUTO, choose_fast_path
 from bench.models.srd import SRDNet, SRDStage, load_stage
 from bench.tasks import CASCADE_STAGES, Task, get_task
 from bench.train import Recipe, TrainingDiverged, TrainingInterrupted, load_weights, train
@@ -88,25 +87,6 @@ class Context:
     model_lr: dict                                  # model name -> peak learning rate (else train.lr)
     shard: tuple[int, int] | None                   # (i, n): a table computes only its (row, seed) runs i, i+n, ...
     reuse_stale: bool                               # reuse runs whose code changed since they were recorded
-
-
-# ---------------------------------------------------------------- timing
-
-def time_call(fn, device: str, repeats: int = 5, warmup: int = 1) -> dict:
-    """Median, min and max milliseconds of `repeats` calls of fn() after `warmup` untimed ones (the
-    device synchronised around each), and the last call's result (to compare outputs without an extra
-    call). The one timing loop of the experiments."""
-    result = None
-    for _ in range(warmup):
-        result = fn()
-    sync(device)
-    times = []
-    for _ in range(max(1, repeats)):
-        t0 = time.perf_counter()
-        result = fn()
-        sync(device)
-        times.append(1000 * (time.perf_counter() - t0))
-    return {"ms": statistics.median(times), "ms min": min(times), "ms max": max(times), "result": result}
 
 
 # ---------------------------------------------------------------- models
@@ -434,6 +414,8 @@ def evaluated(ctx: Context, cfg: dict, task: Task, seed: int, split: str, label:
     if ctx.eval.save_exr:
         identity["frames"] = True  # output frames are an artifact of their own run
     fast_path, tile = ctx.eval.fast_path, ctx.eval.tile
+    if fast_path == AUTO:
+        fast_path = measured_fast_path(ctx, cfg, task, split, label)
     if fast_path != REFERENCE or tile:  # only a non-default way of running changes the identity
         identity.update(path=fast_path, tile=tile)  # ("path": the identity key from before the rename)
     # a learned row's numbers also depend on the trainer: retraining it makes its evaluation stale too
@@ -461,6 +443,21 @@ def evaluated(ctx: Context, cfg: dict, task: Task, seed: int, split: str, label:
     metrics["train_run"] = trained if isinstance(trained, str) else None
     metrics["vgg"] = (train_run.record["identity"].get("vgg") if train_run else None)
     return runs.complete(run, metrics)
+
+
+def measured_fast_path(ctx: Context, cfg: dict, task: Task, split: str, label: str) -> str:
+    """eval.fast_path=auto: the fastest correct path for this model on this machine (bench.measure),
+    timed on an untrained copy (speed does not depend on the weights) and one sequence of the split,
+    cached in <runs_dir>/fast_paths.json. The evaluation's identity records the path chosen."""
+    item = dataset(evaluation_data(ctx), split, task, training=False)[0]
+    model = build_model(cfg, task.scale).to(ctx.device).eval()
+    x, g = item[task.x][None].to(ctx.device), item[task.g][None].to(ctx.device)
+    chosen, times = choose_fast_path(model, x, g, ctx.device, ctx.runs_dir / "fast_paths.json",
+                                     {"model": cfg, "task": task.name})
+    if times:
+        log.info("eval %s: fast_path=auto chose %s (%s)", label, chosen,
+                 ", ".join(f"{k} {v:.0f} ms" if isinstance(v, float) else f"{k} {v}" for k, v in times.items()))
+    return chosen
 
 
 def last_fifth_gain(curve_csv: Path, metric: str = "PSNR") -> float | None:

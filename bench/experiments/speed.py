@@ -42,9 +42,10 @@ import torch
 import torch.nn as nn
 
 from bench.evaluate import sync
-from bench.experiments.pipeline import build_model, time_call
+from bench.experiments.pipeline import build_model
 from bench.infer import freed_memory_kept, max_abs_diff, parse_path, prepare, release_free_memory, tiled_predict
 from bench.losses import weighted_loss
+from bench.measure import cpu_isa, time_call
 from bench.macs import count_macs, on_meta
 from bench.nn import DeformConv2d, eager_gather, grid_sample_training, inference_sampler
 from bench.table_writer import write_table
@@ -73,25 +74,6 @@ def device_tag(device: str) -> str:
     slug = re.sub(r"\(r\)|\(tm\)|cpu|processor|@.*|\d+-core", " ", name.lower())
     slug = re.sub(r"[^a-z0-9]+", "-", slug).strip("-")
     return f"{'cuda' if str(device).startswith('cuda') else 'cpu'}-{slug or 'unknown'}"
-
-
-def cpu_isa() -> str:
-    """The vector ISA that decides the fast paths: whether bf16 runs natively (AVX512-BF16 or AMX) or
-    is emulated (AVX2 only, where it is several times slower than fp32)."""
-    try:
-        found = re.search(r"^flags\s*:\s*(.+)$", Path("/proc/cpuinfo").read_text(), re.MULTILINE)
-    except OSError:
-        found = None
-    flags = set(found.group(1).split()) if found else set()
-    if not flags:
-        return f"ISA unknown ({platform.machine()})"
-    native_bf16 = [name for flag, name in (("avx512_bf16", "AVX512-BF16"), ("amx_bf16", "AMX-BF16"))
-                   if flag in flags]
-    if native_bf16:
-        return " + ".join(native_bf16) + " (bf16 native)"
-    if "avx512f" in flags:
-        return "AVX-512 without BF16 (bf16 emulated)"
-    return "AVX2 only (bf16 emulated)" if "avx2" in flags else "no AVX2 (bf16 emulated)"
 
 
 def machine_caption(device: str) -> str:

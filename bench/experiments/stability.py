@@ -26,8 +26,9 @@ import torch.nn.functional as F
 
 from bench.evaluate import predict
 from bench.hdr import to_network
-from bench.experiments.pipeline import (Context, dataset, ensure_data, is_learned, model_config, time_call,
-                                        trained_model, with_training)
+from bench.experiments.pipeline import (Context, dataset, ensure_data, is_learned, model_config, trained_model,
+                                        with_training)
+from bench.measure import time_call
 from bench.metrics import psnr, relmse, ssim
 from bench.nn import DeformConv2d
 from bench.table_writer import write_table

@@ -43,7 +43,8 @@ from bench.dataset import SequenceDataset
 from bench.errors import UserError
 from bench.evaluate import predict, sync
 from bench.experiments.pipeline import (Context, build_model, ensure_data, is_learned, model_config,
-                                        recorded_training, time_call, trained_model, with_training)
+                                        recorded_training, trained_model, with_training)
+from bench.measure import time_call
 from bench.metrics import HIGHER_IS_BETTER, LOWER_IS_BETTER, METRICS, RELMSE_FORMULA, mse
 from bench.table_writer import write_table
 from bench.tasks import GBUF_LAYERS, get_task

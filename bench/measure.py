@@ -1,0 +1,121 @@
+"""Measurements of this machine: the one timing loop, the CPU's vector features, and the fast path
+chosen by measurement (`fast_path=auto`).
+
+`choose_fast_path` times the candidate paths of bench.infer on the input a model will see and returns
+the fastest whose output stays within `TOLERANCE` of fp32's. Candidates are the paths this device runs
+natively: fp32 and channels_last everywhere, their bf16 variants only where bf16 is native (a CUDA GPU,
+or a CPU with AVX512-BF16 or AMX-BF16), never where it is emulated (AVX2 only: several times slower than
+fp32). Which path wins depends on the CPU, the model and its width (on one 2-core AVX2 machine
+channels_last was 1.4x slower than fp32 at cpu widths and 2x faster at the paper's), so it is measured,
+not assumed, and cached per machine, model, input size, threads and torch version in a JSON file.
+"""
+from __future__ import annotations
+
+import json
+import platform
+import re
+import statistics
+import time
+from pathlib import Path
+
+import torch
+
+from bench.evaluate import sync
+from bench.infer import REFERENCE, max_abs_diff, prepare
+
+TOLERANCE = 0.02       # max |fast - fp32| relative to fp32's output range: bf16 rounding passes, a bug does not
+AUTO = "auto"
+
+
+def time_call(fn, device: str, repeats: int = 5, warmup: int = 1) -> dict:
+    """Median, min and max milliseconds of `repeats` calls of fn() after `warmup` untimed ones (the
+    device synchronised around each), and the last call's result (to compare outputs without an extra
+    call). The one timing loop of the suite's measurements."""
+    result = None
+    for _ in range(warmup):
+        result = fn()
+    sync(device)
+    times = []
+    for _ in range(max(1, repeats)):
+        t0 = time.perf_counter()
+        result = fn()
+        sync(device)
+        times.append(1000 * (time.perf_counter() - t0))
+    return {"ms": statistics.median(times), "ms min": min(times), "ms max": max(times), "result": result}
+
+
+def cpu_flags() -> set[str]:
+    """The CPU's feature flags (/proc/cpuinfo); empty where that cannot be read."""
+    try:
+        found = re.search(r"^flags\s*:\s*(.+)$", Path("/proc/cpuinfo").read_text(), re.MULTILINE)
+    except OSError:
+        return set()
+    return set(found.group(1).split()) if found else set()
+
+
+def cpu_isa(flags: set[str] | None = None) -> str:
+    """The vector ISA that decides the fast paths, in words: whether bf16 runs natively (AVX512-BF16 or
+    AMX) or is emulated (AVX2 only, where it is several times slower than fp32)."""
+    flags = cpu_flags() if flags is None else flags
+    if not flags:
+        return f"ISA unknown ({platform.machine()})"
+    native = [name for flag, name in (("avx512_bf16", "AVX512-BF16"), ("amx_bf16", "AMX-BF16")) if flag in flags]
+    if native:
+        return " + ".join(native) + " (bf16 native)"
+    if "avx512f" in flags:
+        return "AVX-512 without BF16 (bf16 emulated)"
+    return "AVX2 only (bf16 emulated)" if "avx2" in flags else "no AVX2 (bf16 emulated)"
+
+
+def native_bf16(device: str, flags: set[str] | None = None) -> bool:
+    if str(device).startswith("cuda"):
+        return True
+    flags = cpu_flags() if flags is None else flags
+    return bool(flags & {"avx512_bf16", "amx_bf16"})
+
+
+def candidate_paths(device: str, flags: set[str] | None = None) -> list[str]:
+    """The paths worth timing on `device`: never bf16 where it is emulated."""
+    paths = [REFERENCE, "channels_last"]
+    return paths + ["bf16", "channels_last+bf16"] if native_bf16(device, flags) else paths
+
+
+def choose_fast_path(model, x: torch.Tensor, g: torch.Tensor | None, device: str, cache: str | Path | None,
+                     key: dict, repeats: int = 3) -> tuple[str, dict]:
+    """(the fastest correct path for `model` on inputs like `x`, `g`; {path: ms or reason}). `key`
+    names the model (its config) for the cache; the machine, input size, threads and torch version are
+    added here. A model without parameters (bilinear, OIDN) runs its own way: fp32."""
+    if not any(True for _ in model.parameters()):
+        return REFERENCE, {}
+    key = {**key, "cpu": platform.processor() or platform.machine(), "isa": cpu_isa(), "device": str(device),
+           "input": list(x.shape), "threads": torch.get_num_threads(), "torch": torch.__version__}
+    text = json.dumps(key, sort_keys=True, default=str)
+    cached = _read_cache(cache)
+    if text in cached:
+        return cached[text]["path"], cached[text]["ms"]
+    reference = None
+    times = {}
+    for name in candidate_paths(device):
+        run = prepare(model, name)
+        timed = time_call(lambda: run(x, g), device, repeats=repeats, warmup=1)
+        out = timed["result"]["final"].float()
+        if reference is None:
+            reference = out
+        scale = float(reference.abs().max()) or 1.0
+        error = max_abs_diff(out, reference) / scale
+        times[name] = timed["ms"] if error <= TOLERANCE else f"off by {error:.3g} of the output range"
+    fastest = min((ms, name) for name, ms in times.items() if isinstance(ms, float))[1]
+    if cache is not None:
+        cached[text] = {"path": fastest, "ms": times}
+        Path(cache).parent.mkdir(parents=True, exist_ok=True)
+        Path(cache).write_text(json.dumps(cached, indent=1, sort_keys=True))
+    return fastest, times
+
+
+def _read_cache(cache: str | Path | None) -> dict:
+    if cache is None or not Path(cache).exists():
+        return {}
+    try:
+        return json.loads(Path(cache).read_text())
+    except (OSError, ValueError):  # a damaged cache is measured again
+        return {}

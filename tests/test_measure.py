@@ -1,0 +1,55 @@
+"""bench.measure: the fast-path chooser never times an emulated path, never picks an incorrect one,
+picks the fastest of the rest, and measures once per machine and model."""
+import time
+
+import pytest
+import torch
+
+from bench import measure
+
+AVX2 = {"avx2", "fma"}
+AVX512_BF16 = {"avx2", "avx512f", "avx512_bf16"}
+
+
+def test_bf16_is_a_candidate_only_where_it_is_native():
+    assert measure.candidate_paths("cpu", AVX2) == ["fp32", "channels_last"]
+    assert "channels_last+bf16" in measure.candidate_paths("cpu", AVX512_BF16)
+    assert "bf16" in measure.candidate_paths("cpu", {"amx_bf16"}) and "bf16" in measure.candidate_paths("cuda:0", AVX2)
+    assert "emulated" in measure.cpu_isa(AVX2) and "native" in measure.cpu_isa(AVX512_BF16)
+
+
+def fake_paths(monkeypatch, behaviour):
+    """prepare(model, name) -> a forward that sleeps and returns what `behaviour[name]` says."""
+    def prepare(model, name):
+        delay, offset = behaviour[name]
+        def run(x, g):
+            time.sleep(delay)
+            return {"final": x + offset}
+        return run
+    monkeypatch.setattr(measure, "prepare", prepare)
+    monkeypatch.setattr(measure, "candidate_paths", lambda device: list(behaviour))
+
+
+def test_the_fastest_correct_path_wins_and_a_wrong_one_is_refused(monkeypatch, tmp_path):
+    model = torch.nn.Conv2d(1, 1, 1)
+    x = torch.ones(1, 1, 3, 4, 4)
+    fake_paths(monkeypatch, {"fp32": (0.03, 0.0), "channels_last": (0.001, 0.5), "bf16": (0.01, 0.001)})
+    chosen, times = measure.choose_fast_path(model, x, None, "cpu", tmp_path / "cache.json", {"model": "m"})
+    assert chosen == "bf16"                                  # fastest of those within the tolerance
+    assert isinstance(times["channels_last"], str) and "off by" in times["channels_last"]
+    assert times["bf16"] < times["fp32"]
+
+    calls = []
+    fake = measure.prepare
+    monkeypatch.setattr(measure, "prepare", lambda model, name: calls.append(name) or fake(model, name))
+    again, _ = measure.choose_fast_path(model, x, None, "cpu", tmp_path / "cache.json", {"model": "m"})
+    assert again == "bf16" and calls == []                   # from the cache
+    measure.choose_fast_path(model, x, None, "cpu", tmp_path / "cache.json", {"model": "other"})
+    assert calls == ["fp32", "channels_last", "bf16"]        # another model is measured
+
+
+def test_a_model_without_parameters_runs_its_own_way():
+    class Bilinear(torch.nn.Module):
+        def forward(self, x, g):
+            return {"final": x}
+    assert measure.choose_fast_path(Bilinear(), torch.ones(1, 1, 3, 4, 4), None, "cpu", None, {}) == ("fp32", {})
