@@ -186,12 +186,14 @@ def test_claim_verdicts_follow_twice_the_standard_error(tmp_path):
                   "PSNR": [31.5, 30.5, 31.525, 31.0, 30.0], "PSNR std": [None, None, None, 0.1, 0.1],
                   "SSIM": 0.5, "SSIM std": [None, None, None, 0.0, 0.0], "relMSE": 0.1,
                   "relMSE std": [None, None, None, 0.0, 0.0]}).to_csv(ctx.results_dir / "t" / "table.csv", index=False)
-    table = claims.run(ctx, claims=[
+    claim_list = [
         {"claim": "A beats B", "better": "t:A", "worse": "t:B"},       # +1.0 +- 0.05 per sequence: holds
         {"claim": "B beats A", "better": "t:B", "worse": "t:A"},       # reversed
         {"claim": "A beats C", "better": "t:A", "worse": "t:C"},       # -0.025, SE ~0.1: within noise
         {"claim": "S1 beats S2", "better": "t:S1", "worse": "t:S2"},   # 1.0 vs 2SE = 0.2 over 2 seeds: holds
-        {"claim": "both", "better": "t:A", "worse": ["t:B", "t:C"]}])  # holds + within noise
+        {"claim": "both", "better": "t:A", "worse": ["t:B", "t:C"]}]   # holds + within noise
+    elsewhere = {"claim": "in a table not rerun", "better": "t:A", "worse": "other:X"}
+    table = claims.run(ctx, "claims", claim_list + [elsewhere], "PSNR", tables=["t"])  # `other` is not read
     verdicts = table.drop_duplicates("claim").set_index("claim")["verdict"].to_dict()
     assert verdicts == {"A beats B": "holds", "B beats A": "reversed", "A beats C": "within noise",
                         "S1 beats S2": "holds", "both": "within noise"}

@@ -85,9 +85,20 @@ def combine(verdicts: list[str]) -> str:
     return "reversed" if "reversed" in verdicts else "within noise"
 
 
-def run(ctx: Context, name: str = "claims", claims: list[dict] | None = None, metric: str = "PSNR") -> pd.DataFrame:
+def _tables_of(claim: dict) -> set[str]:
+    worse = [claim["worse"]] if isinstance(claim["worse"], str) else claim["worse"]
+    return {ref.partition(":")[0] for ref in [claim["better"], *worse]}
+
+
+def run(ctx: Context, name: str, claims: list[dict], metric: str, tables: list[str] | None) -> pd.DataFrame:
+    """`tables`: judge only the claims whose rows all come from these tables (e.g. the ones rerun with
+    the current recipe); None: every claim."""
+    if tables is not None:
+        claims = [c for c in claims if _tables_of(c) <= set(tables)]
+        if not claims:
+            raise UserError(f"claims: no claim is made of rows of only {tables}")
     cache, rows = {}, []
-    for claim in claims or []:
+    for claim in claims:
         pairs = [(claim["better"], worse) for worse in
                  ([claim["worse"]] if isinstance(claim["worse"], str) else claim["worse"])]
         for better_ref, worse_ref in pairs:
@@ -107,7 +118,8 @@ def run(ctx: Context, name: str = "claims", claims: list[dict] | None = None, me
         f"better). 2SE: twice the standard error, over seeds when both rows have several, else over the "
         f"per-sequence paired differences of one seed (data noise only). A pair's verdict: within noise when "
         f"|diff| < 2SE, else holds or reversed. verdict (the claim, on {metric}): holds when every pair "
-        f"holds, reversed when any is reversed, else within noise."))
+        f"holds, reversed when any is reversed, else within noise."
+        + (f" Judged: the claims made of rows of {', '.join(tables)} only." if tables is not None else "")))
     log.info("%s: %d comparisons, %s", name, len(table),
              ", ".join(f"{c}: {v}" for c, v in table.drop_duplicates("claim")[["claim", "verdict"]].values))
     return table
