@@ -225,13 +225,16 @@ def ensure_data(ctx: Context, passes: set[str]) -> str:
     identity = {"spec": ctx.data_spec, "passes": sorted(passes)}
     run = runs.begin(ctx.runs_dir, "data", identity, seed=ctx.data_spec.get("seed"), device=ctx.device,
                      label=f"data {ctx.scale}", force=True)  # a data run records one render job
-    log.info("data: rendering %s into %s", ", ".join(sorted(passes)), ctx.data_dir)
+    log.info("data: making sure %s holds %s (rendering what is missing)", ctx.data_dir, ", ".join(sorted(passes)))
     manifest = build_dataset(ctx.data_dir, ctx.data_spec, sorted(passes), workers=ctx.workers,
                              progress=ctx.progress, variant="cuda_ad_rgb" if ctx.device == "cuda" else None)
     timing_cols = [c for c in manifest.columns if c.startswith("time_s.")]
-    runs.complete(run, {"frames": int(len(manifest)), "resumed_frames": int(manifest["resumed"].sum()),
+    complete = int(manifest["resumed"].sum())
+    runs.complete(run, {"frames": int(len(manifest)), "resumed_frames": complete,
                         "render_time_s": float(manifest[timing_cols].fillna(0).to_numpy().sum()),
                         "nonfinite_repaired": int(manifest.get("nonfinite_repaired", 0).sum())})
+    log.info("data: %d frames rendered, %d were already complete (%.1f min)", len(manifest) - complete, complete,
+             run.record["wall_time_s"] / 60)
     return data_fingerprint(ctx)
 
 
