@@ -41,6 +41,7 @@ from bench import exrio, render, scenes
 from bench.tasks import BUFFERS, GBUF_LAYERS
 
 log = logging.getLogger("bench")
+PROGRESS_LOG_S = 60.0  # without a terminal (logs, clusters), rendering progress is a log line this often
 
 SUFFIXES = {"noisy": ("R", "G", "B"), "ref": ("R", "G", "B"), "albedo": ("R", "G", "B"),
             "normal": ("X", "Y", "Z"), "roughness": ("Y",)}
@@ -360,20 +361,28 @@ def build_dataset(root, spec, passes=BUFFERS, workers=1, progress=True, variant=
     records = []
     bar = tqdm(total=len(plan) * int(spec["seq_len"]), desc=f"render {spec.get('name', root)}", unit="frame",
                disable=None if progress else True)
+    logged = [start]
+
+    def advance(done):
+        records.extend(done)
+        bar.update(len(done))
+        now = time.perf_counter()
+        if progress and bar.disable and now - logged[0] >= PROGRESS_LOG_S:  # no terminal: a line now and then
+            logged[0] = now
+            rate = len(records) / (now - start)
+            log.info("render: %d/%d frames, %.2f frames/s, about %.0f min left", len(records), bar.total, rate,
+                     (bar.total - len(records)) / max(rate, 1e-9) / 60)
+
     if workers <= 1:
         for job in jobs:
-            done = _worker(job)
-            records += done
-            bar.update(len(done))
+            advance(_worker(job))
     else:
         # ProcessPoolExecutor (not Pool): a worker that dies raises BrokenProcessPool instead of hanging.
         # 'spawn' needs the calling script to guard its entry point with `if __name__ == "__main__":`.
         context = multiprocessing.get_context("spawn")
         with ProcessPoolExecutor(workers, mp_context=context) as pool:
             for future in as_completed([pool.submit(_worker, job) for job in jobs]):
-                done = future.result()
-                records += done
-                bar.update(len(done))
+                advance(future.result())
     bar.close()
     records.sort(key=lambda r: (r["split"], r["sequence"], r["frame"]))
     present = sorted(set().union(*(r.get("buffers", []) for r in records)))

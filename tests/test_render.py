@@ -252,3 +252,14 @@ def test_every_family_is_one_table_entry_and_its_scenes_are_unchanged():
     assert set(scenes.FAMILY_CONTENT) == set(scenes.FAMILIES) == set(SCENE_DIGESTS)
     assert {f: (_digest(scenes.make_scene(f, 0)), _digest(scenes.make_scene(f, 7))) for f in scenes.FAMILIES} \
         == SCENE_DIGESTS
+
+
+def test_rendering_without_a_terminal_logs_progress_lines(tmp_path, monkeypatch, caplog):
+    """Logs, sweeps, clusters: no progress bar, so a line with frames, rate and time left (every
+    PROGRESS_LOG_S; here after every sequence)."""
+    monkeypatch.setattr(datagen, "PROGRESS_LOG_S", 0.0)
+    with caplog.at_level("INFO", logger="bench"):
+        datagen.build_dataset(tmp_path / "a", TINY_SPEC, progress=True)   # pytest's output is not a terminal
+    lines = [r.getMessage() for r in caplog.records if r.getMessage().startswith("render: ")]
+    assert lines and "frames/s" in lines[-1] and "min left" in lines[-1]
+    assert lines[-1].startswith("render: 4/4 frames")
