@@ -132,8 +132,9 @@ def run(ctx: Context, name: str, rows: list[dict], caption: str = "", task: str 
         model_config(ctx, r["model"], r.get("overrides"))
         get_task(r["task"])
     ensure_data(ctx, passes_for(rows, task))
-    if evaluation_data(ctx) is not ctx:  # evaluations on another dataset: checked before anything trains
-        ensure_data(evaluation_data(ctx), set())
+    frames = evaluation_data(ctx)
+    if frames is not ctx:  # evaluations on another dataset: checked before anything trains
+        ensure_data(frames, set())
     if ctx.shard:  # compute this shard's runs only; a run without a shard assembles the table from them
         index, count = ctx.shard
         units = shard_units(rows, ctx.seeds, index, count)
