@@ -1,4 +1,4 @@
-"""Command line: `python -m bench +experiment=NAME [scale=smoke|cpu|paper] [key=value ...]`.
+"""Command line: `python -m bench +experiment=NAME [preset=smoke|cpu|paper] [key=value ...]`.
 
 The only module that reads the Hydra config: it turns it into a plain `Context` and the experiment's
 parameters, calls the experiment, and prints user errors as one line instead of a traceback.
@@ -111,10 +111,10 @@ def make_context(cfg: DictConfig):
         evaluation, vgg = EvalSpec(**plain["eval"]), VggSpec(**plain["vgg"])
     except TypeError as err:  # a key that is not a field (a typo in an override)
         raise UserError(f"bad config (nothing was run): eval or vgg: {err}") from None
-    return Context(scale=plain["scale"]["name"], runs_dir=Path(plain["runs_dir"]),
+    return Context(preset=plain["preset"]["name"], runs_dir=Path(plain["runs_dir"]),
                    results_dir=Path(plain["results_dir"]), data_dir=Path(plain["data_dir"]),
                    data_spec=plain["data"], train=recipe_from(plain["train"]), eval=evaluation, vgg=vgg,
-                   models=plain["models"], budget_gmac=plain["scale"]["budget_gmac"], seeds=list(plain["seeds"]),
+                   models=plain["models"], budget_gmac=plain["preset"]["budget_gmac"], seeds=list(plain["seeds"]),
                    device=plain["device"], workers=plain["workers"], force=plain["force"],
                    progress=plain["progress"], render_data=plain["render_data"],
                    model_lr=plain.get("model_lr") or {}, shard=parse_shard(plain.get("shard")),
@@ -252,6 +252,31 @@ def mirror_runs(tracking: str, runs_dir: Path, uri: str | None, results_dir: Pat
                     type(err).__name__, err)
 
 
+# Override names users have typed that were renamed: the size preset was `scale`, a name the upsampling
+# factor also has (issue #21). Kept working, with a deprecation message.
+RENAMED_GROUPS = {"scale": "preset"}
+
+
+def renamed_overrides(args: list[str]) -> list[str]:
+    """Command-line arguments with each renamed config name (`scale=cpu`, `scale.budget_gmac=...`,
+    `~scale`) replaced by its new one, and a deprecation line on stderr for each."""
+    out = []
+    for arg in args:
+        match = re.match(r"^([~+]*)(\w+)(?=[.=@]|$)", arg)
+        if match and match.group(2) in RENAMED_GROUPS:
+            new = match.group(1) + RENAMED_GROUPS[match.group(2)] + arg[match.end():]
+            print(f"warning: {arg} is deprecated: use {new}", file=sys.stderr)
+            arg = new
+        out.append(arg)
+    return out
+
+
+def entry() -> None:
+    """`python -m bench`: old override names still work (with a message), then Hydra parses the rest."""
+    sys.argv[1:] = renamed_overrides(sys.argv[1:])
+    main()
+
+
 @hydra.main(config_path=CONF_DIR, config_name="config", version_base=None)
 def main(cfg: DictConfig) -> None:
     if cfg.get("keep_freed_memory", True):
@@ -262,6 +287,6 @@ def main(cfg: DictConfig) -> None:
         print(f"error: {err}", file=sys.stderr)
         sys.exit(getattr(err, "exit_code", 2))
     except ExrError as err:  # a frame damaged after the last check (headers are checked at every start)
-        print(f"error: {err}; `python -m bench +experiment=data scale={cfg.scale.name} verify=true` reads every "
+        print(f"error: {err}; `python -m bench +experiment=data preset={cfg.preset.name} verify=true` reads every "
               "frame and renders the damaged ones again", file=sys.stderr)
         sys.exit(2)

@@ -132,7 +132,7 @@ class SequenceDataset(Dataset):
             self.items += [(name, start, n) for start in range(len(frames) - n + 1)]
         self._draws = 0
         # Decoded frames kept in memory (up to cache_bytes): a training step reads every one of its
-        # frames again and again, and decoding the EXRs cost more than the model step at the cpu scale.
+        # frames again and again, and decoding the EXRs cost more than the model step at the cpu preset.
         self._cache, self._cache_left = {}, int(cache_bytes)
 
     def __len__(self):

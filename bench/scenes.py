@@ -44,7 +44,7 @@ def translate(v):
     return m
 
 
-def scale(v):
+def scaling(v):
     return np.diag([*np.broadcast_to(np.asarray(v, float), (3,)), 1.0])
 
 
@@ -101,7 +101,7 @@ def diffuse(color):
 
 def checker(color0, color1, tiles):
     tex = {"type": "checkerboard", "color0": rgb(color0), "color1": rgb(color1),
-           "to_uv": _list(scale([tiles, tiles, 1]))}
+           "to_uv": _list(scaling([tiles, tiles, 1]))}
     return {"type": "twosided", "bsdf": {"type": "diffuse", "reflectance": tex}}
 
 
@@ -336,7 +336,7 @@ def _floor_spot(rng, size, margin=0.8):
 
 
 def cube(center, half, angle, bsdf):
-    m = translate(center) @ rotate_z(angle) @ scale(half)
+    m = translate(center) @ rotate_z(angle) @ scaling(half)
     return {"type": "cube", "to_world": _list(m), "bsdf": bsdf}
 
 

@@ -83,7 +83,7 @@ class TrainingDiverged(RuntimeError):
 
 @dataclass(frozen=True)
 class Recipe:
-    """How a model is trained (conf/config.yaml `train:`; scales override the sizes).
+    """How a model is trained (conf/config.yaml `train:`; presets override the sizes).
 
     Everything here but `checkpoint_every` and the validation settings determines the trained weights,
     so it is the training part of a run's identity (`identity()`)."""

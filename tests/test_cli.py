@@ -32,10 +32,10 @@ def compose_experiment(name, *overrides):
 
 
 @pytest.mark.parametrize("name", available_experiments())
-@pytest.mark.parametrize("scale", ["smoke", "cpu", "paper"])
-def test_every_experiment_composes_at_every_scale(name, scale):
-    cfg = compose_experiment(name, f"scale={scale}")
-    assert cfg.scale.name == scale
+@pytest.mark.parametrize("preset", ["smoke", "cpu", "paper"])
+def test_every_experiment_composes_at_every_preset(name, preset):
+    cfg = compose_experiment(name, f"preset={preset}")
+    assert cfg.preset.name == preset
     assert cfg.experiment.name == name or cfg.experiment.get("deprecated_name") == name
     ctx = make_context(cfg)                       # every key the experiments read is there
     assert ctx.data_spec and ctx.train.steps > 0 and ctx.budget_gmac > 0
@@ -47,7 +47,7 @@ def test_every_model_config_is_configured_and_keeps_the_model_contract(name):
     "final" (B, T, 3, 2h, 2w) out, finite, and the same whether the sequence comes at once or frame by
     frame for a model that is not recurrent."""
     from bench.experiments.pipeline import build_model
-    cfg = compose_experiment("smoke", "scale=smoke")
+    cfg = compose_experiment("smoke", "preset=smoke")
     assert name in cfg.models, f"conf/model/{name}.yaml is not in conf/config.yaml's defaults"
     model = build_model(OmegaConf.to_container(cfg.models[name], resolve=True), 2)
     x, g = torch.rand(1, 2, 3, 13, 7), torch.rand(1, 2, 7, 13, 7)
@@ -60,19 +60,19 @@ def test_every_model_config_is_configured_and_keeps_the_model_contract(name):
             torch.testing.assert_close(second[:, 0], out["final"][:, 1], rtol=1e-4, atol=1e-5)
 
 
-@pytest.mark.parametrize("scale", ["smoke", "cpu", "paper"])
-def test_configured_widths_meet_the_scale_budget(scale):
-    """The widths a scale trains with are the ones the MAC audit fits to its budget (+-5%)."""
+@pytest.mark.parametrize("preset", ["smoke", "cpu", "paper"])
+def test_configured_widths_meet_the_preset_budget(preset):
+    """The widths a preset trains with are the ones the MAC audit fits to its budget (+-5%)."""
     from bench.experiments.macs import SOTA_ROWS, audit_row
-    ctx = make_context(compose_experiment("smoke", f"scale={scale}"))
+    ctx = make_context(compose_experiment("smoke", f"preset={preset}"))
     for row in SOTA_ROWS:
         cfg = dict(ctx.models[row["model"]])
         checked, _ = audit_row(row["label"], cfg, ctx.budget_gmac * 1e9, (540, 960))
-        assert abs(checked["budget deviation %"]) <= 5, (scale, checked)
+        assert abs(checked["budget deviation %"]) <= 5, (preset, checked)
         if row["width_arg"]:
             fitted, _ = audit_row(row["label"], {**cfg, "width_arg": row["width_arg"]}, ctx.budget_gmac * 1e9,
                                   (540, 960))
-            assert fitted["width"] == f"{row['width_arg']}={cfg[row['width_arg']]}", (scale, fitted)
+            assert fitted["width"] == f"{row['width_arg']}={cfg[row['width_arg']]}", (preset, fitted)
 
 
 @pytest.fixture(scope="module")
@@ -199,7 +199,7 @@ def test_unwritable_runs_directory_is_one_line_not_a_hydra_traceback(tmp_path):
     """Hydra makes its output folder under runs_dir before our code runs; it must not fail there."""
     blocker = tmp_path / "file"
     blocker.write_text("")
-    out = bench("+experiment=macs", "scale=smoke", f"runs_dir={blocker}/runs", f"results_dir={tmp_path}/results")
+    out = bench("+experiment=macs", "preset=smoke", f"runs_dir={blocker}/runs", f"results_dir={tmp_path}/results")
     assert out.returncode == 2
     assert f"runs directory {blocker}/runs is not writable" in out.stderr and "Traceback" not in out.stderr
 
@@ -213,7 +213,7 @@ def test_unwritable_results_directory_is_a_clear_message(tmp_path):
 
 
 def test_macs_experiment_audits_the_sota_models(tmp_path):
-    out = bench("+experiment=macs", "scale=paper", f"results_dir={tmp_path}", f"runs_dir={tmp_path}/runs")
+    out = bench("+experiment=macs", "preset=paper", f"results_dir={tmp_path}", f"runs_dir={tmp_path}/runs")
     assert out.returncode == 0, out.stderr[-3000:]
     table = pd.read_csv(tmp_path / "macs" / "table.csv")
     assert list(table["method"]) == ["EDSR", "RAE", "KPCN", "CFM", "Ours"]
@@ -226,7 +226,7 @@ def test_macs_experiment_audits_the_sota_models(tmp_path):
 
 def test_data_experiment_summarises_every_split(smoke_dirs):
     args, root, _ = smoke_dirs
-    out = bench("+experiment=data", "scale=smoke", *args)
+    out = bench("+experiment=data", "preset=smoke", *args)
     assert out.returncode == 0, out.stderr[-3000:]
     table = pd.read_csv(root / "results" / "data" / "table.csv")
     assert set(table["split"]) == {"train", "val", "generalization"}
@@ -263,13 +263,13 @@ def test_shard_parses_i_over_n_and_rejects_the_rest():
 ])
 def test_every_bad_value_is_one_line_naming_key_value_and_rule(tmp_path, override, message):
     with pytest.raises(UserError) as err:
-        make_context(compose_experiment("smoke", "scale=smoke", override, f"runs_dir={tmp_path}/runs"))
+        make_context(compose_experiment("smoke", "preset=smoke", override, f"runs_dir={tmp_path}/runs"))
     assert message in str(err.value) and "nothing was run" in str(err.value)
     assert not (tmp_path / "runs").exists()
 
 
 def test_a_bad_value_on_the_command_line_ends_in_one_message_before_any_run(tmp_path):
-    out = bench("+experiment=smoke", "scale=smoke", "train.steps=0", "train.batch_size=0",
+    out = bench("+experiment=smoke", "preset=smoke", "train.steps=0", "train.batch_size=0",
                 f"runs_dir={tmp_path}/runs", f"results_dir={tmp_path}/results", f"data_dir={tmp_path}/data")
     assert out.returncode == 2 and "Traceback" not in out.stderr
     assert "train.steps=0" in out.stderr and "train.batch_size=0" in out.stderr
@@ -278,7 +278,7 @@ def test_a_bad_value_on_the_command_line_ends_in_one_message_before_any_run(tmp_
 
 def test_sweep_jobs_write_distinct_tables_with_the_joblib_launcher(tmp_path):
     """The MAC audit needs no data or training: a cheap sweep of two jobs run in parallel by joblib."""
-    out = bench("-m", "hydra/launcher=joblib", "+experiment=macs", "scale=smoke", "seeds=[0],[1]",
+    out = bench("-m", "hydra/launcher=joblib", "+experiment=macs", "preset=smoke", "seeds=[0],[1]",
                 f"runs_dir={tmp_path}/runs", f"results_dir={tmp_path}/results", f"data_dir={tmp_path}/data",
                 "progress=false")
     assert out.returncode == 0, out.stderr[-2000:]
@@ -286,8 +286,24 @@ def test_sweep_jobs_write_distinct_tables_with_the_joblib_launcher(tmp_path):
     assert tables == ["seeds=_0_", "seeds=_1_"]
 
 
-def test_the_old_flops_name_still_runs_the_mac_audit_with_a_deprecation_message(tmp_path):
+def test_old_names_flops_and_scale_still_run_the_mac_audit_with_deprecation_messages(tmp_path):
     out = bench("+experiment=flops", "scale=smoke", f"results_dir={tmp_path}", f"runs_dir={tmp_path}/runs")
     assert out.returncode == 0, out.stderr[-2000:]
     assert "+experiment=flops is deprecated: use +experiment=macs" in out.stderr + out.stdout
+    assert "scale=smoke is deprecated: use preset=smoke" in out.stderr
     assert (tmp_path / "macs" / "table.csv").exists()
+
+
+@pytest.mark.parametrize("arg,expected", [
+    ("scale=cpu", "preset=cpu"),
+    ("scale.budget_gmac=100", "preset.budget_gmac=100"),
+    ("~scale", "~preset"),
+    ("scale=smoke,cpu", "preset=smoke,cpu"),
+    ("models.srd.scale=2", "models.srd.scale=2"),       # a model's upsampling factor is not the preset
+    ("+experiment=sota", "+experiment=sota"),
+    ("scaled=1", "scaled=1"),
+])
+def test_renamed_overrides_map_the_old_preset_name_and_nothing_else(arg, expected, capsys):
+    from bench.cli import renamed_overrides
+    assert renamed_overrides([arg]) == [expected]
+    assert ("deprecated" in capsys.readouterr().err) == (arg != expected)

@@ -30,7 +30,7 @@ def dirs(tmp_path_factory):
 
 @pytest.fixture(scope="module")
 def tables(dirs):
-    """Every table at smoke scale, run once for the module, so that the tests reading them pass in any order."""
+    """Every table at the smoke preset, run once for the module, so that the tests reading them pass in any order."""
     overrides, root = dirs
     for name in TABLES:
         run_experiment(compose_experiment(name, overrides))

@@ -69,7 +69,7 @@ def test_a_frame_damaged_during_a_run_is_one_line_with_the_fix(rendered):
     root, hr, _ = rendered
     data = hr.read_bytes()
     hr.write_bytes(data[:int(len(data) * 0.9)])
-    out = subprocess.run([sys.executable, "-m", "bench", "+experiment=smoke", "scale=smoke", "render_data=false",
+    out = subprocess.run([sys.executable, "-m", "bench", "+experiment=smoke", "preset=smoke", "render_data=false",
                           f"data_dir={root / 'data'}", f"runs_dir={root / 'runs'}", f"results_dir={root / 'results'}",
                           "experiment.rows=[{label:b,model:bilinear}]", "eval.split=train", "progress=false"],
                          cwd=Path(__file__).parent.parent, capture_output=True, text=True, timeout=300)

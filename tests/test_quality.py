@@ -1,4 +1,4 @@
-"""The learned models must beat the input's bilinear upsampling at smoke scale (`make run`'s defaults).
+"""The learned models must beat the input's bilinear upsampling at the smoke preset (`make run`'s defaults).
 
 Slow (several minutes on 2 cores: the smoke data and 600 training steps per model); run with
 `make test-slow`. The numbers it checks are the ones `make run` prints.

@@ -156,7 +156,7 @@ def test_device_tag_is_a_directory_name():
 
 
 def test_speed_experiment_writes_every_section(tmp_path):
-    overrides = ["scale=smoke", f"runs_dir={tmp_path / 'runs'}", f"results_dir={tmp_path / 'results'}",
+    overrides = ["preset=smoke", f"runs_dir={tmp_path / 'runs'}", f"results_dir={tmp_path / 'results'}",
                  "device=cpu", "models.srd.channels=4", "models.srd.cond_channels=4", "models.edsr.channels=4",
                  "models.edsr.blocks=2", "models.rae.width=4", "models.kpcn.channels=2", "models.kpcn.layers=3",
                  "models.cfm.channels=4", "models.cfm.blocks=2", "models.cfm.cond_hidden=4",

@@ -1,4 +1,4 @@
-"""`+experiment=stability` at smoke scale: every case gives finite output or a clear error, for the
+"""`+experiment=stability` at the smoke preset: every case gives finite output or a clear error, for the
 proposed model, a baseline and the non-learned rows; the cases that need sanitation are caught by it."""
 import math
 

@@ -1,5 +1,5 @@
 """`+experiment=time` (error against run time): the pure curve arithmetic on synthetic curves, and one tiny
-end-to-end run at smoke scale (one view, spp up to 4, three methods, a 4-step training)."""
+end-to-end run at the smoke preset (one view, spp up to 4, three methods, a 4-step training)."""
 import math
 
 import numpy as np
@@ -69,13 +69,13 @@ def test_pareto_front():
     assert pareto_front(times, errors).tolist() == [True, True, False, True, True]
 
 
-# ---------------------------------------------------------------- end to end at smoke scale
+# ---------------------------------------------------------------- end to end at the smoke preset
 
 @pytest.fixture(scope="module")
 def tiny(tmp_path_factory):
     root = tmp_path_factory.mktemp("time")
     overrides = [
-        "+experiment=time", "scale=smoke", f"runs_dir={root / 'runs'}", f"results_dir={root / 'results'}",
+        "+experiment=time", "preset=smoke", f"runs_dir={root / 'runs'}", f"results_dir={root / 'results'}",
         f"data_dir={root / 'data'}", "progress=false", "workers=1", "train.steps=4", "train.checkpoint_every=2",
         "data.ref_spp=16", "data.splits.train.sequences=2", "data.splits.val.sequences=1",
         "data.splits.generalization.sequences=0", "experiment.views=1", "experiment.max_spp=4",

@@ -111,7 +111,7 @@ def test_a_tracking_failure_is_a_warning_not_an_error(store, monkeypatch, caplog
 
 def test_submitit_local_launcher_runs_a_sweep(tmp_path):
     """submitit's local executor (the Slurm launcher's stand-in without a cluster): two jobs, two tables."""
-    out = bench("-m", "hydra/launcher=submitit_local", "+experiment=macs", "scale=smoke", "seeds=[0],[1]",
+    out = bench("-m", "hydra/launcher=submitit_local", "+experiment=macs", "preset=smoke", "seeds=[0],[1]",
                 f"runs_dir={tmp_path}/runs", f"results_dir={tmp_path}/results", "progress=false")
     assert out.returncode == 0, out.stderr[-2000:]
     tables = sorted(p.parent.parent.name for p in (tmp_path / "results" / "sweeps").glob("*/macs/table.csv"))

@@ -36,7 +36,7 @@ def _table(ctx: Context, name: str, cache: dict) -> pd.DataFrame:
         path = ctx.results_dir / name / "table.csv"
         if not path.exists():
             raise UserError(f"claims: {path} does not exist; run `python -m bench +experiment={name} "
-                            f"scale={ctx.scale}` first")
+                            f"preset={ctx.preset}` first")
         cache[name] = pd.read_csv(path)
     return cache[name]
 
@@ -113,7 +113,7 @@ def run(ctx: Context, name: str, claims: list[dict], metric: str, tables: list[s
     table.insert(1, "verdict", table.groupby("claim", sort=False)[f"{metric} verdict"].transform(
         lambda v: combine(list(v))))
     write_table(table, ctx.results_dir / name, caption=(
-        f"The paper's claims at scale {ctx.scale}, from the recorded tables. diff: the better row minus the "
+        f"The paper's claims at preset {ctx.preset}, from the recorded tables. diff: the better row minus the "
         f"worse one as the paper orders them, signed so that > 0 supports the claim (relMSE: worse minus "
         f"better). 2SE: twice the standard error, over seeds when both rows have several, else over the "
         f"per-sequence paired differences of one seed (data noise only). A pair's verdict: within noise when "

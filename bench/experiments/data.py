@@ -1,4 +1,4 @@
-"""`+experiment=data`: render a scale's whole dataset (every buffer) and summarise it.
+"""`+experiment=data`: render a preset's whole dataset (every buffer) and summarise it.
 
 Writes `<results_dir>/data/table.{csv,md,tex}` (per split: sequences, frames, render time per pass,
 non-finite samples repaired, passes left out and why) and preview PNGs of a few training views.
@@ -56,7 +56,7 @@ def run(ctx: Context, name: str = "data", passes: list[str] | None = None, examp
     table = summarize(manifest["frames"])
     out = ctx.results_dir / name
     write_table(table, out, caption=(
-        f"Dataset {ctx.scale} ({manifest.get('variant')}): render seconds per pass summed over frames; "
+        f"Dataset {ctx.preset} ({manifest.get('variant')}): render seconds per pass summed over frames; "
         f"spec {json.dumps({k: v for k, v in ctx.data_spec.items() if k != 'splits'})}."))
     export_examples(root, out / "examples", count=examples)
     log.info("data: %d frames in %s; summary in %s", sum(table["frames"]), root, out)

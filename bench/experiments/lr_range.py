@@ -1,14 +1,14 @@
 """`+experiment=lr_range`: a learning-rate range test (Smith 2017, "Cyclical Learning Rates") per model.
 
-Each model trains `steps` steps with the scale's recipe, except that the learning rate rises
+Each model trains `steps` steps with the preset's recipe, except that the learning rate rises
 geometrically from lr_max * 1e-4 to lr_max (`train.schedule=range`); the loss per step is smoothed
 (exponential moving average, `smoothing`) and the test reports where the smoothed loss is lowest and
 where training diverges: the first rate whose smoothed loss exceeds `blowup` x its minimum so far. The
 suggested peak rate for the cosine schedule is the divergence rate / 10. The textbook rule (lowest-loss
-rate / 10) is not used: at the cpu scale one batch's loss varies 2-4x with its crops, so over a few
+rate / 10) is not used: at the cpu preset one batch's loss varies 2-4x with its crops, so over a few
 hundred steps the lowest point of the smoothed loss is mostly noise, while the divergence is sharp.
 The runs are ordinary training runs, so a rerun reuses them. Writes `table.{csv,md,tex}` and
-`lr_range.png` to `<results_dir>/lr_range/`; `conf/scale/<scale>.yaml`'s `model_lr` takes the suggestions.
+`lr_range.png` to `<results_dir>/lr_range/`; `conf/preset/<preset>.yaml`'s `model_lr` takes the suggestions.
 """
 from __future__ import annotations
 
@@ -61,18 +61,18 @@ def run(ctx: Context, name: str = "lr_range", models: list[str] | None = None, s
     table = pd.DataFrame(rows)
     out = ctx.results_dir / name
     write_table(table, out, caption=(
-        f"Learning-rate range test (Smith 2017), scale {ctx.scale}, task {task}: {steps} steps of the scale's "
+        f"Learning-rate range test (Smith 2017), preset {ctx.preset}, task {task}: {steps} steps of the preset's "
         f"recipe with the lr rising geometrically from {lr_max * 1e-4:g} to {lr_max:g}; loss smoothed by an EMA "
         f"({smoothing}). divergence: the first lr whose smoothed loss exceeds 4x its minimum so far (diverged "
         f"false: it never did, the test's top lr is shown); suggested = divergence lr / 10, the peak of the cosine "
-        f"schedule (conf/scale/<scale>.yaml model_lr)."))
+        f"schedule (conf/preset/<preset>.yaml model_lr)."))
     plt.xscale("log")
     plt.yscale("log")
     plt.xlabel("learning rate")
     plt.ylabel("training loss (smoothed)")
     plt.legend(fontsize=7)
     plt.grid(alpha=0.3)
-    plt.title(f"lr range test, scale {ctx.scale}", fontsize=9)
+    plt.title(f"lr range test, preset {ctx.preset}", fontsize=9)
     plt.tight_layout()
     plt.savefig(out / "lr_range.png", dpi=110)
     plt.close(fig)

@@ -68,7 +68,7 @@ class Context:
     """Everything a table needs, as typed values built by the CLI from the Hydra config (`make_context`);
     the defaults live in conf/, not here. `data_spec` and `models` stay dicts: the data description and
     the model configs (`_target_` + arguments) are recorded and hashed as they are written."""
-    scale: str                                      # the size preset's name (smoke, cpu, paper)
+    preset: str                                     # the size preset's name (smoke, cpu, paper)
     runs_dir: Path
     results_dir: Path
     data_dir: Path
@@ -176,7 +176,7 @@ def data_fingerprint(ctx: Context, split: str | None = None) -> str:
     path = ctx.data_dir / "manifest.json"
     if not path.exists():
         raise UserError(f"data directory {ctx.data_dir} has no manifest.json; render it with "
-                        f"`python -m bench +experiment=data scale={ctx.scale}` or point data_dir=... at a "
+                        f"`python -m bench +experiment=data preset={ctx.preset}` or point data_dir=... at a "
                         f"dataset in the documented layout (README, 'Dataset layout')")
     files = None if ctx.render_data else _file_stats(ctx.data_dir, split)
     return _fingerprint(str(path.resolve()), path.stat().st_mtime_ns, split, files)
@@ -198,7 +198,7 @@ def _file_stats(root: Path, split: str | None) -> str:
 
 
 def ensure_data(ctx: Context, passes: set[str]) -> str:
-    """Make sure `data_dir` holds the scale's dataset with at least `passes`, rendering only what is
+    """Make sure `data_dir` holds the preset's dataset with at least `passes`, rendering only what is
     missing; returns the data fingerprint. With render_data=false the directory is used as it is."""
     if not ctx.render_data:
         problems = manifest_problems(ctx.data_dir)
@@ -224,7 +224,7 @@ def ensure_data(ctx: Context, passes: set[str]) -> str:
             log.warning("data: %d damaged frame files (%s); rendering them again", len(damaged), _listed(damaged))
     identity = {"spec": ctx.data_spec, "passes": sorted(passes)}
     run = runs.begin(ctx.runs_dir, "data", identity, seed=ctx.data_spec.get("seed"), device=ctx.device,
-                     label=f"data {ctx.scale}", force=True)  # a data run records one render job
+                     label=f"data {ctx.preset}", force=True)  # a data run records one render job
     log.info("data: making sure %s holds %s (rendering what is missing)", ctx.data_dir, ", ".join(sorted(passes)))
     manifest = build_dataset(ctx.data_dir, ctx.data_spec, sorted(passes), workers=ctx.workers,
                              progress=ctx.progress, variant="cuda_ad_rgb" if ctx.device == "cuda" else None)

@@ -22,7 +22,7 @@ N(0, `perturb`) noise on every parameter: timings do not depend on trained value
 the zero-initialised branches (CFM, deformable offsets, residual output convs) compute, which the
 tiling check needs.
 
-Writes `<results_dir>/speed/<device tag>/table.{csv,md,tex}`: keyed by scale (the widths) and by
+Writes `<results_dir>/speed/<device tag>/table.{csv,md,tex}`: keyed by preset (the widths) and by
 machine (e.g. `results/cpu/speed/cpu-amd-epyc/`), since a speed table describes one machine.
 """
 from __future__ import annotations
@@ -441,7 +441,7 @@ def run(ctx, name: str = "speed", models: list[str] = (), input_hw=(540, 960),
         torch.set_num_threads(int(threads))
     out_dir = Path(ctx.results_dir) / name / device_tag(device)
     caption = (caption + " " if caption else "") + (
-        f"Speed on {machine_caption(device)}; scale {ctx.scale} widths, untrained weights. ms: wall clock, median "
+        f"Speed on {machine_caption(device)}; preset {ctx.preset} widths, untrained weights. ms: wall clock, median "
         f"(min, max) of {repeats} warm calls; GMac: analytic multiply-accumulates per frame; path: fp32 reference "
         "or bench.infer fast path (bf16 = autocast bfloat16); diffs vs the fp32 output (tiled: vs untiled); peak MiB: "
         "memory one call adds. Ratios: model time / OIDN at the output size; model GMac/s / a 3x3 conv stack of "

@@ -37,7 +37,7 @@ from bench.train import TrainingDiverged, batch_loss, train
 
 log = logging.getLogger("bench")
 def stability_loss(ctx: Context) -> dict:
-    """The scale's loss weights without the perceptual term (the cases need no VGG16 weights)."""
+    """The preset's loss weights without the perceptual term (the cases need no VGG16 weights)."""
     return {stage: {**weights, "perceptual": 0} for stage, weights in ctx.train.loss.items()}
 
 
@@ -256,8 +256,8 @@ def run(ctx: Context, name: str = "stability", models: list[str] = (), frames: i
     out_dir = ctx.results_dir / name
     table["status"] = [status(r) for r in table.to_dict("records")]
     pivot = table.pivot_table(index="case", columns="model", values="status", aggfunc="first", sort=False).fillna("")
-    caption = (f"Stability at scale {ctx.scale} on {ctx.device}: each case through each model (trained at this "
-               f"scale), inputs sanitized (bench.sanitize). 'ok' + max |output| (linear radiance); 'error "
+    caption = (f"Stability at preset {ctx.preset} on {ctx.device}: each case through each model (trained at this "
+               f"preset), inputs sanitized (bench.sanitize). 'ok' + max |output| (linear radiance); 'error "
                f"(clear)': the model refused with a message; FAIL: non-finite output, gradients or weights. "
                f"Per-row details (relMSE vs reference and vs the clean case, time, the same case without "
                f"sanitation, training step) in table.csv.")

@@ -158,13 +158,13 @@ def run(ctx: Context, name: str, rows: list[dict], caption: str = "", task: str 
     tasks = ", ".join(dict.fromkeys(r["task"] for r in rows))
     notes = (f"Task {tasks}. {RELMSE_FORMULA}; robust relMSE leaves out the 0.1% of pixels with the highest "
              f"error; temporal relMSE scores the frame-to-frame change against the reference's; PSNR/SSIM on "
-             f"images clamped to [0, 1]; (se ...): standard error over the split's sequences. Scale {ctx.scale}, split "
+             f"images clamped to [0, 1]; (se ...): standard error over the split's sequences. Preset {ctx.preset}, split "
              f"{split or ctx.eval.split}, {ctx.train.steps} training steps, loss g:t:s:p = "
              f"{loss['edge']}:{loss['temporal']}:{loss['spatial']}:{loss['perceptual']} (unless a row says "
              f"otherwise), seeds {list(ctx.seeds)} (mean +- std over seeds when several); time_ms: "
              f"inference per frame on {ctx.device}.")
     if gmac_column:
-        notes += f" GMac: multiply-accumulates per 960x540 input frame at this scale's widths (budget {ctx.budget_gmac:g})."
+        notes += f" GMac: multiply-accumulates per 960x540 input frame at this preset's widths (budget {ctx.budget_gmac:g})."
     if paper_table:
         notes += " 'paper' columns: the published values (Wei et al., same metrics, their data and scale)."
         agreement = paper_agreement(table)

@@ -253,9 +253,9 @@ def resolve_method(ctx: Context, method: dict, train_missing: bool):
     if not is_learned(build_model(cfg, task.scale)):
         return build_model(cfg, task.scale)
     if not train_missing and recorded_training(ctx, cfg, task, seed) is None:
-        log.warning("time: %s skipped: no recorded %s-task training run at scale %s (train it with its table, "
+        log.warning("time: %s skipped: no recorded %s-task training run at preset %s (train it with its table, "
                     "e.g. sota or sr_denoise, or set experiment.train_missing=true)",
-                    method["label"], task.name, ctx.scale)
+                    method["label"], task.name, ctx.preset)
         return None
     model, _ = trained_model(dataclasses.replace(ctx, force=False), cfg, task, seed, method["label"])
     return model.to(ctx.device).eval()
@@ -433,12 +433,12 @@ def _slope_note(slope: float, flattened: float, ref_spp: int) -> str:
 def _skipped_note(skipped: list[str]) -> str:
     if not skipped:
         return ""
-    return (f"Skipped, no recorded training run at this scale (train them with their tables or set "
+    return (f"Skipped, no recorded training run at this preset (train them with their tables or set "
             f"experiment.train_missing=true): {', '.join(skipped)}.")
 
 
 def _caption(ctx, caption, views, variant, train_spp) -> str:
-    return (f"{caption} Scale {ctx.scale}, {len(views)} val view(s) (last frame of "
+    return (f"{caption} Preset {ctx.preset}, {len(views)} val view(s) (last frame of "
             f"{', '.join(v.sequence for v in views)}), host {socket.gethostname()} ({os.cpu_count()} CPUs), "
             f"Mitsuba {variant}. Seconds per frame, averaged over views: render = render_view wall time "
             f"(radiance + gBuffer in one pass, scene loaded, JIT warm), network = median of warm runs. "
@@ -494,10 +494,10 @@ def report(ctx: Context, name: str, caption: str, table: pd.DataFrame, views: li
                 lower_is_better=LOWER_IS_BETTER, higher_is_better=HIGHER_IS_BETTER)
     write_table(speedup_table(table, operating_spp), out, name="speedup", caption=(
         f"Equal quality and equal time against brute-force HR path tracing (PT) at the operating point "
-        f"({operating_spp} spp; the paper's is LR 8 spp, where it implies about {PAPER_SPEEDUP}x), scale "
-        f"{ctx.scale}, {len(views)} view(s), host {socket.gethostname()}; seconds per frame; {RELMSE_FORMULA}. "
+        f"({operating_spp} spp; the paper's is LR 8 spp, where it implies about {PAPER_SPEEDUP}x), preset "
+        f"{ctx.preset}, {len(views)} view(s), host {socket.gethostname()}; seconds per frame; {RELMSE_FORMULA}. "
         f"PT s at equal relMSE: log-time interpolated against log-relMSE on PT's curve; speed-up = that / "
         f"the method's total s. PT relMSE at equal time: log-relMSE interpolated at the method's total s. "
         f"extrapolated: beyond PT's measured times or errors, continued by the 1/spp law (relMSE ~ 1/time). "
         f"{notes}"), lower_is_better=("relMSE",), higher_is_better=("speed-up at equal relMSE",))
-    plot(table, out / "error_vs_time.png", f"Error vs time ({ctx.scale}, {len(views)} view(s))")
+    plot(table, out / "error_vs_time.png", f"Error vs time ({ctx.preset}, {len(views)} view(s))")
