@@ -175,7 +175,7 @@ def test_claims_give_each_paper_claim_a_verdict_from_the_recorded_tables(dirs):
 def test_claim_verdicts_follow_twice_the_standard_error(tmp_path):
     """Synthetic tables: one seed uses the paired per-sequence SE; several seeds the SE over seeds."""
     from bench.experiments import claims
-    ctx = smoke_context(scale="t", runs_dir=tmp_path / "runs", results_dir=tmp_path / "results", data_dir=tmp_path)
+    ctx = smoke_context(preset="t", runs_dir=tmp_path / "runs", results_dir=tmp_path / "results", data_dir=tmp_path)
     per_seq = {"a": [30.0, 31.0, 32.0, 33.0], "b": [29.0, 30.1, 30.9, 32.0], "c": [30.0, 31.2, 31.8, 33.1]}
     for run, values in per_seq.items():
         (ctx.runs_dir / "eval" / run).mkdir(parents=True)

@@ -15,7 +15,7 @@ PASSES = {"lr_noisy", "lr_gbuf", "hr_ref"}
 
 
 def _ctx(root, render_data=True):
-    return smoke_context(scale="tiny", runs_dir=root / "runs", results_dir=root / "results", data_dir=root / "data",
+    return smoke_context(preset="tiny", runs_dir=root / "runs", results_dir=root / "results", data_dir=root / "data",
                          data_spec=SPEC, render_data=render_data, progress=False)
 
 
