@@ -21,6 +21,7 @@ from bench.errors import UserError
 from bench.exrio import ExrError
 from bench.infer import keep_freed_memory
 from bench.runs import ensure_writable
+from bench.train import TrainingInterrupted
 from bench.experiments import KINDS
 
 log = logging.getLogger("bench")
@@ -230,10 +231,15 @@ def run_experiment(cfg: DictConfig) -> None:
         log.warning("your frames' tables and crops go to %s, inside the repository where git would commit "
                     "them; results_dir=/elsewhere keeps them out", ctx.results_dir)
     t0 = time.perf_counter()
+    interrupted = False
     try:
         importlib.import_module(f"bench.experiments.{kind}").run(ctx, **exp)
+    except (KeyboardInterrupt, TrainingInterrupted):
+        interrupted = True  # stop now: a scheduler's grace period is short; the next command mirrors them
+        raise
     finally:  # what completed before a failure is worth browsing too
-        mirror_runs(cfg.get("tracking", "none"), ctx.runs_dir, cfg.get("tracking_uri"), ctx.results_dir)
+        if not interrupted:
+            mirror_runs(cfg.get("tracking", "none"), ctx.runs_dir, cfg.get("tracking_uri"), ctx.results_dir)
     log.info("%s done in %.1f s", exp.get("name", kind), time.perf_counter() - t0)
 
 
@@ -286,7 +292,14 @@ def main(cfg: DictConfig) -> None:
     except (UserError, PermissionError, FileNotFoundError) as err:
         print(f"error: {err}", file=sys.stderr)
         sys.exit(getattr(err, "exit_code", 2))
+    except KeyboardInterrupt:  # outside a training step (rendering, evaluating): nothing recorded is lost
+        print("interrupted: runs recorded so far are kept; the same command again reuses them and resumes "
+              "trainings from their checkpoints", file=sys.stderr)
+        sys.exit(130)
     except ExrError as err:  # a frame damaged after the last check (headers are checked at every start)
-        print(f"error: {err}; `python -m bench +experiment=data preset={cfg.preset.name} verify=true` reads every "
-              "frame and renders the damaged ones again", file=sys.stderr)
+        fix = (f"`python -m bench +experiment=data preset={cfg.preset.name} verify=true` reads every frame and "
+               "renders the damaged ones again" if cfg.render_data else
+               f"the frames are yours to replace (render_data=false); `python -m bench +experiment=data "
+               f"render_data=false data_dir={cfg.data_dir} verify=true` lists every damaged one")
+        print(f"error: {err}; {fix}", file=sys.stderr)
         sys.exit(2)

@@ -105,9 +105,11 @@ def buffer_layers(buffer, gbuf_layers=GBUF_LAYERS):
 
 
 def damaged_frames(root, frames, passes, decode=False):
-    """(path, what is wrong) for every frame file that is missing, unreadable or lacks a layer its
-    record's buffers need. Reads headers only, unless `decode` (every pixel: also finds a file cut
-    inside its pixel data, at the cost of reading the whole dataset)."""
+    """(path, what is wrong) for every frame file that is missing, unreadable, lacks a layer its
+    record's buffers need, or was changed since it was rendered (its size or mtime differs from the
+    stamp its record took when it was written). Reads headers and file stats only, unless `decode`
+    (every pixel: also finds a file cut inside its pixel data, and NaN/Inf values, at the cost of
+    reading the whole dataset)."""
     problems = []
     for rec in frames:
         left_out = rec.get("left_out") or {}
@@ -128,9 +130,60 @@ def damaged_frames(root, frames, passes, decode=False):
                 continue
             if lacking:
                 problems.append((path, f"lacks layers {sorted(lacking)}"))
-            elif decode and not exrio.is_valid_exr(path, sorted(wanted)):
-                problems.append((path, "does not decode (truncated or corrupt)"))
+            elif not as_written(rec, res, path):
+                problems.append((path, "changed since it was rendered (size or mtime differ from its record)"))
+            elif decode and (why := _decode_problem(path, sorted(wanted))):
+                problems.append((path, why))
     return problems
+
+
+def file_stamp(path):
+    """[size, mtime_ns] of a frame file as written. Editing the file, or copying the dataset without
+    keeping mtimes (`cp -p`, `rsync -a` keep them), changes it."""
+    st = os.stat(path)
+    return [st.st_size, st.st_mtime_ns]
+
+
+def as_written(record, res, path):
+    """False when the frame file `path` ("lr" or "hr" file of `record`) differs from the stamp taken
+    when it was written; True when it matches or there is no stamp (frames rendered before stamps,
+    and your own renders, are checked by headers and, with verify=true, by decoding)."""
+    stamp = (record.get("files") or {}).get(res)
+    return stamp is None or not os.path.exists(path) or file_stamp(path) == list(stamp)
+
+
+def _decode_problem(path, layers):
+    """Why the pixels of `layers` in `path` are damaged (does not decode, or holds NaN/Inf), or None.
+    Rendered frames never hold NaN/Inf: the renderer repairs them before writing (repair_nonfinite)."""
+    try:
+        pixels = exrio.read_exr(path, layers)
+    except exrio.ExrError:
+        return "does not decode (truncated or corrupt)"
+    bad = {name: int((~np.isfinite(a)).sum()) for name, a in pixels.items()}
+    bad = {name: n for name, n in bad.items() if n}
+    return f"non-finite pixel values (NaN/Inf) in {bad}" if bad else None
+
+
+def stamp_frames(root):
+    """Record the file stamps of the frames that have none (rendered before stamps existed). Called
+    after `verify=true` decoded every frame, so a stamp vouches for pixels that were checked. Rewrites
+    those frame records and the manifest (atomically); the data fingerprint does not read stamps, so
+    no run becomes stale. Returns how many frames were stamped."""
+    manifest = load_manifest(root)
+    stamped = 0
+    for rec in manifest["frames"]:
+        paths = frame_paths(root, rec["split"], rec["sequence"], rec["frame"])
+        files = {res: file_stamp(path) for res, path in zip(("lr", "hr"), paths[:2]) if os.path.exists(path)}
+        if rec.get("files") or not files:
+            continue
+        rec["files"] = files
+        if os.path.exists(paths[2]):
+            with open(paths[2]) as f:
+                _write_json(paths[2], {**json.load(f), "files": files})
+        stamped += 1
+    if stamped:
+        _write_json(os.path.join(root, "manifest.json"), manifest)
+    return stamped
 
 
 # What the suite reads from a frame record of your own dataset: key -> (check, what it must be).
@@ -269,8 +322,13 @@ def render_sequence(root, job, spec, passes, variant=None):
         lr_path, hr_path, rec_path = frame_paths(root, job["split"], job["sequence"], frame)
         paths = {"lr": lr_path, "hr": hr_path}
         record = _load_record(rec_path, digest)
-        present = {res: _present_layers(path) if record else set() for res, path in paths.items()}
-        missing = [b for b in passes if not set(buffer_layers(b, gbuf_layers)) <= present[b[:2]]]
+        # a file changed since it was written (an edit, NaN written into it) is rendered again whole:
+        # every buffer its record holds at that resolution, not only this job's passes
+        changed = {res for res, path in paths.items() if record and not as_written(record, res, path)}
+        present = {res: _present_layers(path) if record and res not in changed else set()
+                   for res, path in paths.items()}
+        wanted = list(passes) + [b for b in (record or {}).get("buffers", []) if b[:2] in changed and b not in passes]
+        missing = [b for b in wanted if not set(buffer_layers(b, gbuf_layers)) <= present[b[:2]]]
         if not missing:
             records.append({**record, "resumed": True})
             continue
@@ -306,7 +364,8 @@ def render_sequence(root, job, spec, passes, variant=None):
             record["time_s"].update(times)
             record["nonfinite_repaired"] += repaired
             record["channels"][res] = [f"{n}.{s}" for n in merged for s in SUFFIXES[n]]
-        record["buffers"] = sorted(set(record["buffers"]) | set(passes))
+        record["buffers"] = sorted(set(record["buffers"]) | set(wanted))
+        record["files"] = {res: file_stamp(path) for res, path in paths.items() if os.path.exists(path)}
         _write_json(rec_path, record)
         records.append({**record, "resumed": False})
     return records

@@ -26,6 +26,7 @@ import importlib.metadata
 import json
 import logging
 import math
+import os
 import platform
 import shutil
 import socket
@@ -152,6 +153,9 @@ def begin(runs_dir: str | Path, kind: str, identity: dict, config: dict | None =
             lock.close()
             return done
     earlier = read_record(run_dir / RECORD) if (run_dir / RECORD).exists() else {}
+    if earlier.get("status") == "running":  # we hold its lock, so the process that wrote this is gone
+        log.info("%s %s: run %s was left running by process %s on %s, which is gone (abandoned); taking it over",
+                 kind, label, h, earlier.get("pid", "?"), earlier.get("host", "?"))
     if earlier and not reuse_stale and code_changes(earlier, code):  # its checkpoints are another code's
         force = True
     if force and run_dir.exists():
@@ -160,7 +164,7 @@ def begin(runs_dir: str | Path, kind: str, identity: dict, config: dict | None =
     run_dir.mkdir(parents=True, exist_ok=True)
     record = {
         "kind": kind, "hash": h, "label": label, "status": "running", "identity": identity,
-        "config": config if config is not None else identity, "seed": seed, "device": device,
+        "config": config if config is not None else identity, "seed": seed, "device": device, "pid": os.getpid(),
         "started": earlier.get("started", time.strftime("%Y-%m-%dT%H:%M:%S%z")), **provenance(),
     }
     if code is not None:

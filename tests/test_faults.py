@@ -36,13 +36,29 @@ def test_a_truncated_frame_is_rendered_again_to_the_same_pixels(rendered):
     np.testing.assert_array_equal(repaired["ref"], original["ref"])   # seeds are derived: same pixels
 
 
-def test_a_frame_cut_inside_its_pixels_is_found_by_decoding(rendered):
+def _unstamp(root):
+    """Drop the file stamps from the manifest and frame records: a dataset rendered before stamps."""
+    import json
+    manifest_path = root / "data" / "manifest.json"
+    manifest = json.loads(manifest_path.read_text())
+    for rec in manifest["frames"]:
+        rec.pop("files")
+    manifest_path.write_text(json.dumps(manifest))
+    for rec_path in (root / "data").rglob("0*.json"):
+        rec_path.write_text(json.dumps({k: v for k, v in json.loads(rec_path.read_text()).items() if k != "files"}))
+
+
+def test_a_frame_cut_inside_its_pixels_is_found_by_its_stamp_or_by_decoding(rendered):
     root, hr, _ = rendered
     data = hr.read_bytes()
     hr.write_bytes(data[:int(len(data) * 0.9)])                   # the header survives
     frames = datagen.load_manifest(root / "data")["frames"]
+    assert [p for p, _ in datagen.damaged_frames(root / "data", frames, sorted(PASSES))] == [str(hr)]
+    _unstamp(root)                                                # rendered before stamps: decoding finds it
+    frames = datagen.load_manifest(root / "data")["frames"]
     assert datagen.damaged_frames(root / "data", frames, sorted(PASSES)) == []
-    assert [p for p, _ in datagen.damaged_frames(root / "data", frames, sorted(PASSES), decode=True)] == [str(hr)]
+    assert datagen.damaged_frames(root / "data", frames, sorted(PASSES), decode=True) == [
+        (str(hr), "does not decode (truncated or corrupt)")]
 
 
 def test_the_data_experiment_with_verify_repairs_what_only_decoding_finds(rendered):
@@ -67,6 +83,7 @@ def test_a_frame_damaged_during_a_run_is_one_line_with_the_fix(rendered):
     import sys
     from pathlib import Path
     root, hr, _ = rendered
+    _unstamp(root)                                                # else the start check finds it first
     data = hr.read_bytes()
     hr.write_bytes(data[:int(len(data) * 0.9)])
     out = subprocess.run([sys.executable, "-m", "bench", "+experiment=smoke", "preset=smoke", "render_data=false",
@@ -74,4 +91,92 @@ def test_a_frame_damaged_during_a_run_is_one_line_with_the_fix(rendered):
                           "experiment.rows=[{label:b,model:bilinear}]", "eval.split=train", "progress=false"],
                          cwd=Path(__file__).parent.parent, capture_output=True, text=True, timeout=300)
     assert out.returncode == 2 and "Traceback" not in out.stderr, out.stderr[-2000:]
-    assert str(hr) in out.stderr and "verify=true" in out.stderr
+    assert str(hr) in out.stderr and "yours to replace" in out.stderr and "verify=true" in out.stderr
+
+
+def _write_nan(path):
+    """Rewrite a frame file with one NaN and one Inf in each layer, as an external tool could."""
+    layers = exrio.read_exr(path)
+    for a in layers.values():
+        a[0, 0, 0], a[-1, -1, -1] = np.nan, np.inf
+    exrio.write_exr(path, layers, suffixes=datagen.SUFFIXES)
+
+
+def _frames(root):
+    return datagen.load_manifest(root / "data")["frames"]
+
+
+def test_nan_written_into_a_rendered_frame_is_found_at_start_and_rendered_again(rendered):
+    """The issue's case: NaN/Inf written into a rendered frame must not be trusted. The header check at
+    every start sees the file changed since it was written; the frame is rendered again to the same
+    pixels, so recorded runs stay valid (the data fingerprint is unchanged)."""
+    from bench.experiments.pipeline import data_fingerprint
+    root, hr, original = rendered
+    before = data_fingerprint(_ctx(root))
+    _write_nan(hr)
+    assert datagen.damaged_frames(root / "data", _frames(root), sorted(PASSES)) == [
+        (str(hr), "changed since it was rendered (size or mtime differ from its record)")]
+    ensure_data(_ctx(root), PASSES)
+    repaired = exrio.read_exr(hr)
+    assert set(repaired) == set(original)
+    for name in original:
+        np.testing.assert_array_equal(repaired[name], original[name])
+    assert datagen.damaged_frames(root / "data", _frames(root), sorted(PASSES)) == []
+    assert data_fingerprint(_ctx(root)) == before
+
+
+def test_verify_finds_nan_in_frames_without_stamps_repairs_and_stamps_them(rendered):
+    """Frames rendered before stamps existed: only decoding finds NaN; `verify=true` renders them again
+    and stamps every frame, so a later edit is found by the header check."""
+    from bench.experiments import data
+    root, hr, original = rendered
+    _unstamp(root)
+    _write_nan(hr)
+    assert datagen.damaged_frames(root / "data", _frames(root), sorted(PASSES)) == []   # nothing to compare
+    (why,) = [w for p, w in datagen.damaged_frames(root / "data", _frames(root), sorted(PASSES), decode=True)
+              if p == str(hr)]
+    assert why.startswith("non-finite pixel values (NaN/Inf)")
+    data.run(_ctx(root), passes=sorted(PASSES), examples=0, verify=True)
+    np.testing.assert_array_equal(exrio.read_exr(hr)["ref"], original["ref"])
+    assert all(rec.get("files") for rec in _frames(root))
+    lr = hr.with_name(hr.name.replace("_hr", "_lr"))
+    _write_nan(lr)
+    assert [p for p, _ in datagen.damaged_frames(root / "data", _frames(root), sorted(PASSES))] == [str(lr)]
+
+
+def test_verify_lists_nan_in_your_own_data_and_changes_nothing(rendered):
+    from bench.experiments import data
+    root, hr, _ = rendered
+    _unstamp(root)                                                # your own renders carry no stamps
+    _write_nan(hr)
+    manifest = (root / "data" / "manifest.json").read_bytes()
+    with pytest.raises(UserError, match=f"{hr}: non-finite pixel values"):
+        data.run(_ctx(root, render_data=False), passes=sorted(PASSES), examples=0, verify=True)
+    assert (root / "data" / "manifest.json").read_bytes() == manifest
+
+
+def test_ctrl_c_while_rendering_is_one_line_and_the_data_run_is_recorded_failed(tmp_path):
+    """SIGINT outside a training step (here: rendering) ends in one line and exit 130, not a traceback, and
+    the data run's record says what happened instead of staying "running"."""
+    import json
+    import signal
+    import subprocess
+    import sys
+    from pathlib import Path
+    proc = subprocess.Popen([sys.executable, "-m", "bench", "+experiment=data", "preset=smoke", "workers=1",
+                             f"data_dir={tmp_path / 'data'}", f"runs_dir={tmp_path / 'runs'}",
+                             f"results_dir={tmp_path / 'results'}", "progress=false", "tracking=none"],
+                            cwd=Path(__file__).parent.parent, stdout=subprocess.PIPE, stderr=subprocess.STDOUT,
+                            text=True)
+    seen = []
+    for line in proc.stdout:                                      # wait until rendering has begun
+        seen.append(line)
+        if "rendering what is missing" in line:
+            break
+    proc.send_signal(signal.SIGINT)
+    rest, _ = proc.communicate(timeout=300)
+    out = "".join(seen) + rest
+    assert proc.returncode == 130, out[-3000:]
+    assert "interrupted: runs recorded so far are kept" in out and "Traceback" not in out
+    (record,) = [json.loads(p.read_text()) for p in (tmp_path / "runs" / "data").glob("*/run.json")]
+    assert record["status"] == "failed" and record["error"].startswith("KeyboardInterrupt")

@@ -1,4 +1,6 @@
 import json
+import logging
+import os
 
 import pytest
 
@@ -148,7 +150,7 @@ def test_runs_recorded_before_code_fingerprints_are_trusted(tmp_path):
     assert runs.begin(tmp_path, "train", ident, code={"bench/train.py": "x"}).reused
 
 
-def test_a_run_left_running_by_a_dead_process_shows_as_abandoned(tmp_path):
+def test_a_run_left_running_by_a_dead_process_shows_as_abandoned_and_is_taken_over(tmp_path, caplog):
     import subprocess
     import sys
     from pathlib import Path
@@ -159,3 +161,7 @@ def test_a_run_left_running_by_a_dead_process_shows_as_abandoned(tmp_path):
     status = runs.load(tmp_path).set_index("cfg.model")["status"]
     assert status["killed"] == "abandoned" and status["live"] == "running"
     live.release()
+    with caplog.at_level(logging.INFO, logger="bench"):
+        taken = runs.begin(tmp_path, "train", {"model": "killed"})   # the next request says so and takes it over
+    assert "which is gone (abandoned); taking it over" in caplog.text and taken.record["pid"] == os.getpid()
+    taken.release()

@@ -100,3 +100,18 @@ def test_evaluation_needs_only_lr_noisy_the_lr_gbuffer_and_the_hr_reference(tmp_
     assert out.returncode == 0, out.stderr[-2000:]
     table = pd.read_csv(tmp_path / "results" / "smoke" / "table.csv")
     assert list(table["method"]) == ["Input bilinear"] and np.isfinite(table["PSNR"]).all()
+
+
+def test_training_on_frames_without_lr_size_names_the_key(tmp_path):
+    """lr_size is optional for evaluation (whole frames) but training crops need it: one message, not a
+    KeyError from inside the data loader."""
+    from bench.errors import UserError
+    from bench.experiments.pipeline import dataset
+    from bench.tasks import get_task
+    from conftest import smoke_context
+    write_dataset(tmp_path / "data", splits=("train",))
+    edit_manifest(tmp_path / "data", lambda m: m["frames"][1].pop("lr_size"))
+    ctx = smoke_context(data_dir=tmp_path / "data", render_data=False, runs_dir=tmp_path / "runs")
+    with pytest.raises(UserError, match=r"training crops need each 'train' frame's \"lr_size\".*1 frames \(seq0/1\)"):
+        dataset(ctx, "train", get_task("srd"), training=True)
+    assert len(dataset(ctx, "train", get_task("srd"), training=False)) > 0   # evaluation reads whole frames

@@ -11,7 +11,7 @@ from pathlib import Path
 
 import pandas as pd
 
-from bench.datagen import damaged_frames, export_examples, load_manifest
+from bench.datagen import damaged_frames, export_examples, load_manifest, stamp_frames
 from bench.errors import UserError
 from bench.experiments.pipeline import Context, ensure_data
 from bench.table_writer import write_table
@@ -37,8 +37,9 @@ def summarize(frames: list[dict]) -> pd.DataFrame:
 
 def run(ctx: Context, name: str = "data", passes: list[str] | None = None, examples: int = 4,
         verify: bool = False) -> pd.DataFrame:
-    """With `verify`, every frame is decoded; damaged ones are deleted and rendered again (with
-    render_data=false they are listed and nothing is changed)."""
+    """With `verify`, every frame is decoded (truncated files, NaN/Inf pixels); damaged ones are
+    deleted and rendered again, and frames rendered before file stamps existed are stamped (with
+    render_data=false, your own data: damaged frames are listed and nothing is changed)."""
     ensure_data(ctx, set(passes or BUFFERS))
     root = ctx.data_dir
     manifest = load_manifest(root)
@@ -52,7 +53,10 @@ def run(ctx: Context, name: str = "data", passes: list[str] | None = None, examp
             Path(path).unlink(missing_ok=True)
         if damaged:
             ensure_data(ctx, set(passes or BUFFERS))
-            manifest = load_manifest(root)
+        stamped = stamp_frames(root)  # from now on an edit to a verified frame is found at every start
+        if stamped:
+            log.info("data: stamped %d verified frames rendered before stamps existed (size, mtime)", stamped)
+        manifest = load_manifest(root)
     table = summarize(manifest["frames"])
     out = ctx.results_dir / name
     write_table(table, out, caption=(

@@ -225,9 +225,13 @@ def ensure_data(ctx: Context, passes: set[str]) -> str:
     identity = {"spec": ctx.data_spec, "passes": sorted(passes)}
     run = runs.begin(ctx.runs_dir, "data", identity, seed=ctx.data_spec.get("seed"), device=ctx.device,
                      label=f"data {ctx.preset}", force=True)  # a data run records one render job
-    log.info("data: making sure %s holds %s (rendering what is missing)", ctx.data_dir, ", ".join(sorted(passes)))
-    manifest = build_dataset(ctx.data_dir, ctx.data_spec, sorted(passes), workers=ctx.workers,
-                             progress=ctx.progress, variant="cuda_ad_rgb" if ctx.device == "cuda" else None)
+    try:
+        log.info("data: making sure %s holds %s (rendering what is missing)", ctx.data_dir, ", ".join(sorted(passes)))
+        manifest = build_dataset(ctx.data_dir, ctx.data_spec, sorted(passes), workers=ctx.workers,
+                                 progress=ctx.progress, variant="cuda_ad_rgb" if ctx.device == "cuda" else None)
+    except BaseException as err:  # the record says so, never "running" forever; rendered frames are kept
+        runs.fail(run, f"{type(err).__name__}: {err}")
+        raise
     timing_cols = [c for c in manifest.columns if c.startswith("time_s.")]
     complete = int(manifest["resumed"].sum())
     runs.complete(run, {"frames": int(len(manifest)), "resumed_frames": complete,
@@ -258,9 +262,15 @@ def dataset(ctx: Context, split: str, task: Task, training: bool, seed: int = 0)
     if not training:
         return SequenceDataset(ctx.data_dir, split, buffers)
     recipe = ctx.train
-    frames = (load_manifest(ctx.data_dir).get("spec") or {}).get("seq_len")
+    manifest = load_manifest(ctx.data_dir)
+    frames = (manifest.get("spec") or {}).get("seq_len")
     if frames is not None and recipe.seq_len > frames:
         raise UserError(f"train.seq_len={recipe.seq_len} but the dataset's sequences have {frames} frames")
+    unsized = [f"{r['sequence']}/{r['frame']}" for r in manifest["frames"] if r["split"] == split and "lr_size" not in r]
+    if unsized:  # optional for evaluation, which reads whole frames; crops are drawn inside lr_size
+        raise UserError(f"{ctx.data_dir}/manifest.json: training crops need each {split!r} frame's \"lr_size\" "
+                        f"([width, height] of its LR frame); missing on {len(unsized)} frames ({', '.join(unsized[:3])}"
+                        f"{', ...' if len(unsized) > 3 else ''})")
     return SequenceDataset(ctx.data_dir, split, buffers, seq_len=recipe.seq_len, crop=recipe.crop,
                            augment=True, seed=seed, max_sequences=recipe.train_sequences)
 
