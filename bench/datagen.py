@@ -106,7 +106,8 @@ def buffer_layers(buffer, gbuf_layers=GBUF_LAYERS):
 
 def damaged_frames(root, frames, passes, decode=False):
     """(path, what is wrong) for every frame file that is missing, unreadable, lacks a layer its
-    record's buffers need, or was changed since it was rendered (its size or mtime differs from the
+    record's buffers need, has another size than its record's `lr_size`/`hr_size`, or was changed since
+    it was rendered (its size or mtime differs from the
     stamp its record took when it was written). Reads headers and file stats only, unless `decode`
     (every pixel: also finds a file cut inside its pixel data, and NaN/Inf values, at the cost of
     reading the whole dataset)."""
@@ -128,20 +129,32 @@ def damaged_frames(root, frames, passes, decode=False):
             except exrio.ExrError:
                 problems.append((path, "unreadable"))
                 continue
+            size = rec.get(f"{res}_size")
             if lacking:
                 problems.append((path, f"lacks layers {sorted(lacking)}"))
+            elif size and _exr_size(path) != tuple(size):
+                problems.append((path, "{}x{} pixels; its record says {}x{}".format(*_exr_size(path), *size)))
             elif not as_written(rec, res, path):
-                problems.append((path, "changed since it was rendered (size or mtime differ from its record)"))
+                problems.append((path, "changed since it was rendered (size or bytes differ from its record)"))
             elif decode and (why := _decode_problem(path, sorted(wanted))):
                 problems.append((path, why))
     return problems
 
 
 def file_stamp(path):
-    """[size, mtime_ns] of a frame file as written. Editing the file, or copying the dataset without
-    keeping mtimes (`cp -p`, `rsync -a` keep them), changes it."""
+    """What a frame file was when written: size, mtime and a CRC-32 of its bytes. The CRC is read only
+    when the mtime differs, so copying a dataset without keeping mtimes (plain `cp`) costs one read of
+    each file per command, not a render."""
     st = os.stat(path)
-    return [st.st_size, st.st_mtime_ns]
+    return {"size": st.st_size, "mtime_ns": st.st_mtime_ns, "crc32": _crc32(path)}
+
+
+def _crc32(path):
+    crc = 0
+    with open(path, "rb") as f:
+        while chunk := f.read(1 << 22):
+            crc = zlib.crc32(chunk, crc)
+    return crc
 
 
 def as_written(record, res, path):
@@ -149,7 +162,10 @@ def as_written(record, res, path):
     when it was written; True when it matches or there is no stamp (frames rendered before stamps,
     and your own renders, are checked by headers and, with verify=true, by decoding)."""
     stamp = (record.get("files") or {}).get(res)
-    return stamp is None or not os.path.exists(path) or file_stamp(path) == list(stamp)
+    if stamp is None or not os.path.exists(path):
+        return True
+    st = os.stat(path)
+    return st.st_size == stamp["size"] and (st.st_mtime_ns == stamp["mtime_ns"] or _crc32(path) == stamp["crc32"])
 
 
 def _decode_problem(path, layers):
@@ -322,9 +338,10 @@ def render_sequence(root, job, spec, passes, variant=None):
         lr_path, hr_path, rec_path = frame_paths(root, job["split"], job["sequence"], frame)
         paths = {"lr": lr_path, "hr": hr_path}
         record = _load_record(rec_path, digest)
-        # a file changed since it was written (an edit, NaN written into it) is rendered again whole:
-        # every buffer its record holds at that resolution, not only this job's passes
-        changed = {res for res, path in paths.items() if record and not as_written(record, res, path)}
+        # a file changed since it was written (an edit, NaN written into it) or of the wrong size is
+        # rendered again whole: every buffer its record holds at that resolution, not only this job's passes
+        changed = {res for res, path in paths.items() if record and os.path.exists(path) and not (
+            as_written(record, res, path) and _exr_size(path) in (None, tuple(sizes[res])))}
         present = {res: _present_layers(path) if record and res not in changed else set()
                    for res, path in paths.items()}
         wanted = list(passes) + [b for b in (record or {}).get("buffers", []) if b[:2] in changed and b not in passes]

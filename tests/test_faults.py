@@ -1,6 +1,8 @@
 """Faults and bad input with real files and real processes: damaged frames are found and repaired (or
 named), nothing computed is lost. (Signals: tests/test_train.py; bad config values: tests/test_cli.py;
 stale code and abandoned runs: tests/test_runs.py.)"""
+import os
+
 import numpy as np
 import pytest
 
@@ -115,7 +117,7 @@ def test_nan_written_into_a_rendered_frame_is_found_at_start_and_rendered_again(
     before = data_fingerprint(_ctx(root))
     _write_nan(hr)
     assert datagen.damaged_frames(root / "data", _frames(root), sorted(PASSES)) == [
-        (str(hr), "changed since it was rendered (size or mtime differ from its record)")]
+        (str(hr), "changed since it was rendered (size or bytes differ from its record)")]
     ensure_data(_ctx(root), PASSES)
     repaired = exrio.read_exr(hr)
     assert set(repaired) == set(original)
@@ -123,6 +125,8 @@ def test_nan_written_into_a_rendered_frame_is_found_at_start_and_rendered_again(
         np.testing.assert_array_equal(repaired[name], original[name])
     assert datagen.damaged_frames(root / "data", _frames(root), sorted(PASSES)) == []
     assert data_fingerprint(_ctx(root)) == before
+    os.utime(hr, ns=(0, 0))                                       # a copy without -p: same bytes, other mtime
+    assert datagen.damaged_frames(root / "data", _frames(root), sorted(PASSES)) == []
 
 
 def test_verify_finds_nan_in_frames_without_stamps_repairs_and_stamps_them(rendered):
@@ -180,3 +184,20 @@ def test_ctrl_c_while_rendering_is_one_line_and_the_data_run_is_recorded_failed(
     assert "interrupted: runs recorded so far are kept" in out and "Traceback" not in out
     (record,) = [json.loads(p.read_text()) for p in (tmp_path / "runs" / "data").glob("*/run.json")]
     assert record["status"] == "failed" and record["error"].startswith("KeyboardInterrupt")
+
+
+def test_hr_files_of_the_wrong_size_under_a_copied_manifest_are_not_trusted(rendered):
+    """The issue's case: another directory with the same manifest but HR files of another size must not
+    reuse this one's results: the header check names each file, and rendering replaces it."""
+    import shutil
+    root, hr, original = rendered
+    other = root / "other"
+    shutil.copytree(root / "data", other / "data")
+    _unstamp(other)                                               # not even stamps to compare: sizes decide
+    wrong = other / hr.relative_to(root)
+    exrio.write_exr(wrong, {name: np.zeros((3, 4, a.shape[-1]), np.float32) for name, a in original.items()},
+                    suffixes=datagen.SUFFIXES)
+    assert datagen.damaged_frames(other / "data", _frames(other), sorted(PASSES)) == [
+        (str(wrong), "4x3 pixels; its record says 16x12")]
+    ensure_data(_ctx(other), PASSES)
+    np.testing.assert_array_equal(exrio.read_exr(wrong)["ref"], original["ref"])
