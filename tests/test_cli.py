@@ -87,6 +87,41 @@ def smoke_dirs(tmp_path_factory):
     return args, root, time.perf_counter() - t0
 
 
+def test_a_real_edit_to_a_model_file_makes_its_trainings_stale_and_a_comment_does_not(smoke_dirs, tmp_path):
+    """Code identity on real source files: a copy of the project, its model file edited, run against a
+    copy of the smoke run store. A comment keeps the recorded training; a statement makes it recompute
+    (the log names the file) unless reuse_stale=true."""
+    args, root, _ = smoke_dirs
+    project = tmp_path / "project"
+    for part in ("bench", "baselines", "conf"):
+        shutil.copytree(REPO / part, project / part, ignore=shutil.ignore_patterns("__pycache__", "*.so"))
+    shutil.copytree(root / "runs", tmp_path / "runs", ignore=shutil.ignore_patterns("mlflow*", "hydra"))
+    copied = [a for a in args if not a.startswith(("runs_dir=", "results_dir="))] + [
+        f"runs_dir={tmp_path / 'runs'}", f"results_dir={tmp_path / 'results'}", "render_data=false"]
+    model_file = project / "bench" / "models" / "srd.py"
+
+    def run(*extra):
+        return bench("+experiment=smoke", *copied, *extra, cwd=project)
+
+    model_file.write_text(model_file.read_text() + "\n# a comment changes no result\n")
+    out = run()
+    assert out.returncode == 0 and "train Ours: reusing run" in out.stdout + out.stderr, out.stderr[-2000:]
+    model_file.write_text(model_file.read_text() + "EDITED = True\n")
+    out = run("reuse_stale=true")
+    assert out.returncode == 0, out.stderr[-2000:]
+    assert "although its code changed since (bench/models/srd.py), as reuse_stale=true asks" in out.stdout + out.stderr
+    proc = subprocess.Popen([sys.executable, "-m", "bench", "+experiment=smoke", *copied], cwd=project,
+                            stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+    seen = ""
+    for line in proc.stdout:                      # stop as soon as it says it recomputes: no need to train
+        seen += line
+        if "its code changed since it was recorded" in line:
+            break
+    proc.kill()
+    proc.communicate()
+    assert "recomputing run" in seen and "(bench/models/srd.py)" in seen, seen[-2000:]
+
+
 def test_smoke_end_to_end_then_reuse(smoke_dirs):
     args, root, first_s = smoke_dirs
     table_dir = root / "results"

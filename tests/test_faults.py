@@ -1,6 +1,7 @@
 """Faults and bad input with real files and real processes: damaged frames are found and repaired (or
 named), nothing computed is lost. (Signals: tests/test_train.py; bad config values: tests/test_cli.py;
-stale code and abandoned runs: tests/test_runs.py.)"""
+stale code and abandoned runs: tests/test_runs.py, and a real edit to a model file:
+tests/test_cli.py.)"""
 import os
 
 import numpy as np
