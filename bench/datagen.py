@@ -35,9 +35,10 @@ from concurrent.futures import ProcessPoolExecutor, as_completed
 import numpy as np
 import OpenEXR
 import pandas as pd
+import torch
 from tqdm import tqdm
 
-from bench import exrio, render, scenes
+from bench import exrio, metrics, render, scenes
 from bench.tasks import BUFFERS, GBUF_LAYERS
 
 log = logging.getLogger("bench")
@@ -74,19 +75,25 @@ def plan_sequences(spec):
     return plan
 
 
-def _render_settings(spec, features):
+def _render_settings(spec, features, split=None):
     """Everything that determines a frame's pixels (hashed into the record so stale frames re-render).
 
     The buffer list is not part of it: every buffer has its own seed, so buffers added by a later build
     (another table needing another task) are rendered alone and merged into the existing EXRs.
+    A split with its own `ref_spp` (the scored ones: converged references) renders its references as
+    two independent halves (`ref_halves`), whose difference estimates each reference's error.
     """
     max_depth = features["max_depth"]
     if spec.get("max_depth"):
         max_depth = min(max_depth, int(spec["max_depth"]))
-    return {"lr_width": int(spec["lr_width"]), "lr_height": int(spec["lr_height"]),
-            "scale": int(spec.get("scale", 2)), "spp": int(spec["spp"]), "ref_spp": int(spec["ref_spp"]),
-            "seed": int(spec["seed"]), "max_depth": int(max_depth),
-            "half_gbuffer": bool(spec.get("half_gbuffer", False)), "left_out": sorted(features["left_out"])}
+    settings = {"lr_width": int(spec["lr_width"]), "lr_height": int(spec["lr_height"]),
+                "scale": int(spec.get("scale", 2)), "spp": int(spec["spp"]), "ref_spp": int(spec["ref_spp"]),
+                "seed": int(spec["seed"]), "max_depth": int(max_depth),
+                "half_gbuffer": bool(spec.get("half_gbuffer", False)), "left_out": sorted(features["left_out"])}
+    split_ref_spp = (spec["splits"].get(split) or {}).get("ref_spp") if split else None
+    if split_ref_spp:  # only then: the settings (and hashes) of other splits' frames stay as they were
+        settings.update(ref_spp=int(split_ref_spp), ref_halves=True)
+    return settings
 
 
 def _settings_hash(settings):
@@ -294,9 +301,12 @@ def _present_layers(path):
 
 
 def render_resolution(scene, camera, width, height, spp, ref_spp, seeds, passes, res, gbuf_layers,
-                      max_depth):
-    """Render the layers of one resolution of one frame; returns (layers, wall times, non-finite count)."""
-    layers, times, repaired = {}, {}, 0
+                      max_depth, ref_halves=False):
+    """Render the layers of one resolution of one frame; returns (layers, wall times, non-finite count,
+    reference error). With `ref_halves` the reference is the mean of two independent renders of
+    ref_spp / 2 samples, and the reference error is its estimated relMSE against the converged image
+    (bench.metrics.reference_error); else None."""
+    layers, times, repaired, ref_error = {}, {}, 0, None
     if f"{res}_noisy" in passes or f"{res}_gbuf" in passes:
         gbuf = list(gbuf_layers) if f"{res}_gbuf" in passes else []
         out = render.render_view(scene, camera, width, height, spp, seeds["noisy"], passes=gbuf,
@@ -307,14 +317,23 @@ def render_resolution(scene, camera, width, height, spp, ref_spp, seeds, passes,
         for name in gbuf:
             layers[name] = out[name]
     if f"{res}_ref" in passes:
-        out = render.render_view(scene, camera, width, height, ref_spp, seeds["ref"], passes=(),
-                                 max_depth=max_depth)
-        times[f"{res}_ref_s"] = out["wall_time_s"]
-        layers["ref"] = out["radiance"]
+        halves_seeds = [seeds["ref"], derive_seed(seeds["ref"], "second half")] if ref_halves else [seeds["ref"]]
+        halves = []
+        for seed in halves_seeds:
+            out = render.render_view(scene, camera, width, height, ref_spp // len(halves_seeds), seed, passes=(),
+                                     max_depth=max_depth)
+            times[f"{res}_ref_s"] = times.get(f"{res}_ref_s", 0.0) + out["wall_time_s"]
+            half, count = render.repair_nonfinite(out["radiance"])
+            halves.append(half)
+            repaired += count
+        if ref_halves:
+            a, b = (torch.from_numpy(np.ascontiguousarray(h)).permute(2, 0, 1) for h in halves)
+            ref_error = float(metrics.reference_error(a, b))
+        layers["ref"] = sum(halves) / len(halves)
     for name in list(layers):
         layers[name], count = render.repair_nonfinite(layers[name])
         repaired += count
-    return layers, times, repaired
+    return layers, times, repaired, ref_error
 
 
 def render_sequence(root, job, spec, passes, variant=None):
@@ -327,7 +346,7 @@ def render_sequence(root, job, spec, passes, variant=None):
     variant = render.use_variant(variant)
     scene_dict = scenes.make_scene(job["family"], job["scene_seed"])
     features = scenes.scene_features(scene_dict)
-    settings = _render_settings(spec, features)
+    settings = _render_settings(spec, features, job["split"])
     digest = _settings_hash(settings)
     gbuf_layers = [g for g in GBUF_LAYERS if g not in features["left_out"]]
     cameras = scenes.camera_path(job["scene_seed"], job["view"], int(spec["seq_len"]))
@@ -370,9 +389,11 @@ def render_sequence(root, job, spec, passes, variant=None):
             if not todo:
                 continue
             (w, h), path = sizes[res], paths[res]
-            layers, times, repaired = render_resolution(
+            layers, times, repaired, ref_error = render_resolution(
                 loaded, camera, w, h, settings["spp"], settings["ref_spp"], seeds[res], todo, res,
-                gbuf_layers, settings["max_depth"])
+                gbuf_layers, settings["max_depth"], ref_halves=settings.get("ref_halves", False))
+            if ref_error is not None:
+                record.setdefault("ref_error", {})[res] = ref_error
             kept = exrio.read_exr(path, sorted(present[res] - set(layers))) if present[res] else {}
             merged = {**kept, **layers}
             half = [g for g in gbuf_layers if settings["half_gbuffer"]]
@@ -518,8 +539,8 @@ def render_user_scene(xml_path, root, lr_width, lr_height, spp=8, ref_spp=256, s
                               ("hr", (lr_width * scale, lr_height * scale), hr_path)):
         if not [b for b in passes if b.startswith(res)]:
             continue
-        layers, times, repaired = render_resolution(scene, None, w, h, spp, ref_spp, seeds[res], passes, res,
-                                                    GBUF_LAYERS, max_depth)
+        layers, times, repaired, _ = render_resolution(scene, None, w, h, spp, ref_spp, seeds[res], passes, res,
+                                                       GBUF_LAYERS, max_depth)
         exrio.write_exr(path, layers, suffixes=SUFFIXES)
         record["time_s"].update(times)
         record["nonfinite_repaired"] += repaired

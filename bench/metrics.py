@@ -9,6 +9,8 @@
 - temporal relMSE (sequences): relMSE of the frame-to-frame change, ((x_t - x_t-1) - (r_t - r_t-1))^2 /
   (r_t^2 + eps). An error that stays put from frame to frame scores 0; an error that changes (flicker,
   popping, a recurrent state that drifts) scores its change. The first frame of a sequence has none.
+- reference error: the relMSE a reference made of two independent half-sample renders is expected to
+  have against the converged image, estimated from the halves (`reference_error`).
 - PSNR and SSIM on images normalised to [0, 1] (clamped), as the paper reports them.
   SSIM is Wang et al. 2004: 11x11 Gaussian window (sigma 1.5), K1 = 0.01, K2 = 0.03, per channel, averaged
   over the valid (un-padded) region; it equals scikit-image's
@@ -51,6 +53,15 @@ def temporal_relmse(pred: torch.Tensor, ref: torch.Tensor, eps: float = RELMSE_E
     change = (pred[1:] - pred[:-1]) - (ref[1:] - ref[:-1])
     scores = (change ** 2 / (ref[1:] ** 2 + eps)).flatten(1).mean(1)
     return torch.cat([torch.full((1,), math.nan, dtype=scores.dtype), scores])
+
+
+def reference_error(half_a: torch.Tensor, half_b: torch.Tensor, eps: float = RELMSE_EPS) -> torch.Tensor:
+    """Estimated relMSE of a reference rendered as the mean of two independent half-sample renders,
+    against the converged image: the halves differ by 2 var(half) in expectation and their mean errs
+    by var(half) / 2, so a quarter of their squared difference, normalised as relMSE is (by the mean)."""
+    a, b = _as_batch(half_a).double(), _as_batch(half_b).double()
+    mean = (a + b) / 2
+    return ((a - b) ** 2 / (mean ** 2 + eps)).flatten(1).mean(1) / 4
 
 
 def mse(pred: torch.Tensor, ref: torch.Tensor) -> torch.Tensor:

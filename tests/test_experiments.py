@@ -11,7 +11,7 @@ from hydra import compose, initialize_config_dir
 from omegaconf import OmegaConf
 
 from bench.cli import CONF_DIR, run_experiment
-from bench.experiments.table import expand_rows, paper_agreement, shard_units
+from bench.experiments.table import expand_rows, paper_agreement, reference_check, shard_units
 from bench.models.srd import SRDNet, SRDStage, load_stage
 from bench.paper import paper_values
 from conftest import smoke_context, smoke_overrides
@@ -200,3 +200,14 @@ def test_claim_verdicts_follow_twice_the_standard_error(tmp_path):
     s = table.set_index("claim").loc["S1 beats S2"]
     assert s["basis"] == "seeds (2, 2)" and s["PSNR 2SE"] == pytest.approx(2 * (0.01 / 2 + 0.01 / 2) ** 0.5)
     assert table.set_index("claim").loc["A beats B", "basis"] == "4 sequences, 1 seed"
+
+
+def test_reference_check_counts_frames_whose_reference_error_is_below_a_tenth_of_the_best_rows():
+    frames = [{"sequence": "s", "frame": i, "ref_spp": 1024, "ref_error": {"lr": 1e-4, "hr": err}}
+              for i, err in enumerate([1e-4, 5e-4, 3e-3])]
+    per_image = pd.DataFrame({"sequence": ["s"] * 3, "frame": [0, 1, 2], "relMSE": [0.02, 0.004, 0.02]})
+    note = reference_check(frames, per_image, "Ours")
+    assert "1024 spp as two independent halves" in note and "max 0.003" in note
+    assert "relMSE on 1 of 3 scored frames" in note            # 1e-4 < 2e-3; 5e-4 !< 4e-4; 3e-3 !< 2e-3
+    plain = reference_check([{"sequence": "s", "frame": 0, "ref_spp": 256}], per_image, "Ours")
+    assert "one render of 256 spp per frame; their error is not estimated" in plain

@@ -5,7 +5,7 @@ import pytest
 import torch
 from skimage.metrics import peak_signal_noise_ratio, structural_similarity
 
-from bench.metrics import psnr, relmse, robust_relmse, ssim, temporal_relmse
+from bench.metrics import psnr, reference_error, relmse, robust_relmse, ssim, temporal_relmse
 
 
 def _pair(seed, shape=(3, 40, 33)):
@@ -91,3 +91,16 @@ def test_temporal_relmse_scores_flicker_not_a_steady_error():
     assert steady_t[1:].abs().max() < 1e-20
     # independent errors: the change has twice the variance of one frame's error
     assert float(flicker_t[1:].mean()) == pytest.approx(2 * float(relmse(flicker[1:], ref[1:]).mean()), rel=0.1)
+
+
+@pytest.mark.parametrize("noise", [0.02, 0.1])
+def test_reference_error_estimates_the_mean_of_two_halves_against_the_truth(noise):
+    """Two independent noisy halves of a known image: the estimate from the halves alone matches the
+    relMSE of their mean against the truth (which a real reference never knows)."""
+    gen = torch.Generator().manual_seed(0)
+    truth = 0.05 + 3 * torch.rand(2, 3, 256, 256, generator=gen, dtype=torch.float64)
+    a = truth + noise * truth * torch.randn(truth.shape, generator=gen, dtype=torch.float64)
+    b = truth + noise * truth * torch.randn(truth.shape, generator=gen, dtype=torch.float64)
+    estimate, actual = reference_error(a, b), relmse((a + b) / 2, truth)
+    torch.testing.assert_close(estimate, actual, rtol=0.05, atol=0)
+    assert (reference_error(truth, truth) == 0).all()

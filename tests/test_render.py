@@ -186,6 +186,33 @@ def test_later_build_with_more_buffers_renders_only_those(tmp_path, monkeypatch)
     assert df["resumed"].all() and len(calls) == 2
 
 
+def test_a_split_with_its_own_ref_spp_gets_half_sample_references_and_their_error(tmp_path, monkeypatch):
+    """Converged references where frames are scored: the val split's own ref_spp re-renders only its
+    frames, each reference as two independent halves whose difference estimates its error (1/spp)."""
+    train = {"families": ["living_room"], "sequences": 1}
+    val = {"families": ["gallery"], "sequences": 1}
+    plain = {**TINY_SPEC, "splits": {"train": train, "val": val}}
+    datagen.build_dataset(tmp_path / "a", plain, progress=False)
+    before = {(r["split"], r["frame"]): r for r in datagen.load_manifest(tmp_path / "a")["frames"]}
+    calls = []
+    real = datagen.render_resolution
+    monkeypatch.setattr(datagen, "render_resolution", lambda *a, **k: (calls.append(a[7]), real(*a, **k))[1])
+    errors = {}
+    for spp in (8, 128):
+        spec = {**plain, "splits": {"train": train, "val": {**val, "ref_spp": spp}}}
+        datagen.build_dataset(tmp_path / "a", spec, progress=False)
+        frames = datagen.load_manifest(tmp_path / "a")["frames"]
+        for rec in frames:
+            if rec["split"] == "train":                       # untouched: same settings, no estimate
+                assert rec["settings_hash"] == before[("train", rec["frame"])]["settings_hash"]
+                assert "ref_error" not in rec
+            else:
+                assert rec["ref_spp"] == spp and set(rec["ref_error"]) == {"lr", "hr"}
+        errors[spp] = np.mean([rec["ref_error"]["hr"] for rec in frames if rec["split"] == "val"])
+    assert len(calls) == 2 * 2 * 2                            # 2 val frames x (LR, HR), twice; no train frame
+    assert errors[8] > 4 * errors[128] > 0                    # ~16x expected: the error falls as 1/spp
+
+
 def test_render_user_xml_scene_loads_as_a_dataset(tmp_path):
     xml = tmp_path / "mine.xml"
     xml.write_text("""<scene version="3.0.0">

@@ -29,6 +29,11 @@ def summarize(frames: list[dict]) -> pd.DataFrame:
         for col in sorted(c for c in part.columns if c.startswith("time_s.")):
             row[f"{col.removeprefix('time_s.').removesuffix('_s')} s"] = float(part[col].fillna(0).sum())
         row["nonfinite repaired"] = int(part.get("nonfinite_repaired", pd.Series(0)).sum())
+        row["ref spp"] = "/".join(str(int(v)) for v in sorted(part["ref_spp"].unique()))
+        for res in ("lr", "hr"):  # the references' estimated relMSE (two half-sample renders; bench.metrics)
+            err = part.get(f"ref_error.{res}", pd.Series(dtype=float)).dropna()
+            row[f"{res} ref error median"] = float(err.median()) if len(err) else None
+            row[f"{res} ref error max"] = float(err.max()) if len(err) else None
         left = [f"{k}: {v}" for rec in frames if rec["split"] == split for k, v in (rec.get("left_out") or {}).items()]
         row["left out"] = "; ".join(f"{n}x {reason}" for reason, n in pd.Series(left).value_counts().items()) or "-"
         rows.append(row)
@@ -60,7 +65,9 @@ def run(ctx: Context, name: str = "data", passes: list[str] | None = None, examp
     table = summarize(manifest["frames"])
     out = ctx.results_dir / name
     write_table(table, out, caption=(
-        f"Dataset {ctx.preset} ({manifest.get('variant')}): render seconds per pass summed over frames; "
+        f"Dataset {ctx.preset} ({manifest.get('variant')}): render seconds per pass summed over frames; ref "
+        f"error: a reference's estimated relMSE against the converged image, from two independent half-sample "
+        f"renders (splits with their own ref_spp; blank: one render, no estimate); "
         f"spec {json.dumps({k: v for k, v in ctx.data_spec.items() if k != 'splits'})}."))
     export_examples(root, out / "examples", count=examples)
     log.info("data: %d frames in %s; summary in %s", sum(table["frames"]), root, out)

@@ -21,6 +21,7 @@ import logging
 
 import pandas as pd
 
+from bench.datagen import load_manifest
 from bench.experiments.figure import crop_figure, curve_figure
 from bench.experiments.macs import frame_inputs
 from bench.experiments.pipeline import (Context, build_model, ensure_data, evaluation_data, is_learned,
@@ -124,6 +125,25 @@ def paper_agreement(table: pd.DataFrame) -> dict[str, tuple[int, int]]:
     return out
 
 
+def reference_check(frames: list[dict], per_image: pd.DataFrame, best: str) -> str:
+    """How converged the references of the scored frames are (issue #17's criterion): each frame's
+    estimated reference relMSE (two half-sample renders, bench.metrics.reference_error) against a
+    tenth of the best row's relMSE on that frame. `frames`: the manifest records of the split."""
+    spp = sorted({int(f["ref_spp"]) for f in frames if "ref_spp" in f})
+    spp_text = "/".join(map(str, spp)) or "?"
+    errors = {(f["sequence"], f["frame"]): f["ref_error"]["hr"] for f in frames if "hr" in (f.get("ref_error") or {})}
+    if not errors:
+        return (f" References: one render of {spp_text} spp per frame; their error is not estimated (give the "
+                "split its own ref_spp in conf/data to render them as two halves).")
+    scored = [(errors[key], rel) for key, rel in zip(zip(per_image["sequence"], per_image["frame"]), per_image["relMSE"])
+              if key in errors]
+    met = sum(err < rel / 10 for err, rel in scored)
+    values = pd.Series([err for err, _ in scored] or list(errors.values()))
+    return (f" References ({spp_text} spp as two independent halves): estimated relMSE median {values.median():.2g}, "
+            f"max {values.max():.2g}; below a tenth of the best row's ({best}) relMSE on {met} of {len(scored)} "
+            "scored frames.")
+
+
 def run(ctx: Context, name: str, rows: list[dict], caption: str = "", task: str = "srd",
         split: str | None = None, paper: str | None = "auto", gmac_column: bool = False,
         figure: bool = True) -> pd.DataFrame:
@@ -171,6 +191,11 @@ def run(ctx: Context, name: str, rows: list[dict], caption: str = "", task: str 
         if agreement:
             notes += " Pairs of rows ordered as in the paper: " + ", ".join(
                 f"{m} {a}/{n}" for m, (a, n) in agreement.items()) + "."
+    best_index = int(table["relMSE"].idxmin())
+    best, scored = table.loc[best_index], rows[best_index].get("split", split) or ctx.eval.split
+    notes += reference_check([f for f in load_manifest(frames.data_dir)["frames"] if f["split"] == scored],
+                             pd.read_csv(ctx.runs_dir / "eval" / best["runs"].split()[0] / "per_image.csv"),
+                             best["method"])
     vgg = sorted({v for v in table.pop("vgg") if isinstance(v, str)})
     if vgg:
         notes += f" Perceptual loss features: {'; '.join(vgg)}."
