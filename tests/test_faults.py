@@ -202,3 +202,19 @@ def test_hr_files_of_the_wrong_size_under_a_copied_manifest_are_not_trusted(rend
         (str(wrong), "4x3 pixels; its record says 16x12")]
     ensure_data(_ctx(other), PASSES)
     np.testing.assert_array_equal(exrio.read_exr(wrong)["ref"], original["ref"])
+
+
+def test_a_split_rendered_again_with_fewer_buffers_gets_the_rest_when_a_table_needs_them(tmp_path):
+    """Giving val its own ref_spp re-renders its frames with the buffers the running table asks for; a
+    later table needing another buffer must find it missing on those frames and render it."""
+    import dataclasses
+    val = {"families": ["gallery"], "sequences": 1}
+    ctx = dataclasses.replace(_ctx(tmp_path), data_spec={**SPEC, "splits": {**SPEC["splits"], "val": val}})
+    ensure_data(ctx, {"lr_noisy", "lr_ref", "hr_ref"})
+    ctx = dataclasses.replace(ctx, data_spec={**SPEC, "splits": {**SPEC["splits"], "val": {**val, "ref_spp": 8}}})
+    ensure_data(ctx, {"lr_noisy", "hr_ref"})
+    assert all(set(f["buffers"]) == {"lr_noisy", "hr_ref"} for f in _frames(tmp_path) if f["split"] == "val")
+    ensure_data(ctx, {"lr_ref"})
+    for f in _frames(tmp_path):
+        assert "lr_ref" in f["buffers"]
+        assert "ref" in exrio.exr_layers(tmp_path / "data" / f["split"] / f["sequence"] / f"{f['frame']:04d}_lr.exr")

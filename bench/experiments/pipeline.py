@@ -216,12 +216,15 @@ def ensure_data(ctx: Context, passes: set[str]) -> str:
     path = ctx.data_dir / "manifest.json"
     if path.exists():
         manifest = load_manifest(ctx.data_dir)
-        if _canonical(manifest.get("spec")) == _canonical(ctx.data_spec) and passes <= set(manifest.get("passes", [])):
+        if _canonical(manifest.get("spec")) == _canonical(ctx.data_spec):
+            # per frame: a split re-rendered for another table (new settings) may hold fewer buffers
+            lacking = [f for f in manifest["frames"] if not passes <= set(f.get("buffers", []))]
             damaged = damaged_frames(ctx.data_dir, manifest["frames"], manifest["passes"])
-            if not damaged:
+            if not damaged and not lacking:
                 log.info("data: %s already holds %s", ctx.data_dir, ", ".join(sorted(passes)))
                 return data_fingerprint(ctx)
-            log.warning("data: %d damaged frame files (%s); rendering them again", len(damaged), _listed(damaged))
+            if damaged:
+                log.warning("data: %d damaged frame files (%s); rendering them again", len(damaged), _listed(damaged))
     identity = {"spec": ctx.data_spec, "passes": sorted(passes)}
     run = runs.begin(ctx.runs_dir, "data", identity, seed=ctx.data_spec.get("seed"), device=ctx.device,
                      label=f"data {ctx.preset}", force=True)  # a data run records one render job
