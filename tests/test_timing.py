@@ -8,8 +8,8 @@ import pytest
 from hydra import compose, initialize_config_dir
 
 from bench.cli import CONF_DIR, run_experiment
-from bench.experiments.timing import (BRUTE_FORCE, brute_force_spp, equal_quality_time, equal_time_error,
-                                      loglog_slope, pareto_front, reference_noise_slope, slope_ok)
+from bench.experiments.timing import (BRUTE_FORCE, brute_force_spp, equal_time_table, fit_curve, loglog_slope,
+                                      pareto_front, reference_noise_slope, rising_steps, slope_ok, speedup_table)
 
 
 # ---------------------------------------------------------------- pure functions
@@ -30,38 +30,63 @@ def test_brute_force_spp_stops_below_the_reference():
     assert brute_force_spp(2) == [1]
 
 
-def test_equal_quality_and_equal_time_interpolate_log_log():
-    times, errors = [1.0, 2.0, 4.0, 8.0], [1.0, 0.5, 0.25, 0.125]  # error = 1 / time
-    seconds, extrapolated = equal_quality_time(times, errors, 0.3)
-    assert seconds == pytest.approx(1 / 0.3) and not extrapolated  # exact on a power law
-    error, extrapolated = equal_time_error(times, errors, 3.0)
-    assert error == pytest.approx(1 / 3) and not extrapolated
-    seconds, extrapolated = equal_quality_time(times, errors, 0.05)  # better than the longest render:
-    assert seconds == pytest.approx(20.0) and extrapolated         # continued by the 1/spp law
-    seconds, extrapolated = equal_quality_time(times, errors, 2.0)   # worse than the quickest render
-    assert seconds == pytest.approx(0.5) and extrapolated
-    error, extrapolated = equal_time_error(times, errors, 16.0)
-    assert error == pytest.approx(1 / 16) and extrapolated
-    seconds, _ = equal_quality_time(times[::-1], errors[::-1], 0.25)  # order of the points does not matter
-    assert seconds == pytest.approx(4.0)
+def test_curves_recover_power_laws_in_each_metric_and_invert():
+    times = [1.0, 2.0, 4.0, 8.0]
+    rel = fit_curve(times, [0.3 / t for t in times], "relMSE")
+    assert rel.slope == pytest.approx(-1.0)
+    assert rel.time_for(0.1) == (pytest.approx(3.0), False)
+    assert rel.at_time(16.0) == (pytest.approx(0.3 / 16), True)      # beyond the measured times: says so
+    psnr = fit_curve(times, [20 + 10 * math.log10(t) for t in times], "PSNR")
+    assert psnr.time_for(25.0) == (pytest.approx(10 ** 0.5), False)
+    ssim = fit_curve(times, [1 - 0.5 / t for t in times], "SSIM")
+    assert ssim.time_for(0.9)[0] == pytest.approx(5.0) and ssim.at_time(2.0)[0] == pytest.approx(0.75)
+    flat = fit_curve(times, [0.2] * 4, "relMSE")                      # no progress: never reaches better
+    assert flat.time_for(0.1) == (math.inf, True)
 
 
-def test_a_noisy_longer_render_does_not_bend_the_curve_back():
-    """Fireflies can make a longer render score worse; the time to reach an error is the first time it
-    is reached."""
+def test_a_noisy_longer_render_pulls_the_fit_and_is_not_dropped():
     times, errors = [1.0, 2.0, 4.0, 8.0], [1.0, 0.5, 0.9, 0.125]
-    seconds, _ = equal_quality_time(times, errors, 0.25)
-    assert 2.0 < seconds < 8.0
-    assert seconds == pytest.approx(2 * (8 / 2) ** (math.log(2) / math.log(4)))  # on the 2 s -> 8 s segment
+    curve = fit_curve(times, errors, "relMSE")
+    assert curve.slope == pytest.approx(np.polyfit(np.log(times), np.log(errors), 1)[0])
+    assert -1.0 < curve.slope < -0.5                                  # flatter than without the 0.9 point
 
 
-def test_renders_that_never_improve_keep_the_curve_flat_up_to_the_longest():
-    """No progress was measured after 2 s, so none is assumed until the last measured 8 s."""
-    times, errors = [1.0, 2.0, 4.0, 8.0], [1.0, 0.5, 0.6, 0.7]
-    assert equal_time_error(times, errors, 4.0) == (pytest.approx(0.5), False)
-    assert equal_quality_time(times, errors, 0.5) == (pytest.approx(2.0), False)
-    seconds, extrapolated = equal_quality_time(times, errors, 0.4)
-    assert seconds == pytest.approx(10.0) and extrapolated
+def test_rising_steps_are_paired_over_views_and_need_more_than_noise():
+    def per_view(values):  # view -> relMSE at spp 1, 2, 4
+        return pd.DataFrame([{"view": v, "spp": k, "relMSE": e} for v, errs in values.items()
+                             for k, e in zip((1, 2, 4), errs)])
+    assert rising_steps(per_view({"a": [1.0, 0.5, 0.6], "b": [2.0, 1.0, 1.1], "c": [0.4, 0.2, 0.25]})) == [(2, 4)]
+    # one view rising (a firefly), the others falling: within noise
+    assert rising_steps(per_view({"a": [1.0, 0.5, 0.9], "b": [2.0, 1.0, 0.5], "c": [0.4, 0.2, 0.1]})) == []
+
+
+def _synthetic_table():
+    """Path tracing with relMSE = 0.4 / t, PSNR = 20 + 10 log10 t, SSIM = 1 - 0.4 / t; one SRD method at
+    LR 8 spp; one HR denoiser whose relMSE = 0.05 / t."""
+    rows = [{"method": BRUTE_FORCE, "input": "HR", "spp": k, "total s": float(k), "relMSE": 0.4 / k,
+             "PSNR": 20 + 10 * math.log10(k), "SSIM": 1 - 0.4 / k} for k in (1, 2, 4, 8, 16)]
+    rows.append({"method": "SRD", "input": "LR", "spp": 8, "total s": 0.5, "relMSE": 0.05, "PSNR": 28.0,
+                 "SSIM": 0.96})
+    rows += [{"method": "HR denoiser", "input": "HR", "spp": k, "total s": 2.0 * k, "relMSE": 0.05 / (2 * k),
+              "PSNR": 25 + 10 * math.log10(2 * k), "SSIM": 0.9} for k in (1, 2, 4)]
+    return pd.DataFrame(rows)
+
+
+def test_speedup_table_gives_equal_quality_in_relmse_psnr_and_ssim():
+    speed = speedup_table(_synthetic_table(), 8).set_index("method")
+    assert speed.loc["SRD", "speed-up at equal relMSE"] == pytest.approx(8.0 / 0.5)   # PT needs 8 s
+    assert speed.loc["SRD", "speed-up at equal PSNR"] == pytest.approx(10 ** 0.8 / 0.5)
+    assert speed.loc["SRD", "speed-up at equal SSIM"] == pytest.approx(10.0 / 0.5)
+    assert speed.loc["SRD", "PT relMSE at equal time"] == pytest.approx(0.8)
+    assert "relMSE" in speed.loc["SRD", "extrapolated"]                                # 0.5 s < PT's 1 s
+
+
+def test_equal_time_table_reads_each_hr_denoiser_at_the_srd_methods_time():
+    (row,) = equal_time_table(_synthetic_table(), 8).to_dict("records")
+    assert row["SRD method"] == "SRD" and row["HR denoiser"] == "HR denoiser"
+    assert row["denoiser relMSE"] == pytest.approx(0.05 / 0.5)                         # on its line at 0.5 s
+    assert row["PSNR difference (dB)"] == pytest.approx(28.0 - (25 + 10 * math.log10(0.5)))
+    assert row["extrapolated"] == "relMSE, PSNR"                                       # below its 2 s
 
 
 def test_pareto_front():
@@ -118,8 +143,10 @@ def test_time_end_to_end_then_reuses_its_renders(tiny, caplog):
     assert (out / "error_vs_time.png").stat().st_size > 0
     speed = pd.read_csv(out / "speedup.csv")
     assert list(speed["method"]) == ["Ours", "Bilinear", "OIDN HR"] and (speed["spp"] == 4).all()
-    assert (speed["speed-up at equal relMSE"] > 0).all()
-    assert "log-log slope" in (out / "table.md").read_text()
+    assert (speed["speed-up at equal relMSE"] > 0).all() and (speed["speed-up at equal PSNR"] > 0).all()
+    assert "log-log slope" in (out / "table.md").read_text() and "not checked (one view)" in (out / "table.md").read_text()
+    assert {"relMSE se", "PSNR se", "speed-up (PSNR)"} <= set(table.columns)
+    assert (out / "equal_time.csv").exists()
 
 
 def test_renders_recorded_under_the_old_run_kind_are_adopted(tmp_path):

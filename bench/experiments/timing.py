@@ -15,11 +15,14 @@ Mitsuba's JIT compilation counts) + network time (median of `repeats` warm runs,
 models were trained and scored on sequences, so every input is rendered for each frame of the view's
 sequence, the render time is the mean over those frames, and the error is taken on the last frame.
 
-Two derived numbers per method: the equal-quality speed-up (the time brute-force path tracing needs to
-reach the method's relMSE, interpolated log-log on its curve, divided by the method's time) and, at the
-operating point, the equal-time error (brute-force relMSE at the method's total time).
+Derived per method: the equal-quality speed-up (the time brute-force path tracing needs to reach the
+method's relMSE, PSNR or SSIM on its fitted curve, divided by the method's time) and, at the operating
+point, path tracing's values at the method's total time (speedup.*); and the paper's head-to-head, SRD at
+LR 8 spp against the denoisers of HR renders at equal time (equal_time.*). Every point carries the
+standard error over views; path tracing's curve is checked for slope (about 1/spp) and for rising with
+more samples beyond noise (paired over views).
 
-Renders are runs of kind `timing`, keyed by view, size, spp, passes, seed, Mitsuba variant and host, so
+Renders are runs of kind `time`, keyed by view, size, spp, passes, seed, Mitsuba variant and host, so
 a rerun re-renders nothing and a time measured on another machine is never reused. force=true re-renders
 and re-times them; it never retrains networks here (run the tables with force=true for that). Network
 times are measured afresh on every run.
@@ -85,50 +88,64 @@ def slope_ok(slope: float, expected=EXPECTED_SLOPE) -> bool:
     return expected[0] <= slope <= expected[1]
 
 
-def _curve(times, errors) -> tuple[np.ndarray, np.ndarray]:
-    """Knots (log time, log error) of the brute-force curve, time strictly increasing, error falling: the
-    points that beat every faster point (noise, fireflies above all, can make a longer render score
-    worse; such a point says little about the expected error and is dropped), then the longest render's
-    time at the best error, so the curve stays flat up to what was measured rather than assuming
-    progress the renders did not show."""
-    order = np.argsort(np.asarray(times, float), kind="stable")
-    t = np.log(np.asarray(times, float)[order])
-    e = np.log(np.asarray(errors, float)[order])
-    keep = [0]
-    for i in range(1, len(t)):
-        if e[i] < e[keep[-1]]:
-            keep[-1:] = [keep[-1], i] if t[i] > t[keep[-1]] else [i]
-    log_t, log_e = t[keep], e[keep]
-    if t[-1] > log_t[-1]:
-        log_t, log_e = np.append(log_t, t[-1]), np.append(log_e, log_e[-1])
-    return log_t, log_e
+# How a metric is made a straight line in log time for a curve fit: relMSE ~ c t^b (its log), PSNR (dB,
+# already logarithmic), SSIM through its dissimilarity 1 - SSIM ~ c t^b. (transform, inverse)
+CURVE_SCALES = {
+    "relMSE": (np.log, np.exp),
+    "PSNR": (lambda v: np.asarray(v, float), lambda y: y),
+    "SSIM": (lambda v: np.log(np.maximum(1 - np.asarray(v, float), 1e-12)), lambda y: 1 - np.exp(y)),
+}
+
+IMPROVES = {"relMSE": -1, "PSNR": 1, "SSIM": -1}  # sign of a better value's change on the transformed scale
 
 
-def equal_time_error(times, errors, seconds: float) -> tuple[float, bool]:
-    """Brute-force error after `seconds`: log-error interpolated against log-time on its curve (`times`,
-    `errors`); beyond the measured times it follows the 1/spp law (error ~ 1/time). (error, extrapolated)"""
-    log_t, log_e = _curve(times, errors)
-    x = math.log(seconds)
-    if x < log_t[0] or x > log_t[-1]:
-        end = 0 if x < log_t[0] else -1
-        return math.exp(log_e[end] + IDEAL_SLOPE * (x - log_t[end])), True
-    return math.exp(float(np.interp(x, log_t, log_e))), False
+@dataclass
+class Curve:
+    """A method's metric against its total time: the least-squares line through (log seconds,
+    transformed metric) over its measured points, none dropped (a noisy point pulls the line a little
+    instead of being hidden). Beyond the measured times the line is extrapolated, and says so."""
+    metric: str
+    intercept: float
+    slope: float
+    log_t: tuple          # the measured times' range (log seconds)
+
+    def at_time(self, seconds: float) -> tuple[float, bool]:
+        """The metric after `seconds`; (value, extrapolated)."""
+        x = math.log(seconds)
+        return float(CURVE_SCALES[self.metric][1](self.intercept + self.slope * x)), not self._inside(x)
+
+    def time_for(self, value: float) -> tuple[float, bool]:
+        """Seconds to reach `value` of the metric; (seconds, extrapolated). inf when the line never
+        reaches it (a flat or wrong-way fit)."""
+        y = float(CURVE_SCALES[self.metric][0](value))
+        if self.slope * IMPROVES[self.metric] <= 1e-9 or not math.isfinite(y):
+            return math.inf, True  # a flat or wrong-way line: more time does not buy quality
+        x = (y - self.intercept) / self.slope
+        return math.exp(x) if x < 700 else math.inf, not self._inside(x)
+
+    def _inside(self, x: float) -> bool:
+        return self.log_t[0] - 1e-9 <= x <= self.log_t[1] + 1e-9
 
 
-def equal_quality_time(times, errors, error: float) -> tuple[float, bool]:
-    """Seconds brute-force path tracing needs to reach `error` first: log-time interpolated against
-    log-error on its curve; beyond it (an error no measured render reached, or one worse than the
-    quickest render's) the 1/spp law. (seconds, extrapolated)"""
-    log_t, log_e = _curve(times, errors)
-    y = math.log(error)
-    if y > log_e[0] or y < log_e[-1]:
-        end = 0 if y > log_e[0] else -1
-        return math.exp(log_t[end] + (y - log_e[end]) / IDEAL_SLOPE), True
-    i = int(np.argmax(log_e <= y))  # first knot at or below the error
-    if i == 0:
-        return math.exp(log_t[0]), False
-    f = (log_e[i - 1] - y) / (log_e[i - 1] - log_e[i])
-    return math.exp(log_t[i - 1] + f * (log_t[i] - log_t[i - 1])), False
+def fit_curve(times, values, metric: str) -> Curve:
+    x = np.log(np.asarray(times, float))
+    y = CURVE_SCALES[metric][0](np.asarray(values, float))
+    slope, intercept = np.polyfit(x, y, 1) if len(x) > 1 else (0.0, float(y[0]))
+    return Curve(metric, float(intercept), float(slope), (float(x.min()), float(x.max())))
+
+
+def rising_steps(per_view: pd.DataFrame, metric: str = "relMSE", z: float = 2.0) -> list[tuple[int, int]]:
+    """Consecutive spp (k, 2k) of the brute-force curve where the error rises by more than `z` standard
+    errors of the paired per-view difference (`per_view`: columns view, spp, metric): more samples
+    must not score worse, beyond noise."""
+    wide = per_view.pivot_table(index="view", columns="spp", values=metric, aggfunc="mean").sort_index(axis=1)
+    out = []
+    for a, b in zip(wide.columns[:-1], wide.columns[1:]):
+        diff = (wide[b] - wide[a]).dropna()
+        se = diff.std(ddof=1) / math.sqrt(len(diff)) if len(diff) > 1 else 0.0
+        if diff.mean() > z * se:
+            out.append((int(a), int(b)))
+    return out
 
 
 def pareto_front(times, errors) -> np.ndarray:
@@ -297,7 +314,7 @@ def measure_view(ctx: Context, view: View, variant: str, methods: list, bf_spp: 
     last = len(view.frames) - 1
     for spp in bf_spp:
         out = cached_render(ctx, view, renderer, last, "hr", spp, False, stats)
-        rows.append({"method": BRUTE_FORCE, "input": "HR", "spp": spp, "render s": out["render_s"],
+        rows.append({"view": view.sequence, "method": BRUTE_FORCE, "input": "HR", "spp": spp, "render s": out["render_s"],
                      "network s": 0.0, "network on": "-", **scores(out["radiance"], view.ref)})
     for task, res in INPUT_RES.items():
         chosen = [m for m in methods if m["task"] == task]
@@ -305,7 +322,8 @@ def measure_view(ctx: Context, view: View, variant: str, methods: list, bf_spp: 
             x, g, render_s = input_sequence(ctx, view, renderer, res, spp, stats)
             for m in chosen:
                 pred, network_s = timed_prediction(m["net"], x, g, ctx.train.hdr, ctx.device, repeats)
-                rows.append({"method": m["label"], "input": res.upper(), "spp": spp, "render s": render_s,
+                rows.append({"view": view.sequence, "method": m["label"], "input": res.upper(), "spp": spp,
+                             "render s": render_s,
                              "network s": network_s, "network on": network_device(ctx, m["net"]),
                              **scores(pred, view.ref)})
     return rows
@@ -313,12 +331,18 @@ def measure_view(ctx: Context, view: View, variant: str, methods: list, bf_spp: 
 
 # ---------------------------------------------------------------- tables and figure
 
+SCORED = ("relMSE", "PSNR", "SSIM")
+
+
 def average(rows: list[dict]) -> pd.DataFrame:
-    """Mean over views per (method, spp), methods in the order measured, each by spp; total s = render s
-    + network s."""
-    df = pd.DataFrame(rows)
+    """Mean over views per (method, spp), methods in the order measured, each by spp, with the standard
+    error over views of each metric (`relMSE se`, ...; NaN for one view); total s = render s + network s."""
+    df = pd.DataFrame(rows).drop(columns=["view"], errors="ignore")
     keys = ["method", "input", "spp", "network on"]
-    table = df.groupby(keys, sort=False).mean(numeric_only=True).reset_index()
+    groups = df.groupby(keys, sort=False)
+    table = groups.mean(numeric_only=True).reset_index()
+    for metric in SCORED:
+        table[f"{metric} se"] = (groups[metric].std(ddof=1) / np.sqrt(groups[metric].count())).to_numpy()
     rank = {method: i for i, method in enumerate(dict.fromkeys(df["method"]))}
     table = table.sort_values(["method", "spp"], key=lambda c: c.map(rank) if c.name == "method" else c,
                               kind="stable").reset_index(drop=True)
@@ -326,43 +350,83 @@ def average(rows: list[dict]) -> pd.DataFrame:
     return table
 
 
-def add_speedups(table: pd.DataFrame) -> pd.DataFrame:
-    """Equal-quality speed-up of every row against the brute-force curve, and the Pareto mask."""
+def pt_curves(table: pd.DataFrame) -> dict[str, Curve]:
+    """Brute-force path tracing's curve for each scored metric."""
     bf = table[table["method"] == BRUTE_FORCE]
-    speedups, extrapolated = [], []
-    for _, r in table.iterrows():
-        seconds, beyond = (math.nan, False) if r["method"] == BRUTE_FORCE else \
-            equal_quality_time(bf["total s"], bf["relMSE"], r["relMSE"])
-        speedups.append(seconds / r["total s"])
-        extrapolated.append("yes" if beyond else "")
-    table["speed-up"] = speedups
+    return {m: fit_curve(bf["total s"], bf[m], m) for m in SCORED}
+
+
+def add_speedups(table: pd.DataFrame) -> pd.DataFrame:
+    """Equal-quality speed-up of every row against path tracing's curve, in relMSE and in PSNR (so that
+    blur, which relMSE rewards, does not decide it alone), and the Pareto mask (relMSE)."""
+    curves = pt_curves(table)
+    extrapolated = pd.Series("", index=table.index)
+    for metric in ("relMSE", "PSNR"):
+        values = []
+        for i, r in table.iterrows():
+            if r["method"] == BRUTE_FORCE:
+                values.append(math.nan)
+                continue
+            seconds, beyond = curves[metric].time_for(r[metric])
+            values.append(seconds / r["total s"])
+            if beyond:
+                extrapolated[i] = ", ".join(filter(None, [extrapolated[i], metric]))
+        table[f"speed-up ({metric})"] = values
     table["extrapolated"] = extrapolated
     table["Pareto"] = pareto_front(table["total s"], table["relMSE"])
     return table
 
 
-SPEEDUP_COLUMNS = ["method", "input", "spp", "total s", "relMSE", "PT s at equal relMSE", "speed-up at equal relMSE",
-                   "PT relMSE at equal time", "relMSE ratio PT/method", "extrapolated"]
+def operating_rows(table: pd.DataFrame, operating_spp: int, inputs=("LR", "HR")) -> pd.DataFrame:
+    """Per method (path tracing aside) with input in `inputs`, its row nearest the operating spp."""
+    picked = []
+    for _, part in table[(table["method"] != BRUTE_FORCE) & table["input"].isin(inputs)].groupby("method", sort=False):
+        picked.append(part.iloc[int(np.argmin(np.abs(np.log2(part["spp"].to_numpy(float)) - math.log2(operating_spp))))])
+    return pd.DataFrame(picked)
 
 
 def speedup_table(table: pd.DataFrame, operating_spp: int) -> pd.DataFrame:
-    """One row per method at the operating point: equal-quality speed-up and equal-time error."""
-    bf = table[table["method"] == BRUTE_FORCE]
+    """One row per method at the operating point: for relMSE, PSNR and SSIM, the seconds path tracing
+    needs to match it and the speed-up that makes, and path tracing's value at the method's time."""
+    curves = pt_curves(table)
     rows = []
-    for method, part in table[table["method"] != BRUTE_FORCE].groupby("method", sort=False):
-        r = part.iloc[int(np.argmin(np.abs(np.log2(part["spp"].to_numpy(float)) - math.log2(operating_spp))))]
-        pt_seconds, extra_q = equal_quality_time(bf["total s"], bf["relMSE"], r["relMSE"])
-        pt_error, extra_t = equal_time_error(bf["total s"], bf["relMSE"], r["total s"])
-        rows.append({"method": method, "input": r["input"], "spp": int(r["spp"]), "total s": r["total s"],
-                     "relMSE": r["relMSE"], "PT s at equal relMSE": pt_seconds,
-                     "speed-up at equal relMSE": pt_seconds / r["total s"],
-                     "PT relMSE at equal time": pt_error, "relMSE ratio PT/method": pt_error / r["relMSE"],
-                     "extrapolated": "yes" if (extra_q or extra_t) else "no"})
-    return pd.DataFrame(rows, columns=SPEEDUP_COLUMNS)
+    for _, r in operating_rows(table, operating_spp).iterrows():
+        out = {"method": r["method"], "input": r["input"], "spp": int(r["spp"]), "total s": r["total s"]}
+        beyond = []
+        for metric in SCORED:
+            seconds, extra_q = curves[metric].time_for(r[metric])
+            value, extra_t = curves[metric].at_time(r["total s"])
+            out |= {metric: r[metric], f"speed-up at equal {metric}": seconds / r["total s"],
+                    f"PT {metric} at equal time": value}
+            beyond += [metric] if (extra_q or extra_t) else []
+        out["extrapolated"] = ", ".join(beyond) or "no"
+        rows.append(out)
+    return pd.DataFrame(rows)
+
+
+def equal_time_table(table: pd.DataFrame, operating_spp: int) -> pd.DataFrame:
+    """The paper's motivation, head to head: each SRD method at LR `operating_spp` against each denoiser
+    of HR renders (task denoise) given the same total seconds, the denoiser's values read off its own
+    curve (fitted over its HR spp) at the SRD method's time."""
+    rows = []
+    hr_methods = table[(table["method"] != BRUTE_FORCE) & (table["input"] == "HR")]
+    for _, r in operating_rows(table, operating_spp, ("LR",)).iterrows():
+        for denoiser, part in hr_methods.groupby("method", sort=False):
+            out = {"SRD method": r["method"], "total s": r["total s"], "HR denoiser": denoiser}
+            beyond = []
+            for metric in ("relMSE", "PSNR"):
+                value, extra = fit_curve(part["total s"], part[metric], metric).at_time(r["total s"])
+                out |= {f"SRD {metric}": r[metric], f"denoiser {metric}": value}
+                beyond += [metric] if extra else []
+            out["PSNR difference (dB)"] = out["SRD PSNR"] - out["denoiser PSNR"]
+            out["extrapolated"] = ", ".join(beyond) or "no"
+            rows.append(out)
+    return pd.DataFrame(rows)
 
 
 def plot(table: pd.DataFrame, path, title: str) -> None:
-    """Log-log relMSE against total time, one curve per method (points labelled by spp), Pareto front."""
+    """Log-log relMSE against total time, one curve per method (points labelled by spp, bars: the standard
+    error over views), and the Pareto front."""
     import matplotlib
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
@@ -370,8 +434,9 @@ def plot(table: pd.DataFrame, path, title: str) -> None:
     fig, ax = plt.subplots(figsize=(9, 5.5))
     for method, part in table.groupby("method", sort=False):
         brute = method == BRUTE_FORCE
-        ax.plot(part["total s"], part["relMSE"], marker="o" if part["input"].iloc[0] == "LR" else "s",
-                ms=4, lw=2.5 if brute else 1.2, color="black" if brute else None, label=method)
+        ax.errorbar(part["total s"], part["relMSE"], yerr=part["relMSE se"].fillna(0), capsize=2,
+                    marker="o" if part["input"].iloc[0] == "LR" else "s", ms=4, lw=2.5 if brute else 1.2,
+                    color="black" if brute else None, label=method)
         for _, r in part.iterrows():
             ax.annotate(f"{int(r['spp'])}", (r["total s"], r["relMSE"]), fontsize=6, xytext=(2, 2),
                         textcoords="offset points")
@@ -443,10 +508,10 @@ def _caption(ctx, caption, views, variant, train_spp) -> str:
             f"Mitsuba {variant}. Seconds per frame, averaged over views: render = render_view wall time "
             f"(radiance + gBuffer in one pass, scene loaded, JIT warm), network = median of warm runs. "
             f"{RELMSE_FORMULA}; PSNR/SSIM clamped to [0, 1]; all against the HR reference. Networks trained "
-            f"at {train_spp} spp. speed-up: seconds brute-force HR path tracing (PT) needs for the same relMSE "
-            f"(log-log interpolation on its curve; extrapolated: beyond it, by the 1/spp law) / the method's "
-            f"seconds; the paper implies about {PAPER_SPEEDUP}x at LR 8 spp. Pareto: no other row is both "
-            f"faster and better.")
+            f"at {train_spp} spp. se: standard error over views. speed-up (M): seconds brute-force HR path "
+            f"tracing (PT) needs for the same M on its fitted curve (see speedup.*; extrapolated: outside its "
+            f"measured times) / the method's seconds; the paper implies about {PAPER_SPEEDUP}x at LR 8 spp. "
+            f"Pareto: no other row is both faster and lower in relMSE.")
 
 
 def run(ctx: Context, name: str, caption: str, views: int, lr_spp: list, hr_spp: list, max_spp: int | None,
@@ -471,33 +536,55 @@ def run(ctx: Context, name: str, caption: str, views: int, lr_spp: list, hr_spp:
         rows += measure_view(ctx, view, variant, kept, bf_spp, spp_lists, repeats, stats)
     table = add_speedups(average(rows))
     skipped = [label for label, net in nets.items() if net is None]
-    report(ctx, name, caption, table, chosen, variant, skipped, operating_spp)
+    report(ctx, name, caption, table, pd.DataFrame(rows), chosen, variant, skipped, operating_spp)
     log.info("time: %d of %d renders reused from the run store; tables and figure in %s",
              stats["reused"], stats["renders"], ctx.results_dir / name)
     return table
 
 
-def report(ctx: Context, name: str, caption: str, table: pd.DataFrame, views: list[View], variant: str,
-           skipped: list[str], operating_spp: int) -> None:
-    """Check the brute-force slope, write table.*, speedup.* and error_vs_time.png."""
+def report(ctx: Context, name: str, caption: str, table: pd.DataFrame, per_view: pd.DataFrame, views: list[View],
+           variant: str, skipped: list[str], operating_spp: int) -> None:
+    """Check path tracing's curve (slope, monotone within noise), write table.*, speedup.*, equal_time.*
+    and error_vs_time.png."""
     ref_spp, train_spp = int(views[0].frames[-1]["ref_spp"]), views[0].frames[-1]["spp"]
     bf = table[table["method"] == BRUTE_FORCE]
     slope = loglog_slope(bf["spp"], bf["MSE"])
     if not slope_ok(slope):
         log.warning("time: brute-force MSE falls as spp^%.2f, outside the expected [%g, %g] (about 1/spp)",
                     slope, *EXPECTED_SLOPE)
+    rising = rising_steps(per_view[per_view["method"] == BRUTE_FORCE])
+    if rising:
+        log.warning("time: path tracing scores worse with more samples beyond noise at %s", rising)
     notes = " ".join(filter(None, [_slope_note(slope, reference_noise_slope(bf["spp"], ref_spp), ref_spp),
-                                   _skipped_note(skipped)]))
+                                   _monotone_note(rising, len(views)), _skipped_note(skipped)]))
     out = ctx.results_dir / name
     shown = table.drop(columns=["MSE"]).assign(Pareto=table["Pareto"].map({True: "yes", False: ""}))
     write_table(shown, out, caption=f"{_caption(ctx, caption, views, variant, train_spp)} {notes}",
                 lower_is_better=LOWER_IS_BETTER, higher_is_better=HIGHER_IS_BETTER)
+    curve_text = (f"PT's curves: least-squares lines through (log seconds, log relMSE), (log seconds, PSNR) and "
+                  f"(log seconds, log(1 - SSIM)) over all its points; extrapolated: outside its measured times.")
     write_table(speedup_table(table, operating_spp), out, name="speedup", caption=(
         f"Equal quality and equal time against brute-force HR path tracing (PT) at the operating point "
         f"({operating_spp} spp; the paper's is LR 8 spp, where it implies about {PAPER_SPEEDUP}x), preset "
         f"{ctx.preset}, {len(views)} view(s), host {socket.gethostname()}; seconds per frame; {RELMSE_FORMULA}. "
-        f"PT s at equal relMSE: log-time interpolated against log-relMSE on PT's curve; speed-up = that / "
-        f"the method's total s. PT relMSE at equal time: log-relMSE interpolated at the method's total s. "
-        f"extrapolated: beyond PT's measured times or errors, continued by the 1/spp law (relMSE ~ 1/time). "
-        f"{notes}"), lower_is_better=("relMSE",), higher_is_better=("speed-up at equal relMSE",))
+        f"speed-up at equal M: the seconds PT needs to reach the method's M, over the method's seconds; in "
+        f"relMSE alone a blurred image can look fast, so PSNR and SSIM are given too. PT M at equal time: PT's "
+        f"M after the method's seconds. {curve_text} {notes}"),
+        lower_is_better=("relMSE",), higher_is_better=("speed-up at equal relMSE", "speed-up at equal PSNR"))
+    write_table(equal_time_table(table, operating_spp), out, name="equal_time", caption=(
+        f"Equal time: each SRD method at LR {operating_spp} spp against each denoiser of HR renders given the "
+        f"same seconds per frame (preset {ctx.preset}, {len(views)} view(s), host {socket.gethostname()}): the "
+        f"denoiser's relMSE and PSNR read off its own curve (lines through its HR spp points, as PT's) at the "
+        f"SRD method's total time; extrapolated: outside the denoiser's measured times. {RELMSE_FORMULA}."),
+        lower_is_better=(), higher_is_better=("PSNR difference (dB)",))
     plot(table, out / "error_vs_time.png", f"Error vs time ({ctx.preset}, {len(views)} view(s))")
+
+
+def _monotone_note(rising: list, views: int) -> str:
+    if views < 2:
+        return "Monotonicity within noise not checked (one view)."
+    if not rising:
+        return (f"PT's relMSE never rises with more samples beyond 2 standard errors of the paired per-view "
+                f"difference ({views} views).")
+    return (f"PT's relMSE RISES with more samples beyond 2 standard errors at spp {rising}: the reference or the "
+            f"renders are suspect there.")
