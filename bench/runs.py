@@ -146,7 +146,7 @@ def begin(runs_dir: str | Path, kind: str, identity: dict, config: dict | None =
     h = config_hash(identity)
     run_dir = Path(runs_dir) / kind / h
     ensure_writable(run_dir)
-    lock = _acquire(run_dir.parent / f".{h}.lock")
+    lock = acquire(run_dir.parent / f".{h}.lock", f"computing {kind}/{h}")
     if not force:  # another process may have completed it while we waited for the lock
         done = _reusable(runs_dir, kind, identity, code, reuse_stale, label)
         if done is not None:
@@ -292,9 +292,10 @@ def _source_hash(path: Path) -> str:
 _HELD: dict[str, object] = {}  # this process's locks: a run begun again after an error reuses its own lock
 
 
-def _acquire(path: Path):
-    """An exclusive lock on `path`, waiting for another process that holds it (the OS drops a dead
-    process's lock, so an interrupted run never blocks anyone)."""
+def acquire(path: Path, what: str):
+    """An exclusive lock on `path`, held until the returned file is closed (`with closing(acquire(...))`);
+    while another process holds it, says it waits for `what`. The OS drops a dead process's lock, so an
+    interrupted process never blocks anyone. This process taking the same lock again replaces its own."""
     key = str(path.resolve())
     if key in _HELD and not _HELD[key].closed:
         _HELD[key].close()
@@ -302,7 +303,7 @@ def _acquire(path: Path):
     try:
         fcntl.flock(handle, fcntl.LOCK_EX | fcntl.LOCK_NB)
     except BlockingIOError:
-        print(f"[runs] waiting for another process computing {path.parent.name}/{path.stem[1:]}", flush=True)
+        print(f"[runs] waiting for another process {what}", flush=True)
         fcntl.flock(handle, fcntl.LOCK_EX)
     return handle
 

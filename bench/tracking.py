@@ -19,7 +19,6 @@ re-evaluated), the MLflow run is replaced. One process syncs at a time (a lock b
 """
 from __future__ import annotations
 
-import fcntl
 import hashlib
 import json
 import logging
@@ -28,7 +27,7 @@ import os
 import subprocess
 import sys
 import tempfile
-from contextlib import contextmanager
+from contextlib import closing
 from datetime import datetime
 from pathlib import Path
 
@@ -59,7 +58,7 @@ def sync(runs_dir: str | Path, uri: str | None = None, results_dir: str | Path |
     uri = uri or default_uri(runs_dir)
     tables = _tables_by_run(Path(results_dir)) if results_dir else {}
     counts = {"logged": 0, "replaced": 0, "tables": 0, "unchanged": 0}
-    with _lock(runs_dir / ".mlflow.lock"):
+    with closing(runs.acquire(runs_dir / ".mlflow.lock", "mirroring the run store to MLflow")):
         client = MlflowClient(tracking_uri=uri)
         by_kind = {d.name: [r for r in _records(d) if r.get("status") in MIRRORED]
                    for d in sorted(p for p in runs_dir.iterdir() if p.is_dir())}
@@ -247,10 +246,3 @@ def _ms(timestamp: str | None) -> int | None:
         return int(datetime.strptime(timestamp, "%Y-%m-%dT%H:%M:%S%z").timestamp() * 1000)
     except ValueError:
         return None
-
-
-@contextmanager
-def _lock(path: Path):
-    with open(path, "a") as handle:
-        fcntl.flock(handle, fcntl.LOCK_EX)  # released on close, or by the OS if this process dies
-        yield
