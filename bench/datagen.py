@@ -27,6 +27,7 @@ import json
 import logging
 import multiprocessing
 import os
+import signal
 import socket
 import time
 import zlib
@@ -111,13 +112,14 @@ def buffer_layers(buffer, gbuf_layers=GBUF_LAYERS):
     return list(gbuf_layers) if kind == "gbuf" else [kind]
 
 
-def damaged_frames(root, frames, passes, decode=False):
+def damaged_frames(root, frames, passes, decode=False, stamps=True):
     """(path, what is wrong) for every frame file that is missing, unreadable, lacks a layer its
-    record's buffers need, has another size than its record's `lr_size`/`hr_size`, or was changed since
-    it was rendered (its size or mtime differs from the
-    stamp its record took when it was written). Reads headers and file stats only, unless `decode`
-    (every pixel: also finds a file cut inside its pixel data, and NaN/Inf values, at the cost of
-    reading the whole dataset)."""
+    record's buffers need, has another size than its record's `lr_size`/`hr_size`, or (with `stamps`:
+    rendered data) was changed since it was rendered (its size or bytes differ from the stamp its
+    record took when it was written). Reads headers and file stats only, unless `decode` (every pixel:
+    also finds a file cut inside its pixel data, and NaN/Inf values, at the cost of reading the whole
+    dataset). A record that names no buffers (your own data without `buffers` or `passes`) has its
+    files checked for whatever layers they hold."""
     problems = []
     for rec in frames:
         left_out = rec.get("left_out") or {}
@@ -126,24 +128,27 @@ def damaged_frames(root, frames, passes, decode=False):
         for res, path in zip(("lr", "hr"), paths[:2]):
             wanted = {layer for b in (rec.get("buffers") or passes) if b.startswith(res)
                       for layer in buffer_layers(b, gbuf_layers)}
-            if not wanted:
+            if not wanted and not (rec.get("buffers") or passes) and os.path.exists(path):
+                wanted = None  # nothing named: check the layers the file has
+            elif not wanted:
                 continue
             if not os.path.exists(path):
                 problems.append((path, "missing"))
                 continue
             try:
-                lacking = wanted - set(exrio.exr_layers(path))
+                layers = set(exrio.exr_layers(path))
             except exrio.ExrError:
                 problems.append((path, "unreadable"))
                 continue
+            lacking = (wanted or set()) - layers
             size = rec.get(f"{res}_size")
             if lacking:
                 problems.append((path, f"lacks layers {sorted(lacking)}"))
             elif size and _exr_size(path) != tuple(size):
                 problems.append((path, "{}x{} pixels; its record says {}x{}".format(*_exr_size(path), *size)))
-            elif not as_written(rec, res, path):
+            elif stamps and not as_written(rec, res, path):
                 problems.append((path, "changed since it was rendered (size or bytes differ from its record)"))
-            elif decode and (why := _decode_problem(path, sorted(wanted))):
+            elif decode and (why := _decode_problem(path, sorted(wanted or layers))):
                 problems.append((path, why))
     return problems
 
@@ -188,16 +193,20 @@ def _decode_problem(path, layers):
 
 
 def stamp_frames(root):
-    """Record the file stamps of the frames that have none (rendered before stamps existed). Called
-    after `verify=true` decoded every frame, so a stamp vouches for pixels that were checked. Rewrites
-    those frame records and the manifest (atomically); the data fingerprint does not read stamps, so
-    no run becomes stale. Returns how many frames were stamped."""
+    """Record the file stamps of the frames that have none (rendered before stamps existed), and the
+    new mtime of stamped files whose bytes still match (a copy that did not keep mtimes: else every
+    command reads their bytes again). Called after `verify=true` decoded every frame, so a stamp
+    vouches for pixels that were checked; rendered data only (your own files are never written).
+    Rewrites the changed frame records and the manifest atomically; the data fingerprint does not read
+    stamps, so no run becomes stale. Returns how many frames were stamped."""
     manifest = load_manifest(root)
     stamped = 0
     for rec in manifest["frames"]:
         paths = frame_paths(root, rec["split"], rec["sequence"], rec["frame"])
-        files = {res: file_stamp(path) for res, path in zip(("lr", "hr"), paths[:2]) if os.path.exists(path)}
-        if rec.get("files") or not files:
+        old = rec.get("files") or {}
+        files = {res: file_stamp(path) if old.get(res) is None or old[res]["mtime_ns"] != os.stat(path).st_mtime_ns
+                 else old[res] for res, path in zip(("lr", "hr"), paths[:2]) if os.path.exists(path)}
+        if files == old:
             continue
         rec["files"] = files
         if os.path.exists(paths[2]):
@@ -384,10 +393,12 @@ def render_sequence(root, job, spec, passes, variant=None):
                                                             "transmissive", "specular_chain")},
                       "left_out": features["left_out"], "settings_hash": digest, "buffers": [], "time_s": {},
                       "nonfinite_repaired": 0, "channels": {}}
+        written = []
         for res in ("lr", "hr"):
             todo = [b for b in missing if b.startswith(res)]
             if not todo:
                 continue
+            written.append(res)
             (w, h), path = sizes[res], paths[res]
             layers, times, repaired, ref_error = render_resolution(
                 loaded, camera, w, h, settings["spp"], settings["ref_spp"], seeds[res], todo, res,
@@ -403,7 +414,7 @@ def render_sequence(root, job, spec, passes, variant=None):
             record["nonfinite_repaired"] += repaired
             record["channels"][res] = [f"{n}.{s}" for n in merged for s in SUFFIXES[n]]
         record["buffers"] = sorted(set(record["buffers"]) | set(wanted))
-        record["files"] = {res: file_stamp(path) for res, path in paths.items() if os.path.exists(path)}
+        record["files"] = {**(record.get("files") or {}), **{res: file_stamp(paths[res]) for res in written}}
         _write_json(rec_path, record)
         records.append({**record, "resumed": False})
     return records
@@ -421,6 +432,12 @@ def _write_json(path, obj):
     with open(tmp, "w") as f:
         json.dump(obj, f, indent=1, default=float)
     os.replace(tmp, path)
+
+
+def _leave_interrupts_to_the_parent():
+    """Render workers ignore Ctrl-C (the terminal sends it to the whole process group): the parent
+    stops them, instead of each printing a traceback and taking the next job."""
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
 
 
 def _worker(args):
@@ -477,9 +494,16 @@ def build_dataset(root, spec, passes=BUFFERS, workers=1, progress=True, variant=
         # ProcessPoolExecutor (not Pool): a worker that dies raises BrokenProcessPool instead of hanging.
         # 'spawn' needs the calling script to guard its entry point with `if __name__ == "__main__":`.
         context = multiprocessing.get_context("spawn")
-        with ProcessPoolExecutor(workers, mp_context=context) as pool:
+        pool = ProcessPoolExecutor(workers, mp_context=context, initializer=_leave_interrupts_to_the_parent)
+        try:
             for future in as_completed([pool.submit(_worker, job) for job in jobs]):
                 advance(future.result())
+        except BaseException:  # Ctrl-C, or a worker failed: stop now, not after the queue (frames are
+            for process in list(pool._processes.values()):  # written atomically: none is left half-written)
+                process.terminate()
+            pool.shutdown(wait=False, cancel_futures=True)
+            raise
+        pool.shutdown()
     bar.close()
     records.sort(key=lambda r: (r["split"], r["sequence"], r["frame"]))
     present = sorted(set().union(*(r.get("buffers", []) for r in records)))

@@ -97,7 +97,7 @@ def test_a_real_edit_to_a_model_file_makes_its_trainings_stale_and_a_comment_doe
         shutil.copytree(REPO / part, project / part, ignore=shutil.ignore_patterns("__pycache__", "*.so"))
     shutil.copytree(root / "runs", tmp_path / "runs", ignore=shutil.ignore_patterns("mlflow*", "hydra"))
     copied = [a for a in args if not a.startswith(("runs_dir=", "results_dir="))] + [
-        f"runs_dir={tmp_path / 'runs'}", f"results_dir={tmp_path / 'results'}", "render_data=false"]
+        f"runs_dir={tmp_path / 'runs'}", f"results_dir={tmp_path / 'results'}"]
     model_file = project / "bench" / "models" / "srd.py"
 
     def run(*extra):
@@ -120,6 +120,39 @@ def test_a_real_edit_to_a_model_file_makes_its_trainings_stale_and_a_comment_doe
     proc.kill()
     proc.communicate()
     assert "recomputing run" in seen and "(bench/models/srd.py)" in seen, seen[-2000:]
+
+
+def test_adopt_keeps_runs_through_a_change_that_moves_no_number_and_not_through_one_that_does(smoke_dirs,
+                                                                                              tmp_path):
+    """+experiment=adopt on a copy of the smoke store: a refactor-like edit (a new function) leaves the
+    training stale until adopt replays it, finds the recorded values and re-stamps it, after which the
+    table reuses it; an edit that changes the model's output is measured and left stale."""
+    args, root, _ = smoke_dirs
+    project = tmp_path / "project"
+    for part in ("bench", "baselines", "conf"):
+        shutil.copytree(REPO / part, project / part, ignore=shutil.ignore_patterns("__pycache__", "*.so"))
+    shutil.copytree(root / "runs", tmp_path / "runs", ignore=shutil.ignore_patterns("mlflow*", "hydra"))
+    copied = [a for a in args if not a.startswith(("runs_dir=", "results_dir="))] + [
+        f"runs_dir={tmp_path / 'runs'}", f"results_dir={tmp_path / 'results'}"]
+    model_file = project / "bench" / "models" / "srd.py"
+    source = model_file.read_text()
+
+    model_file.write_text(source + "\n\ndef _a_helper_nothing_calls_yet():\n    return None\n")
+    out = bench("+experiment=adopt", *copied, cwd=project)
+    assert out.returncode == 0, out.stderr[-3000:]
+    table = pd.read_csv(tmp_path / "results" / "adopt" / "table.csv")
+    assert list(table["verdict"]) == ["adopted"], table.to_string()
+    assert table.loc[0, "train steps"] == 10 and table.loc[0, "train step 1 loss"] <= 1e-5 and table.loc[0, "eval frames"] > 0
+    out = bench("+experiment=smoke", *copied, cwd=project)
+    text = out.stdout + out.stderr
+    assert out.returncode == 0 and "train Ours: reusing run" in text and "eval Ours: reusing run" in text, text[-3000:]
+
+    model_file.write_text(source + "\n\n_forward = SRDNet.forward\nSRDNet.forward = lambda self, *a, **k: "
+                          "{n: 1.01 * v for n, v in _forward(self, *a, **k).items()}\n")
+    out = bench("+experiment=adopt", *copied, cwd=project)
+    assert out.returncode == 0, out.stderr[-3000:]
+    table = pd.read_csv(tmp_path / "results" / "adopt" / "table.csv")
+    assert table.loc[0, "verdict"].startswith("differs") and table.loc[0, "train step 1 loss"] > 1e-3, table.to_string()
 
 
 def test_smoke_end_to_end_then_reuse(smoke_dirs):

@@ -211,3 +211,5 @@ def test_reference_check_counts_frames_whose_reference_error_is_below_a_tenth_of
     assert "relMSE on 1 of 3 scored frames" in note            # 1e-4 < 2e-3; 5e-4 !< 4e-4; 3e-3 !< 2e-3
     plain = reference_check([{"sequence": "s", "frame": 0, "ref_spp": 256}], per_image, "Ours")
     assert "one render of 256 spp per frame; their error is not estimated" in plain
+    per_seed = pd.concat([per_image, per_image.assign(relMSE=per_image["relMSE"] * 3)])   # mean over seeds: x2,
+    assert "on 3 of 3 scored frames" in reference_check(frames, per_seed, "Ours")      # so all three pass

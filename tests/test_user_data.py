@@ -115,3 +115,25 @@ def test_training_on_frames_without_lr_size_names_the_key(tmp_path):
     with pytest.raises(UserError, match=r"training crops need each 'train' frame's \"lr_size\".*1 frames \(seq0/1\)"):
         dataset(ctx, "train", get_task("srd"), training=True)
     assert len(dataset(ctx, "train", get_task("srd"), training=False)) > 0   # evaluation reads whole frames
+
+
+def test_verify_reads_every_pixel_of_your_own_data_lists_nan_and_writes_nothing(tmp_path):
+    """`+experiment=data render_data=false verify=true` on the minimal layout (no buffers, no passes):
+    each file's own layers are decoded; NaN is listed by file; your manifest and frames are not written."""
+    from bench.errors import UserError
+    from bench.experiments import data
+    from bench.exrio import read_exr
+    from conftest import smoke_context
+    root = tmp_path / "data"
+    write_dataset(root)
+    ctx = smoke_context(data_dir=root, render_data=False, runs_dir=tmp_path / "runs",
+                        results_dir=tmp_path / "results")
+    before = {p: p.stat().st_mtime_ns for p in root.rglob("*")}
+    data.run(ctx, passes=[], examples=0, verify=True)
+    assert {p: p.stat().st_mtime_ns for p in root.rglob("*")} == before
+    hr = root / "val" / "seq0" / "0001_hr.exr"
+    layers = read_exr(hr)
+    layers["ref"][0, 0, 0] = np.nan
+    write_exr(hr, layers)
+    with pytest.raises(UserError, match=f"{hr}: non-finite pixel values"):
+        data.run(ctx, passes=[], examples=0, verify=True)

@@ -7,10 +7,12 @@ from __future__ import annotations
 
 import json
 import logging
+from contextlib import closing
 from pathlib import Path
 
 import pandas as pd
 
+from bench import runs
 from bench.datagen import damaged_frames, export_examples, load_manifest, stamp_frames
 from bench.errors import UserError
 from bench.experiments.pipeline import Context, ensure_data
@@ -29,7 +31,7 @@ def summarize(frames: list[dict]) -> pd.DataFrame:
         for col in sorted(c for c in part.columns if c.startswith("time_s.")):
             row[f"{col.removeprefix('time_s.').removesuffix('_s')} s"] = float(part[col].fillna(0).sum())
         row["nonfinite repaired"] = int(part.get("nonfinite_repaired", pd.Series(0)).sum())
-        row["ref spp"] = "/".join(str(int(v)) for v in sorted(part["ref_spp"].unique()))
+        row["ref spp"] = "/".join(str(int(v)) for v in sorted(part.get("ref_spp", pd.Series(dtype=float)).dropna().unique()))
         for res in ("lr", "hr"):  # the references' estimated relMSE (two half-sample renders; bench.metrics)
             err = part.get(f"ref_error.{res}", pd.Series(dtype=float)).dropna()
             row[f"{res} ref error median"] = float(err.median()) if len(err) else None
@@ -49,7 +51,8 @@ def run(ctx: Context, name: str = "data", passes: list[str] | None = None, examp
     root = ctx.data_dir
     manifest = load_manifest(root)
     if verify:
-        damaged = damaged_frames(root, manifest["frames"], manifest["passes"], decode=True)
+        damaged = damaged_frames(root, manifest["frames"], manifest.get("passes", []), decode=True,
+                                 stamps=ctx.render_data)
         log.info("data: verified every frame of %s: %d damaged files", root, len(damaged))
         if damaged and not ctx.render_data:
             raise UserError(f"data: {len(damaged)} damaged frame files: "
@@ -58,9 +61,13 @@ def run(ctx: Context, name: str = "data", passes: list[str] | None = None, examp
             Path(path).unlink(missing_ok=True)
         if damaged:
             ensure_data(ctx, set(passes or BUFFERS))
-        stamped = stamp_frames(root)  # from now on an edit to a verified frame is found at every start
+        stamped = 0
+        if ctx.render_data:  # from now on an edit to a verified frame is found at every start
+            with closing(runs.acquire(root / ".render.lock", f"rendering {root}")):
+                stamped = stamp_frames(root)
         if stamped:
-            log.info("data: stamped %d verified frames rendered before stamps existed (size, mtime)", stamped)
+            log.info("data: stamped %d verified frames (size, mtime, CRC-32): rendered before stamps existed, "
+                     "or copied without their mtimes", stamped)
         manifest = load_manifest(root)
     table = summarize(manifest["frames"])
     out = ctx.results_dir / name

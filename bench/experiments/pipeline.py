@@ -12,6 +12,7 @@ code has changed since is recomputed, and the log names the changed files; `reus
 """
 from __future__ import annotations
 
+import contextlib
 import copy
 import dataclasses
 import functools
@@ -207,12 +208,20 @@ def ensure_data(ctx: Context, passes: set[str]) -> str:
                             "layout'):\n  " + "\n  ".join(problems))
         fingerprint = data_fingerprint(ctx)
         manifest = load_manifest(ctx.data_dir)
-        damaged = damaged_frames(ctx.data_dir, manifest["frames"], manifest.get("passes", []))
+        damaged = damaged_frames(ctx.data_dir, manifest["frames"], manifest.get("passes", []), stamps=False)
         if damaged:
             raise UserError(f"data: {len(damaged)} damaged frame files in {ctx.data_dir} ({_listed(damaged)}); "
                             "with render_data=false they are yours to replace (or drop their records from "
                             "manifest.json)")
         return fingerprint
+    ctx.data_dir.mkdir(parents=True, exist_ok=True)
+    # one process checks and renders a dataset at a time: two tables needing other buffers would
+    # otherwise render the same frames at once, and each take the other's files for damaged ones
+    with contextlib.closing(runs.acquire(ctx.data_dir / ".render.lock", f"rendering {ctx.data_dir}")):
+        return _render_missing(ctx, passes)
+
+
+def _render_missing(ctx: Context, passes: set[str]) -> str:
     path = ctx.data_dir / "manifest.json"
     if path.exists():
         manifest = load_manifest(ctx.data_dir)
@@ -269,13 +278,20 @@ def dataset(ctx: Context, split: str, task: Task, training: bool, seed: int = 0)
     frames = (manifest.get("spec") or {}).get("seq_len")
     if frames is not None and recipe.seq_len > frames:
         raise UserError(f"train.seq_len={recipe.seq_len} but the dataset's sequences have {frames} frames")
+    check_training_frames(ctx, split, manifest)
+    return SequenceDataset(ctx.data_dir, split, buffers, seq_len=recipe.seq_len, crop=recipe.crop,
+                           augment=True, seed=seed, max_sequences=recipe.train_sequences)
+
+
+def check_training_frames(ctx: Context, split: str = "train", manifest: dict | None = None) -> None:
+    """Training crops are drawn inside each frame's `lr_size`, optional for evaluation (whole frames):
+    a frame without it is named before a training run is recorded."""
+    manifest = manifest or load_manifest(ctx.data_dir)
     unsized = [f"{r['sequence']}/{r['frame']}" for r in manifest["frames"] if r["split"] == split and "lr_size" not in r]
-    if unsized:  # optional for evaluation, which reads whole frames; crops are drawn inside lr_size
+    if unsized:
         raise UserError(f"{ctx.data_dir}/manifest.json: training crops need each {split!r} frame's \"lr_size\" "
                         f"([width, height] of its LR frame); missing on {len(unsized)} frames ({', '.join(unsized[:3])}"
                         f"{', ...' if len(unsized) > 3 else ''})")
-    return SequenceDataset(ctx.data_dir, split, buffers, seq_len=recipe.seq_len, crop=recipe.crop,
-                           augment=True, seed=seed, max_sequences=recipe.train_sequences)
 
 
 def validation(ctx: Context, task: Task, sequences: int):
@@ -360,12 +376,14 @@ def trained_model(ctx: Context, cfg: dict, task: Task, seed: int, label: str = "
     `task`, through SRDStage. With `divergence_ends` (a learning-rate range test) a diverging training is
     recorded complete with the step it diverged at, instead of failing."""
     torch.manual_seed(seed)
-    model = build_model(cfg, task.scale) if stage is None else SRDStage(_cascade_net(cfg), stage)
+    model = build_model(cfg, task.scale) if stage is None else SRDStage(cascade_net(cfg), stage)
     if not is_learned(model):
         return model, None
     uses_vgg = any(w.get("perceptual", 0) > 0 for w in ctx.train.loss.values())
     features, vgg_id = perceptual_features(ctx) if uses_vgg else (None, None)
     identity = _train_identity(ctx, cfg, task, seed, vgg_id, stage)
+    if not ctx.render_data:  # your own data: a frame the trainer cannot crop is named before a run is recorded
+        check_training_frames(ctx)
     run = runs.begin(ctx.runs_dir, "train", identity, seed=seed, device=ctx.device, label=label,
                      force=ctx.force, code=code_of(cfg, *TRAINING_CODE), reuse_stale=ctx.reuse_stale)
     if run.reused:
@@ -396,7 +414,7 @@ def trained_model(ctx: Context, cfg: dict, task: Task, seed: int, label: str = "
     return model, run
 
 
-def _cascade_net(cfg: dict) -> SRDNet:
+def cascade_net(cfg: dict) -> SRDNet:
     net = build_model(cfg, get_task("srd").scale)
     if not isinstance(net, SRDNet):
         raise UserError(f"a Cascade row needs the proposed model (SRDNet), got {cfg['_target_']}")
@@ -406,7 +424,7 @@ def _cascade_net(cfg: dict) -> SRDNet:
 def cascade_model(ctx: Context, cfg: dict, seed: int, label: str = ""):
     """A Cascade (paper Table 3): each SRDNet stage trained alone on its own task, assembled into one
     net. Returns (net, list of the stages' training runs)."""
-    net, stage_runs = _cascade_net(cfg), []
+    net, stage_runs = cascade_net(cfg), []
     for stage, task_name in CASCADE_STAGES[cfg.get("stage_order", "sr_dn")]:
         stage_model, run = trained_model(ctx, cfg, get_task(task_name), seed, f"{label} [{stage} stage]",
                                          stage=stage)

@@ -125,23 +125,41 @@ def paper_agreement(table: pd.DataFrame) -> dict[str, tuple[int, int]]:
     return out
 
 
-def reference_check(frames: list[dict], per_image: pd.DataFrame, best: str) -> str:
+def reference_check(frames: list[dict], per_image: pd.DataFrame, best: str, res: str = "hr") -> str:
     """How converged the references of the scored frames are (issue #17's criterion): each frame's
-    estimated reference relMSE (two half-sample renders, bench.metrics.reference_error) against a
-    tenth of the best row's relMSE on that frame. `frames`: the manifest records of the split."""
+    estimated reference relMSE (two half-sample renders, bench.metrics.reference_error; `res`: the
+    resolution of the task's target) against a tenth of the best row's relMSE on that frame (its
+    per-frame values averaged over seeds). `frames`: the manifest records of the scored split."""
     spp = sorted({int(f["ref_spp"]) for f in frames if "ref_spp" in f})
     spp_text = "/".join(map(str, spp)) or "?"
-    errors = {(f["sequence"], f["frame"]): f["ref_error"]["hr"] for f in frames if "hr" in (f.get("ref_error") or {})}
+    errors = {(str(f["sequence"]), f["frame"]): f["ref_error"][res] for f in frames
+              if res in (f.get("ref_error") or {})}
     if not errors:
-        return (f" References: one render of {spp_text} spp per frame; their error is not estimated (give the "
-                "split its own ref_spp in conf/data to render them as two halves).")
-    scored = [(errors[key], rel) for key, rel in zip(zip(per_image["sequence"], per_image["frame"]), per_image["relMSE"])
-              if key in errors]
+        return (f" References: one render of {spp_text} spp per frame; their error is not estimated (frames "
+                "rendered with their split's own ref_spp, as two halves, have it).")
+    per_frame = per_image.assign(sequence=per_image["sequence"].astype(str)).groupby(["sequence", "frame"])["relMSE"].mean()
+    scored = [(errors[key], rel) for key, rel in per_frame.items() if key in errors]
     met = sum(err < rel / 10 for err, rel in scored)
     values = pd.Series([err for err, _ in scored] or list(errors.values()))
     return (f" References ({spp_text} spp as two independent halves): estimated relMSE median {values.median():.2g}, "
             f"max {values.max():.2g}; below a tenth of the best row's ({best}) relMSE on {met} of {len(scored)} "
             "scored frames.")
+
+
+def _reference_note(ctx: Context, frames: Context, table: pd.DataFrame, rows: list[dict], split: str | None) -> str:
+    """The reference check against the row with the lowest relMSE (none when no row has one)."""
+    if table["relMSE"].isna().all():
+        return ""
+    best_index = int(table["relMSE"].idxmin())
+    best, row_def = table.loc[best_index], rows[best_index]
+    target = get_task(row_def["task"]).y
+    if target not in ("hr_ref", "lr_ref"):  # a noisy target (sr_noisy) is no converged reference
+        return ""
+    scored = row_def.get("split", split) or ctx.eval.split
+    per_image = pd.concat([pd.read_csv(ctx.runs_dir / "eval" / h / "per_image.csv", dtype={"sequence": str})
+                           for h in best["runs"].split()])
+    return reference_check([f for f in load_manifest(frames.data_dir)["frames"] if f["split"] == scored],
+                           per_image, best["method"], target[:2])
 
 
 def run(ctx: Context, name: str, rows: list[dict], caption: str = "", task: str = "srd",
@@ -191,11 +209,7 @@ def run(ctx: Context, name: str, rows: list[dict], caption: str = "", task: str 
         if agreement:
             notes += " Pairs of rows ordered as in the paper: " + ", ".join(
                 f"{m} {a}/{n}" for m, (a, n) in agreement.items()) + "."
-    best_index = int(table["relMSE"].idxmin())
-    best, scored = table.loc[best_index], rows[best_index].get("split", split) or ctx.eval.split
-    notes += reference_check([f for f in load_manifest(frames.data_dir)["frames"] if f["split"] == scored],
-                             pd.read_csv(ctx.runs_dir / "eval" / best["runs"].split()[0] / "per_image.csv"),
-                             best["method"])
+    notes += _reference_note(ctx, frames, table, rows, split)
     vgg = sorted({v for v in table.pop("vgg") if isinstance(v, str)})
     if vgg:
         notes += f" Perceptual loss features: {'; '.join(vgg)}."

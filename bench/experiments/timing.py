@@ -59,7 +59,6 @@ RUN_KIND = "time"                           # the renders' runs: runs/time/<hash
 INPUT_RES = {"srd": "lr", "denoise": "hr"}  # a method's task -> the resolution it renders its input at
 EXPECTED_SLOPE = (-1.3, -0.7)               # MSE of a k-spp image falls as 1/k
 PAPER_SPEEDUP = 4                           # what the paper implies at LR 8 spp
-IDEAL_SLOPE = -1.0                          # beyond the measured curve: error ~ 1/spp, time ~ spp
 
 
 # ---------------------------------------------------------------- pure functions
@@ -117,6 +116,8 @@ class Curve:
     def time_for(self, value: float) -> tuple[float, bool]:
         """Seconds to reach `value` of the metric; (seconds, extrapolated). inf when the line never
         reaches it (a flat or wrong-way fit)."""
+        if not math.isfinite(value):  # a method that produced no number (diverged) has no speed-up
+            return math.nan, True
         y = float(CURVE_SCALES[self.metric][0](value))
         if self.slope * IMPROVES[self.metric] <= 1e-9 or not math.isfinite(y):
             return math.inf, True  # a flat or wrong-way line: more time does not buy quality
@@ -139,6 +140,8 @@ def rising_steps(per_view: pd.DataFrame, metric: str = "relMSE", z: float = 2.0)
     errors of the paired per-view difference (`per_view`: columns view, spp, metric): more samples
     must not score worse, beyond noise."""
     wide = per_view.pivot_table(index="view", columns="spp", values=metric, aggfunc="mean").sort_index(axis=1)
+    if len(wide) < 2:  # one view: no noise estimate, nothing to decide
+        return []
     out = []
     for a, b in zip(wide.columns[:-1], wide.columns[1:]):
         diff = (wide[b] - wide[a]).dropna()
@@ -385,6 +388,12 @@ def operating_rows(table: pd.DataFrame, operating_spp: int, inputs=("LR", "HR"))
     return pd.DataFrame(picked)
 
 
+SPEEDUP_COLUMNS = ["method", "input", "spp", "total s",
+                   *[c for m in SCORED for c in (m, f"speed-up at equal {m}", f"PT {m} at equal time")], "extrapolated"]
+EQUAL_TIME_COLUMNS = ["SRD method", "total s", "HR denoiser", "SRD relMSE", "denoiser relMSE", "SRD PSNR",
+                      "denoiser PSNR", "PSNR difference (dB)", "extrapolated"]
+
+
 def speedup_table(table: pd.DataFrame, operating_spp: int) -> pd.DataFrame:
     """One row per method at the operating point: for relMSE, PSNR and SSIM, the seconds path tracing
     needs to match it and the speed-up that makes, and path tracing's value at the method's time."""
@@ -401,7 +410,7 @@ def speedup_table(table: pd.DataFrame, operating_spp: int) -> pd.DataFrame:
             beyond += [metric] if (extra_q or extra_t) else []
         out["extrapolated"] = ", ".join(beyond) or "no"
         rows.append(out)
-    return pd.DataFrame(rows)
+    return pd.DataFrame(rows, columns=SPEEDUP_COLUMNS)  # the columns even when every method was skipped
 
 
 def equal_time_table(table: pd.DataFrame, operating_spp: int) -> pd.DataFrame:
@@ -421,7 +430,7 @@ def equal_time_table(table: pd.DataFrame, operating_spp: int) -> pd.DataFrame:
             out["PSNR difference (dB)"] = out["SRD PSNR"] - out["denoiser PSNR"]
             out["extrapolated"] = ", ".join(beyond) or "no"
             rows.append(out)
-    return pd.DataFrame(rows)
+    return pd.DataFrame(rows, columns=EQUAL_TIME_COLUMNS)
 
 
 def plot(table: pd.DataFrame, path, title: str) -> None:
@@ -570,7 +579,7 @@ def report(ctx: Context, name: str, caption: str, table: pd.DataFrame, per_view:
         f"speed-up at equal M: the seconds PT needs to reach the method's M, over the method's seconds; in "
         f"relMSE alone a blurred image can look fast, so PSNR and SSIM are given too. PT M at equal time: PT's "
         f"M after the method's seconds. {curve_text} {notes}"),
-        lower_is_better=("relMSE",), higher_is_better=("speed-up at equal relMSE", "speed-up at equal PSNR"))
+        lower_is_better=("relMSE",), higher_is_better=tuple(c for c in SPEEDUP_COLUMNS if c.startswith("speed-up")))
     write_table(equal_time_table(table, operating_spp), out, name="equal_time", caption=(
         f"Equal time: each SRD method at LR {operating_spp} spp against each denoiser of HR renders given the "
         f"same seconds per frame (preset {ctx.preset}, {len(views)} view(s), host {socket.gethostname()}): the "

@@ -1,0 +1,215 @@
+"""`+experiment=adopt`: keep recorded runs through a code change that does not change their results.
+
+Every run records the fingerprint of the code it ran (bench.runs.code_fingerprint); after a refactor of a
+model, a layer or the trainer, the runs that ran the changed files are stale and would be recomputed: a
+day of reruns at the cpu preset for a change that moves no number. This experiment checks, for each
+group of stale trainings (one row of a table: the same identity but the seed), that the current code
+reproduces the group's witness run (its lowest seed):
+
+- weights: the recorded final weights load into the model the current code builds (same names, shapes);
+- training: the first `steps` steps, replayed by the current trainer from the same seed and data, give
+  the recorded loss and gradient norm of the first step (same initial weights, batch, forward, backward)
+  and the recorded loss of the later ones (to `rtol_later_steps`: floating-point summation order makes
+  two runs of the same code drift apart slowly from the second step on, ~1e-5 by step 10 at smoke),
+  and the current schedule gives the recorded learning rate at every step of the run;
+- inference: the recorded weights, run by the current evaluator on the first sequence of an evaluation
+  of the run, give its recorded per-frame relMSE, PSNR and SSIM;
+
+each to a relative tolerance `rtol` unless said otherwise. A group that passes has its runs (every seed) and their evaluations
+re-stamped with the current code fingerprint, the old one and the check kept in the record
+(`code_adopted`); a group that fails is left stale, with the measured difference in the table. What is
+not checked: training steps after the first `steps` (the same code paths run again, on other batches),
+and evaluations run another way (a fast path, tiles), which stay stale.
+
+Writes `<results_dir>/adopt/table.{csv,md,tex}`: one row per group with the verdict and the differences.
+"""
+from __future__ import annotations
+
+import dataclasses
+import logging
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+import torch
+
+from bench import runs
+from bench.evaluate import evaluate
+from bench.experiments.pipeline import (EVALUATION_CODE, TRAINING_CODE, Context, build_model, code_of,
+                                        data_fingerprint, dataset, evaluation_data, perceptual_features,
+                                        cascade_net, recipe_from)
+from bench.models.srd import SRDStage
+from bench.table_writer import write_table
+from bench.tasks import get_task
+from bench.train import CHECKPOINT, load_weights, lr_at, train
+
+log = logging.getLogger("bench")
+
+COMPARED = ("relMSE", "PSNR", "SSIM")
+
+
+class _Replayed(Exception):
+    """Raised by `_FirstSteps` once the trainer asks for a batch past the replayed steps."""
+
+
+class _FirstSteps:
+    """The training dataset, stopping the trainer when it draws the first batch of step `steps`."""
+
+    def __init__(self, data, steps: int, batch_size: int):
+        self.data, self.last_draw = data, steps * batch_size
+
+    def __len__(self):
+        return len(self.data)
+
+    def item(self, index: int, draw: int):
+        if draw >= self.last_draw:
+            raise _Replayed
+        return self.data.item(index, draw)
+
+
+def relative_difference(a, b) -> float:
+    """Largest |a - b| / max(|b|, 1e-12) over paired values (0 for none)."""
+    a, b = np.asarray(a, float), np.asarray(b, float)
+    if not a.size:
+        return 0.0
+    return float(np.max(np.abs(a - b) / np.maximum(np.abs(b), 1e-12)))
+
+
+def _model(cfg: dict, task, stage: str | None):
+    return build_model(cfg, task.scale) if stage is None else SRDStage(cascade_net(cfg), stage)
+
+
+def check_training(ctx: Context, record: dict, run_dir: Path, steps: int) -> dict:
+    """Replay the witness training's first steps and its schedule; {what: relative difference}."""
+    identity = record["identity"]
+    cfg, task, seed, stage = identity["model"], get_task(identity["task"]), identity["seed"], identity.get("stage")
+    recipe = recipe_from({**dataclasses.asdict(ctx.train), **identity["train"], "checkpoint_every": 1,
+                          "checkpoint_every_s": 1e9})
+    recorded = pd.read_csv(run_dir / "curve.csv")
+    out = {"lr": relative_difference([lr_at(int(s) - 1, recipe) for s in recorded["step"]], recorded["lr"])}
+    load_weights(_model(cfg, task, stage), run_dir)  # the recorded weights fit the model built now: names, shapes
+    torch.manual_seed(seed)  # as trained_model builds it: the initial weights come from this seed
+    model = _model(cfg, task, stage)
+    features = perceptual_features(ctx)[0] if identity.get("vgg") else None
+    ctx = dataclasses.replace(ctx, train=recipe)  # the recorded recipe's crops and sequence length
+    data = _FirstSteps(dataset(ctx, "train", task, training=True, seed=seed), steps, recipe.batch_size)
+    with tempfile.TemporaryDirectory() as tmp:
+        try:
+            train(model, data, task, tmp, recipe, features=features, seed=seed, progress=False)
+        except _Replayed:
+            pass
+        replayed = pd.DataFrame(torch.load(Path(tmp) / CHECKPOINT, weights_only=False)["curve"])
+    n = min(steps, len(recorded), len(replayed))
+    out["step 1 loss"] = relative_difference(replayed["loss"][:1], recorded["loss"][:1])
+    out["step 1 grad_norm"] = relative_difference(replayed["grad_norm"][:1], recorded["grad_norm"][:1])
+    out["later loss"] = relative_difference(replayed["loss"][1:n], recorded["loss"][1:n])
+    out["steps"] = n
+    return out
+
+
+def check_inference(ctx: Context, train_record: dict, train_dir: Path, evaluation: runs.Run) -> dict:
+    """Run the recorded weights through the current evaluator on the first sequence of `evaluation`;
+    {metric: relative difference to its recorded per-frame values}."""
+    identity = train_record["identity"]
+    task = get_task(identity["task"])
+    model = load_weights(build_model(identity["model"], task.scale), train_dir)
+    frames = dataset(evaluation_data(ctx), evaluation.record["identity"]["split"], task, training=False)
+    first = frames[0]
+    per_image, _ = evaluate(model, [first], task, hdr=evaluation.record["identity"]["hdr"])
+    recorded = pd.read_csv(evaluation.dir / "per_image.csv")
+    recorded = recorded[recorded["sequence"].astype(str) == str(per_image["sequence"].iloc[0])]
+    merged = per_image.merge(recorded, on="frame", suffixes=("", " recorded"))
+    return {m: relative_difference(merged[m], merged[f"{m} recorded"]) for m in COMPARED} | {"frames": len(merged)}
+
+
+def stale_groups(ctx: Context) -> dict[str, list[runs.Run]]:
+    """Complete training runs whose code changed since they were recorded and whose data is this
+    data_dir's, grouped by identity without the seed (one table row), lowest seed first."""
+    data = data_fingerprint(ctx, "train")
+    groups: dict[str, list[runs.Run]] = {}
+    for path in sorted((ctx.runs_dir / "train").glob(f"*/{runs.RECORD}")):
+        record = runs.read_record(path)
+        identity = record.get("identity") or {}
+        if record.get("status") != "complete" or identity.get("data") != data or "model" not in identity:
+            continue
+        code = code_of(identity["model"], *TRAINING_CODE)
+        if not runs.code_changes(record, code):
+            continue
+        key = runs.config_hash({k: v for k, v in identity.items() if k != "seed"})
+        groups.setdefault(key, []).append(runs.Run("train", record["hash"], path.parent, record))
+    return {k: sorted(v, key=lambda r: r.record["seed"] or 0) for k, v in groups.items()}
+
+
+def evaluations_of(runs_dir: Path, train_hashes: set[str]) -> list[runs.Run]:
+    """Complete evaluation runs whose trainings are all among `train_hashes` (a Cascade's eval has two)."""
+    out = []
+    for path in sorted((runs_dir / "eval").glob(f"*/{runs.RECORD}")):
+        record = runs.read_record(path)
+        trained = record.get("metrics", {}).get("train_run") or ""
+        if record.get("status") == "complete" and trained and set(trained.split("+")) <= train_hashes:
+            out.append(runs.Run("eval", record["hash"], path.parent, record))
+    return out
+
+
+def restamp(run: runs.Run, code: dict, check: dict) -> None:
+    """Record that `run` is what the current code computes: its fingerprint replaced, the old kept."""
+    run.record["code_adopted"] = {"from": runs.config_hash(run.record.get("code") or {}),
+                                  "changed": runs.code_changes(run.record, code), "check": check,
+                                  "date": time.strftime("%Y-%m-%dT%H:%M:%S%z"), **runs.provenance()}
+    run.record["code"] = code
+    run.save()
+
+
+def run(ctx: Context, name: str, steps: int, rtol: float, rtol_later_steps: float, dry_run: bool) -> pd.DataFrame:
+    """conf/experiment/adopt.yaml says what each argument is."""
+    groups = stale_groups(ctx)
+    log.info("adopt: %d groups of stale training runs (%d runs)", len(groups), sum(map(len, groups.values())))
+    rows, adopted = [], set()
+    for group in groups.values():
+        witness = group[0]
+        identity = witness.record["identity"]
+        code = code_of(identity["model"], *TRAINING_CODE)
+        row = {"label": witness.record.get("label"), "runs": len(group), "witness": witness.hash,
+               "changed": ", ".join(runs.code_changes(witness.record, code))}
+        try:
+            row |= {f"train {k}": v for k, v in check_training(ctx, witness.record, witness.dir, steps).items()}
+            evals = [e for e in evaluations_of(ctx.runs_dir, {witness.hash}) if "path" not in e.record["identity"]]
+            if evals:
+                row |= {f"eval {k}": v for k, v in check_inference(ctx, witness.record, witness.dir, evals[0]).items()}
+            exact = {k: v for k, v in row.items() if k.startswith(("train step 1", "train lr", "eval ")) and k != "eval frames"}
+            worst = max(exact.values())
+            later = row["train later loss"]
+            row["verdict"] = ("adopted" if worst <= rtol and later <= rtol_later_steps else
+                              f"differs ({max(exact, key=exact.get)} {worst:.2g} > {rtol:g})" if worst > rtol else
+                              f"differs (later loss {later:.2g} > {rtol_later_steps:g})")
+        except Exception as err:  # noqa: BLE001 - a group that cannot be checked stays stale, with why
+            row["verdict"] = f"not checked: {type(err).__name__}: {err}"
+        log.info("adopt %s (%d runs): %s", row["label"], len(group), row["verdict"])
+        if row["verdict"] == "adopted" and not dry_run:
+            check = {k: v for k, v in row.items() if k.startswith(("train ", "eval "))} | {
+                "rtol": rtol, "rtol_later_steps": rtol_later_steps}
+            for r in group:
+                restamp(r, code, check)
+            adopted |= {r.hash for r in group}
+        rows.append(row)
+    for evaluation in evaluations_of(ctx.runs_dir, adopted):  # their evaluations, run the default way
+        identity, trained = evaluation.record["identity"], evaluation.record["metrics"]["train_run"]
+        model_cfg = runs.read_record(ctx.runs_dir / "train" / trained.split("+")[0] / runs.RECORD)["identity"]["model"]
+        code = code_of(model_cfg, *EVALUATION_CODE, *TRAINING_CODE)
+        if "path" not in identity and runs.code_changes(evaluation.record, code):
+            restamp(evaluation, code, {"trainings": trained, "rtol": rtol})
+    table = pd.DataFrame(rows)
+    write_table(table, ctx.results_dir / name, caption=(
+        f"Stale training runs checked against the current code (bench/experiments/adopt.py): per group (a "
+        f"table row, every seed), the witness run's first {steps} training steps replayed, its whole "
+        f"learning-rate schedule, and its weights through the evaluator on one sequence, as relative "
+        f"differences to the recorded values; adopted when the first step (loss, gradient norm: the same "
+        f"initial weights, batch, forward and backward), the schedule and the evaluation are within {rtol:g} "
+        f"and the later steps' loss within {rtol_later_steps:g} (summation order makes two runs of the same "
+        f"code drift apart slowly from the second step on)"
+        f"{' (dry run: nothing re-stamped)' if dry_run else ''}."))
+    log.info("adopt: %d of %d groups adopted%s; table in %s", sum(r["verdict"] == "adopted" for r in rows),
+             len(rows), " (dry run)" if dry_run else "", ctx.results_dir / name)
+    return table
