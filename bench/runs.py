@@ -341,7 +341,7 @@ def load(runs_dir: str | Path = "runs", kind: str | None = None) -> pd.DataFrame
         record = read_record(path)
         row = {k: record.get(k) for k in ("kind", "hash", "label", "status", "seed", "device",
                                           "wall_time_s", "git_commit", "git_dirty", "host", "started")}
-        if row["status"] == "running" and not _computing(path.parent):
+        if row["status"] == "running" and not computing(path.parent):
             row["status"] = "abandoned"  # its process is gone (killed, or the machine went away)
         row["dir"] = str(path.parent)
         row.update({f"metric.{k}": v for k, v in (record.get("metrics") or {}).items()
@@ -351,7 +351,7 @@ def load(runs_dir: str | Path = "runs", kind: str | None = None) -> pd.DataFrame
     return pd.DataFrame(rows)
 
 
-def _computing(run_dir: Path) -> bool:
+def computing(run_dir: Path) -> bool:
     """Whether some process holds the run's lock now (a record says "running" also after a kill -9)."""
     lock = run_dir.parent / f".{run_dir.name}.lock"
     if not lock.exists():

@@ -138,6 +138,10 @@ def test_adopt_keeps_runs_through_a_change_that_moves_no_number_and_not_through_
     source = model_file.read_text()
 
     model_file.write_text(source + "\n\ndef _a_helper_nothing_calls_yet():\n    return None\n")
+    (record_path,) = [p for p in (tmp_path / "runs" / "train").glob("*/run.json")  # as if killed near its end:
+                      if json.loads(p.read_text())["label"] == "Ours"]                # adopted, it resumes
+    record = json.loads(record_path.read_text())
+    record_path.write_text(json.dumps({**record, "status": "interrupted"}))
     out = bench("+experiment=adopt", *copied, cwd=project)
     assert out.returncode == 0, out.stderr[-3000:]
     table = pd.read_csv(tmp_path / "results" / "adopt" / "table.csv")
@@ -145,7 +149,10 @@ def test_adopt_keeps_runs_through_a_change_that_moves_no_number_and_not_through_
     assert table.loc[0, "train steps"] == 10 and table.loc[0, "train step 1 loss"] <= 1e-5 and table.loc[0, "eval frames"] > 0
     out = bench("+experiment=smoke", *copied, cwd=project)
     text = out.stdout + out.stderr
-    assert out.returncode == 0 and "train Ours: reusing run" in text and "eval Ours: reusing run" in text, text[-3000:]
+    assert out.returncode == 0 and "resuming from step 50 of 50" in text and "eval Ours: reusing run" in text, \
+        text[-3000:]
+    out = bench("+experiment=smoke", *copied, cwd=project)
+    assert "train Ours: reusing run" in out.stdout + out.stderr
 
     model_file.write_text(source + "\n\n_forward = SRDNet.forward\nSRDNet.forward = lambda self, *a, **k: "
                           "{n: 1.01 * v for n, v in _forward(self, *a, **k).items()}\n")

@@ -6,7 +6,7 @@ day of reruns at the cpu preset for a change that moves no number. This experime
 group of stale trainings (one row of a table: the same identity but the seed), that the current code
 reproduces the group's witness run (its lowest seed):
 
-- weights: the recorded final weights load into the model the current code builds (same names, shapes);
+- weights: the recorded weights load into the model the current code builds (same names, shapes);
 - training: the first `steps` steps, replayed by the current trainer from the same seed and data, give
   the recorded loss and gradient norm of the first step (same initial weights, batch, forward, backward)
   and the recorded loss of the later ones (to `rtol_later_steps`: floating-point summation order makes
@@ -20,6 +20,9 @@ re-stamped with the current code fingerprint, the old one and the check kept in 
 (`code_adopted`); a group that fails is left stale, with the measured difference in the table. What is
 not checked: training steps after the first `steps` (the same code paths run again, on other batches),
 and evaluations run another way (a fast path, tiles), which stay stale.
+
+Stopped trainings (interrupted, failed, or killed: a "running" record no process holds) with a checkpoint are adopted with their group, so they
+resume instead of starting again; a group of only such runs has no evaluation to check.
 
 Writes `<results_dir>/adopt/table.{csv,md,tex}`: one row per group with the verdict and the differences.
 """
@@ -87,7 +90,7 @@ def check_training(ctx: Context, record: dict, run_dir: Path, steps: int) -> dic
     cfg, task, seed, stage = identity["model"], get_task(identity["task"]), identity["seed"], identity.get("stage")
     recipe = recipe_from({**dataclasses.asdict(ctx.train), **identity["train"], "checkpoint_every": 1,
                           "checkpoint_every_s": 1e9})
-    recorded = pd.read_csv(run_dir / "curve.csv")
+    recorded = pd.DataFrame(torch.load(run_dir / CHECKPOINT, map_location="cpu", weights_only=False)["curve"])
     out = {"lr": relative_difference([lr_at(int(s) - 1, recipe) for s in recorded["step"]], recorded["lr"])}
     load_weights(_model(cfg, task, stage), run_dir)  # the recorded weights fit the model built now: names, shapes
     torch.manual_seed(seed)  # as trained_model builds it: the initial weights come from this seed
@@ -124,22 +127,29 @@ def check_inference(ctx: Context, train_record: dict, train_dir: Path, evaluatio
     return {m: relative_difference(merged[m], merged[f"{m} recorded"]) for m in COMPARED} | {"frames": len(merged)}
 
 
+RESUMABLE = ("complete", "interrupted", "failed")  # a stopped training resumes from its checkpoint once adopted
+
+
 def stale_groups(ctx: Context) -> dict[str, list[runs.Run]]:
-    """Complete training runs whose code changed since they were recorded and whose data is this
-    data_dir's, grouped by identity without the seed (one table row), lowest seed first."""
+    """Training runs with a checkpoint (complete, or stopped and resumable) whose code changed since they
+    were recorded and whose data is this data_dir's, grouped by identity without the seed (one table
+    row), lowest seed first; complete runs first among equal seeds (their evaluations can be checked)."""
     data = data_fingerprint(ctx, "train")
     groups: dict[str, list[runs.Run]] = {}
     for path in sorted((ctx.runs_dir / "train").glob(f"*/{runs.RECORD}")):
         record = runs.read_record(path)
         identity = record.get("identity") or {}
-        if record.get("status") != "complete" or identity.get("data") != data or "model" not in identity:
+        abandoned = record.get("status") == "running" and not runs.computing(path.parent)  # killed mid-run
+        if (record.get("status") not in RESUMABLE and not abandoned) or not (path.parent / CHECKPOINT).exists() \
+                or identity.get("data") != data or "model" not in identity:
             continue
         code = code_of(identity["model"], *TRAINING_CODE)
         if not runs.code_changes(record, code):
             continue
         key = runs.config_hash({k: v for k, v in identity.items() if k != "seed"})
         groups.setdefault(key, []).append(runs.Run("train", record["hash"], path.parent, record))
-    return {k: sorted(v, key=lambda r: r.record["seed"] or 0) for k, v in groups.items()}
+    return {k: sorted(v, key=lambda r: (r.record["seed"] or 0, r.record["status"] != "complete"))
+            for k, v in groups.items()}
 
 
 def evaluations_of(runs_dir: Path, train_hashes: set[str]) -> list[runs.Run]:
