@@ -87,17 +87,23 @@ def smoke_dirs(tmp_path_factory):
     return args, root, time.perf_counter() - t0
 
 
-def test_a_real_edit_to_a_model_file_makes_its_trainings_stale_and_a_comment_does_not(smoke_dirs, tmp_path):
-    """Code identity on real source files: a copy of the project, its model file edited, run against a
-    copy of the smoke run store. A comment keeps the recorded training; a statement makes it recompute
-    (the log names the file) unless reuse_stale=true."""
+def copy_of_project_and_store(smoke_dirs, tmp_path):
+    """A copy of the project's code (to edit) and of the smoke run store, and the overrides that run the
+    copy against the copied store and the smoke data."""
     args, root, _ = smoke_dirs
     project = tmp_path / "project"
     for part in ("bench", "baselines", "conf"):
         shutil.copytree(REPO / part, project / part, ignore=shutil.ignore_patterns("__pycache__", "*.so"))
     shutil.copytree(root / "runs", tmp_path / "runs", ignore=shutil.ignore_patterns("mlflow*", "hydra"))
-    copied = [a for a in args if not a.startswith(("runs_dir=", "results_dir="))] + [
+    return project, [a for a in args if not a.startswith(("runs_dir=", "results_dir="))] + [
         f"runs_dir={tmp_path / 'runs'}", f"results_dir={tmp_path / 'results'}"]
+
+
+def test_a_real_edit_to_a_model_file_makes_its_trainings_stale_and_a_comment_does_not(smoke_dirs, tmp_path):
+    """Code identity on real source files: a copy of the project, its model file edited, run against a
+    copy of the smoke run store. A comment keeps the recorded training; a statement makes it recompute
+    (the log names the file) unless reuse_stale=true."""
+    project, copied = copy_of_project_and_store(smoke_dirs, tmp_path)
     model_file = project / "bench" / "models" / "srd.py"
 
     def run(*extra):
@@ -127,13 +133,7 @@ def test_adopt_keeps_runs_through_a_change_that_moves_no_number_and_not_through_
     """+experiment=adopt on a copy of the smoke store: a refactor-like edit (a new function) leaves the
     training stale until adopt replays it, finds the recorded values and re-stamps it, after which the
     table reuses it; an edit that changes the model's output is measured and left stale."""
-    args, root, _ = smoke_dirs
-    project = tmp_path / "project"
-    for part in ("bench", "baselines", "conf"):
-        shutil.copytree(REPO / part, project / part, ignore=shutil.ignore_patterns("__pycache__", "*.so"))
-    shutil.copytree(root / "runs", tmp_path / "runs", ignore=shutil.ignore_patterns("mlflow*", "hydra"))
-    copied = [a for a in args if not a.startswith(("runs_dir=", "results_dir="))] + [
-        f"runs_dir={tmp_path / 'runs'}", f"results_dir={tmp_path / 'results'}"]
+    project, copied = copy_of_project_and_store(smoke_dirs, tmp_path)
     model_file = project / "bench" / "models" / "srd.py"
     source = model_file.read_text()
 
