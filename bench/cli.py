@@ -9,6 +9,7 @@ import importlib
 import logging
 import os
 import re
+import signal
 import sys
 import tempfile
 import time
@@ -283,19 +284,31 @@ def entry() -> None:
     main()
 
 
+class Terminated(KeyboardInterrupt):
+    """SIGTERM (a scheduler's preemption) outside a training step, handled as Ctrl-C is: render workers
+    are stopped and records closed, instead of the process vanishing and leaving its workers running.
+    A training step has its own handler (bench.train): it checkpoints first."""
+    exit_code = 128 + signal.SIGTERM
+
+
+def _terminate(signum, frame):
+    raise Terminated()
+
+
 @hydra.main(config_path=CONF_DIR, config_name="config", version_base=None)
 def main(cfg: DictConfig) -> None:
     if cfg.get("keep_freed_memory", True):
         keep_freed_memory()
+    signal.signal(signal.SIGTERM, _terminate)
     try:
         run_experiment(cfg)
     except (UserError, PermissionError, FileNotFoundError) as err:
         print(f"error: {err}", file=sys.stderr)
         sys.exit(getattr(err, "exit_code", 2))
-    except KeyboardInterrupt:  # outside a training step (rendering, evaluating): nothing recorded is lost
+    except KeyboardInterrupt as err:  # outside a training step (rendering, evaluating): nothing recorded is lost
         print("interrupted: runs recorded so far are kept; the same command again reuses them and resumes "
               "trainings from their checkpoints", file=sys.stderr)
-        sys.exit(130)
+        sys.exit(getattr(err, "exit_code", 130))
     except ExrError as err:  # a frame damaged after the last check (headers are checked at every start)
         fix = (f"`python -m bench +experiment=data preset={cfg.preset.name} verify=true` reads every frame and "
                "renders the damaged ones again" if cfg.render_data else
