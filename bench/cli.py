@@ -12,6 +12,7 @@ import re
 import signal
 import sys
 import tempfile
+import threading
 import time
 from pathlib import Path
 
@@ -299,7 +300,8 @@ def _terminate(signum, frame):
 def main(cfg: DictConfig) -> None:
     if cfg.get("keep_freed_memory", True):
         keep_freed_memory()
-    signal.signal(signal.SIGTERM, _terminate)
+    if threading.current_thread() is threading.main_thread():  # (a launcher may run jobs in threads)
+        signal.signal(signal.SIGTERM, _terminate)
     try:
         run_experiment(cfg)
     except (UserError, PermissionError, FileNotFoundError) as err:
