@@ -144,8 +144,8 @@ def damaged_frames(root, frames, passes, decode=False, stamps=True):
             size = rec.get(f"{res}_size")
             if lacking:
                 problems.append((path, f"lacks layers {sorted(lacking)}"))
-            elif size and _exr_size(path) != tuple(size):
-                problems.append((path, "{}x{} pixels; its record says {}x{}".format(*_exr_size(path), *size)))
+            elif size and (actual := _exr_size(path)) != tuple(size):
+                problems.append((path, "{}x{} pixels; its record says {}x{}".format(*actual, *size)))
             elif stamps and not as_written(rec, res, path):
                 problems.append((path, "changed since it was rendered (size or bytes differ from its record)"))
             elif decode and (why := _decode_problem(path, sorted(wanted or layers))):
