@@ -14,7 +14,8 @@ upsampling of the input radiance to the output, from a zero-initialised last con
 import torch.nn as nn
 
 from baselines import fold_time, gbuffer_prefix, unfold_time
-from bench.nn.blocks import PixelShuffleUp, ResBlock, conv3x3, upsampled_input, zero_init
+from baselines.edsr import OLD_NAMES
+from bench.nn.blocks import EDSRTrunk, RGBUpsampler, load_old_names
 from bench.nn.cfm import ConditionNet
 
 
@@ -30,25 +31,12 @@ class CFMNet(nn.Module):
             raise ValueError(f"deformable_blocks must be in [0, {blocks}]")
         self.gbuffer_channels = gbuffer_channels
         self.condition = ConditionNet(gbuffer_channels, cond_channels, cond_hidden)
-        self.head = conv3x3(in_channels, channels)
-        self.body = nn.ModuleList(
-            ResBlock(channels, deformable=i >= blocks - deformable_blocks, cond_channels=cond_channels)
-            for i in range(blocks))
-        self.body_conv = conv3x3(channels, channels)
-        self.up = PixelShuffleUp(channels, channels, scale)
-        self.tail = conv3x3(channels, 3)
-        self.scale, self.input_residual = scale, input_residual
-        if input_residual:
-            zero_init(self.tail)
+        self.trunk = EDSRTrunk(in_channels, channels, blocks, deform_blocks=deformable_blocks,
+                               cond_channels=cond_channels)
+        self.output = RGBUpsampler(channels, scale, input_residual)
+        load_old_names(self, OLD_NAMES)
 
     def forward(self, x, g):
-        b = x.shape[0]
         cond = self.condition(fold_time(gbuffer_prefix(g, self.gbuffer_channels)))
-        feat = self.head(fold_time(x))
-        body = feat
-        for block in self.body:
-            body = block(body, cond)
-        out = self.tail(self.up(feat + self.body_conv(body)))
-        if self.input_residual:
-            out = out + upsampled_input(fold_time(x), self.scale)
-        return {"final": unfold_time(out, b)}
+        features = self.trunk(fold_time(x), cond)
+        return {"final": unfold_time(self.output(features, fold_time(x)), x.shape[0])}

@@ -19,7 +19,11 @@ upsampling of the input radiance to the output, from a zero-initialised last con
 import torch.nn as nn
 
 from baselines import fold_time, unfold_time, with_gbuffer
-from bench.nn.blocks import PixelShuffleUp, ResBlock, conv3x3, upsampled_input, zero_init
+from bench.nn.blocks import EDSRTrunk, RGBUpsampler, load_old_names
+
+# parameter names before the shared trunk and output (2026-11): recorded weights hold them
+OLD_NAMES = {"head.": "trunk.head.", "body.": "trunk.body.", "body_conv.": "trunk.body_conv.",
+             "up.": "output.up.", "tail.": "output.tail."}
 
 
 class EDSR(nn.Module):
@@ -29,24 +33,11 @@ class EDSR(nn.Module):
                  deformable=False, res_scale=1.0, input_residual=True):
         super().__init__()
         self.gbuffer_channels = gbuffer_channels
-        self.head = conv3x3(in_channels + gbuffer_channels, channels)
-        self.body = nn.ModuleList(
-            ResBlock(channels, dilation=dilation, deformable=deformable, res_scale=res_scale)
-            for _ in range(blocks))
-        self.body_conv = conv3x3(channels, channels)
-        self.up = PixelShuffleUp(channels, channels, scale)
-        self.tail = conv3x3(channels, 3)
-        self.scale, self.input_residual = scale, input_residual
-        if input_residual:
-            zero_init(self.tail)
+        self.trunk = EDSRTrunk(in_channels + gbuffer_channels, channels, blocks, dilation=dilation,
+                               deform_blocks=blocks if deformable else 0, res_scale=res_scale)
+        self.output = RGBUpsampler(channels, scale, input_residual)
+        load_old_names(self, OLD_NAMES)
 
     def forward(self, x, g):
-        b = x.shape[0]
-        feat = self.head(fold_time(with_gbuffer(x, g, self.gbuffer_channels)))
-        body = feat
-        for block in self.body:
-            body = block(body)
-        out = self.tail(self.up(feat + self.body_conv(body)))
-        if self.input_residual:
-            out = out + upsampled_input(fold_time(x), self.scale)
-        return {"final": unfold_time(out, b)}
+        features = self.trunk(fold_time(with_gbuffer(x, g, self.gbuffer_channels)))
+        return {"final": unfold_time(self.output(features, fold_time(x)), x.shape[0])}

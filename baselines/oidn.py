@@ -21,16 +21,10 @@ import numpy as np
 import pyoidn
 import torch
 import torch.nn as nn
-import torch.nn.functional as F
+
+from bench.nn.blocks import bilinear
 
 VARIANTS = ("lr_then_up", "up_then_hr")
-
-
-def _bilinear(x, scale):
-    """(N, C, h, w) -> (N, C, scale*h, scale*w), bilinear, align_corners=False."""
-    if scale == 1:
-        return x
-    return F.interpolate(x, scale_factor=scale, mode="bilinear", align_corners=False)
 
 
 def _hwc(x):
@@ -72,8 +66,8 @@ class OIDN(nn.Module):
         frames = x.reshape(b * t, c, h, w)
         gbuf = g.reshape(b * t, g.shape[2], h, w)
         if self.variant == "up_then_hr":
-            frames, gbuf = _bilinear(frames, self.scale), _bilinear(gbuf, self.scale)
+            frames, gbuf = bilinear(frames, self.scale), bilinear(gbuf, self.scale)
         out = torch.stack([self.denoise_frame(f, gb) for f, gb in zip(frames.cpu(), gbuf.cpu())])
         if self.variant == "lr_then_up":
-            out = _bilinear(out, self.scale)
+            out = bilinear(out, self.scale)
         return {"final": out.to(x.device).reshape(b, t, 3, self.scale * h, self.scale * w)}

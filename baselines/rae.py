@@ -20,7 +20,7 @@ import torch.nn as nn
 import torch.nn.functional as F
 
 from baselines import with_gbuffer
-from bench.nn.blocks import PixelShuffleUp, RecurrentBlock, conv3x3, upsampled_input, zero_init
+from bench.nn.blocks import PixelShuffleUp, RecurrentBlock, conv3x3, run_sequence, upsampled_input, zero_init
 
 BASE_CHANNELS = (32, 43, 57, 76, 101)  # Chaitanya et al.'s encoder widths at width=32
 LEVELS = len(BASE_CHANNELS)
@@ -97,9 +97,4 @@ class RAE(nn.Module):
         return {"final": out}, skips
 
     def forward(self, x, g):
-        state = self.init_state(x[:, 0])
-        frames = []
-        for t in range(x.shape[1]):
-            out, state = self.step(x[:, t], None if g is None else g[:, t], state)
-            frames.append(out["final"])
-        return {"final": torch.stack(frames, dim=1)}
+        return run_sequence(self.init_state, self.step, x, g)

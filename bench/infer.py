@@ -30,6 +30,8 @@ from typing import Callable
 
 import torch
 
+from bench.nn.blocks import run_sequence
+
 SWITCHES = ("inference_mode", "channels_last", "bf16", "compile")
 REFERENCE = "fp32"
 
@@ -178,13 +180,11 @@ def _run_tile(net, x, g, fmt):
     """(B, T, 3, s*h, s*w) for one LR crop: a recurrent model streams its frames from a fresh state of
     the crop's own size (init_state / step); any other model runs frame by frame."""
     frames = x.shape[1]
-    g_t = (lambda t: None) if g is None else (lambda t: fmt(g[:, t]))
     if getattr(net, "recurrent", False) and hasattr(net, "step"):
-        state, outs = net.init_state(x[:, 0]), []
-        for t in range(frames):
-            out, state = net.step(fmt(x[:, t]), g_t(t), state)
-            outs.append(out["final"])
-        return torch.stack(outs, dim=1)
+        def step(x_t, g_t, state):
+            out, state = net.step(fmt(x_t), None if g_t is None else fmt(g_t), state)
+            return {"final": out["final"]}, state
+        return run_sequence(net.init_state, step, x, g)["final"]
     g_seq = (lambda t: None) if g is None else (lambda t: fmt(g[:, t:t + 1]))
     return torch.cat([net(fmt(x[:, t:t + 1]), g_seq(t))["final"] for t in range(frames)], dim=1)
 

@@ -1,5 +1,6 @@
 """`srd-bench export` and `srd-bench predict`: a recorded run's weights applied to EXR frames."""
 import json
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -106,3 +107,14 @@ def test_each_bad_input_gets_its_message(recorded, tmp_path, capsys, case, messa
     assert main(args + [str(p) for p in frames]) == 2
     err = capsys.readouterr().err
     assert message in err and err.count("\n") == 1
+
+
+@pytest.mark.parametrize("path", sorted(Path(__file__).parents[1].glob("results/*/weights/*.pt")),
+                         ids=lambda p: f"{p.parent.parent.name}/{p.name}")
+def test_committed_weights_load_into_todays_models(path):
+    """Weights committed under results/ load strictly into the model their file names, whatever the
+    parameters were called when they were trained (load_old_names), and give a finite output."""
+    model, meta = load_exported(path)
+    x, g = torch.rand(1, 1, 3, 16, 16), torch.rand(1, 1, 7, 16, 16)
+    with torch.no_grad():
+        assert torch.isfinite(model(x, g)["final"]).all()

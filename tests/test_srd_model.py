@@ -51,7 +51,7 @@ def test_deform_block_count_and_naming(dn_deform_blocks):
 @pytest.mark.parametrize("sr_deform_blocks,dilation", [(0, 1), (0, 2), (0, 3), (0, 5), (4, 1), (2, 2)])
 def test_sr_stage_dilation_and_deform(sr_deform_blocks, dilation):  # Table 2 (dilation), Table 4 (two-stage)
     model = SRDNet(sr_deform_blocks=sr_deform_blocks, dilation=dilation, **TINY)
-    convs = [blk.conv2 for blk in model.sr.blocks]
+    convs = [blk.conv2 for blk in model.sr.trunk.body]
     assert sum(isinstance(c, DeformConv2d) for c in convs) == sr_deform_blocks
     assert all(c.dilation in (dilation, (dilation, dilation)) for c in convs)
     _check_shapes(model, *_inputs())
@@ -200,7 +200,7 @@ def test_default_model_macs_near_paper():
         assert abs(gmac / 258.29 - 1) < 0.05, gmac
         # the counter against a hand count: 4 SR ResBlocks at LR, each 2 convs 3x3 32->32 + 2 CFMs (2 1x1 convs)
         y, cond = torch.zeros(1, 32, 540, 960), torch.zeros(1, 16, 540, 960)
-        macs = _conv_macs(model.sr.blocks, lambda: [blk(y, cond) for blk in model.sr.blocks])
+        macs = _conv_macs(model.sr.trunk.body, lambda: [blk(y, cond) for blk in model.sr.trunk.body])
     assert macs == 4 * 540 * 960 * (2 * 32 * 32 * 9 + 2 * 2 * 16 * 32)
 
 

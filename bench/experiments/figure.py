@@ -18,6 +18,7 @@ from bench.evaluate import predict
 from bench.experiments.pipeline import (Context, cascade_model, dataset, evaluation_data, model_config,
                                         trained_model, with_training)
 from bench.metrics import relmse
+from bench.nn.blocks import upsampled_input
 from bench.tasks import get_task
 
 log = logging.getLogger("bench")
@@ -67,7 +68,7 @@ def crop_figure(ctx: Context, rows: list[dict], path: Path, split: str = "val", 
             size = min(size, y.shape[-2], y.shape[-1])
             top, left = busiest_window(y, size)
         if task.scale > 1:
-            base = F.interpolate(x[0, -1:], scale_factor=task.scale, mode="bilinear", align_corners=False)[0]
+            base = upsampled_input(x[0, -1:], task.scale)[0]
             panels.append((f"Input bilinear ({task_name})" if len(panels) else "Input bilinear", base))
         else:
             panels.append((f"Input ({task_name})", x[0, -1]))

@@ -49,34 +49,26 @@ import torch
 import torch.nn as nn
 import torch.nn.functional as F
 
-from bench.nn import (CFM, ConditionNet, DeformConv2d, PixelShuffleUp, RecurrentBlock, ResBlock, conv3x3,
-                     upsampled_input, zero_init)
+from bench.nn import (CFM, ConditionNet, DeformConv2d, EDSRTrunk, PixelShuffleUp, RecurrentBlock, conv3x3,
+                     load_old_names, run_sequence, upsampled_input, zero_init)
 
 
 class SRStage(nn.Module):
-    """EDSR-lite: head conv, ResBlocks (optional CFM/dilation/deformable conv2), body conv with global
-    residual, PixelShuffleUp to `out_ch` channels, optional 3x3 RGB head on the upsampled features."""
+    """EDSR-lite: the EDSR trunk (ResBlocks with optional CFM/dilation/deformable conv2), PixelShuffleUp
+    to `out_ch` channels, optional 3x3 RGB head on the upsampled features."""
 
     def __init__(self, in_ch, out_ch, channels, blocks, scale, cond_channels, deform_blocks, dilation,
                  rgb_head):
         super().__init__()
-        self.head = conv3x3(in_ch, channels)
-        self.blocks = nn.ModuleList(
-            ResBlock(channels, dilation=dilation, deformable=i >= blocks - deform_blocks,
-                     cond_channels=cond_channels) for i in range(blocks))
-        self.body_end = conv3x3(channels, channels)
+        self.trunk = EDSRTrunk(in_ch, channels, blocks, dilation=dilation, deform_blocks=deform_blocks,
+                               cond_channels=cond_channels)
         self.up = PixelShuffleUp(channels, out_ch, scale)
         self.rgb = conv3x3(out_ch, 3) if rgb_head else None
+        load_old_names(self, {"head.": "trunk.head.", "blocks.": "trunk.body.", "body_end.": "trunk.body_conv."})
 
     def forward(self, x, cond=None, skip=None):
         """Returns (upsampled features, RGB head output or None, deep LR features before upsampling)."""
-        head = self.head(x)
-        if skip is not None:
-            head = head + skip
-        y = head
-        for block in self.blocks:
-            y = block(y, cond)
-        deep = head + self.body_end(y)
+        deep = self.trunk(x, cond, skip)
         out = self.up(deep)
         return out, (self.rgb(out) if self.rgb is not None else None), deep
 
@@ -317,7 +309,7 @@ class SRDNet(nn.Module):
 
     def forward(self, x, g=None):
         """x: (B, T, C, h, w), g: (B, T, G, h, w) -> dict of (B, T, 3, scale*h, scale*w); state starts at zero."""
-        return _run_sequence(self.init_state, self.step, x, g)
+        return run_sequence(self.init_state, self.step, x, g)
 
     # ---- cascade --------------------------------------------------------------------------------
     def forward_stage(self, stage, x, g=None):
@@ -337,7 +329,7 @@ class SRDNet(nn.Module):
         if self.channel_aug or self.skip:
             raise ValueError("forward_stage needs channel_aug=False and skip=False (RGB between stages)")
         # hidden=None: the denoiser starts each sequence from zeros sized by its own input
-        return _run_sequence(lambda x0: {"hidden": None},
+        return run_sequence(lambda x0: {"hidden": None},
                              lambda x_t, g_t, s: self._stage_step(stage, x_t, g_t, s), x, g)
 
     def _stage_step(self, stage, x_t, g_t, state):
@@ -385,18 +377,9 @@ def load_stage(net: SRDNet, stage: str, stage_state: dict) -> SRDNet:
     part = {k[len("net."):]: v for k, v in stage_state.items() if k[len("net."):].startswith(prefixes)}
     if not part:
         raise ValueError(f"no parameters of stage {stage!r} in the given state dict")
-    missing = [k for k in net.state_dict() if k.startswith(prefixes) and k not in part]
+    # the load's own missing keys: a state dict saved under older names (load_old_names) is renamed there
+    missing = [k for k in net.load_state_dict(part, strict=False).missing_keys if k.startswith(prefixes)]
     if missing:
         raise ValueError(f"stage {stage!r} state lacks {missing[:3]}...")
-    net.load_state_dict(part, strict=False)
     return net
 
-
-def _run_sequence(init_state, step, x, g):
-    """Apply step() frame by frame from a fresh state; stack each output key along T."""
-    state = init_state(x[:, 0])
-    outs = []
-    for t in range(x.shape[1]):
-        out_t, state = step(x[:, t], g[:, t] if g is not None else None, state)
-        outs.append(out_t)
-    return {k: torch.stack([o[k] for o in outs], dim=1) for k in outs[0]}

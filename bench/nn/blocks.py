@@ -1,4 +1,5 @@
-"""Residual blocks and pixel-shuffle upsampling shared by the proposed network and the baselines."""
+"""Residual blocks, the EDSR trunk, pixel-shuffle upsampling and the frame-by-frame recurrence shared by
+the proposed network and the baselines."""
 import torch
 import torch.nn as nn
 import torch.nn.functional as F
@@ -41,11 +42,55 @@ class ResBlock(nn.Module):
         return x + self.res_scale * y
 
 
+class EDSRTrunk(nn.Module):
+    """EDSR's feature trunk (Lim et al. 2017): head conv, residual blocks, body conv, and a global skip
+    from the head: returns head + body_conv(blocks(head)), where head = head_conv(x) [+ skip].
+
+    The last `deform_blocks` blocks have a deformable conv2; `dilation`, `cond_channels` and `res_scale`
+    are the ResBlock's. Used by EDSR, CFM and the proposed network's SR stage."""
+
+    def __init__(self, in_ch, channels, blocks, dilation=1, deform_blocks=0, cond_channels=0, res_scale=1.0):
+        super().__init__()
+        self.head = conv3x3(in_ch, channels)
+        self.body = nn.ModuleList(
+            ResBlock(channels, dilation=dilation, deformable=i >= blocks - deform_blocks,
+                     cond_channels=cond_channels, res_scale=res_scale) for i in range(blocks))
+        self.body_conv = conv3x3(channels, channels)
+
+    def forward(self, x, cond=None, skip=None):
+        head = self.head(x)
+        if skip is not None:
+            head = head + skip
+        y = head
+        for block in self.body:
+            y = block(y, cond)
+        return head + self.body_conv(y)
+
+
+def load_old_names(module, renames: dict):
+    """Let `module` load state dicts saved under older names of its children: `renames` maps an old
+    key prefix (relative to the module, e.g. "blocks.") to the new one ("trunk.body."). Weights recorded
+    before the shared EDSRTrunk (run store, results/*/weights) keep loading; parameter order, and so
+    optimizer state, did not change."""
+
+    def rename(_module, state_dict, prefix, *_):
+        for old, new in renames.items():
+            for key in [k for k in state_dict if k.startswith(prefix + old)]:
+                state_dict[prefix + new + key[len(prefix + old):]] = state_dict.pop(key)
+
+    module.register_load_state_dict_pre_hook(rename)
+
+
 def upsampled_input(x, scale):
     """Bilinear upsampling of the radiance (first 3 channels) of x (B, C, h, w) by `scale`: the base that
     a model with `input_residual` adds its output to. It is the "Input bilinear" row of the tables, so
     such a model starts as that row and learns a correction (VDSR-style global residual learning)."""
-    x = x[:, :3]
+    return bilinear(x[:, :3], scale)
+
+
+def bilinear(x, scale):
+    """(N, C, h, w) -> (N, C, scale*h, scale*w), bilinear with align_corners=False (x itself at scale 1):
+    the one bilinear upsampling of images and gBuffers."""
     if scale == 1:
         return x
     return F.interpolate(x, scale_factor=scale, mode="bilinear", align_corners=False)
@@ -71,6 +116,24 @@ class PixelShuffleUp(nn.Module):
         return self.shuffle(self.conv(x))
 
 
+class RGBUpsampler(nn.Module):
+    """EDSR's output: PixelShuffleUp, then a tail conv to RGB; with `input_residual` the bilinear
+    upsampling of the input radiance is added and the tail starts at zero (see upsampled_input)."""
+
+    def __init__(self, channels, scale, input_residual=True):
+        super().__init__()
+        self.up = PixelShuffleUp(channels, channels, scale)
+        self.tail = conv3x3(channels, 3)
+        self.scale, self.input_residual = scale, input_residual
+        if input_residual:
+            zero_init(self.tail)
+
+    def forward(self, features, x):
+        """features (N, channels, h, w), x (N, C, h, w) the network input -> (N, 3, scale*h, scale*w)."""
+        out = self.tail(self.up(features))
+        return out + upsampled_input(x, self.scale) if self.input_residual else out
+
+
 class RecurrentBlock(nn.Module):
     """An encoder level of the recurrent auto-encoder (Chaitanya et al. 2017):
     act(conv_in(x)) [+ skip] -> concat with the previous hidden state -> conv -> act -> conv -> act.
@@ -92,3 +155,15 @@ class RecurrentBlock(nn.Module):
         # under bf16 autocast, a copy back for the conv) into float32 at the level's full size
         y = F.leaky_relu(self.conv_rec(torch.cat((y, hidden.to(y.dtype)), dim=1)), self.negative_slope)
         return F.leaky_relu(self.conv_out(y), self.negative_slope)
+
+
+def run_sequence(init_state, step, x, g):
+    """Run a streaming model over a sequence: x (B, T, C, h, w), g (B, T, G, h, w) or None. step(x_t, g_t,
+    state) -> (dict of outputs, state) is applied frame by frame from init_state(x[:, 0]); each output
+    key is stacked along T. The one recurrence of the recurrent models (RAE, SRDNet)."""
+    state = init_state(x[:, 0])
+    outs = []
+    for t in range(x.shape[1]):
+        out_t, state = step(x[:, t], g[:, t] if g is not None else None, state)
+        outs.append(out_t)
+    return {k: torch.stack([o[k] for o in outs], dim=1) for k in outs[0]}
