@@ -1,4 +1,4 @@
-"""Command line: `python -m bench +experiment=NAME [preset=smoke|cpu|paper] [key=value ...]`.
+"""Command line: `python -m bench +experiment=NAME [preset=smoke|cpu|gpu|paper] [key=value ...]`.
 
 The only module that reads the Hydra config: it turns it into a plain `Context` and the experiment's
 parameters, calls the experiment, and prints user errors as one line instead of a traceback.
@@ -245,6 +245,22 @@ def run_experiment(cfg: DictConfig) -> None:
     log.info("%s done in %.1f s", exp.get("name", kind), time.perf_counter() - t0)
 
 
+def run_or_serve(cfg: DictConfig) -> None:
+    """Run the experiment; under torchrun (bench.distributed) rank 0 runs it and the other ranks only
+    join its trainings."""
+    from bench import distributed
+    if not distributed.launched():
+        run_experiment(cfg)
+        return
+    distributed.init(resolve_device(cfg.device))
+    if distributed.rank_and_size()[0] > 0:
+        from bench.experiments.pipeline import serve_trainings
+        serve_trainings()
+        return
+    run_experiment(cfg)
+    distributed.share(None)  # no more trainings: the other ranks' loops end
+
+
 def mirror_runs(tracking: str, runs_dir: Path, uri: str | None, results_dir: Path) -> None:
     """Mirror the run store into MLflow (bench.tracking); a tracking failure never fails the command."""
     if tracking == "none":
@@ -303,7 +319,7 @@ def main(cfg: DictConfig) -> None:
     if threading.current_thread() is threading.main_thread():  # (a launcher may run jobs in threads)
         signal.signal(signal.SIGTERM, _terminate)
     try:
-        run_experiment(cfg)
+        run_or_serve(cfg)
     except (UserError, PermissionError, FileNotFoundError) as err:
         print(f"error: {err}", file=sys.stderr)
         sys.exit(getattr(err, "exit_code", 2))

@@ -34,7 +34,6 @@ import zlib
 from concurrent.futures import ProcessPoolExecutor, as_completed
 
 import numpy as np
-import OpenEXR
 import pandas as pd
 import torch
 from tqdm import tqdm
@@ -136,15 +135,16 @@ def damaged_frames(root, frames, passes, decode=False, stamps=True):
                 problems.append((path, "missing"))
                 continue
             try:
-                layers = set(exrio.exr_layers(path))
+                names, actual = exrio.exr_header(path)
             except exrio.ExrError:
                 problems.append((path, "unreadable"))
                 continue
+            layers = set(names)
             lacking = (wanted or set()) - layers
             size = rec.get(f"{res}_size")
             if lacking:
                 problems.append((path, f"lacks layers {sorted(lacking)}"))
-            elif size and (actual := _exr_size(path)) != tuple(size):
+            elif size and actual != tuple(size):
                 problems.append((path, "{}x{} pixels; its record says {}x{}".format(*actual, *size)))
             elif stamps and not as_written(rec, res, path):
                 problems.append((path, "changed since it was rendered (size or bytes differ from its record)"))
@@ -287,11 +287,9 @@ def _size_problems(root, rec, scale):
 def _exr_size(path):
     """(width, height) from an EXR's header; None when missing or unreadable (damaged_frames says which)."""
     try:
-        with OpenEXR.File(str(path), header_only=True) as f:
-            (x0, y0), (x1, y1) = f.header()["dataWindow"]
-    except Exception:  # noqa: BLE001 - reported by damaged_frames, with the file named
+        return exrio.exr_header(path)[1]
+    except exrio.ExrError:  # reported by damaged_frames, with the file named
         return None
-    return int(x1 - x0 + 1), int(y1 - y0 + 1)
 
 
 def _load_record(rec_path, settings_hash):

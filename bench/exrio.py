@@ -104,14 +104,22 @@ def read_exr(path, layers=None, dtype=np.float32):
     return out
 
 
-def exr_layers(path):
-    """Names of the layers stored in ``path`` (reads only the header). Raises ExrError if unreadable."""
+def exr_header(path):
+    """(names of the layers stored in ``path``, (width, height)), from one read of its header alone.
+    Raises ExrError if unreadable."""
     try:
         with OpenEXR.File(str(path), header_only=True) as f:
-            names = [c.name for c in f.header()["channels"]]
+            header = f.header()
+            names = [c.name for c in header["channels"]]
+            (x0, y0), (x1, y1) = header["dataWindow"]
     except Exception as err:
         raise ExrError(f"{path}: unreadable or corrupt EXR ({err})") from err
-    return sorted({n.rpartition(".")[0] for n in names})
+    return sorted({n.rpartition(".")[0] for n in names}), (int(x1 - x0 + 1), int(y1 - y0 + 1))
+
+
+def exr_layers(path):
+    """Names of the layers stored in ``path`` (reads only the header). Raises ExrError if unreadable."""
+    return exr_header(path)[0]
 
 
 def is_valid_exr(path, layers=None):

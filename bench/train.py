@@ -10,6 +10,10 @@ its last checkpoint. A non-finite loss or gradient stops the run with a clear me
 good checkpoint in place. With a `validate` callable it scores the EMA weights before the first step,
 every `val_every` steps and at the end, and records the learning curve (`val_curve.csv`: step, training seconds, mean training
 loss since the previous point, and whatever `validate` returns, e.g. val relMSE/PSNR/SSIM).
+
+Under torchrun (bench.distributed) each rank computes its share of every batch's slots and DDP averages
+the gradients; rank 0 alone writes checkpoints and curves, and a stop requested on any rank stops all
+of them at the same step.
 """
 from __future__ import annotations
 
@@ -29,6 +33,7 @@ import pandas as pd
 import torch
 from tqdm import tqdm
 
+from bench import distributed
 from bench.errors import UserError
 from bench.hdr import MODES, to_network
 from bench.losses import weighted_loss
@@ -244,6 +249,12 @@ def train(model, dataset, task: Task, out_dir: str | Path, recipe: Recipe, *, fe
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
     ckpt_path = out_dir / CHECKPOINT
+    rank, ranks = distributed.rank_and_size()
+    if recipe.batch_size % ranks:
+        raise UserError(f"train.batch_size={recipe.batch_size} is not divisible by the {ranks} processes")
+    writes = rank == 0  # the one process that writes checkpoints and curves
+    if str(device).startswith("cuda"):
+        torch.backends.cudnn.benchmark = True  # fixed crop shapes: the fastest conv algorithms, found once
     model.to(device).train()
     ema_model = copy.deepcopy(model).eval().requires_grad_(False) if recipe.ema else None
     optimizer = torch.optim.Adam(model.parameters(), lr=recipe.lr, betas=tuple(recipe.betas))
@@ -255,6 +266,8 @@ def train(model, dataset, task: Task, out_dir: str | Path, recipe: Recipe, *, fe
     clip = recipe.clip_grad_norm if recipe.clip_grad_norm else float("inf")
     if validate is not None and not state.val_curve:  # step 0: where training starts (input bilinear for
         state.val_curve.append(_validation_point(state, validate, scored))  # models with input_residual)
+    # every rank resumed from the same checkpoint; unused parameters (a head without loss) get no gradient
+    net = model if ranks == 1 else torch.nn.parallel.DistributedDataParallel(model, find_unused_parameters=True)
     bar = tqdm(total=recipe.steps, initial=state.step, desc=f"train {type(model).__name__}",
                disable=None if progress else True, dynamic_ncols=True, leave=False, mininterval=1.0)
     log_lines = progress and bar.disable  # no bar (not a terminal): a log line every LOG_EVERY_S
@@ -269,22 +282,31 @@ def train(model, dataset, task: Task, out_dir: str | Path, recipe: Recipe, *, fe
             # Each step draws its batch from an RNG seeded by (seed, step): a resumed run sees the same batches.
             rng = random.Random(seed * 1_000_003 + step)
             torch.manual_seed(seed * 1_000_003 + step)
-            items = [dataset.item(rng.randrange(len(dataset)), step * recipe.batch_size + slot)
-                     for slot in range(recipe.batch_size)]
+            indices = [rng.randrange(len(dataset)) for _ in range(recipe.batch_size)]
+            items = [dataset.item(indices[slot], step * recipe.batch_size + slot)
+                     for slot in range(rank, recipe.batch_size, ranks)]  # this rank's slots of the batch
             batch = {k: v.to(device) for k, v in collate(items, keys).items()}
             for group in optimizer.param_groups:
                 group["lr"] = lr_at(step, recipe)
-            loss, parts = batch_loss(model, batch, task, recipe.loss, recipe.hdr, features)
-            if not torch.isfinite(loss):
-                pd.DataFrame(state.curve).to_csv(out_dir / "curve.csv", index=False)
+            loss, parts = batch_loss(net, batch, task, recipe.loss, recipe.hdr, features)
+            reported = {"loss": loss.detach(), **{k: v.detach() for k, v in parts.items()}}
+            if ranks > 1:  # the global batch's loss (a mean of equal shares), and a stop asked on any rank
+                means = distributed.mean_over_ranks(torch.stack([*reported.values(), loss.new_tensor(len(stop))]))
+                reported = dict(zip(reported, means[:-1]))
+                if means[-1] > 0 and not stop:
+                    stop.append(signal.SIGTERM)
+            if not torch.isfinite(reported["loss"]):
+                if writes:
+                    pd.DataFrame(state.curve).to_csv(out_dir / "curve.csv", index=False)
                 last = ckpt_path if ckpt_path.exists() else "none (diverged before the first)"
-                raise TrainingDiverged(f"non-finite loss ({loss.item()}) at step {step}; the last good "
+                raise TrainingDiverged(f"non-finite loss ({reported['loss'].item()}) at step {step}; the last good "
                                        f"checkpoint is {last}", step)
             optimizer.zero_grad(set_to_none=True)
             loss.backward()
             grad_norm = torch.nn.utils.clip_grad_norm_(model.parameters(), clip)
-            if not torch.isfinite(grad_norm):
-                pd.DataFrame(state.curve).to_csv(out_dir / "curve.csv", index=False)
+            if not torch.isfinite(grad_norm):  # the same on every rank: DDP averaged the gradients
+                if writes:
+                    pd.DataFrame(state.curve).to_csv(out_dir / "curve.csv", index=False)
                 raise TrainingDiverged(f"non-finite gradient at step {step}; the last good checkpoint is "
                                        f"{ckpt_path if ckpt_path.exists() else 'none'}", step)
             optimizer.step()
@@ -292,33 +314,36 @@ def train(model, dataset, task: Task, out_dir: str | Path, recipe: Recipe, *, fe
                 update_ema(ema_model, model, recipe.ema, step)
             state.step += 1
             state.train_s += time.perf_counter() - t0
-            state.curve.append({"step": state.step, "loss": loss.item(), "lr": optimizer.param_groups[0]["lr"],
-                                "grad_norm": grad_norm.item(), **{k: v.item() for k, v in parts.items()}})
+            reported = {k: v.item() for k, v in reported.items()}
+            state.curve.append({"step": state.step, "loss": reported.pop("loss"),
+                                "lr": optimizer.param_groups[0]["lr"], "grad_norm": grad_norm.item(), **reported})
             bar.update(1)
-            bar.set_postfix(loss=f"{loss.item():.4f}")
+            bar.set_postfix(loss=f"{state.curve[-1]['loss']:.4f}")
             if log_lines and time.perf_counter() - last_line >= LOG_EVERY_S:
                 last_line = time.perf_counter()
                 rate = (state.train_s - first_s) / (state.step - first_step)
                 log.info("train %s: step %d/%d, %.2f s/step, loss %.4f, about %.0f min left",
-                         type(model).__name__, state.step, recipe.steps, rate, loss.item(),
+                         type(model).__name__, state.step, recipe.steps, rate, state.curve[-1]["loss"],
                          rate * (recipe.steps - state.step) / 60)
             if validate is not None and (state.step == recipe.steps
                                          or (val_every and state.step % val_every == 0)):
                 state.val_curve.append(_validation_point(state, validate, scored))
-            if (state.step % recipe.checkpoint_every == 0 or state.step == recipe.steps or stop
-                    or time.perf_counter() - last_checkpoint >= recipe.checkpoint_every_s):
+            if writes and (state.step % recipe.checkpoint_every == 0 or state.step == recipe.steps or stop
+                           or time.perf_counter() - last_checkpoint >= recipe.checkpoint_every_s):
                 save_checkpoint(ckpt_path, model, ema_model, optimizer, state)
                 last_checkpoint = time.perf_counter()
             if stop and state.step < recipe.steps:
                 bar.close()
-                _write_curves(out_dir, state)
+                if writes:
+                    _write_curves(out_dir, state)
                 name = signal.Signals(stop[0]).name
                 raise TrainingInterrupted(f"{name} at step {state.step} of {recipe.steps}: checkpoint saved in "
                                           f"{ckpt_path}; run the same command again to resume", stop[0])
     bar.close()
     if ema_model is not None:
         model.load_state_dict(ema_model.state_dict())
-    _write_curves(out_dir, state)
+    if writes:
+        _write_curves(out_dir, state)
     tail = [c["loss"] for c in state.curve[-max(1, len(state.curve) // 10):]]
     summary = {"steps": state.step, "resumed_from_step": resumed_from, "final_loss": sum(tail) / len(tail),
                "first_loss": state.curve[0]["loss"] if state.curve else float("nan"),

@@ -18,6 +18,7 @@ from omegaconf import OmegaConf
 from bench.cli import CONF_DIR, available_experiments, make_context
 
 REPO = Path(__file__).resolve().parent.parent
+PRESETS = sorted(p.stem for p in (Path(CONF_DIR) / "preset").glob("*.yaml"))
 
 
 def bench(*args, cwd=REPO, timeout=600):
@@ -32,7 +33,7 @@ def compose_experiment(name, *overrides):
 
 
 @pytest.mark.parametrize("name", available_experiments())
-@pytest.mark.parametrize("preset", ["smoke", "cpu", "paper"])
+@pytest.mark.parametrize("preset", PRESETS)
 def test_every_experiment_composes_at_every_preset(name, preset):
     cfg = compose_experiment(name, f"preset={preset}")
     assert cfg.preset.name == preset
@@ -60,7 +61,7 @@ def test_every_model_config_is_configured_and_keeps_the_model_contract(name):
             torch.testing.assert_close(second[:, 0], out["final"][:, 1], rtol=1e-4, atol=1e-5)
 
 
-@pytest.mark.parametrize("preset", ["smoke", "cpu", "paper"])
+@pytest.mark.parametrize("preset", PRESETS)
 def test_configured_widths_meet_the_preset_budget(preset):
     """The widths a preset trains with are the ones the MAC audit fits to its budget (+-5%)."""
     from bench.experiments.macs import SOTA_ROWS, audit_row
@@ -182,6 +183,28 @@ def test_smoke_end_to_end_then_reuse(smoke_dirs):
     again = pd.read_csv(table_dir / "smoke" / "table.csv")
     pd.testing.assert_frame_equal(table[["method", "relMSE", "PSNR", "SSIM"]],
                                   again[["method", "relMSE", "PSNR", "SSIM"]])
+
+
+def test_torchrun_two_processes_train_as_one_and_only_rank_0_records(smoke_dirs, tmp_path):
+    """`torchrun --nproc_per_node 2 -m bench` (gloo, no GPU): one run recorded, by rank 0, whose training
+    curve is the one-process run's with the same global batch, and the table written once."""
+    args, _, _ = smoke_dirs
+    data = [a for a in args if a.startswith("data_dir=")]
+    common = ["+experiment=smoke", *data, "progress=false", "train.steps=4", "data.splits.train.sequences=4"]
+    env = dict(os.environ, HYDRA_FULL_ERROR="0", OMP_NUM_THREADS="1")
+    curves = {}
+    for name, launcher in (("one", []), ("two", ["-m", "torch.distributed.run", "--standalone", "--nproc_per_node", "2"])):
+        root = tmp_path / name
+        cmd = [sys.executable, *launcher, "-m", "bench", *common, f"runs_dir={root / 'runs'}",
+               f"results_dir={root / 'results'}"]
+        out = subprocess.run(cmd, cwd=REPO, capture_output=True, text=True, timeout=600, env=env)
+        assert out.returncode == 0, out.stderr[-3000:]
+        records = list((root / "runs" / "train").glob("*/run.json"))
+        assert len(records) == 1 and json.loads(records[0].read_text())["status"] == "complete"
+        curves[name] = pd.read_csv(records[0].parent / "curve.csv")
+        assert (root / "results" / "smoke" / "table.csv").exists()
+    assert records[0].parent.name == next((tmp_path / "one" / "runs" / "train").iterdir()).name  # same identity
+    pd.testing.assert_series_equal(curves["two"]["loss"], curves["one"]["loss"], rtol=1e-5)
 
 
 def test_reused_training_is_loaded_for_a_new_evaluation(smoke_dirs):

@@ -28,7 +28,7 @@ import pandas as pd
 import torch
 from hydra.utils import instantiate
 
-from bench import runs
+from bench import distributed, runs
 from bench.datagen import build_dataset, damaged_frames, frame_paths, load_manifest, manifest_problems
 from bench.dataset import SequenceDataset
 from bench.errors import UserError
@@ -375,12 +375,10 @@ def trained_model(ctx: Context, cfg: dict, task: Task, seed: int, label: str = "
     With `stage` ("sr" or "dn") only that stage of an SRDNet (built at the SRD scale, 2) is trained on
     `task`, through SRDStage. With `divergence_ends` (a learning-rate range test) a diverging training is
     recorded complete with the step it diverged at, instead of failing."""
-    torch.manual_seed(seed)
-    model = build_model(cfg, task.scale) if stage is None else SRDStage(cascade_net(cfg), stage)
+    model = _initial_model(cfg, task, seed, stage)
     if not is_learned(model):
         return model, None
-    uses_vgg = any(w.get("perceptual", 0) > 0 for w in ctx.train.loss.values())
-    features, vgg_id = perceptual_features(ctx) if uses_vgg else (None, None)
+    features, vgg_id = _loss_features(ctx)
     identity = _train_identity(ctx, cfg, task, seed, vgg_id, stage)
     if not ctx.render_data:  # your own data: a frame the trainer cannot crop is named before a run is recorded
         check_training_frames(ctx)
@@ -390,6 +388,8 @@ def trained_model(ctx: Context, cfg: dict, task: Task, seed: int, label: str = "
         log.info("train %s: reusing run %s", label or cfg["_target_"], run.hash)
         return (load_weights(model, run.dir, ctx.device) if load else None), run
     recipe = ctx.train
+    if distributed.rank_and_size()[1] > 1:  # the other torchrun ranks (serve_trainings) join this training
+        distributed.share((ctx, cfg, task.name, seed, stage, str(run.dir)))
     try:
         summary = train(model, dataset(ctx, "train", task, training=True, seed=seed), task, run.dir, recipe,
                         features=features, seed=seed, device=ctx.device, progress=ctx.progress,
@@ -412,6 +412,32 @@ def trained_model(ctx: Context, cfg: dict, task: Task, seed: int, label: str = "
     log.info("train %s: trained in %.1f min (run %s)", label or cfg["_target_"], run.record["wall_time_s"] / 60,
              run.hash)
     return model, run
+
+
+def _initial_model(cfg: dict, task: Task, seed: int, stage: str | None):
+    """The model of `cfg` as its training starts (seeded), or one stage of it (SRDStage)."""
+    torch.manual_seed(seed)
+    return build_model(cfg, task.scale) if stage is None else SRDStage(cascade_net(cfg), stage)
+
+
+def _loss_features(ctx: Context):
+    """(VGG16 features, their identity) when the recipe has a perceptual term, else (None, None)."""
+    uses_vgg = any(w.get("perceptual", 0) > 0 for w in ctx.train.loss.values())
+    return perceptual_features(ctx) if uses_vgg else (None, None)
+
+
+def serve_trainings() -> None:
+    """A torchrun rank other than 0: join each training that rank 0 starts (`trained_model` shares what
+    it trains), until rank 0 says there is none left. Rank 0 records the runs; this process writes nothing."""
+    while (job := distributed.share()) is not None:
+        ctx, cfg, task_name, seed, stage, run_dir = job
+        task = get_task(task_name)
+        model = _initial_model(cfg, task, seed, stage)
+        try:
+            train(model, dataset(ctx, "train", task, training=True, seed=seed), task, run_dir, ctx.train,
+                  features=_loss_features(ctx)[0], seed=seed, device=ctx.device, progress=False)
+        except TrainingDiverged:  # rank 0 diverged at the same step and records it (a range test goes on)
+            continue
 
 
 def cascade_net(cfg: dict) -> SRDNet:

@@ -1,0 +1,112 @@
+"""Training with several processes (bench.distributed, DDP on gloo; no GPU needed): two processes follow
+one process with the same global batch to float tolerance, only rank 0 writes, a stop asked on one rank
+stops both at the same step, and the checkpoint resumes."""
+import os
+import signal
+import socket
+
+import pandas as pd
+import pytest
+import torch
+import torch.distributed as dist
+import torch.multiprocessing as mp
+
+from bench.models.srd import SRDNet
+from bench.tasks import get_task
+from bench.train import CHECKPOINT, Recipe, TrainingInterrupted, train
+from test_train import WEIGHTS, SyntheticSequences
+
+MODELS = {"srd": dict(channels=4, sr_blocks=1, dn_levels=2, dn_deform_blocks=1, cond_channels=4)}
+
+
+class StopsOneRank(SyntheticSequences):
+    """Sends SIGTERM to this process when it draws `draw` (as a scheduler would, to one rank)."""
+
+    def __init__(self, term_at_draw=None):
+        super().__init__()
+        self.term_at_draw = term_at_draw
+
+    def item(self, index, draw):
+        if draw == self.term_at_draw:
+            os.kill(os.getpid(), signal.SIGTERM)
+        return super().item(index, draw)
+
+
+def _recipe():
+    return Recipe(steps=6, batch_size=4, seq_len=2, crop=8, loss=WEIGHTS, checkpoint_every=100, warmup=0.2)
+
+
+def _model():
+    torch.manual_seed(0)
+    return SRDNet(**MODELS["srd"])
+
+
+def _rank(rank, port, out_dir, term_at_draw, term_rank, results):
+    os.environ.update(MASTER_ADDR="127.0.0.1", MASTER_PORT=str(port))
+    torch.set_num_threads(1)
+    dist.init_process_group("gloo", rank=rank, world_size=2)
+    try:
+        data = StopsOneRank(term_at_draw if rank == term_rank else None)
+        model = _model()
+        try:
+            summary = train(model, data, get_task("srd"), out_dir, _recipe(), progress=False)
+            outcome = {"steps": summary["steps"]}
+        except TrainingInterrupted as err:
+            outcome = {"interrupted": str(err)}
+        results[rank] = {**outcome, "state": {k: v.clone() for k, v in model.state_dict().items()}}
+    finally:
+        dist.destroy_process_group()
+
+
+def _two_ranks(out_dir, term_at_draw=None, term_rank=1):
+    with socket.socket() as s:  # a free port for the rendezvous
+        s.bind(("127.0.0.1", 0))
+        port = s.getsockname()[1]
+    results = mp.Manager().dict()
+    mp.spawn(_rank, args=(port, str(out_dir), term_at_draw, term_rank, results), nprocs=2)
+    return dict(results)
+
+
+@pytest.fixture(scope="module")
+def one_process(tmp_path_factory):
+    out = tmp_path_factory.mktemp("one")
+    model = _model()
+    torch.set_num_threads(1)
+    train(model, SyntheticSequences(), get_task("srd"), out, _recipe(), progress=False)
+    return model.state_dict(), pd.read_csv(out / "curve.csv")
+
+
+def _assert_close(state, expected):
+    for key, value in expected.items():
+        torch.testing.assert_close(state[key], value, rtol=1e-4, atol=1e-6, msg=key)
+
+
+def test_two_processes_follow_one_with_the_same_global_batch(one_process, tmp_path):
+    expected_state, expected_curve = one_process
+    results = _two_ranks(tmp_path)
+    assert results[0]["steps"] == results[1]["steps"] == 6
+    _assert_close(results[0]["state"], expected_state)
+    _assert_close(results[1]["state"], expected_state)  # every rank ends with the same (EMA) weights
+    curve = pd.read_csv(tmp_path / "curve.csv")  # written by rank 0: the global batch's loss
+    pd.testing.assert_series_equal(curve["loss"], expected_curve["loss"], rtol=1e-5)
+    pd.testing.assert_series_equal(curve["grad_norm"], expected_curve["grad_norm"], rtol=1e-4)
+
+
+def test_a_stop_on_one_rank_stops_both_and_the_checkpoint_resumes(one_process, tmp_path):
+    expected_state, _ = one_process
+    # rank 1 draws slots 1 and 3 of each batch of 4: draw 2 * 4 + 1 is in step 2 (0-based)
+    stopped = _two_ranks(tmp_path, term_at_draw=2 * 4 + 1, term_rank=1)
+    assert all("SIGTERM at step 3 of 6" in stopped[r]["interrupted"] for r in (0, 1)), stopped
+    assert torch.load(tmp_path / CHECKPOINT, weights_only=False)["step"] == 3
+    resumed = _two_ranks(tmp_path)
+    assert resumed[0]["steps"] == 6
+    _assert_close(resumed[0]["state"], expected_state)
+    assert len(pd.read_csv(tmp_path / "curve.csv")) == 6
+
+
+def test_a_batch_that_does_not_split_over_the_ranks_is_refused(monkeypatch, tmp_path):
+    from bench import distributed
+    from bench.errors import UserError
+    monkeypatch.setattr(distributed, "rank_and_size", lambda: (0, 3))
+    with pytest.raises(UserError, match="batch_size=4 is not divisible by the 3 processes"):
+        train(_model(), SyntheticSequences(), get_task("srd"), tmp_path, _recipe(), progress=False)
