@@ -129,6 +129,21 @@ def test_a_real_edit_to_a_model_file_makes_its_trainings_stale_and_a_comment_doe
     assert "recomputing run" in seen and "(bench/models/srd.py)" in seen, seen[-2000:]
 
 
+def test_adopt_holds_the_code_only_to_evaluations_of_todays_frames(monkeypatch):
+    """An evaluation scored against references rendered again since (another data fingerprint) cannot
+    witness for the code: its numbers moved with the data."""
+    from bench import runs
+    from bench.experiments import adopt
+    monkeypatch.setattr(adopt, "evaluation_data", lambda ctx: ctx)
+    monkeypatch.setattr(adopt, "data_fingerprint", lambda ctx, split: f"today-{split}")
+
+    def evaluation(**identity):
+        return runs.Run("eval", "0" * 16, Path("."), {"identity": {"split": "val", **identity}})
+    assert adopt.scored_here(None, evaluation(data="today-val"))
+    assert not adopt.scored_here(None, evaluation(data="before-val"))
+    assert not adopt.scored_here(None, evaluation(data="today-val", path="bf16"))
+
+
 def test_adopt_keeps_runs_through_a_change_that_moves_no_number_and_not_through_one_that_does(smoke_dirs,
                                                                                               tmp_path):
     """+experiment=adopt on a copy of the smoke store: a refactor-like edit (a new function) leaves the

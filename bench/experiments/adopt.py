@@ -13,7 +13,8 @@ reproduces the group's witness run (its lowest seed):
   two runs of the same code drift apart slowly from the second step on, ~1e-5 by step 10 at smoke),
   and the current schedule gives the recorded learning rate at every step of the run;
 - inference: the recorded weights, run by the current evaluator on the first sequence of an evaluation
-  of the run, give its recorded per-frame relMSE, PSNR and SSIM;
+  of the run on today's frames, give its recorded per-frame relMSE, PSNR and SSIM (a group whose
+  evaluations all scored frames rendered again since has none to check: it is checked by training);
 
 each to a relative tolerance `rtol` unless said otherwise. A group that passes has its runs (every seed) and their evaluations
 re-stamped with the current code fingerprint, the old one and the check kept in the record
@@ -163,6 +164,15 @@ def evaluations_of(runs_dir: Path, train_hashes: set[str]) -> list[runs.Run]:
     return out
 
 
+def scored_here(ctx: Context, evaluation: runs.Run) -> bool:
+    """Whether `evaluation` ran the default way on frames as they are now: only then can the current code
+    be held to its numbers (an evaluation against references rendered again since is stale by its data,
+    and says nothing about the code)."""
+    identity = evaluation.record["identity"]
+    return "path" not in identity and identity.get("data") == data_fingerprint(evaluation_data(ctx),
+                                                                              identity["split"])
+
+
 def restamp(run: runs.Run, code: dict, check: dict) -> None:
     """Record that `run` is what the current code computes: its fingerprint replaced, the old kept."""
     run.record["code_adopted"] = {"from": runs.config_hash(run.record.get("code") or {}),
@@ -185,7 +195,7 @@ def run(ctx: Context, name: str, steps: int, rtol: float, rtol_later_steps: floa
                "changed": ", ".join(runs.code_changes(witness.record, code))}
         try:
             row |= {f"train {k}": v for k, v in check_training(ctx, witness.record, witness.dir, steps).items()}
-            evals = [e for e in evaluations_of(ctx.runs_dir, {witness.hash}) if "path" not in e.record["identity"]]
+            evals = [e for e in evaluations_of(ctx.runs_dir, {witness.hash}) if scored_here(ctx, e)]
             if evals:
                 row |= {f"eval {k}": v for k, v in check_inference(ctx, witness.record, witness.dir, evals[0]).items()}
             exact = {k: v for k, v in row.items() if k.startswith(("train step 1", "train lr", "eval ")) and k != "eval frames"}
