@@ -144,6 +144,23 @@ def test_adopt_holds_the_code_only_to_evaluations_of_todays_frames(monkeypatch):
     assert not adopt.scored_here(None, evaluation(data="today-val", path="bf16"))
 
 
+def test_adopt_stops_on_ctrl_c_or_sigterm_during_a_replay(monkeypatch, tmp_path):
+    """A signal in a replayed training stops the command (exit 130/143), not just that group's check."""
+    from bench import runs
+    from bench.experiments import adopt
+    from bench.train import TrainingInterrupted
+    witness = runs.Run("train", "0" * 16, tmp_path, {"identity": {"model": {"_target_": "x"}}, "label": "row"})
+    monkeypatch.setattr(adopt, "stale_groups", lambda ctx: {"g": [witness]})
+    monkeypatch.setattr(adopt, "code_of", lambda *a: {})
+    monkeypatch.setattr(runs, "code_changes", lambda *a: [])
+
+    def interrupted(*args):
+        raise TrainingInterrupted("SIGTERM at step 3 of 10", 15)
+    monkeypatch.setattr(adopt, "check_training", interrupted)
+    with pytest.raises(TrainingInterrupted):
+        adopt.run(None, "adopt", 10, 1e-5, 1e-3, dry_run=True)
+
+
 def test_adopt_keeps_runs_through_a_change_that_moves_no_number_and_not_through_one_that_does(smoke_dirs,
                                                                                               tmp_path):
     """+experiment=adopt on a copy of the smoke store: a refactor-like edit (a new function) leaves the

@@ -47,7 +47,7 @@ from bench.experiments.pipeline import (EVALUATION_CODE, TRAINING_CODE, Context,
 from bench.models.srd import SRDStage
 from bench.table_writer import write_table
 from bench.tasks import get_task
-from bench.train import CHECKPOINT, load_weights, lr_at, train
+from bench.train import CHECKPOINT, TrainingInterrupted, load_weights, lr_at, train
 
 log = logging.getLogger("bench")
 
@@ -204,6 +204,8 @@ def run(ctx: Context, name: str, steps: int, rtol: float, rtol_later_steps: floa
             row["verdict"] = ("adopted" if worst <= rtol and later <= rtol_later_steps else
                               f"differs ({max(exact, key=exact.get)} {worst:.2g} > {rtol:g})" if worst > rtol else
                               f"differs (later loss {later:.2g} > {rtol_later_steps:g})")
+        except TrainingInterrupted:  # Ctrl-C / SIGTERM during a replay stops the command, not one group
+            raise
         except Exception as err:  # noqa: BLE001 - a group that cannot be checked stays stale, with why
             row["verdict"] = f"not checked: {type(err).__name__}: {err}"
         log.info("adopt %s (%d runs): %s", row["label"], len(group), row["verdict"])
