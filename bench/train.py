@@ -235,13 +235,15 @@ def _validation_point(state: _State, validate, model) -> dict:
 
 def train(model, dataset, task: Task, out_dir: str | Path, recipe: Recipe, *, features=None, seed: int = 0,
           device: str = "cpu", progress: bool = True,
-          validate: Callable[[torch.nn.Module], dict] | None = None) -> dict:
+          validate: Callable[[torch.nn.Module], dict] | None = None, distributed_ranks: bool = False) -> dict:
     """Train `model` on `dataset` with `recipe` and return a summary (the model keeps the weights that
     evaluation uses: the EMA when the recipe keeps one).
 
     `dataset.item(index, draw)` returns a dict of (T, C, H, W) tensors whose random crop/augmentation is
     fixed by `draw`; with the batch indices drawn from (seed, step), every step is reproducible.
     `validate(model) -> {metric: value}` scores a model in eval mode (the learning curve).
+    `distributed_ranks`: train together with the other torchrun ranks (bench.distributed); only the
+    pipeline's trainings do, so other callers (adopt's replays, the stability probes) train alone.
 
     Resumes from `out_dir/checkpoint.pt` when present. Writes `curve.csv` (per step) and, with
     `validate`, `val_curve.csv`.
@@ -249,17 +251,18 @@ def train(model, dataset, task: Task, out_dir: str | Path, recipe: Recipe, *, fe
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
     ckpt_path = out_dir / CHECKPOINT
-    rank, ranks = distributed.rank_and_size()
+    rank, ranks = distributed.rank_and_size() if distributed_ranks else (0, 1)
     if recipe.batch_size % ranks:
         raise UserError(f"train.batch_size={recipe.batch_size} is not divisible by the {ranks} processes")
     writes = rank == 0  # the one process that writes checkpoints and curves
-    if str(device).startswith("cuda"):
-        torch.backends.cudnn.benchmark = True  # fixed crop shapes: the fastest conv algorithms, found once
     model.to(device).train()
     ema_model = copy.deepcopy(model).eval().requires_grad_(False) if recipe.ema else None
     optimizer = torch.optim.Adam(model.parameters(), lr=recipe.lr, betas=tuple(recipe.betas))
     state = _resume(ckpt_path, model, ema_model, optimizer, device)
     resumed_from = state.step
+    if ranks > 1 and distributed.mean_over_ranks(torch.tensor([float(state.step)])).item() != state.step:
+        raise UserError(f"the {ranks} processes resumed {out_dir} from different steps (this one from {state.step}): "
+                        "the run store must be on a filesystem every process sees")
     keys = task.buffers(with_mid=True)
     scored = ema_model if ema_model is not None else model
     val_every = recipe.val_every if validate is not None else 0
@@ -290,11 +293,10 @@ def train(model, dataset, task: Task, out_dir: str | Path, recipe: Recipe, *, fe
                 group["lr"] = lr_at(step, recipe)
             loss, parts = batch_loss(net, batch, task, recipe.loss, recipe.hdr, features)
             reported = {"loss": loss.detach(), **{k: v.detach() for k, v in parts.items()}}
+            stopping = bool(stop)  # decided here, once per step: with several ranks, the same on all
             if ranks > 1:  # the global batch's loss (a mean of equal shares), and a stop asked on any rank
                 means = distributed.mean_over_ranks(torch.stack([*reported.values(), loss.new_tensor(len(stop))]))
-                reported = dict(zip(reported, means[:-1]))
-                if means[-1] > 0 and not stop:
-                    stop.append(signal.SIGTERM)
+                reported, stopping = dict(zip(reported, means[:-1])), bool(means[-1] > 0)
             if not torch.isfinite(reported["loss"]):
                 if writes:
                     pd.DataFrame(state.curve).to_csv(out_dir / "curve.csv", index=False)
@@ -328,17 +330,18 @@ def train(model, dataset, task: Task, out_dir: str | Path, recipe: Recipe, *, fe
             if validate is not None and (state.step == recipe.steps
                                          or (val_every and state.step % val_every == 0)):
                 state.val_curve.append(_validation_point(state, validate, scored))
-            if writes and (state.step % recipe.checkpoint_every == 0 or state.step == recipe.steps or stop
+            if writes and (state.step % recipe.checkpoint_every == 0 or state.step == recipe.steps or stopping
                            or time.perf_counter() - last_checkpoint >= recipe.checkpoint_every_s):
                 save_checkpoint(ckpt_path, model, ema_model, optimizer, state)
                 last_checkpoint = time.perf_counter()
-            if stop and state.step < recipe.steps:
+            if stopping and state.step < recipe.steps:
                 bar.close()
                 if writes:
                     _write_curves(out_dir, state)
-                name = signal.Signals(stop[0]).name
-                raise TrainingInterrupted(f"{name} at step {state.step} of {recipe.steps}: checkpoint saved in "
-                                          f"{ckpt_path}; run the same command again to resume", stop[0])
+                signum = stop[0] if stop else signal.SIGTERM  # (else another rank was stopped)
+                raise TrainingInterrupted(f"{signal.Signals(signum).name} at step {state.step} of {recipe.steps}: "
+                                          f"checkpoint saved in {ckpt_path}; run the same command again to resume",
+                                          signum)
     bar.close()
     if ema_model is not None:
         model.load_state_dict(ema_model.state_dict())

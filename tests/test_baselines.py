@@ -1,5 +1,7 @@
 """Baselines: output contract, gradients, recurrence, kernel normalization, receptive field, classical and
 OIDN rows. Small models and images only (the whole file runs in seconds on 2 cores)."""
+import pickle
+
 import pytest
 import torch
 import torch.nn.functional as F
@@ -290,6 +292,7 @@ def test_weights_saved_under_old_names_load_strictly(name):
     torch.manual_seed(1)
     fresh = cls(**kwargs)
     fresh.load_state_dict(old)  # strict: every key renamed, none left over
+    fresh = pickle.loads(pickle.dumps(fresh))  # the renaming hook keeps models picklable
     x, g = inputs(b=1, t=2, h=16, w=16)
     with torch.no_grad():
         assert torch.equal(fresh(x, g)["final"], trained(x, g)["final"])

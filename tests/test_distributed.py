@@ -41,15 +41,30 @@ def _model():
     return SRDNet(**MODELS["srd"])
 
 
-def _rank(rank, port, out_dir, term_at_draw, term_rank, results):
+def _term_in_backward(model, backward_index):
+    """SIGTERM to this process during backward number `backward_index` (0-based): after the step's
+    all-reduce of the loss, i.e. after the ranks agreed whether to stop at this step."""
+    calls = []
+
+    def hook(grad):
+        calls.append(1)
+        if len(calls) == backward_index + 1:
+            os.kill(os.getpid(), signal.SIGTERM)
+    next(model.parameters()).register_hook(hook)
+
+
+def _rank(rank, port, out_dir, term_at_draw, term_rank, term_backward, results):
     os.environ.update(MASTER_ADDR="127.0.0.1", MASTER_PORT=str(port))
     torch.set_num_threads(1)
     dist.init_process_group("gloo", rank=rank, world_size=2)
     try:
         data = StopsOneRank(term_at_draw if rank == term_rank else None)
         model = _model()
+        if term_backward is not None and rank == term_rank:
+            _term_in_backward(model, term_backward)
         try:
-            summary = train(model, data, get_task("srd"), out_dir, _recipe(), progress=False)
+            summary = train(model, data, get_task("srd"), out_dir, _recipe(), progress=False,
+                            distributed_ranks=True)
             outcome = {"steps": summary["steps"]}
         except TrainingInterrupted as err:
             outcome = {"interrupted": str(err)}
@@ -58,12 +73,12 @@ def _rank(rank, port, out_dir, term_at_draw, term_rank, results):
         dist.destroy_process_group()
 
 
-def _two_ranks(out_dir, term_at_draw=None, term_rank=1):
+def _two_ranks(out_dir, term_at_draw=None, term_rank=1, term_backward=None):
     with socket.socket() as s:  # a free port for the rendezvous
         s.bind(("127.0.0.1", 0))
         port = s.getsockname()[1]
     results = mp.Manager().dict()
-    mp.spawn(_rank, args=(port, str(out_dir), term_at_draw, term_rank, results), nprocs=2)
+    mp.spawn(_rank, args=(port, str(out_dir), term_at_draw, term_rank, term_backward, results), nprocs=2)
     return dict(results)
 
 
@@ -104,9 +119,28 @@ def test_a_stop_on_one_rank_stops_both_and_the_checkpoint_resumes(one_process, t
     assert len(pd.read_csv(tmp_path / "curve.csv")) == 6
 
 
+def test_a_stop_after_the_ranks_agreed_on_this_step_stops_both_at_the_next(one_process, tmp_path):
+    """A signal during rank 1's backward of step 3 (after the all-reduce): both finish step 3, agree to
+    stop at step 4, rank 0 writes the checkpoint, and the run resumes to the one-process weights."""
+    expected_state, _ = one_process
+    stopped = _two_ranks(tmp_path, term_rank=1, term_backward=2)
+    assert all("SIGTERM at step 4 of 6" in stopped[r]["interrupted"] for r in (0, 1)), stopped
+    assert torch.load(tmp_path / CHECKPOINT, weights_only=False)["step"] == 4
+    _assert_close(_two_ranks(tmp_path)[0]["state"], expected_state)
+
+
 def test_a_batch_that_does_not_split_over_the_ranks_is_refused(monkeypatch, tmp_path):
     from bench import distributed
     from bench.errors import UserError
     monkeypatch.setattr(distributed, "rank_and_size", lambda: (0, 3))
     with pytest.raises(UserError, match="batch_size=4 is not divisible by the 3 processes"):
-        train(_model(), SyntheticSequences(), get_task("srd"), tmp_path, _recipe(), progress=False)
+        train(_model(), SyntheticSequences(), get_task("srd"), tmp_path, _recipe(), progress=False,
+              distributed_ranks=True)
+
+
+def test_only_the_pipeline_trains_with_the_other_ranks(monkeypatch, tmp_path):
+    """train() called directly (adopt's replays, the stability probes) trains alone under torchrun."""
+    from bench import distributed
+    monkeypatch.setattr(distributed, "rank_and_size", lambda: (0, 3))
+    summary = train(_model(), SyntheticSequences(), get_task("srd"), tmp_path, _recipe(), progress=False)
+    assert summary["steps"] == 6

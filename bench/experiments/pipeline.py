@@ -393,7 +393,8 @@ def trained_model(ctx: Context, cfg: dict, task: Task, seed: int, label: str = "
     try:
         summary = train(model, dataset(ctx, "train", task, training=True, seed=seed), task, run.dir, recipe,
                         features=features, seed=seed, device=ctx.device, progress=ctx.progress,
-                        validate=validation(ctx, task, recipe.val_sequences) if stage is None else None)
+                        validate=validation(ctx, task, recipe.val_sequences) if stage is None else None,
+                        distributed_ranks=True)
     except TrainingDiverged as err:
         if divergence_ends:  # a learning-rate range test: divergence is its result, recorded as such
             runs.complete(run, {"diverged_at_step": err.step, "divergence": str(err)})
@@ -435,7 +436,8 @@ def serve_trainings() -> None:
         model = _initial_model(cfg, task, seed, stage)
         try:
             train(model, dataset(ctx, "train", task, training=True, seed=seed), task, run_dir, ctx.train,
-                  features=_loss_features(ctx)[0], seed=seed, device=ctx.device, progress=False)
+                  features=_loss_features(ctx)[0], seed=seed, device=ctx.device, progress=False,
+                  distributed_ranks=True)
         except TrainingDiverged:  # rank 0 diverged at the same step and records it (a range test goes on)
             continue
 

@@ -45,6 +45,8 @@ The input is padded from 540 to 544 rows (+0.7%).
 Cascade training (paper Table 3 "Cascade" rows) uses forward_stage(stage, x, g): each stage alone, see
 its docstring. scale=1 (denoise-only task) keeps the same structure with a scale-1 "SR" front stage.
 """
+import copy
+
 import torch
 import torch.nn as nn
 import torch.nn.functional as F
@@ -377,9 +379,12 @@ def load_stage(net: SRDNet, stage: str, stage_state: dict) -> SRDNet:
     part = {k[len("net."):]: v for k, v in stage_state.items() if k[len("net."):].startswith(prefixes)}
     if not part:
         raise ValueError(f"no parameters of stage {stage!r} in the given state dict")
-    # the load's own missing keys: a state dict saved under older names (load_old_names) is renamed there
-    missing = [k for k in net.load_state_dict(part, strict=False).missing_keys if k.startswith(prefixes)]
+    # missing keys as a load sees them (keys saved under older names are renamed by load_old_names),
+    # found on a copy so that `net` is left as it was when the state does not fit
+    missing = [k for k in copy.deepcopy(net).load_state_dict(part, strict=False).missing_keys
+               if k.startswith(prefixes)]
     if missing:
         raise ValueError(f"stage {stage!r} state lacks {missing[:3]}...")
+    net.load_state_dict(part, strict=False)
     return net
 

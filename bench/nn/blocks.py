@@ -67,18 +67,24 @@ class EDSRTrunk(nn.Module):
         return head + self.body_conv(y)
 
 
+class _OldNames:
+    """A load_state_dict pre-hook renaming old key prefixes (a class, not a closure: models stay picklable)."""
+
+    def __init__(self, renames: dict):
+        self.renames = dict(renames)
+
+    def __call__(self, _module, state_dict, prefix, *_):
+        for old, new in self.renames.items():
+            for key in [k for k in state_dict if k.startswith(prefix + old)]:
+                state_dict[prefix + new + key[len(prefix + old):]] = state_dict.pop(key)
+
+
 def load_old_names(module, renames: dict):
     """Let `module` load state dicts saved under older names of its children: `renames` maps an old
     key prefix (relative to the module, e.g. "blocks.") to the new one ("trunk.body."). Weights recorded
     before the shared EDSRTrunk (run store, results/*/weights) keep loading; parameter order, and so
     optimizer state, did not change."""
-
-    def rename(_module, state_dict, prefix, *_):
-        for old, new in renames.items():
-            for key in [k for k in state_dict if k.startswith(prefix + old)]:
-                state_dict[prefix + new + key[len(prefix + old):]] = state_dict.pop(key)
-
-    module.register_load_state_dict_pre_hook(rename)
+    module.register_load_state_dict_pre_hook(_OldNames(renames))
 
 
 def upsampled_input(x, scale):
