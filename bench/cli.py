@@ -33,8 +33,11 @@ CONF_DIR = str(Path(__file__).resolve().parent.parent / "conf")
 def hydra_output_dir(runs_dir: str) -> str:
     """Hydra's own output folder (conf/config.yaml `hydra.run.dir`): `<runs_dir>/hydra` when it can be
     written, else one under the system's temporary folder. Hydra creates it before any of our code runs,
-    so an unwritable runs_dir must not fail there (a traceback) but in run_experiment (one line)."""
+    so an unwritable runs_dir must not fail there (a traceback) but in run_experiment (one line).
+    Under torchrun each rank other than 0 gets a folder of its own (`hydra/rank<N>`) for its log."""
     path = Path(runs_dir) / "hydra"
+    if int(os.environ.get("RANK", "0")) > 0:
+        path = path / f"rank{os.environ['RANK']}"
     try:
         path.mkdir(parents=True, exist_ok=True)
         if os.access(path, os.W_OK):

@@ -266,7 +266,6 @@ def train(model, dataset, task: Task, out_dir: str | Path, recipe: Recipe, *, fe
     keys = task.buffers(with_mid=True)
     scored = ema_model if ema_model is not None else model
     val_every = recipe.val_every if validate is not None else 0
-    clip = recipe.clip_grad_norm if recipe.clip_grad_norm else float("inf")
     if validate is not None and not state.val_curve:  # step 0: where training starts (input bilinear for
         state.val_curve.append(_validation_point(state, validate, scored))  # models with input_residual)
     # every rank resumed from the same checkpoint; unused parameters (a head without loss) get no gradient
@@ -305,7 +304,9 @@ def train(model, dataset, task: Task, out_dir: str | Path, recipe: Recipe, *, fe
                                        f"checkpoint is {last}", step)
             optimizer.zero_grad(set_to_none=True)
             loss.backward()
-            grad_norm = torch.nn.utils.clip_grad_norm_(model.parameters(), clip)
+            grad_norm = torch.nn.utils.get_total_norm([p.grad for p in model.parameters() if p.grad is not None])
+            if recipe.clip_grad_norm:
+                torch.nn.utils.clip_grads_with_norm_(model.parameters(), recipe.clip_grad_norm, grad_norm)
             if not torch.isfinite(grad_norm):  # the same on every rank: DDP averaged the gradients
                 if writes:
                     pd.DataFrame(state.curve).to_csv(out_dir / "curve.csv", index=False)

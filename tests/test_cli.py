@@ -235,6 +235,7 @@ def test_torchrun_two_processes_train_as_one_and_only_rank_0_records(smoke_dirs,
         assert len(records) == 1 and json.loads(records[0].read_text())["status"] == "complete"
         curves[name] = pd.read_csv(records[0].parent / "curve.csv")
         assert (root / "results" / "smoke" / "table.csv").exists()
+        assert (root / "runs" / "hydra" / "rank1").exists() == (name == "two")  # rank 1's log, apart
     assert records[0].parent.name == next((tmp_path / "one" / "runs" / "train").iterdir()).name  # same identity
     pd.testing.assert_series_equal(curves["two"]["loss"], curves["one"]["loss"], rtol=1e-5)
 
