@@ -358,9 +358,8 @@ def _train_identity(ctx: Context, cfg: dict, task: Task, seed: int, vgg_id: dict
 
 def recorded_training(ctx: Context, cfg: dict, task: Task, seed: int) -> runs.Run | None:
     """The complete training run of (cfg, task, seed) in this context, or None; never trains."""
-    uses_vgg = any(w.get("perceptual", 0) > 0 for w in ctx.train.loss.values())
     try:
-        vgg_id = perceptual_features(ctx)[1] if uses_vgg else None
+        vgg_id = _loss_features(ctx)[1]
     except UserError:  # no VGG weights: nothing can have been trained with them here either
         return None
     return runs.lookup(ctx.runs_dir, "train", _train_identity(ctx, cfg, task, seed, vgg_id, None))
