@@ -189,24 +189,95 @@ def test_deform_propagates_nan_offsets_to_their_pixel_only():
 def require_cpu_kernels():
     """Skips where the compiled kernels are switched off or no compiler exists (the eager code then
     runs, and the other tests cover it); fails where a compiler exists but the kernels did not build."""
-    from bench.nn.native import cpu_kernels
-    if cpu_kernels() is None:
+    from bench.nn.native import kernels_available
+    if not kernels_available():
         if os.environ.get("SRD_BENCH_NATIVE") == "0" or not (shutil.which("g++") or shutil.which("c++")):
             pytest.skip("the compiled kernels are off or there is no C++ compiler")
         pytest.fail("a C++ compiler is here, but bench/nn/cpu_kernels.cpp did not build")
 
 
+def _runs_here(march: str) -> bool:
+    """This CPU runs code built for `march` (x86-64 levels by their /proc/cpuinfo flags)."""
+    from bench.measure import cpu_flags
+    needs = {"x86-64": set(), "x86-64-v3": {"avx2", "fma", "bmi2", "movbe"},
+             "x86-64-v4": {"avx512f", "avx512bw", "avx512cd", "avx512dq", "avx512vl"}}
+    flags = cpu_flags()
+    return march == "native" or (bool(flags) and "sse2" in flags and needs[march] <= flags)
+
+
+# Every kernel test runs the kernels built for each x86-64 level this CPU runs: native, AVX-512
+# (x86-64-v4: 16-float vectors), AVX2 (x86-64-v3: 8-float vectors, most laptops), SSE2 (x86-64).
+KERNEL_TARGETS = ["native", "x86-64-v4", "x86-64-v3", "x86-64"]
+
+
+@pytest.fixture(params=KERNEL_TARGETS)
+def kernel_target(request):
+    """The ops call the kernels built for this target (require_cpu_kernels); skipped where this CPU
+    cannot run that target."""
+    from bench.nn.native import built_for
+    if not _runs_here(request.param):
+        pytest.skip(f"this CPU does not run {request.param} code")
+    with built_for(request.param):
+        require_cpu_kernels()
+        yield request.param
+
+
 @pytest.fixture
-def columns_only(monkeypatch):
-    """The compiled kernels (require_cpu_kernels), and a failure if anything falls back to the eager
-    gather sampler."""
+def columns_only(monkeypatch, kernel_target):
+    """The compiled kernels for each target (kernel_target), and a failure if anything falls back to
+    the eager gather sampler."""
     import bench.nn.deform as deform
-    require_cpu_kernels()
 
     def no_gather(*args, **kwargs):
         raise AssertionError("the eager gather sampler ran instead of the compiled one")
     monkeypatch.setattr(deform, "_deform_by_gather", no_gather)
     return deform
+
+
+def test_the_kernel_ops_check_their_arguments():
+    """The custom ops refuse what the kernels' raw pointers would misread: wrong dtypes, shapes,
+    layouts, row ranges, a gradient without its tensor. On meta tensors (shape-only MAC counting) they
+    do nothing."""
+    from bench.nn import native
+    require_cpu_kernels()
+    image, offset = torch.randn(1, 5, 6, 8), torch.zeros(1, 18, 5, 6)
+    taps = torch.arange(9, dtype=torch.int64) % 3 - 1
+    cols = torch.empty(30, 72)
+    native.deform_columns(image, offset, None, cols, 0, 5, taps, taps)  # well-formed
+    bad_calls = {
+        "cols too small": lambda: native.deform_columns(image, offset, None, cols[:20], 0, 5, taps, taps),
+        "rows past the end": lambda: native.deform_columns(image, offset, None, cols, 3, 3, taps, taps),
+        "float64 image": lambda: native.deform_columns(image.double(), offset, None, cols, 0, 5, taps, taps),
+        "strided image": lambda: native.deform_columns(image.transpose(1, 2), offset, None, cols, 0, 5, taps, taps),
+        "int32 taps": lambda: native.deform_columns(image, offset, None, cols, 0, 5, taps.int(), taps),
+        "mask of 8 taps": lambda: native.deform_columns(image, offset, torch.ones(1, 8, 5, 6), cols, 0, 5, taps, taps),
+        "mask without its gradient": lambda: native.deform_columns_backward(
+            image, offset, torch.ones(1, 9, 5, 6), torch.zeros(30, 72), taps, taps, torch.zeros_like(image),
+            torch.zeros_like(offset), None),
+        "CFM at 35 channels": lambda: native.cfm_affine(
+            torch.randn(1, 35, 4, 4).contiguous(memory_format=torch.channels_last),
+            torch.randn(1, 8, 4, 4).contiguous(memory_format=torch.channels_last), torch.zeros(8, 70),
+            torch.zeros(70), False, torch.empty(1, 35, 4, 4).contiguous(memory_format=torch.channels_last)),
+        "CFM on NCHW": lambda: native.cfm_affine(torch.randn(1, 16, 4, 4), torch.randn(1, 8, 4, 4),
+                                                 torch.zeros(8, 32), torch.zeros(32), False,
+                                                 torch.empty(1, 16, 4, 4)),
+    }
+    for what, call in bad_calls.items():
+        with pytest.raises(ValueError):
+            call()
+            pytest.fail(f"accepted: {what}")
+    native.deform_columns(image.to("meta"), offset.to("meta"), None, cols[:1].to("meta"), 0, 5, taps, taps)
+
+
+def test_the_avx512_bf16_branch_compiles(tmp_path):
+    """The AVX512-BF16 code (bf16 rounding and pair interleave intrinsics) builds, even on a CPU that
+    cannot run it; its results are checked by the tests above on a machine that has it."""
+    from bench.nn import native
+    compiler = shutil.which("g++") or shutil.which("c++")
+    if compiler is None or os.environ.get("SRD_BENCH_NATIVE") == "0":
+        pytest.skip("no C++ compiler, or the compiled kernels are off")
+    native._compile(compiler, (*native.FLAGS, "-march=sapphirerapids"), tmp_path / "spr.so")
+    assert (tmp_path / "spr.so").stat().st_size > 0
 
 
 # channels 3: the scalar loop; 16: one vector per corner; 32, 64: bfloat16 pairs (see the .cpp)
@@ -290,17 +361,17 @@ def test_columns_kernel_build_cache_and_fallback(monkeypatch, tmp_path):
     monkeypatch.setenv("SRD_BENCH_CACHE", str(tmp_path))
     try:
         native.cpu_kernels.cache_clear()
-        assert native.cpu_kernels() is not None
+        assert native.cpu_kernels("native") is not None
         assert len(list(tmp_path.glob("cpu_kernels-*.so"))) == 1
         native.cpu_kernels.cache_clear()
         monkeypatch.setenv("SRD_BENCH_NATIVE", "0")
-        assert native.cpu_kernels() is None
+        assert native.cpu_kernels("native") is None
         native.cpu_kernels.cache_clear()
         monkeypatch.delenv("SRD_BENCH_NATIVE")
         monkeypatch.setenv("CXX", str(tmp_path / "no-such-compiler"))
         monkeypatch.setenv("SRD_BENCH_CACHE", str(tmp_path / "empty"))
         with pytest.warns(UserWarning, match="eager code"):
-            assert native.cpu_kernels() is None
+            assert native.cpu_kernels("native") is None
         x, w, offset = torch.randn(1, 4, 5, 5), torch.randn(3, 4, 3, 3), torch.rand(1, 18, 5, 5)
         with torch.no_grad():
             out = deform_conv2d(x, offset, w)
@@ -323,11 +394,10 @@ def test_cfm_identity_at_init_and_formula():
 
 
 @pytest.mark.parametrize("channels", [16, 32, 64])
-def test_cfm_fused_kernel_matches_formula(channels):
+def test_cfm_fused_kernel_matches_formula(kernel_target, channels):
     """Channels-last inference on CPU takes the compiled CFM (+ ReLU): the formula to float rounding in
     float32, to bfloat16 rounding under autocast; NaN in x stays in its pixel, through the ReLU too."""
     from bench.nn import cfm as cfm_module
-    require_cpu_kernels()
     g = torch.Generator().manual_seed(9)
     cfm = CFM(channels, 16)
     for p in cfm.parameters():
@@ -528,7 +598,7 @@ def test_training_sampler_reads_zeros_for_huge_and_infinite_offsets():
     assert torch.isfinite(x.grad).all() and torch.isfinite(offset.grad).all()
 
 
-@pytest.mark.parametrize("channels,modulated,dilation", [(16, False, 1), (32, True, 1), (5, True, 2)])
+@pytest.mark.parametrize("channels,modulated,dilation", [(16, False, 1), (32, True, 1), (64, False, 1), (5, True, 2)])
 def test_compiled_training_sampler_matches_grid_sample_forward_and_gradients(columns_only, channels, modulated,
                                                                              dilation):
     """The compiled training path (columns forward + compiled backward) against grid_sample's autograd:

@@ -150,9 +150,14 @@ def test_peak_memory_sees_a_large_allocation():
     assert peak_memory_mib(lambda: torch.ones(64 * 2 ** 20 // 4).add_(1), "cpu") > 48
 
 
-def test_device_tag_is_a_directory_name():
+def test_device_tag_is_a_directory_name_that_names_the_isa():
+    from bench.experiments.speed import isa_tag
     tag = device_tag("cpu")
     assert tag.startswith("cpu-") and tag == tag.lower() and "/" not in tag and " " not in tag
+    assert tag.endswith("-" + isa_tag())
+    assert isa_tag({"avx2", "avx512f", "avx512_bf16"}) == "avx512-bf16"
+    assert isa_tag({"avx2", "avx512f"}) == "avx512" and isa_tag({"sse2", "avx2"}) == "avx2"
+    assert isa_tag({"sse2"}) == "no-avx2" and isa_tag({"avx512_bf16", "amx_bf16"}) == "amx"
 
 
 def test_speed_experiment_writes_every_section(tmp_path):
@@ -175,7 +180,14 @@ def test_speed_experiment_writes_every_section(tmp_path):
     inference = table[table.section == "inference"]
     assert sorted(zip(inference.method, inference["fast path"])) == sorted((m, p) for m in labels for p in PATHS)
     assert inference[["ms", "GMac", "GMac/s", "time / OIDN", "GMac/s / conv stack"]].notna().all().all()
-    assert (inference["max rel diff"] < 0.05).all() and inference["note"].isna().all()  # no path failed
+    assert (inference["max rel diff"] < 0.05).all()
+    notes = inference["note"].fillna("")
+    assert not notes.str.contains("failed").any()
+    # each model's row of the path fast_path=auto picks here says so, and checks it against the table
+    picked = inference[notes.str.contains("fast_path=auto picks this")]
+    assert sorted(picked.method) == sorted(labels)
+    assert set(picked["fast path"]) <= {"fp32", "channels_last", "bf16", "channels_last+bf16"}
+    assert picked["note"].str.contains("the fastest of them in this table|faster in this table").all()
     steps = table[table.section == "training step"]
     stack = steps[steps.method.str.startswith("3x3 conv stack")]
     assert sorted(set(steps.method) - set(stack.method)) == sorted(labels) and len(stack) == 1

@@ -23,7 +23,9 @@ the zero-initialised branches (CFM, deformable offsets, residual output convs) c
 tiling check needs.
 
 Writes `<results_dir>/speed/<device tag>/table.{csv,md,tex}`: keyed by preset (the widths) and by
-machine (e.g. `results/cpu/speed/cpu-amd-epyc/`), since a speed table describes one machine.
+machine and its ISA (e.g. `results/cpu/speed/cpu-amd-epyc-avx2/`), since a speed table describes one machine.
+Each model's inference rows say which path `fast_path=auto` (bench.measure.choose_fast_path) picks
+here, and whether that is the fastest of the paths this table measured: a benchmark check of the chooser.
 """
 from __future__ import annotations
 
@@ -45,7 +47,7 @@ from bench.evaluate import sync
 from bench.experiments.pipeline import build_model
 from bench.infer import freed_memory_kept, max_abs_diff, parse_path, prepare, release_free_memory, tiled_predict
 from bench.losses import weighted_loss
-from bench.measure import cpu_isa, time_call
+from bench.measure import candidate_paths, choose_fast_path, cpu_flags, cpu_isa, time_call
 from bench.macs import count_macs, on_meta
 from bench.nn import DeformConv2d, eager_gather, grid_sample_training, inference_sampler
 from bench.table_writer import write_table
@@ -62,8 +64,19 @@ COLUMNS = ["section", "method", "fast path", "size", "per", "ms", "ms min", "ms 
 
 # ------------------------------------------------------------------------------ machine
 
+def isa_tag(flags: set[str] | None = None) -> str:
+    """The CPU's vector ISA as a name part: amx, avx512-bf16, avx512, avx2 or no-avx2 (the speed of
+    every path, bf16 above all, depends on it more than on the model name)."""
+    flags = cpu_flags() if flags is None else flags
+    for flag, tag in (("amx_bf16", "amx"), ("avx512_bf16", "avx512-bf16"), ("avx512f", "avx512"), ("avx2", "avx2")):
+        if flag in flags:
+            return tag
+    return "no-avx2" if flags else "isa-unknown"
+
+
 def device_tag(device: str) -> str:
-    """A directory name for the machine: cpu-<cpu model> or cuda-<gpu model>, lower case."""
+    """A directory name for the machine: cpu-<cpu model>-<ISA> or cuda-<gpu model>, lower case (one
+    cloud CPU model name covers AVX2-only and AVX512-BF16 hosts)."""
     if str(device).startswith("cuda"):
         name = torch.cuda.get_device_name(torch.device(device))
     else:
@@ -73,7 +86,9 @@ def device_tag(device: str) -> str:
             name = found.group(1) if found else name
     slug = re.sub(r"\(r\)|\(tm\)|cpu|processor|@.*|\d+-core", " ", name.lower())
     slug = re.sub(r"[^a-z0-9]+", "-", slug).strip("-")
-    return f"{'cuda' if str(device).startswith('cuda') else 'cpu'}-{slug or 'unknown'}"
+    if str(device).startswith("cuda"):
+        return f"cuda-{slug or 'unknown'}"
+    return f"cpu-{slug or 'unknown'}-{isa_tag()}"
 
 
 def machine_caption(device: str) -> str:
@@ -81,7 +96,7 @@ def machine_caption(device: str) -> str:
     if str(device).startswith("cuda"):
         where = f"{torch.cuda.get_device_name(torch.device(device))} (CUDA {torch.version.cuda})"
     else:
-        where = (f"{device_tag(device)[4:]} CPU, {cpu_isa()}, {torch.get_num_threads()} torch threads, glibc malloc "
+        where = (f"{device_tag(device)[4:].removesuffix('-' + isa_tag())} CPU, {cpu_isa()}, {torch.get_num_threads()} torch threads, glibc malloc "
                  f"{'keeping freed memory' if freed_memory_kept() else 'default (mmap per big tensor)'}")
     return f"{where}, torch {torch.__version__}"
 
@@ -211,6 +226,24 @@ def inference_rows(label: str, model, macs: int, x, g, paths, device, repeats, w
         rows.append(row)
         log.info("speed: %s %s: %s ms/frame", label, path, row.get("ms"))
     return rows
+
+
+def note_auto_choice(rows: list[dict], model, x, g, device, repeats) -> str:
+    """Which path `fast_path=auto` picks for `model` on this machine (bench.measure.choose_fast_path,
+    measured afresh), noted on that path's row of `rows` (the model's inference rows) with a check:
+    whether this table measured it as the fastest of auto's candidates, or which one beat it."""
+    chosen, _ = choose_fast_path(model, x, g, device, cache=None, key={}, repeats=repeats)
+    candidates = candidate_paths(device)
+    timed = {r["fast path"]: r["ms"] for r in rows if r["fast path"] in candidates and pd.notna(r.get("ms"))}
+    for row in rows:
+        if row["fast path"] == chosen:
+            fastest = min(timed, key=timed.get)
+            check = ("the fastest of them in this table" if fastest == chosen else
+                     f"but {fastest} was {timed[chosen] / timed[fastest]:.2f}x faster in this table")
+            row["note"] = "; ".join(n for n in (row.get("note"), f"fast_path=auto picks this of {candidates}, {check}")
+                                    if isinstance(n, str) and n)
+    log.info("speed: fast_path=auto picks %s for %s", chosen, type(model).__name__)
+    return chosen
 
 
 def training_rows(label: str, model, train: dict, loss_weights: dict, lr: float, device, repeats, warmup) -> list[dict]:
@@ -444,7 +477,7 @@ def run(ctx, name: str = "speed", models: list[str] = (), input_hw=(540, 960),
         f"Speed on {machine_caption(device)}; preset {ctx.preset} widths, untrained weights. ms: wall clock, median "
         f"(min, max) of {repeats} warm calls; GMac: analytic multiply-accumulates per frame; path: fp32 reference "
         "or bench.infer fast path (bf16 = autocast bfloat16); diffs vs the fp32 output (tiled: vs untiled); peak MiB: "
-        "memory one call adds. Ratios: model time / OIDN at the output size; model GMac/s / a 3x3 conv stack of "
+        "memory one call adds; note: the path fast_path=auto picks on this machine. Ratios: model time / OIDN at the output size; model GMac/s / a 3x3 conv stack of "
         "the proposed model's GMac on the same path; deformable conv time / nn.Conv2d of the same shape.")
     rows, table = [], None
     try:
@@ -485,6 +518,7 @@ def _sections(ctx, models, input_hw, paths, repeats, warmup, train, oidn, stack_
         model = build(cfg, device, perturb)
         macs = macs_per_frame(lambda: build_model(cfg, 2), input_hw)
         rows = inference_rows(label, model, macs, x, g, paths, device, repeats, warmup)
+        note_auto_choice(rows, model, x, g, device, repeats)
         if train.get("enabled", True):
             rows += training_rows(label, model, train, ctx.train.loss, ctx.train.lr, device,
                                   repeats, warmup)

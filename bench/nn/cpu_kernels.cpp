@@ -85,18 +85,26 @@ void parallel_for(int64_t count, int32_t threads, const Fn& fn) {
     for (int32_t t = 0; t < threads; ++t) fn(count * t / threads, count * (t + 1) / threads);
 }
 
-// 16 floats: GCC lowers these vector types to the widest registers -march=native has (AVX-512 here).
-typedef float FloatVec __attribute__((vector_size(64)));
-typedef uint32_t WordVec __attribute__((vector_size(64)));
-typedef uint16_t HalfVec __attribute__((vector_size(32)));
-typedef int32_t IntVec __attribute__((vector_size(64)));
+// kWidth floats per vector: one register of this CPU's widest float unit, 16 with AVX-512 and 8 without.
+// GCC's generic vector types must not be wider than the hardware's: a 64-byte vector on an AVX2 CPU
+// is split through the stack, and every scalar broadcast becomes a store and a reload (measured: the
+// sampling ran 4x slower than with 32-byte vectors).
+#if defined(__AVX512F__)
+constexpr int kWidth = 16;
+#else
+constexpr int kWidth = 8;
+#endif
+typedef float FloatVec __attribute__((vector_size(4 * kWidth)));
+typedef uint32_t WordVec __attribute__((vector_size(4 * kWidth)));
+typedef uint16_t HalfVec __attribute__((vector_size(2 * kWidth)));
+typedef int32_t IntVec __attribute__((vector_size(4 * kWidth)));
 
-inline FloatVec load16(const float* p) {
+inline FloatVec load_vec(const float* p) {
     FloatVec v;
     std::memcpy(&v, p, sizeof v);
     return v;
 }
-inline FloatVec load16(const uint16_t* p) {  // bfloat16 -> float32: the bits go to the high half
+inline FloatVec load_vec(const uint16_t* p) {  // bfloat16 -> float32: the bits go to the high half
     HalfVec h;
     std::memcpy(&h, p, sizeof h);
     return reinterpret_cast<FloatVec>(__builtin_convertvector(h, WordVec) << 16);
@@ -106,8 +114,15 @@ inline WordVec rounded_bits(FloatVec v) {  // the bfloat16 of v in the high half
     const WordVec nan = (u & 0x7fffffffu) > 0x7f800000u;
     return ((u + 0x7fffu + ((u >> 16) & 1u)) & ~nan) | (0x7fc00000u & nan);
 }
-inline void store16(float* p, FloatVec v) { std::memcpy(p, &v, sizeof v); }
-inline void store16(uint16_t* p, FloatVec v) {  // round to nearest even; NaN stays NaN
+inline float horizontal_sum(FloatVec v) {  // pairwise: lanes i and i + kWidth/2, then halves again
+    float lanes[kWidth];
+    std::memcpy(lanes, &v, sizeof v);
+    for (int n = kWidth / 2; n > 0; n /= 2)
+        for (int i = 0; i < n; ++i) lanes[i] += lanes[i + n];
+    return lanes[0];
+}
+inline void store_vec(float* p, FloatVec v) { std::memcpy(p, &v, sizeof v); }
+inline void store_vec(uint16_t* p, FloatVec v) {  // round to nearest even; NaN stays NaN
 #if defined(__AVX512BF16__)
     const __m256bh h = _mm512_cvtneps_pbh(reinterpret_cast<__m512>(v));  // one instruction, same rounding
     std::memcpy(p, &h, sizeof h);
@@ -117,9 +132,9 @@ inline void store16(uint16_t* p, FloatVec v) {  // round to nearest even; NaN st
 #endif
 }
 
-// bfloat16 pairs: a 64-byte load holds 32 channels as 16 words (channel 2i low, 2i + 1 high). Their
-// float32 values are the words shifted up (even channels) and masked (odd channels): one load and two
-// integer ops, where widening 16 values at a time costs a slow cross-lane op per load.
+// bfloat16 pairs: one vector load holds 2*kWidth channels as kWidth words (channel 2i low, 2i + 1
+// high). Their float32 values are the words shifted up (even channels) and masked (odd channels): one
+// load and two integer ops, where widening kWidth values at a time costs a slow cross-lane op per load.
 inline WordVec load_pairs(const uint16_t* p) {
     WordVec u;
     std::memcpy(&u, p, sizeof u);
@@ -128,7 +143,7 @@ inline WordVec load_pairs(const uint16_t* p) {
 inline FloatVec even_channels(WordVec u) { return reinterpret_cast<FloatVec>(u << 16); }
 inline FloatVec odd_channels(WordVec u) { return reinterpret_cast<FloatVec>(u & 0xffff0000u); }
 inline void store_pairs(uint16_t* p, FloatVec even, FloatVec odd) {  // back to channel order
-#if defined(__AVX512BF16__) && defined(__AVX512BW__)
+#if defined(__AVX512BF16__) && defined(__AVX512BW__)  // kWidth is 16 there
     // one rounding instruction for both halves (even channels low, odd high), one 16-bit interleave
     static const __m512i kInterleave = _mm512_set_epi16(31, 15, 30, 14, 29, 13, 28, 12, 27, 11, 26, 10, 25, 9, 24, 8,
                                                         23, 7, 22, 6, 21, 5, 20, 4, 19, 3, 18, 2, 17, 1, 16, 0);
@@ -141,7 +156,7 @@ inline void store_pairs(uint16_t* p, FloatVec even, FloatVec odd) {  // back to 
     std::memcpy(p, &packed, sizeof packed);
 }
 
-constexpr int kLanes = 16;  // pixels whose sample positions are computed together (one vector each)
+constexpr int kLanes = kWidth;  // pixels whose sample positions are computed together (one vector each)
 
 // Bilinear samples of one tap for up to kLanes consecutive pixels of a row, computed lane-parallel
 // (the loop below vectorizes): corner weights (mask folded in) and the top-left corner's pixel index,
@@ -155,11 +170,11 @@ struct TapSamples {
 
 inline void tap_samples(const float* dy, const float* dx, const float* m, float row, float col0, int64_t H,
                         int64_t W, TapSamples& s) {
-    static_assert(kLanes == 16, "one FloatVec per lane group");
-    const FloatVec lane = {0, 1, 2, 3, 4, 5, 6, 7, 8, 9, 10, 11, 12, 13, 14, 15};
+    FloatVec lane;
+    for (int i = 0; i < kLanes; ++i) lane[i] = static_cast<float>(i);
     const FloatVec top = FloatVec{} + static_cast<float>(H), right = FloatVec{} + static_cast<float>(W);
     const FloatVec low = FloatVec{} - 1.f, zero = {};
-    FloatVec py = row + load16(dy), px = col0 + lane + load16(dx);
+    FloatVec py = row + load_vec(dy), px = col0 + lane + load_vec(dx);
     const IntVec nan = (py != py) | (px != px);  // all ones where NaN
     py = nan ? zero : (py < low ? low : (py > top ? top : py));
     px = nan ? zero : (px < low ? low : (px > right ? right : px));
@@ -168,7 +183,7 @@ inline void tap_samples(const float* dy, const float* dx, const float* m, float 
     y0 += __builtin_convertvector(y0, FloatVec) > py;  // true is -1
     x0 += __builtin_convertvector(x0, FloatVec) > px;
     const FloatVec fy = py - __builtin_convertvector(y0, FloatVec), fx = px - __builtin_convertvector(x0, FloatVec);
-    const FloatVec scale = nan ? zero + NAN : load16(m);
+    const FloatVec scale = nan ? zero + NAN : load_vec(m);
     const FloatVec w[4] = {(1 - fy) * (1 - fx) * scale, (1 - fy) * fx * scale, fy * (1 - fx) * scale, fy * fx * scale};
     const IntVec index = y0 * static_cast<int32_t>(W) + x0;
     // y0 is in [-1, H], so the top row is inside when 0 <= y0 < H and the bottom one when y0 + 1 < H
@@ -215,8 +230,8 @@ void columns(const TIn* x, int64_t channels, const View& offset, const View* mas
                 const TIn* v01 = inside & 2 ? corner + C : kZeros;
                 const TIn* v10 = inside & 4 ? corner + W * C : kZeros;
                 const TIn* v11 = inside & 8 ? corner + (W + 1) * C : kZeros;
-                if constexpr (kC % 32 == 0 && kC > 0 && sizeof(TIn) == 2 && sizeof(TOut) == 2) {
-                    for (int64_t ch = 0; ch < kC; ch += 32) {
+                if constexpr (kC % (2 * kWidth) == 0 && kC > 0 && sizeof(TIn) == 2 && sizeof(TOut) == 2) {
+                    for (int64_t ch = 0; ch < kC; ch += 2 * kWidth) {
                         const WordVec a = load_pairs(v00 + ch), bb = load_pairs(v01 + ch);
                         const WordVec cc = load_pairs(v10 + ch), d = load_pairs(v11 + ch);
                         store_pairs(col + ch,
@@ -226,9 +241,9 @@ void columns(const TIn* x, int64_t channels, const View& offset, const View* mas
                                         (w10 * odd_channels(cc) + w11 * odd_channels(d)));
                     }
                 } else if constexpr (kC > 0) {
-                    for (int64_t ch = 0; ch < kC; ch += 16)
-                        store16(col + ch, (w00 * load16(v00 + ch) + w01 * load16(v01 + ch)) +
-                                          (w10 * load16(v10 + ch) + w11 * load16(v11 + ch)));
+                    for (int64_t ch = 0; ch < kC; ch += kWidth)
+                        store_vec(col + ch, (w00 * load_vec(v00 + ch) + w01 * load_vec(v01 + ch)) +
+                                          (w10 * load_vec(v10 + ch) + w11 * load_vec(v11 + ch)));
                 } else {
                     for (int64_t ch = 0; ch < C; ++ch)
                         store(col + ch, (w00 * to_float(v00[ch]) + w01 * to_float(v01[ch])) +
@@ -287,7 +302,23 @@ void columns_backward(const float* x, int64_t channels, const float* offset, con
                     const float w00 = (1 - fy) * (1 - fx), w01 = (1 - fy) * fx, w10 = fy * (1 - fx), w11 = fy * fx;
                     const float* gc = grad_cols + (p * K + k) * C;
                     float sum_y = 0.f, sum_x = 0.f, sum_m = 0.f;
-                    for (int64_t ch = 0; ch < C; ++ch) {
+                    if constexpr (kC > 0) {  // kWidth channels at a time; the three sums as vectors
+                        FloatVec vy = {}, vx = {}, vm = {};
+                        for (int64_t ch = 0; ch < kC; ch += kWidth) {
+                            const FloatVec gv = load_vec(gc + ch), a = load_vec(v00 + ch), bb = load_vec(v01 + ch);
+                            const FloatVec cc = load_vec(v10 + ch), d = load_vec(v11 + ch);
+                            vm += gv * ((w00 * a + w01 * bb) + (w10 * cc + w11 * d));
+                            vy += gv * ((1 - fx) * (cc - a) + fx * (d - bb));
+                            vx += gv * ((1 - fy) * (bb - a) + fy * (d - cc));
+                            const FloatVec mg = m * gv;
+                            // one corner after the other: corners outside the image share the sink row
+                            store_vec(g00 + ch, load_vec(g00 + ch) + w00 * mg);
+                            store_vec(g01 + ch, load_vec(g01 + ch) + w01 * mg);
+                            store_vec(g10 + ch, load_vec(g10 + ch) + w10 * mg);
+                            store_vec(g11 + ch, load_vec(g11 + ch) + w11 * mg);
+                        }
+                        sum_y = horizontal_sum(vy), sum_x = horizontal_sum(vx), sum_m = horizontal_sum(vm);
+                    } else for (int64_t ch = 0; ch < C; ++ch) {
                         const float gv = gc[ch], a = v00[ch], bb = v01[ch], cc = v10[ch], d = v11[ch];
                         sum_m += gv * (w00 * a + w01 * bb + w10 * cc + w11 * d);
                         sum_y += gv * ((1 - fx) * (cc - a) + fx * (d - bb));
@@ -329,20 +360,20 @@ void columns_dispatch(const void* x, int64_t channels, const View& offset, const
 template <int kC, typename T>
 void cfm_pixels(const T* x, const T* cond, const float* weight, const float* bias, T* out, int64_t cond_channels,
                 bool relu, int64_t begin, int64_t end) {
-    constexpr int kVecs = 2 * kC / 16;
+    constexpr int kVecs = 2 * kC / kWidth;
     for (int64_t p = begin; p < end; ++p) {
         const T* cp = cond + p * cond_channels;
         FloatVec acc[kVecs];
-        for (int v = 0; v < kVecs; ++v) acc[v] = load16(bias + 16 * v);
+        for (int v = 0; v < kVecs; ++v) acc[v] = load_vec(bias + kWidth * v);
         for (int64_t j = 0; j < cond_channels; ++j) {
             const float cj = to_float(cp[j]);
             const float* row = weight + j * 2 * kC;
-            for (int v = 0; v < kVecs; ++v) acc[v] += cj * load16(row + 16 * v);
+            for (int v = 0; v < kVecs; ++v) acc[v] += cj * load_vec(row + kWidth * v);
         }
         for (int v = 0; v < kVecs / 2; ++v) {
-            FloatVec y = load16(x + p * kC + 16 * v) * (1 + acc[v]) + acc[kVecs / 2 + v];
+            FloatVec y = load_vec(x + p * kC + kWidth * v) * (1 + acc[v]) + acc[kVecs / 2 + v];
             if (relu) y = y <= 0 ? FloatVec{} : y;  // NaN stays NaN, as in torch's relu
-            store16(out + p * kC + 16 * v, y);
+            store_vec(out + p * kC + kWidth * v, y);
         }
     }
 }
@@ -422,6 +453,7 @@ int32_t deform_columns_backward(const float* x, int64_t channels, int64_t batch,
         switch (channels) {
             case 16: columns_backward<16>(x, channels, offset, mask, g, out_h, grad_cols, grad_x, grad_offset, grad_mask, begin, end); break;
             case 32: columns_backward<32>(x, channels, offset, mask, g, out_h, grad_cols, grad_x, grad_offset, grad_mask, begin, end); break;
+            case 64: columns_backward<64>(x, channels, offset, mask, g, out_h, grad_cols, grad_x, grad_offset, grad_mask, begin, end); break;
             default: columns_backward<0>(x, channels, offset, mask, g, out_h, grad_cols, grad_x, grad_offset, grad_mask, begin, end);
         }
     });

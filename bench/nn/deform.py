@@ -14,7 +14,7 @@ float rounding (tests/test_layers.py). None loops over taps or pixels in Python;
 output rows.
   - columns, inference on CPU in float32/bfloat16 (the default there). Per strip of ~8k output pixels, a
     compiled kernel (cpu_kernels.cpp, built on first use by bench.nn.native) samples the im2col
-    columns (pixels, K*C): positions and corner weights 16 pixels at a time in vector registers, each
+    columns (pixels, K*C): positions and corner weights one vector of pixels at a time (16 with AVX-512, 8 with AVX2), each
     tap's 4-corner sum as a few vector FMAs, corners outside the image read as zero. One 1x1 conv
     (oneDNN, the 3x3 conv's MACs) turns them into the output while they are still in cache. Nothing
     per corner is written to memory. The kernel runs on torch's own OpenMP threads (a second pool
@@ -30,18 +30,20 @@ output rows.
     `_ColumnsTraining`): the columns kernel samples every output row's columns (kept for the weight's
     gradient), one matmul gives the output; the backward kernel (deform_columns_backward) scatters the
     columns' gradient to the input's bilinear corners and reduces it against the sample's y/x
-    derivatives (offsets) and value (mask), one image per thread. Measured on a shared 2-core AVX2 EPYC,
-    forward + backward of a 16-channel layer on 20 images: 2-3x faster than grid_sample at 16x16 and
-    32x32, about even at 64x64 (the columns kernel is slow on AVX2, issue "Fast on every CPU").
+    derivatives (offsets) and value (mask), one image per thread, one vector of channels at a time.
+    Forward + backward on a 2-core AVX2 EPYC, 20 images: 1.2-2.5x faster than grid_sample at 32-64 px
+    and 16-32 channels.
   - grid_sample, training elsewhere (CUDA, bf16 autocast, no compiler; `grid_sample_training()` forces
     it): an im2col whose columns are sampled by one F.grid_sample per strip, then one matmul. Its
     backward is about 2x faster than embedding_bag's (which sorts the indices), and gradients flow to
     input, offsets, mask, weight and bias. Positions are clamped like the other samplers' (huge or
     infinite offsets read zeros, with zero offset gradient).
 Measured forward time / a plain nn.Conv2d of the same shape and layout (32->32, 3x3, 2 threads, glibc
-keeping freed memory, see bench.infer.keep_freed_memory; results/paper/speed and runs of the same day):
-columns with channels-last input 2.1-2.8x in fp32 and 2.6-3.0x in bf16 at 480x270 to 1920x1080; the
-eager gather 5.4-6.3x and 7.4-8.7x. Contiguous (NCHW) fp32 input: 3.4-4.7x, since the sampler works
+keeping freed memory, see bench.infer.keep_freed_memory; results/*/speed/<machine>/ and runs of the
+same day). AVX512-BF16 EPYC: columns with channels-last input 2.1-2.8x in fp32 and 2.6-3.0x in bf16
+at 480x270 to 1920x1080; the eager gather 5.4-6.3x and 7.4-8.7x. AVX2-only EPYC: columns 2.7-2.9x
+channels-last fp32 at 480x270 and 960x540 (5.8-6.8x before the kernels used 8-float vectors there),
+the eager gather 5.6-6.1x. Contiguous (NCHW) fp32 input costs more (2.8-4.7x), since the sampler works
 channels-last and converts the input and the output (the conv it is compared with does not). What is
 left above the conv: the sampling (about 110 ms of a 1080p bf16 layer's 260 ms) and a 1x1 conv over
 288 channels that oneDNN runs ~25% slower than the 3x3 conv. +experiment=speed reports the ratios for
@@ -49,13 +51,13 @@ the machine it runs on.
 Stride 1 and groups 1 only (all the networks here use "same"-size convs).
 """
 import contextlib
-import ctypes
 
 import torch
 import torch.nn as nn
 import torch.nn.functional as F
 
-from .native import DTYPE_CODES, cpu_kernels
+from . import native
+from .native import DTYPE_CODES, kernels_available
 
 
 # Output rows are processed in strips whose sampled block holds about this many values: a 4 MB strip
@@ -248,7 +250,7 @@ def _columns_kernel_applies(*tensors):
     built (and not inside eager_gather())."""
     return (_use_columns_kernel
             and all(t is None or (t.device.type == "cpu" and t.dtype in DTYPE_CODES) for t in tensors)
-            and cpu_kernels() is not None)
+            and kernels_available())
 
 
 def inference_sampler(x) -> str:
@@ -256,41 +258,26 @@ def inference_sampler(x) -> str:
     return "columns" if _columns_kernel_applies(x) else "gather"
 
 
-def _strides(t):
-    return (ctypes.c_int64 * 4)(*t.stride())
-
-
 def _deform_by_columns(x, offset, weight, bias, mask, padding, dilation, strip):
     """(B, H_out, W_out, O) (channels-last order) WITH bias: per strip of output rows, the im2col columns
     (B*rows*W_out, K*C) sampled by the compiled kernel (cpu_kernels.cpp: positions, corner weights
     and 4-corner sums in registers; corners outside the image read zero), then one 1x1 conv of them
     (oneDNN; the weight reordered to columns k*C + c). The strip's columns stay in cache between the two."""
-    b, c, in_h, in_w = x.shape
+    b, c = x.shape[:2]
     out_ch, _, kh, kw = weight.shape
     taps, out_h, out_w = kh * kw, offset.shape[-2], offset.shape[-1]
-    threads = torch.get_num_threads()
     cols_dtype = torch.get_autocast_dtype("cpu") if torch.is_autocast_enabled("cpu") else x.dtype
     image = x.permute(0, 2, 3, 1).contiguous()  # (B, H, W, C): no copy when x is channels_last
     # cast once here, not by autocast in every strip's conv
     matrix = weight.permute(0, 2, 3, 1).reshape(out_ch, taps * c, 1, 1).to(cols_dtype)
     bias = None if bias is None else bias.to(cols_dtype)
-    tap_y = (torch.arange(kh) * dilation - padding).repeat_interleave(kw)
-    tap_x = (torch.arange(kw) * dilation - padding).repeat(kh)
-    offset_strides = _strides(offset)
-    mask_strides = None if mask is None else _strides(mask)
+    tap_y, tap_x = _tap_positions(kh, kw, padding, dilation)
     cols = torch.empty(b * min(strip, out_h) * out_w, taps * c, dtype=cols_dtype, device=x.device)
     out = None
     for r0 in range(0, out_h, strip):
         rows = min(strip, out_h - r0)
         n = b * rows * out_w
-        status = 0 if x.is_meta else cpu_kernels().deform_columns(
-            image.data_ptr(), DTYPE_CODES[image.dtype], c, b, in_h, in_w,
-            offset.data_ptr(), DTYPE_CODES[offset.dtype], offset_strides,
-            None if mask is None else mask.data_ptr(), 0 if mask is None else DTYPE_CODES[mask.dtype], mask_strides,
-            cols.data_ptr(), DTYPE_CODES[cols.dtype], r0, rows, out_w, taps, tap_y.data_ptr(), tap_x.data_ptr(),
-            threads)
-        if status != 0:
-            raise ValueError(f"deform_columns failed ({status}) for {c} channels")
+        native.deform_columns(image, offset, mask, cols, r0, rows, tap_y, tap_x)  # on meta: nothing
         # the strip's columns as a channels-last (1, K*C, 1, n) image: the conv reads them in place
         strip_out = F.conv2d(cols[:n].view(1, 1, n, taps * c).permute(0, 3, 1, 2), matrix, bias)
         if out is None:  # its dtype is the conv's, which autocast decides
@@ -320,14 +307,7 @@ class _ColumnsTraining(torch.autograd.Function):
         mask = None if mask is None else mask.detach().contiguous()
         tap_y, tap_x = _tap_positions(kh, kw, padding, dilation)
         cols = torch.empty(b * out_h * out_w, taps * c)
-        status = cpu_kernels().deform_columns(
-            image.data_ptr(), DTYPE_CODES[image.dtype], c, b, in_h, in_w,
-            offset.data_ptr(), DTYPE_CODES[offset.dtype], _strides(offset),
-            None if mask is None else mask.data_ptr(), 0 if mask is None else DTYPE_CODES[mask.dtype],
-            None if mask is None else _strides(mask), cols.data_ptr(), DTYPE_CODES[cols.dtype], 0, out_h, out_w,
-            taps, tap_y.data_ptr(), tap_x.data_ptr(), torch.get_num_threads())
-        if status != 0:
-            raise ValueError(f"deform_columns failed ({status}) for {c} channels")
+        native.deform_columns(image, offset, mask, cols, 0, out_h, tap_y, tap_x)
         matrix = weight.detach().permute(0, 2, 3, 1).reshape(out_ch, taps * c)  # column k*C + c
         out = cols @ matrix.t()
         if bias is not None:
@@ -347,12 +327,8 @@ class _ColumnsTraining(torch.autograd.Function):
         grad_image = torch.zeros_like(image)
         grad_offset = torch.empty_like(offset)
         grad_mask = None if mask is None else torch.empty_like(mask)
-        status = cpu_kernels().deform_columns_backward(
-            image.data_ptr(), c, b, in_h, in_w, offset.data_ptr(), None if mask is None else mask.data_ptr(),
-            grad_cols.data_ptr(), out_h, out_w, kh * kw, tap_y.data_ptr(), tap_x.data_ptr(), grad_image.data_ptr(),
-            grad_offset.data_ptr(), None if grad_mask is None else grad_mask.data_ptr(), torch.get_num_threads())
-        if status != 0:
-            raise ValueError(f"deform_columns_backward failed ({status}) for {c} channels")
+        native.deform_columns_backward(image, offset, mask, grad_cols, tap_y, tap_x, grad_image, grad_offset,
+                                       grad_mask)
         return grad_image.permute(0, 3, 1, 2), grad_offset, grad_mask, grad_weight, grad_bias, None, None
 
 
@@ -360,7 +336,7 @@ def _columns_training_applies(*tensors):
     """The compiled training sampler applies: float32 CPU tensors (None allowed), no autocast, kernels built."""
     return (_use_columns_kernel and not torch.is_autocast_enabled("cpu")
             and all(t is None or (t.device.type == "cpu" and t.dtype == torch.float32) for t in tensors)
-            and cpu_kernels() is not None)
+            and kernels_available())
 
 
 def deform_conv2d(x, offset, weight, bias=None, padding=1, dilation=1, mask=None):
