@@ -309,11 +309,11 @@ def _present_layers(path):
 
 def render_resolution(scene, camera, width, height, spp, ref_spp, seeds, passes, res, gbuf_layers,
                       max_depth, ref_halves=False):
-    """Render the layers of one resolution of one frame; returns (layers, wall times, non-finite count,
-    reference error). With `ref_halves` the reference is the mean of two independent renders of
+    """Render the layers of one resolution of one frame; returns (layers, wall times, non-finite values
+    repaired per buffer (e.g. {"lr_noisy": 3}), reference error). With `ref_halves` the reference is the mean of two independent renders of
     ref_spp / 2 samples, and the reference error is its estimated relMSE against the converged image
     (bench.metrics.reference_error); else None."""
-    layers, times, repaired, ref_error = {}, {}, 0, None
+    layers, times, repaired, ref_error = {}, {}, {}, None
     if f"{res}_noisy" in passes or f"{res}_gbuf" in passes:
         gbuf = list(gbuf_layers) if f"{res}_gbuf" in passes else []
         out = render.render_view(scene, camera, width, height, spp, seeds["noisy"], passes=gbuf,
@@ -332,15 +332,28 @@ def render_resolution(scene, camera, width, height, spp, ref_spp, seeds, passes,
             times[f"{res}_ref_s"] = times.get(f"{res}_ref_s", 0.0) + out["wall_time_s"]
             half, count = render.repair_nonfinite(out["radiance"])
             halves.append(half)
-            repaired += count
+            repaired[f"{res}_ref"] = repaired.get(f"{res}_ref", 0) + count
         if ref_halves:
             a, b = (torch.from_numpy(np.ascontiguousarray(h)).permute(2, 0, 1) for h in halves)
             ref_error = float(metrics.reference_error(a, b))
         layers["ref"] = sum(halves) / len(halves)
     for name in list(layers):
         layers[name], count = render.repair_nonfinite(layers[name])
-        repaired += count
+        buffer = f"{res}_{name}" if name in ("noisy", "ref") else f"{res}_gbuf"
+        repaired[buffer] = repaired.get(buffer, 0) + count
     return layers, times, repaired, ref_error
+
+
+def _count_repaired(record, repaired):
+    """Record the per-buffer repair counts of a render; a re-rendered buffer's count replaces its earlier
+    one, so the frame's total counts each buffer once. Records written before per-buffer counts keep
+    their old total as "earlier renders"."""
+    by_buffer = record.get("nonfinite_repaired_by_buffer")
+    if by_buffer is None:
+        by_buffer = {"earlier renders": record["nonfinite_repaired"]} if record.get("nonfinite_repaired") else {}
+    by_buffer.update(repaired)
+    record["nonfinite_repaired_by_buffer"] = by_buffer
+    record["nonfinite_repaired"] = sum(by_buffer.values())
 
 
 def render_sequence(root, job, spec, passes, variant=None):
@@ -409,7 +422,7 @@ def render_sequence(root, job, spec, passes, variant=None):
             exrio.write_exr(path, merged, suffixes=SUFFIXES, half=half,
                             attributes={"srd_sequence": job["sequence"], "srd_frame": frame})
             record["time_s"].update(times)
-            record["nonfinite_repaired"] += repaired
+            _count_repaired(record, repaired)
             record["channels"][res] = [f"{n}.{s}" for n in merged for s in SUFFIXES[n]]
         record["buffers"] = sorted(set(record["buffers"]) | set(wanted))
         record["files"] = {**(record.get("files") or {}), **{res: file_stamp(paths[res]) for res in written}}
@@ -565,7 +578,7 @@ def render_user_scene(xml_path, root, lr_width, lr_height, spp=8, ref_spp=256, s
                                                        GBUF_LAYERS, max_depth)
         exrio.write_exr(path, layers, suffixes=SUFFIXES)
         record["time_s"].update(times)
-        record["nonfinite_repaired"] += repaired
+        _count_repaired(record, repaired)
         record["channels"][res] = [f"{n}.{s}" for n in layers for s in SUFFIXES[n]]
     _write_json(rec_path, record)
     spec = {"name": name, "lr_width": lr_width, "lr_height": lr_height, "scale": scale, "spp": spp,

@@ -186,6 +186,27 @@ def test_later_build_with_more_buffers_renders_only_those(tmp_path, monkeypatch)
     assert df["resumed"].all() and len(calls) == 2
 
 
+def test_a_re_rendered_buffer_counts_its_repaired_values_once(tmp_path, monkeypatch):
+    real = render.render_view
+
+    def one_nan_per_radiance(*args, **kwargs):   # every render of radiance has exactly one NaN
+        out = real(*args, **kwargs)
+        out["radiance"] = out["radiance"].copy()
+        out["radiance"][0, 0, 0] = np.nan
+        return out
+
+    monkeypatch.setattr(render, "render_view", one_nan_per_radiance)
+    spec = {**TINY_SPEC, "splits": {"val": {"families": ["gallery"], "sequences": 1}}}
+    passes = ["lr_noisy", "hr_ref"]
+    first = datagen.build_dataset(tmp_path, spec, passes=passes, progress=False)
+    assert (first["nonfinite_repaired"] == 2).all()   # one NaN in LR noisy, one in the HR reference
+    assert (first["nonfinite_repaired_by_buffer.lr_noisy"] == 1).all()
+    hr_file = tmp_path / "val" / datagen.plan_sequences(spec)[0]["sequence"] / "0000_hr.exr"
+    hr_file.write_bytes(hr_file.read_bytes()[:100])    # damaged: frame 0's HR buffers are rendered again
+    again = datagen.build_dataset(tmp_path, spec, passes=passes, progress=False)
+    assert list(again["resumed"]) == [False, True]
+    assert (again["nonfinite_repaired"] == 2).all()
+
 def test_a_split_with_its_own_ref_spp_gets_half_sample_references_and_their_error(tmp_path, monkeypatch):
     """Converged references where frames are scored: the val split's own ref_spp re-renders only its
     frames, each reference as two independent halves whose difference estimates its error (1/spp)."""
