@@ -282,7 +282,7 @@ def test_the_avx512_bf16_branch_compiles(tmp_path):
 
 # channels 3: the scalar loop; 16: one vector per corner; 32, 64: bfloat16 pairs (see the .cpp)
 @pytest.mark.parametrize("channels,dilation,modulated", [(3, 1, False), (16, 2, True), (32, 1, True), (64, 1, False)])
-def test_columns_sampler_matches_brute_force(columns_only, channels, dilation, modulated):
+def test_columns_sampler_matches_brute_force(columns_only, monkeypatch, channels, dilation, modulated):
     g = torch.Generator().manual_seed(7)
     x = torch.randn(2, channels, 6, 7, generator=g)
     w = torch.randn(5, channels, 3, 3, generator=g) / channels ** 0.5
@@ -296,7 +296,7 @@ def test_columns_sampler_matches_brute_force(columns_only, channels, dilation, m
         out = deform_conv2d(x, offset, w, bias, dilation, dilation, mask)
         torch.testing.assert_close(out, ref, atol=2e-5, rtol=1e-5)
         # channels-last input and offsets (as DeformConv2d gives them), one-row strips
-        columns_only._COLUMN_PIXELS = 1
+        monkeypatch.setattr(columns_only, "_COLUMN_PIXELS", 1)
         nhwc = lambda t: t.contiguous(memory_format=torch.channels_last)
         out_cl = deform_conv2d(nhwc(x), nhwc(offset), w, bias, dilation, dilation, mask)
         assert out_cl.is_contiguous(memory_format=torch.channels_last)

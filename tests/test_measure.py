@@ -53,3 +53,22 @@ def test_a_model_without_parameters_runs_its_own_way():
         def forward(self, x, g):
             return {"final": x}
     assert measure.choose_fast_path(Bilinear(), torch.ones(1, 1, 3, 4, 4), None, "cpu", None, {}) == ("fp32", {})
+
+
+def test_a_path_that_fails_is_recorded_and_skipped_and_none_running_is_an_error(monkeypatch):
+    model = torch.nn.Conv2d(1, 1, 1)
+    x = torch.ones(1, 1, 3, 4, 4)
+    fake_paths(monkeypatch, {"fp32": (0.02, 0.0), "channels_last": (0.001, 0.0)})
+    fake = measure.prepare
+
+    def compile_fails(model, name):
+        if name == "channels_last":
+            raise RuntimeError("no C++ compiler\nsecond line")
+        return fake(model, name)
+    monkeypatch.setattr(measure, "prepare", compile_fails)
+    chosen, times = measure.choose_fast_path(model, x, None, "cpu", None, {})
+    assert chosen == "fp32" and times["channels_last"] == "failed: RuntimeError: no C++ compiler"
+
+    monkeypatch.setattr(measure, "prepare", lambda model, name: (_ for _ in ()).throw(OSError("nope")))
+    with pytest.raises(RuntimeError, match="no fast path runs this model"):
+        measure.choose_fast_path(model, x, None, "cpu", None, {})

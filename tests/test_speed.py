@@ -235,3 +235,17 @@ def test_the_caption_names_the_cpu_isa():
     isa = cpu_isa()
     assert any(name in isa for name in ("AVX512-BF16", "AMX-BF16", "AVX-512", "AVX2", "no AVX2", "ISA unknown"))
     assert isa in machine_caption("cpu")
+
+
+def test_auto_choice_notes_a_path_the_table_did_not_time_and_survives_a_machine_with_no_path(monkeypatch):
+    import bench.experiments.speed as speed
+    rows = [{"fast path": "fp32", "ms": 2.0}, {"fast path": "channels_last", "ms": float("nan"), "note": "failed: X"}]
+    monkeypatch.setattr(speed, "candidate_paths", lambda device: ["fp32", "channels_last"])
+    monkeypatch.setattr(speed, "choose_fast_path", lambda *a, **k: ("channels_last", {}))
+    assert speed.note_auto_choice(rows, None, None, None, "cpu", 1) == "channels_last"
+    assert rows[1]["note"] == "failed: X; fast_path=auto picks this of ['fp32', 'channels_last'], not timed in this table"
+
+    def nothing_runs(*args, **kwargs):
+        raise RuntimeError("no fast path runs this model here: {}")
+    monkeypatch.setattr(speed, "choose_fast_path", nothing_runs)
+    assert speed.note_auto_choice(rows, torch.nn.Identity(), None, None, "cpu", 1) is None

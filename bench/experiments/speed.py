@@ -228,18 +228,26 @@ def inference_rows(label: str, model, macs: int, x, g, paths, device, repeats, w
     return rows
 
 
-def note_auto_choice(rows: list[dict], model, x, g, device, repeats) -> str:
+def note_auto_choice(rows: list[dict], model, x, g, device, repeats) -> str | None:
     """Which path `fast_path=auto` picks for `model` on this machine (bench.measure.choose_fast_path,
     measured afresh), noted on that path's row of `rows` (the model's inference rows) with a check:
-    whether this table measured it as the fastest of auto's candidates, or which one beat it."""
-    chosen, _ = choose_fast_path(model, x, g, device, cache=None, key={}, repeats=repeats)
+    whether this table measured it as the fastest of auto's candidates, or which one beat it. None,
+    and a warning, when no path runs the model."""
+    try:
+        chosen, _ = choose_fast_path(model, x, g, device, cache=None, key={}, repeats=repeats)
+    except RuntimeError as err:
+        log.warning("speed: fast_path=auto has nothing to pick for %s: %s", type(model).__name__, err)
+        return None
     candidates = candidate_paths(device)
     timed = {r["fast path"]: r["ms"] for r in rows if r["fast path"] in candidates and pd.notna(r.get("ms"))}
+    if chosen not in timed:
+        check = "not timed in this table"
+    else:
+        fastest = min(timed, key=timed.get)
+        check = ("the fastest of them in this table" if fastest == chosen else
+                 f"but {fastest} was {timed[chosen] / timed[fastest]:.2f}x faster in this table")
     for row in rows:
         if row["fast path"] == chosen:
-            fastest = min(timed, key=timed.get)
-            check = ("the fastest of them in this table" if fastest == chosen else
-                     f"but {fastest} was {timed[chosen] / timed[fastest]:.2f}x faster in this table")
             row["note"] = "; ".join(n for n in (row.get("note"), f"fast_path=auto picks this of {candidates}, {check}")
                                     if isinstance(n, str) and n)
     log.info("speed: fast_path=auto picks %s for %s", chosen, type(model).__name__)
