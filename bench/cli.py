@@ -48,6 +48,10 @@ def hydra_output_dir(runs_dir: str) -> str:
 
 
 OmegaConf.register_new_resolver("hydra_output_dir", hydra_output_dir, replace=True)
+# Arithmetic for configs that scale with the preset, e.g. a crop twice the preset's but inside the frame:
+# ${min:${data.lr_height},${mul:2,${train.crop}}}
+OmegaConf.register_new_resolver("mul", lambda a, b: a * b, replace=True)
+OmegaConf.register_new_resolver("min", lambda *values: min(values), replace=True)
 
 
 def available_experiments() -> list[str]:
