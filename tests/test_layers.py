@@ -244,26 +244,28 @@ def test_the_kernel_ops_check_their_arguments():
     taps = torch.arange(9, dtype=torch.int64) % 3 - 1
     cols = torch.empty(30, 72)
     native.deform_columns(image, offset, None, cols, 0, 5, taps, taps)  # well-formed
-    bad_calls = {
-        "cols too small": lambda: native.deform_columns(image, offset, None, cols[:20], 0, 5, taps, taps),
-        "rows past the end": lambda: native.deform_columns(image, offset, None, cols, 3, 3, taps, taps),
-        "float64 image": lambda: native.deform_columns(image.double(), offset, None, cols, 0, 5, taps, taps),
-        "strided image": lambda: native.deform_columns(image.transpose(1, 2), offset, None, cols, 0, 5, taps, taps),
-        "int32 taps": lambda: native.deform_columns(image, offset, None, cols, 0, 5, taps.int(), taps),
-        "mask of 8 taps": lambda: native.deform_columns(image, offset, torch.ones(1, 8, 5, 6), cols, 0, 5, taps, taps),
-        "mask without its gradient": lambda: native.deform_columns_backward(
+    columns = lambda img=image, off=offset, mask=None, out=cols, r0=0, rows=5, ty=taps: \
+        native.deform_columns(img, off, mask, out, r0, rows, ty, taps)
+    nhwc = lambda t: t.contiguous(memory_format=torch.channels_last)
+    bad_calls = {  # what: (the error it must give, the call)
+        "cols too small": (r"cols: contiguous \(>= 30, 72\) expected", lambda: columns(out=cols[:20])),
+        "rows past the end": (r"rows 3\.\.5 outside 0\.\.4", lambda: columns(r0=3, rows=3)),
+        "float64 image": (r"image: a 4-D float32 or bfloat16 tensor", lambda: columns(img=image.double())),
+        "strided image": (r"image: \(B, H, W, C\) contiguous", lambda: columns(img=image.transpose(1, 2))),
+        "int32 taps": (r"tap_y: 9 contiguous int64", lambda: columns(ty=taps.int())),
+        "mask of 8 taps": (r"mask: \(1, 9, 5, 6\) expected", lambda: columns(mask=torch.ones(1, 8, 5, 6))),
+        "mask without its gradient": (r"mask and its gradient: both or neither", lambda: native.deform_columns_backward(
             image, offset, torch.ones(1, 9, 5, 6), torch.zeros(30, 72), taps, taps, torch.zeros_like(image),
-            torch.zeros_like(offset), None),
-        "CFM at 35 channels": lambda: native.cfm_affine(
-            torch.randn(1, 35, 4, 4).contiguous(memory_format=torch.channels_last),
-            torch.randn(1, 8, 4, 4).contiguous(memory_format=torch.channels_last), torch.zeros(8, 70),
-            torch.zeros(70), False, torch.empty(1, 35, 4, 4).contiguous(memory_format=torch.channels_last)),
-        "CFM on NCHW": lambda: native.cfm_affine(torch.randn(1, 16, 4, 4), torch.randn(1, 8, 4, 4),
-                                                 torch.zeros(8, 32), torch.zeros(32), False,
-                                                 torch.empty(1, 16, 4, 4)),
+            torch.zeros_like(offset), None)),
+        "CFM at 35 channels": (r"x: \(16, 32, 64\) channels expected, got 35", lambda: native.cfm_affine(
+            nhwc(torch.randn(1, 35, 4, 4)), nhwc(torch.randn(1, 8, 4, 4)), torch.zeros(8, 70), torch.zeros(70),
+            False, nhwc(torch.empty(1, 35, 4, 4)))),
+        "CFM on NCHW": (r"x: channels-last", lambda: native.cfm_affine(
+            torch.randn(1, 16, 4, 4), torch.randn(1, 8, 4, 4), torch.zeros(8, 32), torch.zeros(32), False,
+            torch.empty(1, 16, 4, 4))),
     }
-    for what, call in bad_calls.items():
-        with pytest.raises(ValueError):
+    for what, (message, call) in bad_calls.items():
+        with pytest.raises(ValueError, match=message):
             call()
             pytest.fail(f"accepted: {what}")
     native.deform_columns(image.to("meta"), offset.to("meta"), None, cols[:1].to("meta"), 0, 5, taps, taps)
