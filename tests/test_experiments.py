@@ -11,6 +11,7 @@ from hydra import compose, initialize_config_dir
 from omegaconf import OmegaConf
 
 from bench.cli import CONF_DIR, run_experiment
+from bench.errors import UserError
 from bench.experiments.table import expand_rows, paper_agreement, reference_check, shard_units
 from bench.models.srd import SRDNet, SRDStage, load_stage
 from bench.paper import paper_values
@@ -200,6 +201,22 @@ def test_claim_verdicts_follow_twice_the_standard_error(tmp_path):
     s = table.set_index("claim").loc["S1 beats S2"]
     assert s["basis"] == "seeds (2, 2)" and s["PSNR 2SE"] == pytest.approx(2 * (0.01 / 2 + 0.01 / 2) ** 0.5)
     assert table.set_index("claim").loc["A beats B", "basis"] == "4 sequences, 1 seed"
+
+    # a row no recorded table has, or a table not run: that claim is "not run" (and says what to run),
+    # every other claim is still judged; with nothing recorded at all, a clear error
+    missing = [{"claim": "needs a row added later", "better": "t:A", "worse": ["t:B", "t:D"]},
+               {"claim": "needs a table not run", "better": "t:A", "worse": "other:X"}]
+    table = claims.run(ctx, "claims", claim_list + missing, "PSNR", tables=None)
+    verdicts = table.drop_duplicates("claim").set_index("claim")["verdict"].to_dict()
+    assert verdicts["needs a row added later"] == verdicts["needs a table not run"] == "not run"
+    assert verdicts["A beats B"] == "holds" and verdicts["both"] == "within noise"
+    later = table[table["claim"] == "needs a row added later"].set_index("worse (paper)")
+    assert later.loc["t:B", "PSNR verdict"] == "holds" and later.loc["t:D", "PSNR verdict"] == "not run"
+    assert "no row 'D'" in later.loc["t:D", "basis"] and "+experiment=t" in later.loc["t:D", "basis"]
+    not_run = table.set_index("claim").loc["needs a table not run"]
+    assert "does not exist" in not_run["basis"] and "+experiment=other" in not_run["basis"]
+    with pytest.raises(UserError, match="no claim's rows are all recorded"):
+        claims.run(ctx, "claims", missing[1:], "PSNR", tables=None)
 
 
 def test_reference_check_counts_frames_whose_reference_error_is_below_a_tenth_of_the_best_rows():

@@ -249,3 +249,23 @@ def test_auto_choice_notes_a_path_the_table_did_not_time_and_survives_a_machine_
         raise RuntimeError("no fast path runs this model here: {}")
     monkeypatch.setattr(speed, "choose_fast_path", nothing_runs)
     assert speed.note_auto_choice(rows, torch.nn.Identity(), None, None, "cpu", 1) is None
+
+
+def test_auto_choice_names_a_faster_path_its_accuracy_check_refused(monkeypatch):
+    """bf16 timed faster but refused by the chooser's accuracy check is not reported as auto's mistake:
+    the note names the refused path, its speed-up and the reason; a faster accepted path still is."""
+    import bench.experiments.speed as speed
+    monkeypatch.setattr(speed, "candidate_paths", lambda device: ["fp32", "channels_last", "channels_last+bf16"])
+    measured = {"fp32": 8.0, "channels_last": 5.0, "channels_last+bf16": "off by 0.06 of the output range"}
+    monkeypatch.setattr(speed, "choose_fast_path", lambda *a, **k: ("channels_last", measured))
+    rows = [{"fast path": "fp32", "ms": 8.5}, {"fast path": "channels_last", "ms": 5.5},
+            {"fast path": "channels_last+bf16", "ms": 2.2}]
+    assert speed.note_auto_choice(rows, None, None, None, "cpu", 1) == "channels_last"
+    assert rows[1]["note"] == ("fast_path=auto picks this of ['fp32', 'channels_last', 'channels_last+bf16'], "
+                               "the fastest of them in this table; channels_last+bf16 ran 2.50x faster here, "
+                               "refused: off by 0.06 of the output range")
+    # an accepted path the table measured faster is still auto's miss
+    rows = [{"fast path": "fp32", "ms": 4.0}, {"fast path": "channels_last", "ms": 5.0},
+            {"fast path": "channels_last+bf16", "ms": 6.0}]
+    speed.note_auto_choice(rows, None, None, None, "cpu", 1)
+    assert rows[1]["note"].endswith("but fp32 was 1.25x faster in this table")

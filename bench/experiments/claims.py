@@ -12,7 +12,9 @@ Verdict: |difference| < 2 SE is "within noise"; otherwise "holds" or "reversed".
 several pairs holds when all of them hold, is reversed when any is reversed, and is within noise else.
 
 The rows are read from the tables' CSVs (views of the run store) and their evaluation runs: run the
-tables first (`+experiment=all` lists claims last). Writes `<results_dir>/claims/table.{csv,md,tex}`.
+tables first (`+experiment=all` lists claims last). A claim with a row that no recorded table has (its
+table not run, or run before the row was added) is listed as "not run", with the command that records
+it; the others are still judged. Writes `<results_dir>/claims/table.{csv,md,tex}`.
 """
 from __future__ import annotations
 
@@ -29,14 +31,18 @@ from bench.table_writer import write_table
 log = logging.getLogger("bench")
 
 METRICS = {"PSNR": 1, "SSIM": 1, "relMSE": -1}   # +1: higher is better
+NOT_RUN = "not run"   # the verdict of a claim with a row missing from the recorded tables
+
+
+class MissingRow(LookupError):
+    """A claim's row is not in the recorded tables (its table not run, or run before the row existed)."""
 
 
 def _table(ctx: Context, name: str, cache: dict) -> pd.DataFrame:
     if name not in cache:
         path = ctx.results_dir / name / "table.csv"
         if not path.exists():
-            raise UserError(f"claims: {path} does not exist; run `python -m bench +experiment={name} "
-                            f"preset={ctx.preset}` first")
+            raise MissingRow(f"{path} does not exist: run `python -m bench +experiment={name} preset={ctx.preset}`")
         cache[name] = pd.read_csv(path)
     return cache[name]
 
@@ -46,7 +52,8 @@ def _row(ctx: Context, ref: str, cache: dict) -> pd.Series:
     table = _table(ctx, name, cache)
     found = table[table["method"] == label]
     if found.empty:
-        raise UserError(f"claims: no row {label!r} in {name} (rows: {', '.join(table['method'])})")
+        raise MissingRow(f"no row {label!r} in {ctx.results_dir / name / 'table.csv'}: rerun "
+                         f"`python -m bench +experiment={name} preset={ctx.preset}`")
     return found.iloc[0]
 
 
@@ -80,6 +87,8 @@ def verdict(diff: float, se: float) -> str:
 
 
 def combine(verdicts: list[str]) -> str:
+    if NOT_RUN in verdicts:
+        return NOT_RUN
     if all(v == "holds" for v in verdicts):
         return "holds"
     return "reversed" if "reversed" in verdicts else "within noise"
@@ -102,14 +111,21 @@ def run(ctx: Context, name: str, claims: list[dict], metric: str, tables: list[s
         pairs = [(claim["better"], worse) for worse in
                  ([claim["worse"]] if isinstance(claim["worse"], str) else claim["worse"])]
         for better_ref, worse_ref in pairs:
-            better, worse = _row(ctx, better_ref, cache), _row(ctx, worse_ref, cache)
             row = {"claim": claim["claim"], "better (paper)": better_ref, "worse (paper)": worse_ref}
+            try:
+                better, worse = _row(ctx, better_ref, cache), _row(ctx, worse_ref, cache)
+            except MissingRow as missing:  # judged when its table has it; the others still are
+                log.warning("claims: %r not judged: %s", claim["claim"], missing)
+                rows.append({**row, **{f"{m} verdict": NOT_RUN for m in METRICS}, "basis": str(missing)})
+                continue
             for m in METRICS:
                 c = compare(ctx, better, worse, m)
                 row[f"{m} diff"], row[f"{m} 2SE"], row[f"{m} verdict"] = c["diff"], 2 * c["se"], verdict(c["diff"], c["se"])
                 row["basis"] = c["basis"]
             rows.append(row)
     table = pd.DataFrame(rows)
+    if (table[f"{metric} verdict"] == NOT_RUN).all():
+        raise UserError("claims: no claim's rows are all recorded: " + "; ".join(table["basis"].unique()))
     table.insert(1, "verdict", table.groupby("claim", sort=False)[f"{metric} verdict"].transform(
         lambda v: combine(list(v))))
     write_table(table, ctx.results_dir / name, caption=(
@@ -118,7 +134,8 @@ def run(ctx: Context, name: str, claims: list[dict], metric: str, tables: list[s
         f"better). 2SE: twice the standard error, over seeds when both rows have several, else over the "
         f"per-sequence paired differences of one seed (data noise only). A pair's verdict: within noise when "
         f"|diff| < 2SE, else holds or reversed. verdict (the claim, on {metric}): holds when every pair "
-        f"holds, reversed when any is reversed, else within noise."
+        f"holds, reversed when any is reversed, else within noise; {NOT_RUN}: a row is missing from the recorded "
+        f"tables (basis says which and the command that records it)."
         + (f" Judged: the claims made of rows of {', '.join(tables)} only." if tables is not None else "")))
     log.info("%s: %d comparisons, %s", name, len(table),
              ", ".join(f"{c}: {v}" for c, v in table.drop_duplicates("claim")[["claim", "verdict"]].values))

@@ -231,21 +231,27 @@ def inference_rows(label: str, model, macs: int, x, g, paths, device, repeats, w
 def note_auto_choice(rows: list[dict], model, x, g, device, repeats) -> str | None:
     """Which path `fast_path=auto` picks for `model` on this machine (bench.measure.choose_fast_path,
     measured afresh), noted on that path's row of `rows` (the model's inference rows) with a check:
-    whether this table measured it as the fastest of auto's candidates, or which one beat it. None,
-    and a warning, when no path runs the model."""
+    whether this table measured it as the fastest of the candidates auto accepted, or which one beat
+    it, and which faster paths auto refused and why (bf16 off by more than measure.TOLERANCE with these
+    weights, say). None, and a warning, when no path runs the model."""
     try:
-        chosen, _ = choose_fast_path(model, x, g, device, cache=None, key={}, repeats=repeats)
+        chosen, measured = choose_fast_path(model, x, g, device, cache=None, key={}, repeats=repeats)
     except RuntimeError as err:
         log.warning("speed: fast_path=auto has nothing to pick for %s: %s", type(model).__name__, err)
         return None
     candidates = candidate_paths(device)
+    refused = {path: why for path, why in measured.items() if isinstance(why, str)}  # "off by ...", "failed: ..."
     timed = {r["fast path"]: r["ms"] for r in rows if r["fast path"] in candidates and pd.notna(r.get("ms"))}
     if chosen not in timed:
         check = "not timed in this table"
     else:
-        fastest = min(timed, key=timed.get)
+        # the fastest path auto could have taken: a path its accuracy check refused is no rival
+        fastest = min((p for p in timed if p not in refused), key=timed.get, default=chosen)
         check = ("the fastest of them in this table" if fastest == chosen else
                  f"but {fastest} was {timed[chosen] / timed[fastest]:.2f}x faster in this table")
+        faster_refused = [p for p in timed if p in refused and timed[p] < timed[chosen]]
+        check += "".join(f"; {p} ran {timed[chosen] / timed[p]:.2f}x faster here, refused: {refused[p]}"
+                         for p in faster_refused)
     for row in rows:
         if row["fast path"] == chosen:
             row["note"] = "; ".join(n for n in (row.get("note"), f"fast_path=auto picks this of {candidates}, {check}")
