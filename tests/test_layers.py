@@ -184,6 +184,28 @@ def test_deform_propagates_nan_offsets_to_their_pixel_only():
     assert torch.isnan(out[0, :, 2, 3]).all() and torch.isnan(out).sum() == 3
 
 
+
+@pytest.mark.parametrize("grad", [False, True])
+def test_deform_on_an_empty_input_does_what_conv2d_does(grad):
+    """An empty batch gives the empty output nn.Conv2d gives, with and without autograd (gradients flow,
+    as zeros); no rows or columns raise conv2d's own error (not the samplers' internals)."""
+    w = torch.randn(3, 4, 3, 3, requires_grad=grad)
+    x = torch.randn(0, 4, 6, 5, requires_grad=grad)
+    with torch.set_grad_enabled(grad):
+        out = deform_conv2d(x, torch.zeros(0, 18, 6, 5), w)
+    assert out.shape == (0, 3, 6, 5)
+    if grad:
+        out.sum().backward()
+        assert x.grad.shape == x.shape and w.grad.abs().sum() == 0
+    for shape in ((1, 4, 0, 5), (1, 4, 6, 0)):
+        x = torch.randn(*shape)
+        with pytest.raises(RuntimeError) as conv_error:
+            F.conv2d(x, w.detach(), padding=1)
+        with torch.set_grad_enabled(grad), pytest.raises(RuntimeError) as deform_error:
+            deform_conv2d(x.requires_grad_(grad), torch.zeros(1, 18, *shape[2:]), w)
+        assert str(deform_error.value) == str(conv_error.value)
+
+
 # ---- the compiled columns sampler (bench/nn/cpu_kernels.cpp, the CPU inference default) -------
 
 def require_cpu_kernels():
@@ -236,8 +258,8 @@ def columns_only(monkeypatch, kernel_target):
 
 def test_the_kernel_ops_check_their_arguments():
     """The custom ops refuse what the kernels' raw pointers would misread: wrong dtypes, shapes,
-    layouts, row ranges, a gradient without its tensor. On meta tensors (shape-only MAC counting) they
-    do nothing."""
+    layouts, row ranges, a gradient without its tensor, CPU and meta tensors mixed. On meta tensors
+    alone (shape-only MAC counting) they do nothing."""
     from bench.nn import native
     require_cpu_kernels()
     image, offset = torch.randn(1, 5, 6, 8), torch.zeros(1, 18, 5, 6)
@@ -263,6 +285,15 @@ def test_the_kernel_ops_check_their_arguments():
         "CFM on NCHW": (r"x: channels-last", lambda: native.cfm_affine(
             torch.randn(1, 16, 4, 4), torch.randn(1, 8, 4, 4), torch.zeros(8, 32), torch.zeros(32), False,
             torch.empty(1, 16, 4, 4))),
+        # the dispatcher sends a CPU/meta mix to the meta (do-nothing) kernel: it must refuse, not skip
+        "offsets on meta": (r"deform_columns: tensors on one device expected, got \['cpu', 'meta'\]",
+                            lambda: columns(off=offset.to("meta"))),
+        "CFM output on meta": (r"cfm_affine: tensors on one device expected", lambda: native.cfm_affine(
+            nhwc(torch.randn(1, 16, 4, 4)), nhwc(torch.randn(1, 8, 4, 4)), torch.zeros(8, 32), torch.zeros(32),
+            False, torch.empty(1, 16, 4, 4, device="meta"))),
+        "gradient on meta": (r"deform_columns_backward: tensors on one device expected", lambda:
+                             native.deform_columns_backward(image, offset, None, torch.zeros(30, 72), taps, taps,
+                                                            torch.zeros_like(image), offset.to("meta"), None)),
     }
     for what, (message, call) in bad_calls.items():
         with pytest.raises(ValueError, match=message):

@@ -233,3 +233,28 @@ def cfm_affine(x: torch.Tensor, cond: torch.Tensor, weight: torch.Tensor, bias: 
                                    weight.data_ptr(), bias.data_ptr(), int(relu), out.data_ptr(),
                                    torch.get_num_threads())
     _require(status == 0, f"cfm_affine failed ({status}) for {c} channels")
+
+
+# ---- on meta tensors (shape-only runs: MAC counting) the ops do nothing -----------------------------
+# A mutating op that returns None would get a do-nothing fake kernel by default, and the dispatcher
+# sends a call that mixes CPU and meta tensors there too; these refuse the mix, as aten ops do.
+
+def _all_meta(op: str, *tensors: Optional[torch.Tensor]) -> None:
+    devices = {t.device.type for t in tensors if t is not None}
+    _require(devices == {"meta"}, f"{op}: tensors on one device expected, got {sorted(devices)}")
+
+
+@deform_columns.register_fake
+def _(image, offset, mask, cols, row0, rows, tap_y, tap_x):
+    _all_meta("deform_columns", image, offset, mask, cols)
+
+
+@deform_columns_backward.register_fake
+def _(image, offset, mask, grad_cols, tap_y, tap_x, grad_image, grad_offset, grad_mask):
+    _all_meta("deform_columns_backward", image, offset, mask, grad_cols, grad_image, grad_offset, grad_mask)
+
+
+@cfm_affine.register_fake
+def _(x, cond, weight, bias, relu, out):
+    _all_meta("cfm_affine", x, cond, weight, bias, out)
+
