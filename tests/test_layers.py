@@ -204,6 +204,13 @@ def test_deform_on_an_empty_input_does_what_conv2d_does(grad):
         with torch.set_grad_enabled(grad), pytest.raises(RuntimeError) as deform_error:
             deform_conv2d(x.requires_grad_(grad), torch.zeros(1, 18, *shape[2:]), w)
         assert str(deform_error.value) == str(conv_error.value)
+    # no input rows but output pixels (a 1x1 kernel over the padding alone): conv2d's error too
+    x, w1 = torch.randn(1, 4, 0, 5), torch.randn(3, 4, 1, 1)
+    with pytest.raises(RuntimeError) as conv_error:
+        F.conv2d(x, w1, padding=1)
+    with pytest.raises(RuntimeError) as deform_error:
+        deform_conv2d(x, torch.zeros(1, 2, 2, 7), w1, padding=1)
+    assert str(deform_error.value) == str(conv_error.value)
 
 
 # ---- the compiled columns sampler (bench/nn/cpu_kernels.cpp, the CPU inference default) -------
@@ -300,6 +307,29 @@ def test_the_kernel_ops_check_their_arguments():
             call()
             pytest.fail(f"accepted: {what}")
     native.deform_columns(image.to("meta"), offset.to("meta"), None, cols[:1].to("meta"), 0, 5, taps, taps)
+
+
+def test_the_kernel_ops_trace_under_torch_compile():
+    """torch.compile runs the ops' fake kernels on fake tensors (which report the CPU, not meta): they
+    must trace (the `compile` fast path of every model with deformable convs or CFMs), and give the
+    eager result. backend="eager": tracing only, seconds."""
+    from bench.nn import native
+    require_cpu_kernels()
+    nhwc = lambda t: t.contiguous(memory_format=torch.channels_last)
+    taps = torch.arange(9, dtype=torch.int64) % 3 - 1
+
+    def ops(image, offset, x, cond):
+        cols = torch.empty(30, 72)
+        native.deform_columns(image, offset, None, cols, 0, 5, taps, taps)
+        out = torch.empty_like(x)
+        native.cfm_affine(x, cond, torch.ones(8, 32), torch.zeros(32), True, out)
+        return cols, out
+
+    args = (torch.randn(1, 5, 6, 8), torch.randn(1, 18, 5, 6), nhwc(torch.randn(1, 16, 4, 4)),
+            nhwc(torch.randn(1, 8, 4, 4)))
+    torch._dynamo.reset()
+    for compiled, eager in zip(torch.compile(ops, backend="eager", fullgraph=True)(*args), ops(*args)):
+        torch.testing.assert_close(compiled, eager)
 
 
 def test_the_avx512_bf16_branch_compiles(tmp_path):

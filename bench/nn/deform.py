@@ -357,7 +357,7 @@ def deform_conv2d(x, offset, weight, bias=None, padding=1, dilation=1, mask=None
     out_w = in_w + 2 * padding - dilation * (kw - 1)
     if offset.shape != (b, 2 * taps, out_h, out_w):
         raise ValueError(f"offset must be {(b, 2 * taps, out_h, out_w)}, got {tuple(offset.shape)}")
-    if 0 in (b, out_h, out_w):  # no pixels: what nn.Conv2d does (empty output or its error)
+    if 0 in (b, in_h, in_w, out_h, out_w):  # no pixels: what nn.Conv2d does (empty output or its error)
         return F.conv2d(x, weight, bias, padding=padding, dilation=dilation)
     needs_grad = torch.is_grad_enabled() and any(
         t is not None and t.requires_grad for t in (x, offset, weight, bias, mask))
