@@ -215,7 +215,10 @@ def test_claim_verdicts_follow_twice_the_standard_error(tmp_path):
     assert "no row 'D'" in later.loc["t:D", "basis"] and "+experiment=t" in later.loc["t:D", "basis"]
     not_run = table.set_index("claim").loc["needs a table not run"]
     assert "does not exist" in not_run["basis"] and "+experiment=other" in not_run["basis"]
-    with pytest.raises(UserError, match="no claim's rows are all recorded"):
+    reversed_and_missing = {"claim": "a reversal decides", "better": "t:B", "worse": ["t:A", "t:D"]}
+    table = claims.run(ctx, "claims", [reversed_and_missing], "PSNR", tables=None)
+    assert set(table["verdict"]) == {"reversed"} and list(table.columns[-1:]) == ["basis"]
+    with pytest.raises(UserError, match="none of the claims' rows are recorded"):
         claims.run(ctx, "claims", missing[1:], "PSNR", tables=None)
 
 

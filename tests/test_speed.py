@@ -187,7 +187,7 @@ def test_speed_experiment_writes_every_section(tmp_path):
     picked = inference[notes.str.contains("fast_path=auto picks this")]
     assert sorted(picked.method) == sorted(labels)
     assert set(picked["fast path"]) <= {"fp32", "channels_last", "bf16", "channels_last+bf16"}
-    assert picked["note"].str.contains("the fastest of them in this table|faster in this table").all()
+    assert picked["note"].str.contains("the fastest in this table of those|faster in this table").all()
     steps = table[table.section == "training step"]
     stack = steps[steps.method.str.startswith("3x3 conv stack")]
     assert sorted(set(steps.method) - set(stack.method)) == sorted(labels) and len(stack) == 1
@@ -262,7 +262,8 @@ def test_auto_choice_names_a_faster_path_its_accuracy_check_refused(monkeypatch)
             {"fast path": "channels_last+bf16", "ms": 2.2}]
     assert speed.note_auto_choice(rows, None, None, None, "cpu", 1) == "channels_last"
     assert rows[1]["note"] == ("fast_path=auto picks this of ['fp32', 'channels_last', 'channels_last+bf16'], "
-                               "the fastest of them in this table; channels_last+bf16 ran 2.50x faster here, "
+                               "the fastest in this table of those its accuracy check accepted; channels_last+bf16 ran 2.50x "
+                               "faster here, "
                                "refused: off by 0.06 of the output range")
     # an accepted path the table measured faster is still auto's miss
     rows = [{"fast path": "fp32", "ms": 4.0}, {"fast path": "channels_last", "ms": 5.0},

@@ -87,11 +87,12 @@ def verdict(diff: float, se: float) -> str:
 
 
 def combine(verdicts: list[str]) -> str:
+    """A claim's verdict from its pairs': a reversed pair decides it even with another pair not run."""
+    if "reversed" in verdicts:
+        return "reversed"
     if NOT_RUN in verdicts:
         return NOT_RUN
-    if all(v == "holds" for v in verdicts):
-        return "holds"
-    return "reversed" if "reversed" in verdicts else "within noise"
+    return "holds" if all(v == "holds" for v in verdicts) else "within noise"
 
 
 def _tables_of(claim: dict) -> set[str]:
@@ -123,11 +124,13 @@ def run(ctx: Context, name: str, claims: list[dict], metric: str, tables: list[s
                 row[f"{m} diff"], row[f"{m} 2SE"], row[f"{m} verdict"] = c["diff"], 2 * c["se"], verdict(c["diff"], c["se"])
                 row["basis"] = c["basis"]
             rows.append(row)
-    table = pd.DataFrame(rows)
-    if (table[f"{metric} verdict"] == NOT_RUN).all():
-        raise UserError("claims: no claim's rows are all recorded: " + "; ".join(table["basis"].unique()))
+    columns = ["claim", "better (paper)", "worse (paper)", *(f"{m} {c}" for m in METRICS
+                                                             for c in ("diff", "2SE", "verdict")), "basis"]
+    table = pd.DataFrame(rows, columns=columns)   # the same columns whichever claim comes first
     table.insert(1, "verdict", table.groupby("claim", sort=False)[f"{metric} verdict"].transform(
         lambda v: combine(list(v))))
+    if (table[f"{metric} verdict"] == NOT_RUN).all():   # not one pair recorded: nothing to judge
+        raise UserError("claims: none of the claims' rows are recorded: " + "; ".join(table["basis"].unique()))
     write_table(table, ctx.results_dir / name, caption=(
         f"The paper's claims at preset {ctx.preset}, from the recorded tables. diff: the better row minus the "
         f"worse one as the paper orders them, signed so that > 0 supports the claim (relMSE: worse minus "
@@ -135,7 +138,7 @@ def run(ctx: Context, name: str, claims: list[dict], metric: str, tables: list[s
         f"per-sequence paired differences of one seed (data noise only). A pair's verdict: within noise when "
         f"|diff| < 2SE, else holds or reversed. verdict (the claim, on {metric}): holds when every pair "
         f"holds, reversed when any is reversed, else within noise; {NOT_RUN}: a row is missing from the recorded "
-        f"tables (basis says which and the command that records it)."
+        f"tables (basis says which and the command that records it) and no recorded pair is reversed."
         + (f" Judged: the claims made of rows of {', '.join(tables)} only." if tables is not None else "")))
     log.info("%s: %d comparisons, %s", name, len(table),
              ", ".join(f"{c}: {v}" for c, v in table.drop_duplicates("claim")[["claim", "verdict"]].values))

@@ -247,7 +247,7 @@ def note_auto_choice(rows: list[dict], model, x, g, device, repeats) -> str | No
     else:
         # the fastest path auto could have taken: a path its accuracy check refused is no rival
         fastest = min((p for p in timed if p not in refused), key=timed.get, default=chosen)
-        check = ("the fastest of them in this table" if fastest == chosen else
+        check = ("the fastest in this table of those its accuracy check accepted" if fastest == chosen else
                  f"but {fastest} was {timed[chosen] / timed[fastest]:.2f}x faster in this table")
         faster_refused = [p for p in timed if p in refused and timed[p] < timed[chosen]]
         check += "".join(f"; {p} ran {timed[chosen] / timed[p]:.2f}x faster here, refused: {refused[p]}"
