@@ -252,10 +252,14 @@ def note_auto_choice(rows: list[dict], model, x, g, device, repeats) -> str | No
         faster_refused = [p for p in timed if p in refused and timed[p] < timed[chosen]]
         check += "".join(f"; {p} ran {timed[chosen] / timed[p]:.2f}x faster here, refused: {refused[p]}"
                          for p in faster_refused)
-    for row in rows:
-        if row["fast path"] == chosen:
-            row["note"] = "; ".join(n for n in (row.get("note"), f"fast_path=auto picks this of {candidates}, {check}")
-                                    if isinstance(n, str) and n)
+    on_its_row = [row for row in rows if row["fast path"] == chosen]
+    # a path the table has no row for (channels_last+bf16 where only the default paths were timed):
+    # said on the model's first row
+    targets = on_its_row or rows[:1]
+    said = (f"fast_path=auto picks this of {candidates}, {check}" if on_its_row else
+            f"fast_path=auto picks {chosen} of {candidates}, {check}")
+    for row in targets:
+        row["note"] = "; ".join(n for n in (row.get("note"), said) if isinstance(n, str) and n)
     log.info("speed: fast_path=auto picks %s for %s", chosen, type(model).__name__)
     return chosen
 
