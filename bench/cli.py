@@ -128,7 +128,8 @@ def make_context(cfg: DictConfig):
                    device=plain["device"], workers=plain["workers"], force=plain["force"],
                    progress=plain["progress"], render_data=plain["render_data"],
                    model_lr=plain.get("model_lr") or {}, shard=parse_shard(plain.get("shard")),
-                   reuse_stale=plain["reuse_stale"])
+                   reuse_stale=plain["reuse_stale"],
+                   runs_archive=Path(plain["runs_archive"]) if plain.get("runs_archive") else None)
 
 
 def parse_shard(value) -> tuple[int, int] | None:

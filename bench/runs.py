@@ -107,10 +107,13 @@ def _json_default(value):
     return str(value)
 
 
-def lookup(runs_dir: str | Path, kind: str, identity: dict) -> Run | None:
-    """The complete run with this identity, or None."""
+def lookup(runs_dir: str | Path, kind: str, identity: dict, archive: str | Path | None = None) -> Run | None:
+    """The complete run with this identity, or None; with `archive`, one the store lacks is first
+    restored from there (`restore`)."""
     h = config_hash(identity)
     path = Path(runs_dir) / kind / h / RECORD
+    if archive is not None:
+        restore(runs_dir, archive, kind, h)
     if not path.exists():
         return None
     record = read_record(path)
@@ -131,16 +134,17 @@ def wall_time_s(runs_dir: str | Path, kind: str, hashes: str | None) -> float:
 
 def begin(runs_dir: str | Path, kind: str, identity: dict, config: dict | None = None,
           seed: int | None = None, device: str = "cpu", label: str = "", force: bool = False,
-          code: dict | None = None, reuse_stale: bool = False) -> Run:
+          code: dict | None = None, reuse_stale: bool = False, archive: str | Path | None = None) -> Run:
     """Reuse a complete run, or open (or re-open, to resume) its directory for computing.
 
     Check `run.reused`: when True the caller must not recompute. With `force`, an existing directory is
     wiped first so nothing stale (checkpoints, outputs) survives. `code` is the run's code fingerprint
     (`code_fingerprint`); a recorded run computed with other code is recomputed from scratch, its
-    checkpoints included, unless `reuse_stale`.
+    checkpoints included, unless `reuse_stale`. `archive`: a run the store lacks is restored from there
+    first (`restore`), and then reused like any recorded run.
     """
     if not force:
-        done = _reusable(runs_dir, kind, identity, code, reuse_stale, label, quiet=True)
+        done = _reusable(runs_dir, kind, identity, code, reuse_stale, label, quiet=True, archive=archive)
         if done is not None:
             return done
     h = config_hash(identity)
@@ -177,9 +181,9 @@ def begin(runs_dir: str | Path, kind: str, identity: dict, config: dict | None =
 
 
 def _reusable(runs_dir, kind: str, identity: dict, code: dict | None, reuse_stale: bool,
-              label: str, quiet: bool = False) -> Run | None:
+              label: str, quiet: bool = False, archive: str | Path | None = None) -> Run | None:
     """The complete run to reuse, or None; `quiet`: a first look before the lock, which logs nothing."""
-    done = lookup(runs_dir, kind, identity)
+    done = lookup(runs_dir, kind, identity, archive)
     if done is None:
         return None
     done.stale = code_changes(done.record, code)
@@ -195,6 +199,62 @@ def _reusable(runs_dir, kind: str, identity: dict, code: dict | None, reuse_stal
     log.info("%s %s: recomputing run %s, its code changed since it was recorded (%s); "
              "reuse_stale=true would reuse it", kind, label, done.hash, changed)
     return None
+
+
+# ---------------------------------------------------------------- the archive
+# The run store lives on one disk and may be lost (a fresh clone, a new machine); finished runs are
+# worth keeping with the tables they make. The archive is a second store of the same layout that holds
+# only complete runs, each with the small files a table reads again (its record, curves, per-frame
+# scores, slimmed weights): it can be committed, and a store that lacks a run restores it from there.
+
+
+def archive(run: Run, archive_dir: str | Path, files: tuple = (), write=None) -> Path | None:
+    """Copy a complete run into `archive_dir/<kind>/<hash>/`: its record, the `files` of its directory
+    that exist, and what `write(directory)` writes there (e.g. a slimmed checkpoint). The record is
+    compared first, so archiving an archived run again does nothing; the copy appears whole or not at
+    all (written beside it, then renamed). Returns the archived directory, or None for a run that is
+    not complete."""
+    if run.record.get("status") != "complete":
+        return None
+    dest = Path(archive_dir) / run.kind / run.hash
+    record = (run.dir / RECORD).read_bytes()
+    if (dest / RECORD).exists() and (dest / RECORD).read_bytes() == record:
+        return dest
+    dest.parent.mkdir(parents=True, exist_ok=True)
+    tmp = dest.parent / f".{run.hash}.{os.getpid()}.tmp"
+    shutil.rmtree(tmp, ignore_errors=True)
+    tmp.mkdir()
+    for name in files:
+        if (run.dir / name).exists():
+            shutil.copy2(run.dir / name, tmp / name)
+    if write is not None:
+        write(tmp)
+    (tmp / RECORD).write_bytes(record)
+    shutil.rmtree(dest, ignore_errors=True)
+    try:
+        tmp.rename(dest)
+    except OSError:  # another process archived it in the meantime
+        shutil.rmtree(tmp, ignore_errors=True)
+    return dest
+
+
+def restore(runs_dir: str | Path, archive_dir: str | Path, kind: str, run_hash: str) -> bool:
+    """Copy an archived complete run into the store when the store has no directory for it (an
+    interrupted run there is left to resume). Two processes restoring the same run: one copy wins."""
+    src, dst = Path(archive_dir) / kind / run_hash, Path(runs_dir) / kind / run_hash
+    if dst.exists() or not (src / RECORD).exists() or read_record(src / RECORD).get("status") != "complete":
+        return False
+    dst.parent.mkdir(parents=True, exist_ok=True)
+    tmp = dst.parent / f".{run_hash}.{os.getpid()}.restore"
+    shutil.rmtree(tmp, ignore_errors=True)
+    shutil.copytree(src, tmp)
+    try:
+        tmp.rename(dst)
+    except OSError:  # another process restored it first
+        shutil.rmtree(tmp, ignore_errors=True)
+        return False
+    log.info("runs: restored %s/%s from %s", kind, run_hash, archive_dir)
+    return True
 
 
 # ---------------------------------------------------------------- code identity

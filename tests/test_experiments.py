@@ -90,6 +90,30 @@ def test_rerun_trains_nothing(tables, caplog):
     assert "train Cascade (dn->SR) [dn stage]: reusing" in caplog.text
 
 
+def test_a_lost_run_store_is_rebuilt_from_the_archive_without_training(dirs, tmp_path, caplog):
+    """The run store may not survive (a fresh clone, a new machine): finished runs archived beside the
+    tables bring the table back, weights included (crops.png runs them), with nothing trained again."""
+    overrides, _ = dirs
+    mine = [o for o in overrides if not o.startswith(("runs_dir=", "results_dir="))]
+    mine += [f"results_dir={tmp_path / 'results'}", f"runs_archive={tmp_path / 'archive'}"]
+    run_experiment(compose_experiment("ipt", mine + [f"runs_dir={tmp_path / 'lost'}"]))
+    first = pd.read_csv(tmp_path / "results" / "ipt" / "table.csv")
+    weights = sorted((tmp_path / "archive" / "train").glob("*/checkpoint.pt"))
+    assert len(weights) == 4 and len(list((tmp_path / "archive" / "eval").glob("*/per_image.csv"))) == 4
+    slim = torch.load(weights[0], weights_only=False)
+    assert "optimizer" not in slim and slim["ema"] and slim["curve"]      # what evaluation and adopt read
+    (tmp_path / "results" / "ipt" / "crops.png").unlink()
+    with caplog.at_level("INFO", logger="bench"):
+        run_experiment(compose_experiment("ipt", mine + [f"runs_dir={tmp_path / 'fresh'}"]))
+    assert "4 of 4 rows reused" in caplog.text and "trained in" not in caplog.text
+    again = pd.read_csv(tmp_path / "results" / "ipt" / "table.csv")
+    pd.testing.assert_frame_equal(first[["method", "runs", "PSNR", "SSIM"]], again[["method", "runs", "PSNR", "SSIM"]])
+    assert (tmp_path / "results" / "ipt" / "crops.png").stat().st_size > 0
+    run_experiment(compose_experiment("claims", mine + [f"runs_dir={tmp_path / 'third'}"]))  # pairs per_image.csv
+    claims = pd.read_csv(tmp_path / "results" / "claims" / "table.csv")
+    assert claims.loc[claims["claim"].str.startswith("IPT"), "PSNR 2SE"].notna().all()
+
+
 def test_seeds_give_mean_and_std(dirs):
     overrides, root = dirs
     run_experiment(compose_experiment("perceptual", overrides + ["seeds=[0,1]", "++experiment.figure=false"]))

@@ -165,3 +165,36 @@ def test_a_run_left_running_by_a_dead_process_shows_as_abandoned_and_is_taken_ov
         taken = runs.begin(tmp_path, "train", {"model": "killed"})   # the next request says so and takes it over
     assert "which is gone (abandoned); taking it over" in caplog.text and taken.record["pid"] == os.getpid()
     taken.release()
+
+
+def test_archive_keeps_a_finished_run_that_a_lost_store_gets_back(tmp_path):
+    store, archive = tmp_path / "runs", tmp_path / "archive"
+    ident = {"model": "z", "seed": 0}
+    run = runs.begin(store, "train", ident, label="z")
+    (run.dir / "curve.csv").write_text("step,loss\n1,0.5\n")
+    (run.dir / "checkpoint.pt").write_text("weights and optimizer")
+    assert runs.archive(run, archive, ("curve.csv",)) is None           # running: nothing to keep yet
+    runs.complete(run, {"relMSE": 0.25})
+    kept = runs.archive(run, archive, ("curve.csv", "absent.csv"), write=lambda d: (d / "slim.pt").write_text("w"))
+    assert sorted(p.name for p in kept.iterdir()) == ["curve.csv", runs.RECORD, "slim.pt"]
+    assert not list(archive.glob("train/.*"))                            # no half-written copy left beside it
+    stamp = (kept / runs.RECORD).stat().st_mtime_ns
+    assert runs.archive(run, archive, ("curve.csv",)) == kept and (kept / runs.RECORD).stat().st_mtime_ns == stamp
+
+    lost = tmp_path / "fresh"                                            # a new clone: no run store
+    assert runs.lookup(lost, "train", ident) is None
+    back = runs.begin(lost, "train", ident, archive=archive)
+    assert back.reused and back.metrics["relMSE"] == 0.25 and (back.dir / "curve.csv").read_text().startswith("step")
+    assert not runs.restore(lost, archive, "train", back.hash)           # already there: left alone
+
+
+def test_an_interrupted_run_in_the_store_resumes_rather_than_being_replaced_from_the_archive(tmp_path):
+    store, archive, other = tmp_path / "runs", tmp_path / "archive", tmp_path / "other"
+    ident = {"model": "w"}
+    done = runs.begin(other, "train", ident)
+    runs.archive(runs.complete(done, {"relMSE": 0.1}), archive)
+    partial = runs.begin(store, "train", ident)
+    (partial.dir / "checkpoint.pt").write_text("partial")
+    partial.release()
+    again = runs.begin(store, "train", ident, archive=archive)
+    assert not again.reused and (again.dir / "checkpoint.pt").read_text() == "partial"

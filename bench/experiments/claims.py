@@ -24,6 +24,7 @@ import math
 import numpy as np
 import pandas as pd
 
+from bench import runs
 from bench.errors import UserError
 from bench.experiments.pipeline import Context
 from bench.table_writer import write_table
@@ -58,6 +59,8 @@ def _row(ctx: Context, ref: str, cache: dict) -> pd.Series:
 
 
 def _per_sequence(ctx: Context, eval_hash: str, metric: str) -> pd.Series:
+    if ctx.runs_archive is not None:  # a fresh clone: the committed archive has the tables' evaluations
+        runs.restore(ctx.runs_dir, ctx.runs_archive, "eval", eval_hash)
     path = ctx.runs_dir / "eval" / eval_hash / "per_image.csv"
     if not path.exists():
         raise UserError(f"claims: evaluation run {eval_hash} has no per_image.csv in {ctx.runs_dir}; "

@@ -39,7 +39,7 @@ from bench.macs import count_params
 from bench.measure import AUTO, choose_fast_path
 from bench.models.srd import SRDNet, SRDStage, load_stage
 from bench.tasks import CASCADE_STAGES, Task, get_task
-from bench.train import Recipe, TrainingDiverged, TrainingInterrupted, load_weights, train
+from bench.train import CHECKPOINT, Recipe, TrainingDiverged, TrainingInterrupted, load_weights, train
 
 log = logging.getLogger("bench")
 
@@ -88,6 +88,8 @@ class Context:
     model_lr: dict                                  # model name -> peak learning rate (else train.lr)
     shard: tuple[int, int] | None                   # (i, n): a table computes only its (row, seed) runs i, i+n, ...
     reuse_stale: bool                               # reuse runs whose code changed since they were recorded
+    runs_archive: Path | None = None                # finished trainings and evaluations kept with the results
+                                                    # (bench.runs.archive); None: the run store only
 
 
 # ---------------------------------------------------------------- models
@@ -362,7 +364,7 @@ def recorded_training(ctx: Context, cfg: dict, task: Task, seed: int) -> runs.Ru
         vgg_id = _loss_features(ctx)[1]
     except UserError:  # no VGG weights: nothing can have been trained with them here either
         return None
-    return runs.lookup(ctx.runs_dir, "train", _train_identity(ctx, cfg, task, seed, vgg_id, None))
+    return runs.lookup(ctx.runs_dir, "train", _train_identity(ctx, cfg, task, seed, vgg_id, None), ctx.runs_archive)
 
 
 def trained_model(ctx: Context, cfg: dict, task: Task, seed: int, label: str = "", load: bool = True,
@@ -382,9 +384,11 @@ def trained_model(ctx: Context, cfg: dict, task: Task, seed: int, label: str = "
     if not ctx.render_data:  # your own data: a frame the trainer cannot crop is named before a run is recorded
         check_training_frames(ctx)
     run = runs.begin(ctx.runs_dir, "train", identity, seed=seed, device=ctx.device, label=label,
-                     force=ctx.force, code=code_of(cfg, *TRAINING_CODE), reuse_stale=ctx.reuse_stale)
+                     force=ctx.force, code=code_of(cfg, *TRAINING_CODE), reuse_stale=ctx.reuse_stale,
+                     archive=ctx.runs_archive)
     if run.reused:
         log.info("train %s: reusing run %s", label or cfg["_target_"], run.hash)
+        archive_training(ctx, run)
         return (load_weights(model, run.dir, ctx.device) if load else None), run
     recipe = ctx.train
     if distributed.rank_and_size()[1] > 1:  # the other torchrun ranks (serve_trainings) join this training
@@ -396,7 +400,7 @@ def trained_model(ctx: Context, cfg: dict, task: Task, seed: int, label: str = "
                         distributed_ranks=True)
     except TrainingDiverged as err:
         if divergence_ends:  # a learning-rate range test: divergence is its result, recorded as such
-            runs.complete(run, {"diverged_at_step": err.step, "divergence": str(err)})
+            archive_training(ctx, runs.complete(run, {"diverged_at_step": err.step, "divergence": str(err)}))
             log.info("train %s: diverged at step %d (expected in a range test)", label, err.step)
             return model, run
         runs.fail(run, str(err))
@@ -408,7 +412,7 @@ def trained_model(ctx: Context, cfg: dict, task: Task, seed: int, label: str = "
     except BaseException as err:  # interrupted or crashed: the record says so; the checkpoint stays
         runs.fail(run, f"{type(err).__name__}: {err}")
         raise
-    runs.complete(run, summary)
+    archive_training(ctx, runs.complete(run, summary))
     log.info("train %s: trained in %.1f min (run %s)", label or cfg["_target_"], run.record["wall_time_s"] / 60,
              run.hash)
     return model, run
@@ -482,7 +486,7 @@ def evaluated(ctx: Context, cfg: dict, task: Task, seed: int, split: str, label:
     # a learned row's numbers also depend on the trainer: retraining it makes its evaluation stale too
     code = code_of(cfg, *EVALUATION_CODE, *(TRAINING_CODE if train_run is not None or cascade else ()))
     run = runs.begin(ctx.runs_dir, "eval", identity, seed=seed, device=ctx.device, label=label,
-                     force=ctx.force, code=code, reuse_stale=ctx.reuse_stale)
+                     force=ctx.force, code=code, reuse_stale=ctx.reuse_stale, archive=ctx.runs_archive)
     missing = [m for m in SCORES if f"{m} se" not in run.metrics] if run.reused else []
     if missing:  # recorded before the evaluator scored these: evaluating again is cheap, training is not
         log.info("eval %s: re-evaluating run %s, recorded without %s", label, run.hash, ", ".join(missing))
@@ -490,7 +494,7 @@ def evaluated(ctx: Context, cfg: dict, task: Task, seed: int, split: str, label:
                          force=True, code=code)
     if run.reused:
         log.info("eval %s: reusing run %s", label, run.hash)
-        return run
+        return archive_evaluation(ctx, run)
     if model is None:  # a recorded training whose weights trained_model did not read
         model = load_weights(build_model(cfg, task.scale), train_run.dir, ctx.device)
     try:
@@ -503,7 +507,31 @@ def evaluated(ctx: Context, cfg: dict, task: Task, seed: int, split: str, label:
     metrics["params"] = count_params(model)
     metrics["train_run"] = trained if isinstance(trained, str) else None
     metrics["vgg"] = (train_run.record["identity"].get("vgg") if train_run else None)
-    return runs.complete(run, metrics)
+    return archive_evaluation(ctx, runs.complete(run, metrics))
+
+
+def archive_training(ctx: Context, run: runs.Run) -> runs.Run:
+    """Keep a finished training in `ctx.runs_archive`: its record, curves and the weights evaluation
+    loads (EMA, else raw), without the optimizer state a finished run never resumes from."""
+    def slim_checkpoint(directory: Path) -> None:
+        if not (run.dir / CHECKPOINT).exists():  # a range test that diverged before its first checkpoint
+            return
+        state = torch.load(run.dir / CHECKPOINT, map_location="cpu", weights_only=False)
+        weights = {"ema": state["ema"], "model": None} if state.get("ema") else {"model": state["model"], "ema": None}
+        kept = {key: state.get(key) for key in ("step", "curve", "val_curve", "elapsed_s")}
+        torch.save({**weights, **kept}, directory / CHECKPOINT)  # what load_weights and adopt read
+
+    if ctx.runs_archive is not None:
+        runs.archive(run, ctx.runs_archive, ("curve.csv", "val_curve.csv"), write=slim_checkpoint)
+    return run
+
+
+def archive_evaluation(ctx: Context, run: runs.Run) -> runs.Run:
+    """Keep a finished evaluation in `ctx.runs_archive`: its record and per-frame scores (claims pair
+    them), not its output frames (`eval.save_exr`), which stay in the run store."""
+    if ctx.runs_archive is not None and not run.record["identity"].get("frames"):
+        runs.archive(run, ctx.runs_archive, ("per_image.csv",))
+    return run
 
 
 def measured_fast_path(ctx: Context, cfg: dict, task: Task, split: str, label: str) -> str:
