@@ -18,6 +18,7 @@ Layout: ``<runs_dir>/<kind>/<hash>/run.json`` plus the run's own artifacts besid
 from __future__ import annotations
 
 import ast
+import contextlib
 import fcntl
 import functools
 import getpass
@@ -144,7 +145,7 @@ def begin(runs_dir: str | Path, kind: str, identity: dict, config: dict | None =
     first (`restore`), and then reused like any recorded run.
     """
     if not force:
-        done = _reusable(runs_dir, kind, identity, code, reuse_stale, label, quiet=True, archive=archive)
+        done = _reusable(runs_dir, kind, identity, code, reuse_stale, label, quiet=True)
         if done is not None:
             return done
     h = config_hash(identity)
@@ -152,6 +153,8 @@ def begin(runs_dir: str | Path, kind: str, identity: dict, config: dict | None =
     ensure_writable(run_dir)
     lock = acquire(run_dir.parent / f".{h}.lock", f"computing {kind}/{h}")
     if not force:  # another process may have completed it while we waited for the lock
+        if archive is not None:
+            _restore_locked(runs_dir, archive, kind, h)
         done = _reusable(runs_dir, kind, identity, code, reuse_stale, label)
         if done is not None:
             lock.close()
@@ -181,9 +184,9 @@ def begin(runs_dir: str | Path, kind: str, identity: dict, config: dict | None =
 
 
 def _reusable(runs_dir, kind: str, identity: dict, code: dict | None, reuse_stale: bool,
-              label: str, quiet: bool = False, archive: str | Path | None = None) -> Run | None:
+              label: str, quiet: bool = False) -> Run | None:
     """The complete run to reuse, or None; `quiet`: a first look before the lock, which logs nothing."""
-    done = lookup(runs_dir, kind, identity, archive)
+    done = lookup(runs_dir, kind, identity)
     if done is None:
         return None
     done.stale = code_changes(done.record, code)
@@ -208,51 +211,75 @@ def _reusable(runs_dir, kind: str, identity: dict, code: dict | None, reuse_stal
 # scores, slimmed weights): it can be committed, and a store that lacks a run restores it from there.
 
 
+PARTIAL = ".partial"  # copies being written and the archive's locks: never a run, never committed
+
+
 def archive(run: Run, archive_dir: str | Path, files: tuple = (), write=None) -> Path | None:
     """Copy a complete run into `archive_dir/<kind>/<hash>/`: its record, the `files` of its directory
     that exist, and what `write(directory)` writes there (e.g. a slimmed checkpoint). The record is
-    compared first, so archiving an archived run again does nothing; the copy appears whole or not at
-    all (written beside it, then renamed). Returns the archived directory, or None for a run that is
-    not complete."""
-    if run.record.get("status") != "complete":
+    compared first, so archiving an archived run again does nothing. The copy is written in
+    `archive_dir/.partial/` and renamed into place under the archived run's lock, so a restore never
+    sees half of it. Returns the archived directory, or None for a run that is not complete or is stale
+    (its code changed: the archive keeps what current code computed)."""
+    if run.record.get("status") != "complete" or run.stale:
         return None
     dest = Path(archive_dir) / run.kind / run.hash
     record = (run.dir / RECORD).read_bytes()
     if (dest / RECORD).exists() and (dest / RECORD).read_bytes() == record:
         return dest
-    dest.parent.mkdir(parents=True, exist_ok=True)
-    tmp = dest.parent / f".{run.hash}.{os.getpid()}.tmp"
-    shutil.rmtree(tmp, ignore_errors=True)
-    tmp.mkdir()
-    for name in files:
-        if (run.dir / name).exists():
-            shutil.copy2(run.dir / name, tmp / name)
-    if write is not None:
-        write(tmp)
-    (tmp / RECORD).write_bytes(record)
-    shutil.rmtree(dest, ignore_errors=True)
+    partial = Path(archive_dir) / PARTIAL
+    partial.mkdir(parents=True, exist_ok=True)
+    tmp, old = partial / f"{run.kind}.{run.hash}.{os.getpid()}", partial / f"{run.kind}.{run.hash}.{os.getpid()}.old"
     try:
-        tmp.rename(dest)
-    except OSError:  # another process archived it in the meantime
+        tmp.mkdir()
+        for name in files:
+            if (run.dir / name).exists():
+                shutil.copy2(run.dir / name, tmp / name)
+        if write is not None:
+            write(tmp)
+        (tmp / RECORD).write_bytes(record)
+        dest.parent.mkdir(parents=True, exist_ok=True)
+        with contextlib.closing(acquire(partial / f"{run.kind}.{run.hash}.lock", f"archiving {run.kind}/{run.hash}")):
+            if dest.exists():
+                dest.rename(old)
+            tmp.rename(dest)
+    finally:
         shutil.rmtree(tmp, ignore_errors=True)
+        shutil.rmtree(old, ignore_errors=True)
     return dest
 
 
 def restore(runs_dir: str | Path, archive_dir: str | Path, kind: str, run_hash: str) -> bool:
-    """Copy an archived complete run into the store when the store has no directory for it (an
-    interrupted run there is left to resume). Two processes restoring the same run: one copy wins."""
+    """Copy an archived complete run into the store when the store has no record of it (a run there,
+    even an interrupted one, is left alone: it resumes). Holds the run's lock, as computing it would:
+    no process can be writing the directory it fills."""
+    if (Path(runs_dir) / kind / run_hash / RECORD).exists() or not (Path(archive_dir) / kind / run_hash / RECORD).exists():
+        return False
+    (Path(runs_dir) / kind).mkdir(parents=True, exist_ok=True)
+    with contextlib.closing(acquire(Path(runs_dir) / kind / f".{run_hash}.lock", f"computing {kind}/{run_hash}")):
+        return _restore_locked(runs_dir, archive_dir, kind, run_hash)
+
+
+def _restore_locked(runs_dir, archive_dir, kind: str, run_hash: str) -> bool:
+    """`restore` for a caller that holds the run's lock (`begin`)."""
     src, dst = Path(archive_dir) / kind / run_hash, Path(runs_dir) / kind / run_hash
-    if dst.exists() or not (src / RECORD).exists() or read_record(src / RECORD).get("status") != "complete":
+    if (dst / RECORD).exists() or not (src / RECORD).exists():
         return False
-    dst.parent.mkdir(parents=True, exist_ok=True)
-    tmp = dst.parent / f".{run_hash}.{os.getpid()}.restore"
-    shutil.rmtree(tmp, ignore_errors=True)
-    shutil.copytree(src, tmp)
+    partial = Path(archive_dir) / PARTIAL
+    partial.mkdir(parents=True, exist_ok=True)
+    tmp = Path(runs_dir) / PARTIAL / f"{kind}.{run_hash}.{os.getpid()}"
     try:
+        with contextlib.closing(acquire(partial / f"{kind}.{run_hash}.lock", f"archiving {kind}/{run_hash}")):
+            if read_record(src / RECORD).get("status") != "complete":
+                return False
+            shutil.copytree(src, tmp)
+        if dst.exists():
+            if any(dst.iterdir()):  # files without a record: not ours to replace
+                return False
+            dst.rmdir()  # the empty directory begin makes before taking the lock
         tmp.rename(dst)
-    except OSError:  # another process restored it first
+    finally:
         shutil.rmtree(tmp, ignore_errors=True)
-        return False
     log.info("runs: restored %s/%s from %s", kind, run_hash, archive_dir)
     return True
 
@@ -398,6 +425,8 @@ def load(runs_dir: str | Path = "runs", kind: str | None = None) -> pd.DataFrame
     rows = []
     pattern = f"{kind}/*/{RECORD}" if kind else f"*/*/{RECORD}"
     for path in sorted(Path(runs_dir).glob(pattern)):
+        if path.parts[-3].startswith(".") or path.parts[-2].startswith("."):  # a copy being restored (PARTIAL)
+            continue
         record = read_record(path)
         row = {k: record.get(k) for k in ("kind", "hash", "label", "status", "seed", "device",
                                           "wall_time_s", "git_commit", "git_dirty", "host", "started")}

@@ -177,7 +177,7 @@ def test_archive_keeps_a_finished_run_that_a_lost_store_gets_back(tmp_path):
     runs.complete(run, {"relMSE": 0.25})
     kept = runs.archive(run, archive, ("curve.csv", "absent.csv"), write=lambda d: (d / "slim.pt").write_text("w"))
     assert sorted(p.name for p in kept.iterdir()) == ["curve.csv", runs.RECORD, "slim.pt"]
-    assert not list(archive.glob("train/.*"))                            # no half-written copy left beside it
+    assert not [p for p in (archive / runs.PARTIAL).iterdir() if p.is_dir()]  # no half-written copy left
     stamp = (kept / runs.RECORD).stat().st_mtime_ns
     assert runs.archive(run, archive, ("curve.csv",)) == kept and (kept / runs.RECORD).stat().st_mtime_ns == stamp
 
@@ -198,3 +198,23 @@ def test_an_interrupted_run_in_the_store_resumes_rather_than_being_replaced_from
     partial.release()
     again = runs.begin(store, "train", ident, archive=archive)
     assert not again.reused and (again.dir / "checkpoint.pt").read_text() == "partial"
+
+
+def test_the_archive_keeps_only_what_current_code_computed_and_partial_copies_are_never_runs(tmp_path):
+    store, archive = tmp_path / "runs", tmp_path / "archive"
+    run = runs.complete(runs.begin(store, "eval", {"model": "v"}), {"relMSE": 0.3})
+    run.stale = ["bench/evaluate.py"]                                    # reused with reuse_stale=true
+    assert runs.archive(run, archive) is None and not (archive / "eval").exists()
+    leftover = store / runs.PARTIAL / f"eval.{run.hash}.123"             # a restore killed halfway
+    leftover.mkdir(parents=True)
+    (leftover / runs.RECORD).write_text((run.dir / runs.RECORD).read_text())
+    assert list(runs.load(store)["hash"]) == [run.hash]
+
+
+def test_a_run_directory_made_empty_before_the_lock_is_filled_from_the_archive(tmp_path):
+    """begin makes the run's directory before it waits for the lock; a restore must still fill it."""
+    store, archive = tmp_path / "runs", tmp_path / "archive"
+    ident = {"model": "u"}
+    runs.archive(runs.complete(runs.begin(tmp_path / "elsewhere", "train", ident), {"PSNR": 30.0}), archive)
+    (store / "train" / runs.config_hash(ident)).mkdir(parents=True)
+    assert runs.begin(store, "train", ident, archive=archive).reused
