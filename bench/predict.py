@@ -47,11 +47,23 @@ def fast_path_cache() -> Path:
 
 # ---------------------------------------------------------------- export
 
+ARCHIVES = "results/*/runs"  # the tables' archived runs (conf/config.yaml runs_archive), from the project root
+
+
+def training_record(run_hash: str, runs_dir: str | Path = "runs") -> Path:
+    """The run.json of training run `run_hash`: in the run store, else in a committed archive (a fresh
+    clone has no run store)."""
+    path = Path(runs_dir) / "train" / run_hash / runs.RECORD
+    archived = sorted(Path().glob(f"{ARCHIVES}/train/{run_hash}/{runs.RECORD}"))
+    if not path.exists() and not archived:
+        raise UserError(f"no training run {run_hash} in {runs_dir} (runs are directories of "
+                        f"{Path(runs_dir) / 'train'}) or in {ARCHIVES}/train")
+    return path if path.exists() else archived[0]
+
+
 def export(run_hash: str, out: str | Path, runs_dir: str | Path = "runs") -> Path:
     """Write the weights of the complete training run `run_hash` to `out` (+ `out`.json)."""
-    path = Path(runs_dir) / "train" / run_hash / runs.RECORD
-    if not path.exists():
-        raise UserError(f"no training run {run_hash} in {runs_dir} (runs are directories of {Path(runs_dir) / 'train'})")
+    path = training_record(run_hash, runs_dir)
     record = json.loads(path.read_text())
     if record.get("status") != "complete":
         raise UserError(f"training run {run_hash} is {record.get('status')!r}, not complete: nothing to export")
@@ -95,9 +107,7 @@ def load_exported(path: str | Path):
 
 def from_run(run_hash: str, runs_dir: str | Path = "runs"):
     """(model, metadata) of a recorded training run, without exporting it."""
-    path = Path(runs_dir) / "train" / run_hash / runs.RECORD
-    if not path.exists():
-        raise UserError(f"no training run {run_hash} in {runs_dir}")
+    path = training_record(run_hash, runs_dir)
     identity = json.loads(path.read_text())["identity"]
     task = get_task(identity["task"])
     model = load_weights(build_model(identity["model"], task.scale), path.parent)

@@ -118,3 +118,19 @@ def test_committed_weights_load_into_todays_models(path):
     x, g = torch.rand(1, 1, 3, 16, 16), torch.rand(1, 1, 7, 16, 16)
     with torch.no_grad():
         assert torch.isfinite(model(x, g)["final"]).all()
+
+
+def test_a_run_kept_only_in_an_archive_exports_the_same_weights(recorded, tmp_path, monkeypatch):
+    """A fresh clone has no run store: export finds the run in the tables' committed archive, whose
+    checkpoint holds the EMA weights without the optimizer state."""
+    from bench.experiments.pipeline import archive_training
+    from conftest import smoke_context
+    runs_dir, run_hash = recorded
+    run = runs.Run("train", run_hash, runs_dir / "train" / run_hash, runs.read_record(runs_dir / "train" / run_hash / runs.RECORD))
+    monkeypatch.chdir(tmp_path)
+    archive_training(smoke_context(runs_archive=Path("results/cpu/runs")), run)
+    from_store = load_exported(export(run_hash, tmp_path / "store.pt", runs_dir))[0].state_dict()
+    from_archive = load_exported(export(run_hash, tmp_path / "archive.pt", tmp_path / "no_store"))[0].state_dict()
+    assert from_store.keys() == from_archive.keys()
+    for name, tensor in from_store.items():
+        torch.testing.assert_close(tensor, from_archive[name], rtol=0, atol=0)
