@@ -91,7 +91,7 @@ def check_training(ctx: Context, record: dict, run_dir: Path, steps: int) -> dic
     cfg, task, seed, stage = identity["model"], get_task(identity["task"]), identity["seed"], identity.get("stage")
     recipe = recipe_from({**dataclasses.asdict(ctx.train), **identity["train"], "checkpoint_every": 1,
                           "checkpoint_every_s": 1e9})
-    recorded = pd.DataFrame(torch.load(run_dir / CHECKPOINT, map_location="cpu", weights_only=False)["curve"])
+    recorded = pd.read_csv(run_dir / "curve.csv")  # the trainer's curve; an archived checkpoint has none
     out = {"lr": relative_difference([lr_at(int(s) - 1, recipe) for s in recorded["step"]], recorded["lr"])}
     load_weights(_model(cfg, task, stage), run_dir)  # the recorded weights fit the model built now: names, shapes
     torch.manual_seed(seed)  # as trained_model builds it: the initial weights come from this seed
