@@ -154,7 +154,7 @@ def begin(runs_dir: str | Path, kind: str, identity: dict, config: dict | None =
     lock = acquire(run_dir.parent / f".{h}.lock", f"computing {kind}/{h}")
     if not force:  # another process may have completed it while we waited for the lock
         if archive is not None:
-            _restore_locked(runs_dir, archive, kind, h)
+            _restore_locked(runs_dir, archive, kind, h, code)
         done = _reusable(runs_dir, kind, identity, code, reuse_stale, label)
         if done is not None:
             lock.close()
@@ -260,11 +260,18 @@ def restore(runs_dir: str | Path, archive_dir: str | Path, kind: str, run_hash: 
         return _restore_locked(runs_dir, archive_dir, kind, run_hash)
 
 
-def _restore_locked(runs_dir, archive_dir, kind: str, run_hash: str) -> bool:
-    """`restore` for a caller that holds the run's lock (`begin`)."""
+def _restore_locked(runs_dir, archive_dir, kind: str, run_hash: str, code: dict | None = None) -> bool:
+    """`restore` for a caller that holds the run's lock (`begin`). With `code`, a store run computed with
+    other code (it would be recomputed from scratch) also gives way to an archived run that this code
+    computed, e.g. one another machine archived after the change."""
     src, dst = Path(archive_dir) / kind / run_hash, Path(runs_dir) / kind / run_hash
-    if (dst / RECORD).exists() or not (src / RECORD).exists():
+    if not (src / RECORD).exists():
         return False
+    if (dst / RECORD).exists():
+        if not (code_changes(read_record(dst / RECORD), code) and not code_changes(read_record(src / RECORD), code)):
+            return False
+        shutil.rmtree(dst)  # we hold its lock; begin would wipe it anyway
+        log.info("runs: %s/%s in the store was computed with other code; the archive's run is current", kind, run_hash)
     partial = Path(archive_dir) / PARTIAL
     partial.mkdir(parents=True, exist_ok=True)
     tmp = Path(runs_dir) / PARTIAL / f"{kind}.{run_hash}.{os.getpid()}"

@@ -200,6 +200,23 @@ def test_an_interrupted_run_in_the_store_resumes_rather_than_being_replaced_from
     assert not again.reused and (again.dir / "checkpoint.pt").read_text() == "partial"
 
 
+def test_a_stale_run_in_the_store_gives_way_to_an_archived_run_of_current_code(tmp_path):
+    """Another machine recomputed the run after a code change and archived it: this store's older run
+    is replaced by it, not trained again; an archived run as stale as the store's changes nothing."""
+    store, archive = tmp_path / "runs", tmp_path / "archive"
+    ident, old, new = {"model": "t"}, {"bench/m.py": "1"}, {"bench/m.py": "2"}
+    runs.complete(runs.begin(store, "train", ident, code=old), {"PSNR": 30.0})
+    stale_archive = tmp_path / "stale_archive"
+    runs.archive(runs.complete(runs.begin(tmp_path / "b", "train", ident, code=old), {"PSNR": 29.0}), stale_archive)
+    again = runs.begin(store, "train", ident, code=new, archive=stale_archive)
+    assert not again.reused                                              # both stale: recomputed
+    again.release()
+    runs.complete(runs.begin(store, "train", ident, code=old, force=True), {"PSNR": 30.0})
+    runs.archive(runs.complete(runs.begin(tmp_path / "c", "train", ident, code=new), {"PSNR": 31.0}), archive)
+    current = runs.begin(store, "train", ident, code=new, archive=archive)
+    assert current.reused and current.metrics["PSNR"] == 31.0 and not current.stale
+
+
 def test_the_archive_keeps_only_what_current_code_computed_and_partial_copies_are_never_runs(tmp_path):
     store, archive = tmp_path / "runs", tmp_path / "archive"
     run = runs.complete(runs.begin(store, "eval", {"model": "v"}), {"relMSE": 0.3})
