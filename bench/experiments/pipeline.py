@@ -190,9 +190,9 @@ def _file_stats(root: Path, split: str | None) -> str:
     and modification time. Not its bytes: hashing gigabytes at every command would cost more than
     the check is worth, and editing a frame, re-rendering it or copying a dataset (without `cp -p`)
     changes its mtime. Rendered data needs none of this: its spec and settings determine the pixels on
-    a given kind of CPU (a frame rendered again matches its file bit for bit); Mitsuba's LLVM backend
-    compiles for the host's vector ISA, so AVX2 and AVX-512 hosts differ in the last bits (the cpu val
-    split's input bilinear scored 31.6979 and 31.6989 dB on two hosts' renders)."""
+    one machine (a frame rendered again matches its file bit for bit). Across hosts Mitsuba's LLVM
+    backend compiles for the CPU, paths diverge on last-bit differences, and the noise differs with the
+    same statistics (the cpu val split's input bilinear: 31.68-31.70 dB over three hosts' renders)."""
     stats = []
     for frame in load_manifest(root)["frames"]:
         if split is not None and frame["split"] != split:
