@@ -257,3 +257,27 @@ def test_reference_check_counts_frames_whose_reference_error_is_below_a_tenth_of
     assert "one render of 256 spp per frame; their error is not estimated" in plain
     per_seed = pd.concat([per_image, per_image.assign(relMSE=per_image["relMSE"] * 3)])   # mean over seeds: x2,
     assert "on 3 of 3 scored frames" in reference_check(frames, per_seed, "Ours")      # so all three pass
+
+
+def test_a_table_says_when_its_rows_scored_different_renders_of_the_split(tmp_path):
+    """Hosts render the same settings with different noise: the data fingerprint cannot tell, the
+    render digest (the frame files' CRCs) can, and the caption says so."""
+    import json
+    import types
+
+    from bench.experiments.pipeline import render_digest
+    from bench.experiments.table import _renders_note
+    frame = {"split": "val", "sequence": "s", "frame": 0,
+             "files": {"lr": {"crc32": 1}, "hr": {"crc32": 2}}}
+    (tmp_path / "manifest.json").write_text(json.dumps({"frames": [frame, {**frame, "split": "train"}]}))
+    ctx = types.SimpleNamespace(data_dir=tmp_path)
+    first = render_digest(ctx, "val")
+    frame["files"]["hr"]["crc32"] = 3                                    # another host's render
+    (tmp_path / "manifest.json").write_text(json.dumps({"frames": [frame]}))
+    assert first and render_digest(ctx, "val") not in (None, first)
+    del frame["files"]
+    (tmp_path / "manifest.json").write_text(json.dumps({"frames": [frame]}))
+    assert render_digest(ctx, "val") is None                             # unstamped frames: unknown
+    assert _renders_note([[first], [first, None]]) == ""
+    note = _renders_note([[first], ["other", None]])
+    assert "2 different renders" in note and "1 recorded before render digests" in note

@@ -203,6 +203,21 @@ def _file_stats(root: Path, split: str | None) -> str:
     return runs.config_hash({"files": stats})
 
 
+def render_digest(ctx: Context, split: str) -> str | None:
+    """Which render of `split` this is: a hash of its frame files' CRC-32 stamps in the manifest, or
+    None when a frame has none (your own data before `verify=true`). Not part of any identity: renders
+    of the same settings on other hosts share the data fingerprint but differ in their noise, and
+    tables use this to say when their rows were scored on different ones."""
+    crcs = []
+    for rec in load_manifest(ctx.data_dir)["frames"]:
+        if rec["split"] == split:
+            files = rec.get("files") or {}
+            if not (files.get("lr") and files.get("hr")):
+                return None
+            crcs.append((rec["sequence"], rec["frame"], files["lr"]["crc32"], files["hr"]["crc32"]))
+    return runs.config_hash({"render": sorted(crcs)})[:8]
+
+
 def ensure_data(ctx: Context, passes: set[str]) -> str:
     """Make sure `data_dir` holds the preset's dataset with at least `passes`, rendering only what is
     missing; returns the data fingerprint. With render_data=false the directory is used as it is."""
@@ -510,6 +525,7 @@ def evaluated(ctx: Context, cfg: dict, task: Task, seed: int, split: str, label:
     metrics["params"] = count_params(model)
     metrics["train_run"] = trained if isinstance(trained, str) else None
     metrics["vgg"] = (train_run.record["identity"].get("vgg") if train_run else None)
+    metrics["render"] = render_digest(frames, split)
     return archive_evaluation(ctx, runs.complete(run, metrics))
 
 
@@ -595,6 +611,7 @@ def row(ctx: Context, label: str, model: str, overrides: dict | None = None, tas
     out["last fifth (dB)"] = float(np.mean(gains)) if gains else None
     vgg = results[0].metrics.get("vgg")
     out["vgg"] = f"VGG16 {vgg['layer']} from {vgg['weights']}" if vgg else None
+    out["renders"] = [r.metrics.get("render") for r in results]  # None: recorded before digests
     out["runs"] = " ".join(r.hash for r in results)
     out["train runs"] = " ".join(t for r in results if r.metrics.get("train_run")
                                  for t in r.metrics["train_run"].split("+"))

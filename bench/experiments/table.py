@@ -61,6 +61,18 @@ def expand_rows(rows: list[dict], default_task: str = "srd") -> list[dict]:
     return out
 
 
+def _renders_note(renders) -> str:
+    """A caption sentence when the rows' evaluations scored different renders of the split (another
+    host's render of the same settings, e.g. runs restored from the archive); empty when one did."""
+    known = {d for row in renders for d in row if d}
+    unknown = sum(d is None for row in renders for d in row)
+    if len(known) <= 1:
+        return ""
+    return (f" The evaluations scored {len(known)} different renders of the split"
+            + (f" ({unknown} recorded before render digests)" if unknown else "")
+            + ": hosts render the same settings with different noise, about 0.02 dB on input bilinear.")
+
+
 def shard_units(rows: list[dict], seeds: list, index: int, count: int) -> list[tuple[dict, int]]:
     """Shard `index` of `count`: every count-th (row, seed) pair, so that shards stay balanced when a
     table has fewer rows than shards or rows of unequal cost."""
@@ -210,6 +222,7 @@ def run(ctx: Context, name: str, rows: list[dict], caption: str = "", task: str 
             notes += " Pairs of rows ordered as in the paper: " + ", ".join(
                 f"{m} {a}/{n}" for m, (a, n) in agreement.items()) + "."
     notes += _reference_note(ctx, frames, table, rows, split)
+    notes += _renders_note(table.pop("renders"))
     vgg = sorted({v for v in table.pop("vgg") if isinstance(v, str)})
     if vgg:
         notes += f" Perceptual loss features: {'; '.join(vgg)}."
