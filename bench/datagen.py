@@ -510,9 +510,9 @@ def build_dataset(root, spec, passes=BUFFERS, workers=1, progress=True, variant=
             for future in as_completed([pool.submit(_worker, job) for job in jobs]):
                 advance(future.result())
         except BaseException:  # Ctrl-C, or a worker failed: stop now, not after the queue (frames are
-            # written atomically: none is left half-written). Also every child multiprocessing started: a
-            # Ctrl-C while the pool spawns a worker leaves it out of pool._processes, and exit joins it.
-            for process in {*pool._processes.values(), *multiprocessing.active_children()}:
+            # written atomically: none is left half-written). Every child multiprocessing started, not
+            # pool._processes: a Ctrl-C while the pool spawns a worker leaves it out of that, and exit joins it.
+            for process in multiprocessing.active_children():
                 process.terminate()
             pool.shutdown(wait=False, cancel_futures=True)
             raise
