@@ -17,8 +17,8 @@ from bench.models.srd import SRDNet, SRDStage, load_stage
 from bench.paper import paper_values
 from conftest import smoke_context, smoke_overrides
 
-TABLES = ["sr_denoise", "dilation", "stage_order", "deform", "sota", "ipt", "deform_num", "perceptual",
-          "generalization"]
+TABLES = ["sr_denoise", "dilation", "dilation_crop", "stage_order", "deform", "sota", "ipt", "deform_num",
+          "perceptual", "generalization"]
 PAPER_TABLES = {"sr_denoise", "dilation", "stage_order", "deform", "sota", "ipt", "deform_num"}
 
 
@@ -187,7 +187,7 @@ def test_paper_agreement_counts_pairs_ordered_as_in_the_paper_within_a_task():
 
 def test_claims_give_each_paper_claim_a_verdict_from_the_recorded_tables(dirs):
     overrides, root = dirs
-    for name in ("stage_order", "ipt", "deform", "deform_num", "dilation", "sota", "perceptual"):
+    for name in ("stage_order", "ipt", "deform", "deform_num", "dilation", "dilation_crop", "sota", "perceptual"):
         run_experiment(compose_experiment(name, overrides + ["++experiment.figure=false"]))  # reused
     run_experiment(compose_experiment("claims", overrides))
     table = pd.read_csv(root / "results" / "claims" / "table.csv")
@@ -278,6 +278,7 @@ def test_a_table_says_when_its_rows_scored_different_renders_of_the_split(tmp_pa
     del frame["files"]
     (tmp_path / "manifest.json").write_text(json.dumps({"frames": [frame]}))
     assert render_digest(ctx, "val") is None                             # unstamped frames: unknown
-    assert _renders_note([[first], [first, None]]) == ""
+    assert _renders_note([[first], [first, first]]) == "" and _renders_note([[None], [None, None]]) == ""
+    assert "1 of 3 evaluations were recorded before render digests" in _renders_note([[first], [first, None]])
     note = _renders_note([[first], ["other", None]])
     assert "2 different renders" in note and "1 recorded before render digests" in note

@@ -63,14 +63,21 @@ def expand_rows(rows: list[dict], default_task: str = "srd") -> list[dict]:
 
 def _renders_note(renders) -> str:
     """A caption sentence when the rows' evaluations scored different renders of the split (another
-    host's render of the same settings, e.g. runs restored from the archive); empty when one did."""
+    host's render of the same settings, e.g. runs restored from the archive), or when some did not
+    record which (evaluated before render digests) beside some that did; empty when all scored one, or
+    when none recorded it (a table older than digests: nothing to compare)."""
     known = {d for row in renders for d in row if d}
     unknown = sum(d is None for row in renders for d in row)
-    if len(known) <= 1:
-        return ""
-    return (f" The evaluations scored {len(known)} different renders of the split"
-            + (f" ({unknown} recorded before render digests)" if unknown else "")
-            + ": hosts render the same settings with different noise, about 0.02 dB on input bilinear.")
+    total = sum(len(row) for row in renders)
+    if len(known) > 1:
+        return (f" The evaluations scored {len(known)} different renders of the split"
+                + (f" ({unknown} recorded before render digests)" if unknown else "")
+                + ": hosts render the same settings with different noise, about 0.02 dB on input bilinear.")
+    if known and unknown:
+        return (f" {unknown} of {total} evaluations were recorded before render digests, so whether they "
+                "scored the same render of the split as the others is not known (another host's render of "
+                "the same settings differs by about 0.02 dB on input bilinear).")
+    return ""
 
 
 def shard_units(rows: list[dict], seeds: list, index: int, count: int) -> list[tuple[dict, int]]:
