@@ -12,7 +12,7 @@ Verdict: |difference| < 2 SE is "within noise"; otherwise "holds" or "reversed".
 several pairs holds when all of them hold, is reversed when any is reversed, and is within noise else.
 
 The rows are read from the tables' CSVs (views of the run store) and their evaluation runs: run the
-tables first (`+experiment=all` lists claims last). A claim with a row that no recorded table has (its
+tables first (`+experiment=all`, then `+experiment=claims`). A claim with a row that no recorded table has (its
 table not run, or run before the row was added) is listed as "not run", with the command that records
 it; the others are still judged. Writes `<results_dir>/claims/table.{csv,md,tex}`.
 """

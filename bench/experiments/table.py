@@ -74,9 +74,10 @@ def _renders_note(renders) -> str:
                 + (f" ({unknown} recorded before render digests)" if unknown else "")
                 + ": hosts render the same settings with different noise, about 0.02 dB on input bilinear.")
     if known and unknown:
-        return (f" {unknown} of {total} evaluations were recorded before render digests, so whether they "
-                "scored the same render of the split as the others is not known (another host's render of "
-                "the same settings differs by about 0.02 dB on input bilinear).")
+        return (f" {unknown} of {total} evaluations {'has' if unknown == 1 else 'have'} no render digest "
+                "(recorded before digests, or unstamped data), so whether they scored the same render of the "
+                "split as the others is not known (another host's render of the same settings differs by "
+                "about 0.02 dB on input bilinear).")
     return ""
 
 
