@@ -68,17 +68,17 @@ def _renders_note(renders) -> str:
     when none recorded it (a table older than digests: nothing to compare)."""
     known = {d for row in renders for d in row if d}
     unknown = sum(d is None for row in renders for d in row)
-    total = sum(len(row) for row in renders)
     if len(known) > 1:
-        return (f" The evaluations scored {len(known)} different renders of the split"
-                + (f" ({unknown} recorded before render digests)" if unknown else "")
-                + ": hosts render the same settings with different noise, about 0.02 dB on input bilinear.")
-    if known and unknown:
-        return (f" {unknown} of {total} evaluations {'has' if unknown == 1 else 'have'} no render digest "
+        what = (f" The evaluations scored {len(known)} different renders of the split"
+                + (f" ({unknown} recorded before render digests)" if unknown else ""))
+    elif known and unknown:
+        total = sum(len(row) for row in renders)
+        what = (f" {unknown} of {total} evaluations {'has' if unknown == 1 else 'have'} no render digest "
                 "(recorded before digests, or unstamped data), so whether they scored the same render of the "
-                "split as the others is not known (another host's render of the same settings differs by "
-                "about 0.02 dB on input bilinear).")
-    return ""
+                "split as the others is not known")
+    else:
+        return ""
+    return what + ": hosts render the same settings with different noise, about 0.02 dB on input bilinear."
 
 
 def shard_units(rows: list[dict], seeds: list, index: int, count: int) -> list[tuple[dict, int]]:
