@@ -1,11 +1,14 @@
-"""Training losses of the paper (Sec. 3.5): spatial L1, HFEN edge loss, temporal L1, perceptual loss.
+"""Training losses of the paper (Sec. 3.5): spatial L1, HFEN edge loss, temporal L1, perceptual loss;
+and one the paper does not use, an SSIM term (1 - SSIM), off unless a recipe names it.
 
 Pure functions on tensors shaped (B, T, C, H, W) or (N, C, H, W). This module imports no network:
 the perceptual loss takes the feature extractor as a `features` callable (e.g. bench.nn.VGG16Features).
 
 Weights. The paper gives ratios g:t:s:p = 1:1:8:0 (intermediate head) and 1:1:8:10 (final output).
 They become absolute weights by dividing every ratio by g + t + s, so 1:1:8 is exactly Chaitanya et
-al.'s 0.1 / 0.1 / 0.8 and the perceptual weight is measured on that scale (10 -> 1.0).
+al.'s 0.1 / 0.1 / 0.8 and the perceptual weight is measured on that scale (10 -> 1.0). The SSIM
+ratio is on the same scale: 42 next to 1:1:8 puts 1 - SSIM at 0.84 / 0.16 times the L1 weight, the
+L1 : MS-SSIM mix that OIDN trains with (Zhao et al. 2017).
 """
 import torch
 import torch.nn.functional as F
@@ -19,6 +22,11 @@ PAPER_WEIGHTS = {
 # kernel with sigma 1.5, i.e. radius 7 (about 4.7 sigma).
 HFEN_SIGMA = 1.5
 HFEN_KERNEL_SIZE = 15
+# SSIM (Wang et al. 2004): an 11x11 Gaussian window with sigma 1.5, K1 = 0.01, K2 = 0.03 for data range
+# 1: the SSIM metric's definition (bench.metrics.ssim), and scikit-image's, which the tests check it against.
+SSIM_SIGMA = 1.5
+SSIM_WINDOW = 11
+SSIM_C1, SSIM_C2 = 0.01 ** 2, 0.03 ** 2
 
 
 def _as_images(x):
@@ -87,6 +95,27 @@ def temporal_l1(pred, target):
     return (dpred - dtarget).abs().mean()
 
 
+def ssim_loss(pred, target):
+    """1 - mean SSIM over the valid (un-padded) region, per channel, of (B, T, C, H, W) or (N, C, H, W).
+
+    Unlike the metric it does not clamp: it is computed in whatever domain the trainer hands it (the
+    network domain, where a value of 1 is radiance 1), so highlights keep their gradient.
+    """
+    p, t = _as_images(pred), _as_images(target)
+    n, c, h, w = p.shape
+    if h < SSIM_WINDOW or w < SSIM_WINDOW:
+        raise ValueError(f"the SSIM loss needs crops of at least {SSIM_WINDOW}x{SSIM_WINDOW} px, got {h}x{w}")
+    g0, _ = _gaussian_kernels_1d(SSIM_SIGMA, SSIM_WINDOW, p.dtype, p.device)
+    # the five blurred maps in one batched separable convolution
+    planes = torch.stack([p, t, p * p, t * t, p * t]).reshape(5 * n * c, 1, h, w)
+    planes = F.conv2d(F.conv2d(planes, g0.view(1, 1, 1, -1)), g0.view(1, 1, -1, 1))
+    mu_p, mu_t, pp, tt, pt = planes.view(5, n * c, *planes.shape[-2:])
+    var_p, var_t, cov = pp - mu_p ** 2, tt - mu_t ** 2, pt - mu_p * mu_t
+    s = ((2 * mu_p * mu_t + SSIM_C1) * (2 * cov + SSIM_C2)) / (
+        (mu_p ** 2 + mu_t ** 2 + SSIM_C1) * (var_p + var_t + SSIM_C2))
+    return 1 - s.mean()
+
+
 def perceptual(pred, target, features):
     """Mean over elements of (features(pred) - features(target))^2, i.e. ||phi(y^) - phi(y)||^2 / (C H W)
     averaged over the batch. `features` maps (N, 3, H, W) to (N, C, H', W')."""
@@ -97,11 +126,12 @@ def perceptual(pred, target, features):
 
 
 def absolute_weights(weights):
-    """Ratios {edge, temporal, spatial, perceptual} -> absolute weights, normalized by edge+temporal+spatial."""
+    """Ratios {edge, temporal, spatial, perceptual[, ssim]} -> absolute weights, normalized by
+    edge+temporal+spatial."""
     norm = weights.get("edge", 0) + weights.get("temporal", 0) + weights.get("spatial", 0)
     if norm <= 0:
         raise ValueError(f"edge + temporal + spatial ratios must be positive, got {weights}")
-    unknown = set(weights) - {"edge", "temporal", "spatial", "perceptual"}
+    unknown = set(weights) - {"edge", "temporal", "spatial", "perceptual", "ssim"}
     if unknown:
         raise ValueError(f"unknown loss terms {sorted(unknown)}")
     return {name: ratio / norm for name, ratio in weights.items()}
@@ -114,7 +144,7 @@ def weighted_loss(pred, target, weights, features=None):
     total = sum(absolute_weight[name] * parts[name]). Terms with weight 0 are not computed.
     The temporal term needs (B, T, ...) input with T >= 2; on (N, C, H, W) input it is skipped.
     """
-    terms = {"spatial": spatial_l1, "edge": hfen, "temporal": temporal_l1,
+    terms = {"spatial": spatial_l1, "edge": hfen, "temporal": temporal_l1, "ssim": ssim_loss,
              "perceptual": lambda p, t: perceptual(p, t, features)}
     if weights.get("perceptual", 0) and features is None:
         raise ValueError("a nonzero perceptual weight needs a `features` callable")

@@ -18,7 +18,7 @@ from bench.paper import paper_values
 from conftest import smoke_context, smoke_overrides
 
 TABLES = ["sr_denoise", "dilation", "dilation_crop", "stage_order", "deform", "sota", "ipt", "deform_num",
-          "perceptual", "generalization"]
+          "perceptual", "generalization", "ssim_term"]
 PAPER_TABLES = {"sr_denoise", "dilation", "stage_order", "deform", "sota", "ipt", "deform_num"}
 
 

@@ -9,8 +9,11 @@ import scipy.ndimage
 import scipy.signal
 import torch
 
+from skimage.metrics import structural_similarity
+
 from bench.losses import (HFEN_KERNEL_SIZE, HFEN_SIGMA, PAPER_WEIGHTS, absolute_weights, hfen,
-                          laplacian_of_gaussian, perceptual, spatial_l1, temporal_l1, weighted_loss)
+                          laplacian_of_gaussian, perceptual, spatial_l1, ssim_loss, temporal_l1,
+                          weighted_loss)
 
 PAPER = os.environ.get("SRD_PAPER_TEXT")  # the paper's full text, where a machine has it (not shipped)
 
@@ -107,3 +110,35 @@ def test_weighted_loss_combines_terms():
     assert set(parts4) == {"edge", "spatial"}
     with pytest.raises(ValueError):
         weighted_loss(pred, target, PAPER_WEIGHTS["final"])  # perceptual needs features
+
+
+def test_ssim_loss_matches_scikit_image_without_clamping():
+    """1 - SSIM against scikit-image's Wang et al. SSIM (Gaussian window, sigma 1.5, no sample-covariance
+    correction) per image and channel, on values up to 3 (the loss does not clamp, the metric does)."""
+    rng = np.random.default_rng(2)
+    pred = rng.random((2, 2, 3, 23, 19)) * 3          # (B, T, C, H, W)
+    target = np.clip(pred + rng.normal(0, 0.3, pred.shape), 0, None)
+    ref = np.mean([
+        structural_similarity(p, t, gaussian_weights=True, sigma=1.5, use_sample_covariance=False,
+                              data_range=1.0, channel_axis=0, full=True)[1][:, 5:-5, 5:-5].mean()
+        for p, t in zip(pred.reshape(-1, 3, 23, 19), target.reshape(-1, 3, 23, 19))])
+    out = ssim_loss(torch.from_numpy(pred), torch.from_numpy(target))
+    assert abs(out.item() - (1 - ref)) < 1e-10
+    assert ssim_loss(torch.from_numpy(target), torch.from_numpy(target)).item() == pytest.approx(0, abs=1e-12)
+    with pytest.raises(ValueError, match="11x11"):
+        ssim_loss(torch.zeros(1, 3, 10, 30), torch.zeros(1, 3, 10, 30))
+
+
+def test_ssim_term_is_off_unless_named_and_weighted_on_the_l1_scale():
+    torch.manual_seed(3)
+    pred, target = torch.rand(1, 3, 3, 16, 16, requires_grad=True), torch.rand(1, 3, 3, 16, 16)
+    weights = {"edge": 1, "temporal": 1, "spatial": 8, "perceptual": 0}
+    assert "ssim" not in weighted_loss(pred, target, weights)[1]
+    total, parts = weighted_loss(pred, target, {**weights, "ssim": 42})
+    expected = (0.1 * hfen(pred, target) + 0.1 * temporal_l1(pred, target) + 0.8 * spatial_l1(pred, target)
+                + 4.2 * ssim_loss(pred, target))
+    torch.testing.assert_close(total, expected)
+    total.backward()
+    assert torch.isfinite(pred.grad).all() and pred.grad.abs().sum() > 0
+    with pytest.raises(ValueError, match="unknown loss terms"):
+        weighted_loss(pred, target, {**weights, "msssim": 1})
