@@ -130,18 +130,29 @@ def test_a_real_edit_to_a_model_file_makes_its_trainings_stale_and_a_comment_doe
 
 
 def test_adopt_holds_the_code_only_to_evaluations_of_todays_frames(monkeypatch):
-    """An evaluation scored against references rendered again since (another data fingerprint) cannot
-    witness for the code: its numbers moved with the data."""
+    """An evaluation scored against references rendered again since (other settings: another data
+    fingerprint; the same settings on another host: another render digest) cannot witness for the code:
+    its numbers moved with the data. Nor can a training replayed on another render of its split."""
     from bench import runs
     from bench.experiments import adopt
     monkeypatch.setattr(adopt, "evaluation_data", lambda ctx: ctx)
     monkeypatch.setattr(adopt, "data_fingerprint", lambda ctx, split: f"today-{split}")
+    monkeypatch.setattr(adopt, "render_digest", lambda ctx, split: f"host-a-{split}")
 
-    def evaluation(**identity):
-        return runs.Run("eval", "0" * 16, Path("."), {"identity": {"split": "val", **identity}})
+    def evaluation(render=None, **identity):
+        return runs.Run("eval", "0" * 16, Path("."), {"identity": {"split": "val", **identity},
+                                                      "metrics": {"render": render}})
     assert adopt.scored_here(None, evaluation(data="today-val"))
+    assert adopt.scored_here(None, evaluation(data="today-val", render="host-a-val"))
+    assert not adopt.scored_here(None, evaluation(data="today-val", render="host-b-val"))
     assert not adopt.scored_here(None, evaluation(data="before-val"))
     assert not adopt.scored_here(None, evaluation(data="today-val", path="bf16"))
+
+    def training(render):
+        return runs.Run("train", "0" * 16, Path("."), {"metrics": {"render": render}})
+    assert adopt.other_render(None, training(None)) is None              # recorded before digests
+    assert adopt.other_render(None, training("host-a-train")) is None
+    assert "host-b-train" in adopt.other_render(None, training("host-b-train"))
 
 
 def test_adopt_stops_on_ctrl_c_or_sigterm_during_a_replay(monkeypatch, tmp_path):
@@ -174,6 +185,7 @@ def test_adopt_keeps_runs_through_a_change_that_moves_no_number_and_not_through_
     (record_path,) = [p for p in (tmp_path / "runs" / "train").glob("*/run.json")  # as if killed near its end:
                       if json.loads(p.read_text())["label"] == "Ours"]                # adopted, it resumes
     record = json.loads(record_path.read_text())
+    assert len(record["metrics"]["render"]) == 8                    # the render it trained on (adopt compares it)
     record_path.write_text(json.dumps({**record, "status": "interrupted"}))
     out = bench("+experiment=adopt", *copied, cwd=project)
     assert out.returncode == 0, out.stderr[-3000:]

@@ -43,7 +43,7 @@ from bench import runs
 from bench.evaluate import evaluate
 from bench.experiments.pipeline import (EVALUATION_CODE, TRAINING_CODE, Context, build_model, code_of,
                                         data_fingerprint, dataset, evaluation_data, perceptual_features,
-                                        cascade_net, recipe_from)
+                                        cascade_net, recipe_from, render_digest)
 from bench.models.srd import SRDStage
 from bench.table_writer import write_table
 from bench.tasks import get_task
@@ -166,11 +166,21 @@ def evaluations_of(runs_dir: Path, train_hashes: set[str]) -> list[runs.Run]:
 
 def scored_here(ctx: Context, evaluation: runs.Run) -> bool:
     """Whether `evaluation` ran the default way on frames as they are now: only then can the current code
-    be held to its numbers (an evaluation against references rendered again since is stale by its data,
-    and says nothing about the code)."""
-    identity = evaluation.record["identity"]
-    return "path" not in identity and identity.get("data") == data_fingerprint(evaluation_data(ctx),
-                                                                              identity["split"])
+    be held to its numbers. An evaluation against references rendered again since says nothing about the
+    code: other render settings (the data fingerprint), or the same settings rendered on another host
+    (its render digest, where it recorded one: the noise differs in the last bits and beyond)."""
+    identity, frames = evaluation.record["identity"], evaluation_data(ctx)
+    recorded = evaluation.record.get("metrics", {}).get("render")
+    return ("path" not in identity and identity.get("data") == data_fingerprint(frames, identity["split"])
+            and recorded in (None, render_digest(frames, identity["split"])))
+
+
+def other_render(ctx: Context, training: runs.Run) -> str | None:
+    """Why a replay of `training` cannot match its record whatever the code: it trained on another render
+    of the split than this store's (same settings, another host); None when the same or not recorded
+    (trainings recorded before 2026-11-25 say nothing)."""
+    recorded, here = training.record.get("metrics", {}).get("render"), render_digest(ctx, "train")
+    return None if recorded in (None, here) else f"trained on render {recorded}, the frames here are {here}"
 
 
 def restamp(run: runs.Run, code: dict, check: dict) -> None:
@@ -204,6 +214,8 @@ def run(ctx: Context, name: str, steps: int, rtol: float, rtol_later_steps: floa
             row["verdict"] = ("adopted" if worst <= rtol and later <= rtol_later_steps else
                               f"differs ({max(exact, key=exact.get)} {worst:.2g} > {rtol:g})" if worst > rtol else
                               f"differs (later loss {later:.2g} > {rtol_later_steps:g})")
+            if row["verdict"] != "adopted" and other_render(ctx, witness):  # the data moved, not the code
+                row["verdict"] = f"not checkable here: {other_render(ctx, witness)}"
         except TrainingInterrupted:  # Ctrl-C / SIGTERM during a replay stops the command, not one group
             raise
         except Exception as err:  # noqa: BLE001 - a group that cannot be checked stays stale, with why

@@ -430,6 +430,7 @@ def trained_model(ctx: Context, cfg: dict, task: Task, seed: int, label: str = "
     except BaseException as err:  # interrupted or crashed: the record says so; the checkpoint stays
         runs.fail(run, f"{type(err).__name__}: {err}")
         raise
+    summary["render"] = render_digest(ctx, "train")  # which render it trained on (adopt compares it)
     archive_training(ctx, runs.complete(run, summary))
     log.info("train %s: trained in %.1f min (run %s)", label or cfg["_target_"], run.record["wall_time_s"] / 60,
              run.hash)
