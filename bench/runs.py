@@ -32,6 +32,7 @@ import platform
 import shutil
 import socket
 import subprocess
+import tempfile
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -476,9 +477,9 @@ def ensure_writable(path: Path, setting: str = "runs_dir") -> None:
     """Create `path` and prove it writable, or raise PermissionError naming the setting to change."""
     try:
         path.mkdir(parents=True, exist_ok=True)
-        probe = path / ".write_probe"
-        probe.write_text("")
-        probe.unlink()
+        # a probe of its own: processes started together on one store must not delete each other's
+        with tempfile.NamedTemporaryFile(dir=path, prefix=".write_probe."):
+            pass
     except OSError as err:
         raise PermissionError(f"{setting.removesuffix('_dir')} directory {path} is not writable "
                               f"({err.strerror}); set {setting}=... to a writable place") from err

@@ -62,6 +62,26 @@ def test_unwritable_runs_dir_gives_clear_error(tmp_path):
         runs.begin(blocker / "sub", "train", {"m": 1})
 
 
+def _probe_often(path, times):
+    for _ in range(times):
+        runs.ensure_writable(path)
+
+
+def test_processes_started_together_all_find_the_store_writable(tmp_path):
+    """Each process proves the store writable with a probe of its own: with one shared probe name, one
+    process deleted another's and that one reported a writable store as unwritable (seen 2026-11-25, three
+    table shards started at once)."""
+    import multiprocessing
+    ctx = multiprocessing.get_context("fork")
+    procs = [ctx.Process(target=_probe_often, args=(tmp_path, 300)) for _ in range(4)]
+    for proc in procs:
+        proc.start()
+    for proc in procs:
+        proc.join(60)
+    assert [proc.exitcode for proc in procs] == [0] * 4
+    assert not list(tmp_path.iterdir())                              # no probe left behind
+
+
 def _compute_in_child(runs_dir, started, release):
     run = runs.begin(runs_dir, "train", {"a": 1})
     started.set()
