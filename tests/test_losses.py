@@ -8,7 +8,6 @@ import pytest
 import scipy.ndimage
 import scipy.signal
 import torch
-
 from skimage.metrics import structural_similarity
 
 from bench.losses import (HFEN_KERNEL_SIZE, HFEN_SIGMA, PAPER_WEIGHTS, absolute_weights, hfen,

@@ -214,8 +214,9 @@ def run(ctx: Context, name: str, steps: int, rtol: float, rtol_later_steps: floa
             row["verdict"] = ("adopted" if worst <= rtol and later <= rtol_later_steps else
                               f"differs ({max(exact, key=exact.get)} {worst:.2g} > {rtol:g})" if worst > rtol else
                               f"differs (later loss {later:.2g} > {rtol_later_steps:g})")
-            if row["verdict"] != "adopted" and other_render(ctx, witness):  # the data moved, not the code
-                row["verdict"] = f"not checkable here: {other_render(ctx, witness)}"
+            moved = row["verdict"] != "adopted" and other_render(ctx, witness)  # the data moved, not the code
+            if moved:
+                row["verdict"] = f"not checkable here: {moved}"
         except TrainingInterrupted:  # Ctrl-C / SIGTERM during a replay stops the command, not one group
             raise
         except Exception as err:  # noqa: BLE001 - a group that cannot be checked stays stale, with why
