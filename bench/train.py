@@ -19,6 +19,7 @@ from __future__ import annotations
 
 import contextlib
 import copy
+import functools
 import logging
 import math
 import random
@@ -35,7 +36,7 @@ from tqdm import tqdm
 
 from bench import distributed
 from bench.errors import UserError
-from bench.hdr import MODES, to_network
+from bench.hdr import MODES, from_network, to_network
 from bench.losses import weighted_loss
 from bench.macs import count_params
 from bench.sanitize import sanitize_inputs
@@ -161,11 +162,13 @@ def batch_loss(model, batch: dict, task: Task, loss_weights: dict, hdr: str, fea
     """Total loss and its named parts for one batch of (B, T, C, H, W) buffers."""
     x, g = sanitize_inputs(batch[task.x], batch[task.g])
     out = model(to_network(x, hdr), g)
-    total, parts = weighted_loss(out["final"], to_network(batch[task.y], hdr), loss_weights["final"], features)
+    to_linear = functools.partial(from_network, mode=hdr)
+    total, parts = weighted_loss(out["final"], to_network(batch[task.y], hdr), loss_weights["final"], features,
+                                 to_linear)
     parts = {f"final.{k}": v for k, v in parts.items()}
     if task.mid and out.get("intermediate") is not None and any(loss_weights["intermediate"].values()):
         mid, mid_parts = weighted_loss(out["intermediate"], to_network(batch[task.mid], hdr),
-                                       loss_weights["intermediate"], features)
+                                       loss_weights["intermediate"], features, to_linear)
         total = total + mid
         parts.update({f"intermediate.{k}": v for k, v in mid_parts.items()})
     return total, parts
