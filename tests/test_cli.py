@@ -172,6 +172,33 @@ def test_adopt_stops_on_ctrl_c_or_sigterm_during_a_replay(monkeypatch, tmp_path)
         adopt.run(None, "adopt", 10, 1e-5, 1e-3, dry_run=True)
 
 
+def test_adopt_archives_what_it_restamps_over_the_stale_copy(monkeypatch, tmp_path):
+    """An adopted run's archived copy is replaced by the re-stamped one: a fresh clone restores from the
+    archive, and the stale copy there would be trained again."""
+    import types
+    import torch
+    from bench import runs
+    from bench.experiments import adopt
+    run_dir = tmp_path / "runs" / "train" / ("0" * 16)
+    run_dir.mkdir(parents=True)
+    witness = runs.Run("train", "0" * 16, run_dir, {"identity": {"model": {"_target_": "x"}}, "label": "row",
+                                                     "status": "complete", "code": {"bench/x.py": "old"}})
+    witness.save()
+    torch.save({"model": {"w": torch.zeros(1)}, "ema": None, "optimizer": {}, "step": 3}, run_dir / "checkpoint.pt")
+    archive = tmp_path / "archive"
+    runs.archive(witness, archive)                                # as a table archived it, before the change
+    monkeypatch.setattr(adopt, "stale_groups", lambda ctx: {"g": [witness]})
+    monkeypatch.setattr(adopt, "code_of", lambda *a: {"bench/x.py": "new"})
+    monkeypatch.setattr(adopt, "evaluations_of", lambda *a: [])
+    monkeypatch.setattr(adopt, "check_training", lambda *a: {"step 1 loss": 0.0, "later loss": 0.0})
+    ctx = types.SimpleNamespace(runs_dir=tmp_path / "runs", runs_archive=archive, results_dir=tmp_path / "results")
+    table = adopt.run(ctx, "adopt", 10, 1e-5, 1e-3, dry_run=False)
+    assert list(table["verdict"]) == ["adopted"]
+    archived = runs.read_record(archive / "train" / witness.hash / runs.RECORD)
+    assert archived["code"] == {"bench/x.py": "new"} and "code_adopted" in archived
+    assert set(torch.load(archive / "train" / witness.hash / "checkpoint.pt", weights_only=False)) >= {"model", "step"}
+
+
 def test_adopt_keeps_runs_through_a_change_that_moves_no_number_and_not_through_one_that_does(smoke_dirs,
                                                                                               tmp_path):
     """+experiment=adopt on a copy of the smoke store: a refactor-like edit (a new function) leaves the

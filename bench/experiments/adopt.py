@@ -16,10 +16,11 @@ reproduces the group's witness run (its lowest seed):
   of the run on today's frames, give its recorded per-frame relMSE, PSNR and SSIM (a group whose
   evaluations all scored frames rendered again since has none to check: it is checked by training);
 
-each to a relative tolerance `rtol` unless said otherwise. A group that passes has its runs (every seed) and their evaluations
-re-stamped with the current code fingerprint, the old one and the check kept in the record
-(`code_adopted`); a group that fails is left stale, with the measured difference in the table. What is
-not checked: training steps after the first `steps` (the same code paths run again, on other batches),
+each to a relative tolerance `rtol` unless said otherwise. A group that passes has its runs (every seed) and
+their evaluations re-stamped with the current code fingerprint, the old one and the check kept in the record
+(`code_adopted`), and archived again (`runs_archive`, complete runs only: else a fresh clone restores the
+archive's stale copy); a group that fails is left stale, with the measured difference in the table. What
+is not checked: training steps after the first `steps` (the same code paths run again, on other batches),
 and evaluations run another way (a fast path, tiles), which stay stale.
 
 Stopped trainings (interrupted, failed, or killed: a "running" record no process holds) with a checkpoint are adopted with their group, so they
@@ -41,9 +42,10 @@ import torch
 
 from bench import runs
 from bench.evaluate import evaluate
-from bench.experiments.pipeline import (EVALUATION_CODE, TRAINING_CODE, Context, build_model, code_of,
-                                        data_fingerprint, dataset, evaluation_data, perceptual_features,
-                                        cascade_net, recipe_from, render_digest)
+from bench.experiments.pipeline import (EVALUATION_CODE, TRAINING_CODE, Context, archive_evaluation,
+                                        archive_training, build_model, code_of, data_fingerprint, dataset,
+                                        evaluation_data, perceptual_features, cascade_net, recipe_from,
+                                        render_digest)
 from bench.models.srd import SRDStage
 from bench.table_writer import write_table
 from bench.tasks import get_task
@@ -227,6 +229,7 @@ def run(ctx: Context, name: str, steps: int, rtol: float, rtol_later_steps: floa
                 "rtol": rtol, "rtol_later_steps": rtol_later_steps}
             for r in group:
                 restamp(r, code, check)
+                archive_training(ctx, r)
             adopted |= {r.hash for r in group}
         rows.append(row)
     for evaluation in evaluations_of(ctx.runs_dir, adopted):  # their evaluations, run the default way
@@ -235,6 +238,7 @@ def run(ctx: Context, name: str, steps: int, rtol: float, rtol_later_steps: floa
         code = code_of(model_cfg, *EVALUATION_CODE, *TRAINING_CODE)
         if "path" not in identity and runs.code_changes(evaluation.record, code):
             restamp(evaluation, code, {"trainings": trained, "rtol": rtol})
+            archive_evaluation(ctx, evaluation)
     table = pd.DataFrame(rows)
     write_table(table, ctx.results_dir / name, caption=(
         f"Stale training runs checked against the current code (bench/experiments/adopt.py): per group (a "
