@@ -197,6 +197,12 @@ def test_adopt_archives_what_it_restamps_over_the_stale_copy(monkeypatch, tmp_pa
     archived = runs.read_record(archive / "train" / witness.hash / runs.RECORD)
     assert archived["code"] == {"bench/x.py": "new"} and "code_adopted" in archived
     assert set(torch.load(archive / "train" / witness.hash / "checkpoint.pt", weights_only=False)) >= {"model", "step"}
+    other = runs.Run("train", "1" * 16, run_dir, {"identity": {"model": {"_target_": "y"}}, "label": "next",
+                                                   "status": "interrupted"})
+    monkeypatch.setattr(adopt, "stale_groups", lambda ctx: {"h": [other]})       # a later call, another group
+    adopt.run(ctx, "adopt", 10, 1e-5, 5e-3, dry_run=True)
+    table = pd.read_csv(tmp_path / "results" / "adopt" / "table.csv")
+    assert list(table["label"]) == ["row", "next"] and list(table["rtol later steps"]) == [1e-3, 5e-3]
 
 
 def test_adopt_keeps_runs_through_a_change_that_moves_no_number_and_not_through_one_that_does(smoke_dirs,

@@ -239,16 +239,31 @@ def run(ctx: Context, name: str, steps: int, rtol: float, rtol_later_steps: floa
         if "path" not in identity and runs.code_changes(evaluation.record, code):
             restamp(evaluation, code, {"trainings": trained, "rtol": rtol})
             archive_evaluation(ctx, evaluation)
-    table = pd.DataFrame(rows)
+    checked = time.strftime("%Y-%m-%dT%H:%M:%S%z")
+    table = pd.DataFrame([{**row, "checked": checked, "rtol": rtol, "rtol later steps": rtol_later_steps,
+                           "dry run": dry_run} for row in rows])
+    table = with_earlier_verdicts(table, ctx.results_dir / name / "table.csv")
     write_table(table, ctx.results_dir / name, caption=(
         f"Stale training runs checked against the current code (bench/experiments/adopt.py): per group (a "
         f"table row, every seed), the witness run's first {steps} training steps replayed, its whole "
         f"learning-rate schedule, and its weights through the evaluator on one sequence, as relative "
         f"differences to the recorded values; adopted when the first step (loss, gradient norm: the same "
-        f"initial weights, batch, forward and backward), the schedule and the evaluation are within {rtol:g} "
-        f"and the later steps' loss within {rtol_later_steps:g} (summation order makes two runs of the same "
-        f"code drift apart slowly from the second step on)"
-        f"{' (dry run: nothing re-stamped)' if dry_run else ''}."))
+        f"initial weights, batch, forward and backward), the schedule and the evaluation are within rtol "
+        f"and the later steps' loss within rtol later steps (summation order makes two runs of the same "
+        f"code drift apart slowly from the second step on). One row per witness, its latest check: groups "
+        f"that earlier calls adopted are no longer stale and keep their row."))
     log.info("adopt: %d of %d groups adopted%s; table in %s", sum(r["verdict"] == "adopted" for r in rows),
              len(rows), " (dry run)" if dry_run else "", ctx.results_dir / name)
     return table
+
+
+def with_earlier_verdicts(table: pd.DataFrame, previous_csv: Path) -> pd.DataFrame:
+    """`table` after the rows of the previous call's table whose witness this call did not check (an
+    adopted group is no longer stale, so a later call would otherwise drop the record of its check)."""
+    if not previous_csv.exists():
+        return table
+    earlier = pd.read_csv(previous_csv)
+    if "witness" not in earlier:
+        return table
+    earlier = earlier[~earlier["witness"].isin(table["witness"] if "witness" in table else [])]
+    return pd.concat([earlier, table], ignore_index=True)
