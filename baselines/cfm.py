@@ -9,7 +9,8 @@ losses), and a trunk width (`channels`) chosen to the compute budget; the condit
 original 32 channels. `deformable_blocks` makes the second conv of the last n blocks deformable: the
 paper's "CFM+deform" row (Table 4) replaces it in every block (deformable_blocks = blocks).
 `input_residual` (default, as for every learned model here; not in the original) adds the bilinear
-upsampling of the input radiance to the output, from a zero-initialised last conv (see SRDNet).
+upsampling of the input radiance to the output, from a zero-initialised last conv (see SRDNet);
+`linear_base` interpolates it as linear radiance (see SRDNet).
 """
 import torch.nn as nn
 
@@ -23,7 +24,8 @@ class CFMNet(nn.Module):
     recurrent = False
 
     def __init__(self, in_channels=3, gbuffer_channels=7, scale=2, channels=64, blocks=16,
-                 cond_channels=32, cond_hidden=32, deformable_blocks=0, input_residual=True):
+                 cond_channels=32, cond_hidden=32, deformable_blocks=0, input_residual=True,
+                 linear_base=None):
         super().__init__()
         if gbuffer_channels == 0:
             raise ValueError("CFM modulates features by the gBuffer: gbuffer_channels must be > 0")
@@ -33,7 +35,7 @@ class CFMNet(nn.Module):
         self.condition = ConditionNet(gbuffer_channels, cond_channels, cond_hidden)
         self.trunk = EDSRTrunk(in_channels, channels, blocks, deform_blocks=deformable_blocks,
                                cond_channels=cond_channels)
-        self.output = RGBUpsampler(channels, scale, input_residual)
+        self.output = RGBUpsampler(channels, scale, input_residual, linear_base)
         load_old_names(self, OLD_NAMES)
 
     def forward(self, x, g):

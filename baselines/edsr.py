@@ -14,7 +14,8 @@ output of one LR pixel, its scale x scale HR block, depends on that many LR pixe
 and 2 alike) without changing parameters or MACs.
 `deformable` replaces that second conv with a deformable conv.
 `input_residual` (default, as for every learned model here; not in the original) adds the bilinear
-upsampling of the input radiance to the output, from a zero-initialised last conv (see SRDNet).
+upsampling of the input radiance to the output, from a zero-initialised last conv (see SRDNet);
+`linear_base` interpolates it as linear radiance (see SRDNet).
 """
 import torch.nn as nn
 
@@ -30,12 +31,12 @@ class EDSR(nn.Module):
     recurrent = False
 
     def __init__(self, in_channels=3, gbuffer_channels=7, scale=2, channels=64, blocks=16, dilation=1,
-                 deformable=False, res_scale=1.0, input_residual=True):
+                 deformable=False, res_scale=1.0, input_residual=True, linear_base=None):
         super().__init__()
         self.gbuffer_channels = gbuffer_channels
         self.trunk = EDSRTrunk(in_channels + gbuffer_channels, channels, blocks, dilation=dilation,
                                deform_blocks=blocks if deformable else 0, res_scale=res_scale)
-        self.output = RGBUpsampler(channels, scale, input_residual)
+        self.output = RGBUpsampler(channels, scale, input_residual, linear_base)
         load_old_names(self, OLD_NAMES)
 
     def forward(self, x, g):

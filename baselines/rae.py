@@ -13,7 +13,8 @@ scale=1 it is the original final conv. Inputs are padded (replicate) to a multip
 Recurrent: the hidden state is zero at the start of every forward call and carried along T; streaming
 inference uses init_state(x0) / step(x_t, g_t, state).
 `input_residual` (default, as for every learned model here; not in the original) adds the bilinear
-upsampling of the input radiance to the output, from a zero-initialised last conv (see SRDNet).
+upsampling of the input radiance to the output, from a zero-initialised last conv (see SRDNet);
+`linear_base` interpolates it as linear radiance (see SRDNet).
 """
 import torch
 import torch.nn as nn
@@ -51,7 +52,8 @@ class DecoderLevel(nn.Module):
 class RAE(nn.Module):
     recurrent = True
 
-    def __init__(self, in_channels=3, gbuffer_channels=7, scale=2, width=32, input_residual=True):
+    def __init__(self, in_channels=3, gbuffer_channels=7, scale=2, width=32, input_residual=True,
+                 linear_base=None):
         super().__init__()
         self.gbuffer_channels, self.scale = gbuffer_channels, scale
         chans = level_channels(width)
@@ -63,7 +65,7 @@ class RAE(nn.Module):
         dec_ins = [chans[-1]] + outs[:-1]
         self.decoder = nn.ModuleList(DecoderLevel(i, c, c) for i, c in zip(dec_ins, outs))
         self.head = PixelShuffleUp(chans[0], 3, scale)
-        self.input_residual = input_residual
+        self.input_residual, self.linear_base = input_residual, linear_base
         if input_residual:
             zero_init(self.head.conv)
 
@@ -93,7 +95,7 @@ class RAE(nn.Module):
             z = level(z, skip)
         out = self.head(z)[..., : self.scale * h, : self.scale * w]
         if self.input_residual:
-            out = out + upsampled_input(x_t, self.scale)
+            out = out + upsampled_input(x_t, self.scale, self.linear_base)
         return {"final": out}, skips
 
     def forward(self, x, g):

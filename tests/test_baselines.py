@@ -234,6 +234,26 @@ def test_input_residual_starts_at_bilinear(name, scale):
     assert (cls(scale=scale, input_residual=False, **kwargs)(x, g)["final"][0] - base).abs().max() > 1e-3
 
 
+@pytest.mark.parametrize("name", ["edsr", "rae", "cfm", "srd"])
+def test_linear_base_starts_at_the_input_bilinear_row_and_keeps_a_sparse_frames_mean(name):
+    """With linear_base, an untrained model's output is the Input bilinear row of linear HDR radiance
+    (mapped to the network domain): on a dark frame with 60% zero samples its mean is the input's,
+    where the network-domain base loses about a third of it."""
+    from bench.hdr import from_network, to_network
+    from bench.models.srd import SRDNet
+    cls, kwargs = (SRDNet, dict(channels=8, sr_blocks=1, dn_levels=2, dn_deform_blocks=1)) if name == "srd" \
+        else SMALL[name]
+    gen = torch.Generator().manual_seed(5)
+    lin = 0.03 * torch.rand(1, 2, 3, 16, 16, generator=gen) * (torch.rand(1, 2, 1, 16, 16, generator=gen) > 0.6)
+    x, g = to_network(lin, "pu"), torch.rand(1, 2, 7, 16, 16, generator=gen)
+    with torch.no_grad():
+        out = from_network(cls(linear_base="pu", **kwargs)(x, g)["final"][0], "pu")
+        default = from_network(cls(**kwargs)(x, g)["final"][0], "pu")
+    row = F.interpolate(lin[0], scale_factor=2, mode="bilinear", align_corners=False)
+    torch.testing.assert_close(out, row, atol=1e-4, rtol=1e-4)   # PU21's floor: a zero reads as 5e-5
+    assert abs(out.mean() / lin.mean() - 1) < 0.01 and default.mean() / lin.mean() < 0.8
+
+
 def test_kpcn_filter_bands_equal_one_pass():
     """Filtering in bands of rows (bounded memory) gives the one-pass result, gradients included."""
     from baselines.kpcn import KernelFilter

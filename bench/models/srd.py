@@ -165,7 +165,9 @@ class SRDNet(nn.Module):
     channel_aug, else the network input), so training starts at the "Input bilinear" row and the
     Cascade stages compose exactly like the end-to-end model. Not in
     the paper (which does not say); without it the network needs far more steps than the smoke and cpu
-    scales give to catch up with bilinear. Set false for the paper's plain output.
+    scales give to catch up with bilinear. Set false for the paper's plain output. linear_base: the
+    network domain's bench.hdr mode (e.g. "pu") to interpolate that base as linear radiance
+    (bench.nn.upsampled_input); None interpolates the network-domain values.
     """
 
     recurrent = True
@@ -173,7 +175,7 @@ class SRDNet(nn.Module):
     def __init__(self, in_channels=3, gbuffer_channels=7, scale=2, channels=32, sr_blocks=4,
                  stage_order="sr_dn", channel_aug=True, skip=True, gbuffer_mode="cfm",
                  sr_deform_blocks=0, dn_deform_blocks=3, dilation=1, dn_levels=5, intermediate=True,
-                 cond_channels=16, input_residual=True):
+                 cond_channels=16, input_residual=True, linear_base=None):
         super().__init__()
         if stage_order not in ("sr_dn", "dn_sr"):
             raise ValueError(f"stage_order must be 'sr_dn' or 'dn_sr', got {stage_order!r}")
@@ -186,6 +188,7 @@ class SRDNet(nn.Module):
         self.scale, self.stage_order, self.gbuffer_mode = scale, stage_order, gbuffer_mode
         self.gbuffer_channels, self.dn_levels = gbuffer_channels, dn_levels
         self.channel_aug, self.skip, self.input_residual = channel_aug, skip, input_residual
+        self.linear_base = linear_base
         self.mid_ch = channels if channel_aug else 3
         self.emit_intermediate = intermediate and stage_order == "sr_dn" and scale > 1
         use_cfm = gbuffer_mode == "cfm" and gbuffer_channels > 0
@@ -221,7 +224,7 @@ class SRDNet(nn.Module):
 
     def _base(self, x, scale):
         """What an RGB output is a residual on: the bilinear-upsampled input, or 0."""
-        return upsampled_input(x, scale) if self.input_residual else 0
+        return upsampled_input(x, scale, self.linear_base) if self.input_residual else 0
 
     # ---- geometry -------------------------------------------------------------------------------
     def _dn_factor(self):
