@@ -1,6 +1,7 @@
 """Training losses of the paper (Sec. 3.5): spatial L1, HFEN edge loss, temporal L1, perceptual loss;
-and one the paper does not use, an SSIM term (1 - SSIM), off unless a recipe names it: `ssim` in the
-network domain, `ssim_linear` on linear radiance clamped to [0, 1], the images the SSIM metric scores.
+and two the paper does not use, off unless a recipe names them: an SSIM term (1 - SSIM), `ssim` in the
+network domain, `ssim_linear` on linear radiance clamped to [0, 1], the images the SSIM metric scores;
+and `relmse`, relative MSE on linear radiance (the relMSE metric), an L2 term that learns the mean.
 
 Pure functions on tensors shaped (B, T, C, H, W) or (N, C, H, W). This module imports no network:
 the perceptual loss takes the feature extractor as a `features` callable (e.g. bench.nn.VGG16Features).
@@ -28,6 +29,8 @@ HFEN_KERNEL_SIZE = 15
 SSIM_SIGMA = 1.5
 SSIM_WINDOW = 11
 SSIM_C1, SSIM_C2 = 0.01 ** 2, 0.03 ** 2
+# relMSE (Rousselle et al. 2011): (x - r)^2 / (r^2 + eps), eps = 0.01 as the relMSE metric (bench.metrics).
+RELMSE_EPS = 0.01
 
 
 def _as_images(x):
@@ -117,6 +120,14 @@ def ssim_loss(pred, target):
     return 1 - s.mean()
 
 
+def relmse_loss(pred, target):
+    """Mean of (pred - target)^2 / (target^2 + 0.01) over all elements: the relMSE metric without its
+    float64, in whatever domain it is handed (linear radiance for the trainer's `relmse` term). Being
+    an L2 loss it learns the mean where the input leaves the radiance uncertain; L1 learns the median,
+    below the mean where radiance is sparse and skewed (a dark scene's few lit samples)."""
+    return ((pred - target) ** 2 / (target ** 2 + RELMSE_EPS)).mean()
+
+
 def perceptual(pred, target, features):
     """Mean over elements of (features(pred) - features(target))^2, i.e. ||phi(y^) - phi(y)||^2 / (C H W)
     averaged over the batch. `features` maps (N, 3, H, W) to (N, C, H', W')."""
@@ -127,12 +138,12 @@ def perceptual(pred, target, features):
 
 
 def absolute_weights(weights):
-    """Ratios {edge, temporal, spatial, perceptual[, ssim, ssim_linear]} -> absolute weights, normalized by
+    """Ratios {edge, temporal, spatial, perceptual[, ssim, ssim_linear, relmse]} -> absolute weights, normalized by
     edge+temporal+spatial."""
     norm = weights.get("edge", 0) + weights.get("temporal", 0) + weights.get("spatial", 0)
     if norm <= 0:
         raise ValueError(f"edge + temporal + spatial ratios must be positive, got {weights}")
-    unknown = set(weights) - {"edge", "temporal", "spatial", "perceptual", "ssim", "ssim_linear"}
+    unknown = set(weights) - {"edge", "temporal", "spatial", "perceptual", "ssim", "ssim_linear", "relmse"}
     if unknown:
         raise ValueError(f"unknown loss terms {sorted(unknown)}")
     return {name: ratio / norm for name, ratio in weights.items()}
@@ -144,17 +155,19 @@ def weighted_loss(pred, target, weights, features=None, to_linear=None):
     Returns (total, parts): parts maps each term with a nonzero weight to its UNweighted value, so
     total = sum(absolute_weight[name] * parts[name]). Terms with weight 0 are not computed.
     The temporal term needs (B, T, ...) input with T >= 2; on (N, C, H, W) input it is skipped.
-    `to_linear` maps the network domain back to linear radiance, for `ssim_linear`: the SSIM metric
+    `to_linear` maps the network domain back to linear radiance, for `relmse` and `ssim_linear`: the SSIM metric
     scores linear radiance clamped to [0, 1], where noise in dark regions (below SSIM's constants)
     costs little and bright regions weigh more than in PU21, which expands darks and compresses brights.
     """
     terms = {"spatial": spatial_l1, "edge": hfen, "temporal": temporal_l1, "ssim": ssim_loss,
              "perceptual": lambda p, t: perceptual(p, t, features),
-             "ssim_linear": lambda p, t: ssim_loss(to_linear(p).clamp(0, 1), to_linear(t).clamp(0, 1))}
+             "ssim_linear": lambda p, t: ssim_loss(to_linear(p).clamp(0, 1), to_linear(t).clamp(0, 1)),
+             "relmse": lambda p, t: relmse_loss(to_linear(p), to_linear(t))}
     if weights.get("perceptual", 0) and features is None:
         raise ValueError("a nonzero perceptual weight needs a `features` callable")
-    if weights.get("ssim_linear", 0) and to_linear is None:
-        raise ValueError("a nonzero ssim_linear weight needs a `to_linear` callable")
+    for name in ("ssim_linear", "relmse"):
+        if weights.get(name, 0) and to_linear is None:
+            raise ValueError(f"a nonzero {name} weight needs a `to_linear` callable")
     total, parts = pred.new_zeros(()), {}
     for name, weight in absolute_weights(weights).items():
         if weight == 0 or (name == "temporal" and pred.dim() != 5):

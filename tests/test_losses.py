@@ -12,8 +12,8 @@ import torch
 from skimage.metrics import structural_similarity
 
 from bench.losses import (HFEN_KERNEL_SIZE, HFEN_SIGMA, PAPER_WEIGHTS, absolute_weights, hfen,
-                          laplacian_of_gaussian, perceptual, spatial_l1, ssim_loss, temporal_l1,
-                          weighted_loss)
+                          laplacian_of_gaussian, perceptual, relmse_loss, spatial_l1, ssim_loss,
+                          temporal_l1, weighted_loss)
 
 PAPER = os.environ.get("SRD_PAPER_TEXT")  # the paper's full text, where a machine has it (not shipped)
 
@@ -175,3 +175,31 @@ def test_ssim_linear_term_is_the_metrics_ssim_on_linear_radiance_and_weights_reg
         linear_term = weighted_loss(a, b, {"spatial": 1, "ssim_linear": 1}, to_linear=to_linear)[1]["ssim_linear"]
         ratios.append(float(linear_term / ssim_loss(a, b)))
     assert ratios[0] < 0.1 and ratios[1] > 1.2, ratios
+
+
+def test_relmse_term_is_the_relmse_metric_on_linear_radiance_and_learns_the_mean():
+    """`relmse` maps network-domain values back to linear radiance and takes the relMSE metric's
+    formula there (checked against NumPy); over draws of a sparse, skewed radiance (60% zeros) the
+    constant that minimises it is near their mean (weighted by 1 / (r^2 + eps)), where L1's minimiser is
+    their median, zero."""
+    from bench.hdr import from_network, to_network
+    rng = np.random.default_rng(6)
+    lin_target = rng.random((1, 2, 3, 8, 8)) * 2
+    lin_pred = np.clip(lin_target + rng.normal(0, 0.2, lin_target.shape), 0, None)
+    to_linear = functools.partial(from_network, mode="pu")
+    pred = to_network(torch.from_numpy(lin_pred), "pu").requires_grad_()
+    target = to_network(torch.from_numpy(lin_target), "pu")
+    parts = weighted_loss(pred, target, {"spatial": 1, "relmse": 8}, to_linear=to_linear)[1]
+    p, t = to_linear(pred).detach().numpy(), to_linear(target).numpy()
+    assert abs(parts["relmse"].item() - ((p - t) ** 2 / (t ** 2 + 0.01)).mean()) < 1e-12
+    parts["relmse"].backward()
+    assert torch.isfinite(pred.grad).all() and pred.grad.abs().sum() > 0
+    with pytest.raises(ValueError, match="relmse weight needs a `to_linear`"):
+        weighted_loss(pred, target, {"spatial": 1, "relmse": 8})
+    draws = torch.from_numpy(0.05 * rng.random(1000) * (rng.random(1000) > 0.6))     # dark, sparse
+    constants = torch.linspace(0, 0.05, 501)
+    rel = torch.stack([relmse_loss(c.expand_as(draws), draws) for c in constants])
+    l1 = torch.stack([spatial_l1(c.expand_as(draws), draws) for c in constants])
+    weights = 1 / (draws ** 2 + 0.01)                      # its minimiser: the mean weighted by 1 / (r^2 + eps)
+    assert abs(constants[rel.argmin()] - (weights * draws).sum() / weights.sum()) <= 1e-4
+    assert constants[rel.argmin()] > 0.9 * draws.mean() and constants[l1.argmin()] == 0
