@@ -16,6 +16,7 @@ import torch.nn as nn
 
 from baselines import fold_time, gbuffer_prefix, unfold_time
 from baselines.edsr import OLD_NAMES
+from bench.hdr import transforms
 from bench.nn.blocks import EDSRTrunk, RGBUpsampler, load_old_names
 from bench.nn.cfm import ConditionNet
 
@@ -35,7 +36,7 @@ class CFMNet(nn.Module):
         self.condition = ConditionNet(gbuffer_channels, cond_channels, cond_hidden)
         self.trunk = EDSRTrunk(in_channels, channels, blocks, deform_blocks=deformable_blocks,
                                cond_channels=cond_channels)
-        self.output = RGBUpsampler(channels, scale, input_residual, linear_base)
+        self.output = RGBUpsampler(channels, scale, input_residual, transforms(linear_base))
         load_old_names(self, OLD_NAMES)
 
     def forward(self, x, g):

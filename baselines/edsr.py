@@ -20,6 +20,7 @@ upsampling of the input radiance to the output, from a zero-initialised last con
 import torch.nn as nn
 
 from baselines import fold_time, unfold_time, with_gbuffer
+from bench.hdr import transforms
 from bench.nn.blocks import EDSRTrunk, RGBUpsampler, load_old_names
 
 # parameter names before the shared trunk and output (2026-11): recorded weights hold them
@@ -36,7 +37,7 @@ class EDSR(nn.Module):
         self.gbuffer_channels = gbuffer_channels
         self.trunk = EDSRTrunk(in_channels + gbuffer_channels, channels, blocks, dilation=dilation,
                                deform_blocks=blocks if deformable else 0, res_scale=res_scale)
-        self.output = RGBUpsampler(channels, scale, input_residual, linear_base)
+        self.output = RGBUpsampler(channels, scale, input_residual, transforms(linear_base))
         load_old_names(self, OLD_NAMES)
 
     def forward(self, x, g):

@@ -21,6 +21,7 @@ import torch.nn as nn
 import torch.nn.functional as F
 
 from baselines import with_gbuffer
+from bench.hdr import transforms
 from bench.nn.blocks import PixelShuffleUp, RecurrentBlock, conv3x3, run_sequence, upsampled_input, zero_init
 
 BASE_CHANNELS = (32, 43, 57, 76, 101)  # Chaitanya et al.'s encoder widths at width=32
@@ -65,7 +66,7 @@ class RAE(nn.Module):
         dec_ins = [chans[-1]] + outs[:-1]
         self.decoder = nn.ModuleList(DecoderLevel(i, c, c) for i, c in zip(dec_ins, outs))
         self.head = PixelShuffleUp(chans[0], 3, scale)
-        self.input_residual, self.linear_base = input_residual, linear_base
+        self.input_residual, self.base_domain = input_residual, transforms(linear_base)
         if input_residual:
             zero_init(self.head.conv)
 
@@ -95,7 +96,7 @@ class RAE(nn.Module):
             z = level(z, skip)
         out = self.head(z)[..., : self.scale * h, : self.scale * w]
         if self.input_residual:
-            out = out + upsampled_input(x_t, self.scale, self.linear_base)
+            out = out + upsampled_input(x_t, self.scale, self.base_domain)
         return {"final": out}, skips
 
     def forward(self, x, g):

@@ -10,6 +10,8 @@ Only the trainer and evaluator apply them (models see network-domain values; met
 """
 from __future__ import annotations
 
+import functools
+
 import torch
 
 _PU = (0.353487901, 0.3734658629, 8.277049286e-05, 0.9062562627, 0.09150303166, 0.9099517204, 596.3148142)
@@ -46,6 +48,16 @@ def to_network(x: torch.Tensor, mode: str = "clamp") -> torch.Tensor:
         y = (x * _PU_SCALE).clamp(*_PU_RANGE)
         return (_pu21(y) - _PU_ZERO) / (_PU_ONE - _PU_ZERO)
     raise ValueError(f"unknown HDR transform {mode!r}; choose one of {MODES}")
+
+
+def transforms(mode: str | None):
+    """(to linear, from linear) callables of a network domain, for layers that must not import this
+    module (bench.nn.upsampled_input); None for None."""
+    if mode is None:
+        return None
+    if mode not in MODES:
+        raise ValueError(f"unknown HDR transform {mode!r}; choose one of {MODES}")
+    return functools.partial(from_network, mode=mode), functools.partial(to_network, mode=mode)
 
 
 def from_network(y: torch.Tensor, mode: str = "clamp") -> torch.Tensor:

@@ -51,6 +51,7 @@ import torch
 import torch.nn as nn
 import torch.nn.functional as F
 
+from bench.hdr import transforms
 from bench.nn import (CFM, ConditionNet, DeformConv2d, EDSRTrunk, PixelShuffleUp, RecurrentBlock, conv3x3,
                      load_old_names, run_sequence, upsampled_input, zero_init)
 
@@ -188,7 +189,7 @@ class SRDNet(nn.Module):
         self.scale, self.stage_order, self.gbuffer_mode = scale, stage_order, gbuffer_mode
         self.gbuffer_channels, self.dn_levels = gbuffer_channels, dn_levels
         self.channel_aug, self.skip, self.input_residual = channel_aug, skip, input_residual
-        self.linear_base = linear_base
+        self.base_domain = transforms(linear_base)
         self.mid_ch = channels if channel_aug else 3
         self.emit_intermediate = intermediate and stage_order == "sr_dn" and scale > 1
         use_cfm = gbuffer_mode == "cfm" and gbuffer_channels > 0
@@ -224,7 +225,7 @@ class SRDNet(nn.Module):
 
     def _base(self, x, scale):
         """What an RGB output is a residual on: the bilinear-upsampled input, or 0."""
-        return upsampled_input(x, scale, self.linear_base) if self.input_residual else 0
+        return upsampled_input(x, scale, self.base_domain) if self.input_residual else 0
 
     # ---- geometry -------------------------------------------------------------------------------
     def _dn_factor(self):

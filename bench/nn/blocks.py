@@ -4,8 +4,6 @@ import torch
 import torch.nn as nn
 import torch.nn.functional as F
 
-from bench.hdr import from_network, to_network
-
 from .cfm import CFM
 from .deform import DeformConv2d
 
@@ -89,16 +87,17 @@ def load_old_names(module, renames: dict):
     module.register_load_state_dict_pre_hook(_OldNames(renames))
 
 
-def upsampled_input(x, scale, linear_base=None):
+def upsampled_input(x, scale, domain=None):
     """Bilinear upsampling of the radiance (first 3 channels) of x (B, C, h, w) by `scale`: the base that
     a model with `input_residual` adds its output to, so such a model starts near the "Input bilinear"
     row and learns a correction (VDSR-style global residual learning). x is in the network domain; with
-    `linear_base` (that domain's bench.hdr mode) it is interpolated as linear radiance, which makes the
-    base exactly that row. Interpolating PU21 values instead loses the mean where samples are sparse:
-    on a dark val scene whose LR pixels are 60% zeros the base is about 35% too dark."""
-    if linear_base is None:
+    `domain`, that domain's (to_linear, from_linear) pair (bench.hdr.transforms), it is interpolated as
+    linear radiance, which makes the base exactly that row. Interpolating PU21 values instead loses the
+    mean where samples are sparse: on a dark val scene whose LR pixels are 60% zeros, about 35%."""
+    if domain is None:
         return bilinear(x[:, :3], scale)
-    return to_network(bilinear(from_network(x[:, :3], linear_base), scale), linear_base)
+    to_linear, from_linear = domain
+    return from_linear(bilinear(to_linear(x[:, :3]), scale))
 
 
 def bilinear(x, scale):
@@ -133,18 +132,18 @@ class RGBUpsampler(nn.Module):
     """EDSR's output: PixelShuffleUp, then a tail conv to RGB; with `input_residual` the bilinear
     upsampling of the input radiance is added and the tail starts at zero (see upsampled_input)."""
 
-    def __init__(self, channels, scale, input_residual=True, linear_base=None):
+    def __init__(self, channels, scale, input_residual=True, domain=None):
         super().__init__()
         self.up = PixelShuffleUp(channels, channels, scale)
         self.tail = conv3x3(channels, 3)
-        self.scale, self.input_residual, self.linear_base = scale, input_residual, linear_base
+        self.scale, self.input_residual, self.domain = scale, input_residual, domain
         if input_residual:
             zero_init(self.tail)
 
     def forward(self, features, x):
         """features (N, channels, h, w), x (N, C, h, w) the network input -> (N, 3, scale*h, scale*w)."""
         out = self.tail(self.up(features))
-        return out + upsampled_input(x, self.scale, self.linear_base) if self.input_residual else out
+        return out + upsampled_input(x, self.scale, self.domain) if self.input_residual else out
 
 
 class RecurrentBlock(nn.Module):
