@@ -197,8 +197,8 @@ def test_adopt_archives_what_it_restamps_over_the_stale_copy(monkeypatch, tmp_pa
     archived = runs.read_record(archive / "train" / witness.hash / runs.RECORD)
     assert archived["code"] == {"bench/x.py": "new"} and "code_adopted" in archived
     assert set(torch.load(archive / "train" / witness.hash / "checkpoint.pt", weights_only=False)) >= {"model", "step"}
-    other = runs.Run("train", "1" * 16, run_dir, {"identity": {"model": {"_target_": "y"}}, "label": "next",
-                                                   "status": "interrupted"})
+    other = runs.Run("train", "1" * 16, tmp_path / "runs" / "train" / ("1" * 16),
+                     {"identity": {"model": {"_target_": "y"}}, "label": "next", "status": "interrupted"})
     monkeypatch.setattr(adopt, "stale_groups", lambda ctx: {"h": [other]})       # a later call, another group
     adopt.run(ctx, "adopt", 10, 1e-5, 5e-3, dry_run=True)
     table = pd.read_csv(tmp_path / "results" / "adopt" / "table.csv")
