@@ -12,6 +12,12 @@ z = towards the viewer; bench.render), so the image transform acts on them as a 
 a horizontal flip negates x, a vertical flip negates y, and a counter-clockwise quarter turn
 (torch.rot90 on (H, W)) maps (x, y) -> (-y, x). z never changes.
 
+Colour permutation (training, `permute_colours`): one random order of the RGB channels per item, applied
+to every radiance buffer and to the albedo alike. An RGB renderer transports each channel on its own, so
+the result is the render of the same scene with its lights' and materials' channels permuted (its mean
+exactly; its noise up to the path sampler's colour-dependent choices): the model sees light colours the
+scenes never had, and cannot learn a colour prior from a few sequences of a scene family.
+
 gBuffer channels: albedo RGB, normal XYZ, roughness (7); ``gbuffer_channels`` keeps a prefix. A scene
 whose roughness pass was left out (all-diffuse: bench.scenes.scene_features) gets the constant 1.
 
@@ -29,7 +35,7 @@ from bench import exrio
 from bench.hdr import MODES, from_network, to_network
 from bench.tasks import BUFFERS, GBUF_LAYERS
 
-__all__ = ["SequenceDataset", "augment_sequence", "to_network", "from_network", "MODES", "BUFFERS"]
+__all__ = ["SequenceDataset", "augment_sequence", "permute_colours", "to_network", "from_network", "MODES", "BUFFERS"]
 
 GBUF_SIZES = {"albedo": 3, "normal": 3, "roughness": 1}
 DEFAULT_ROUGHNESS = 1.0  # value of a left-out roughness pass (every BSDF diffuse)
@@ -76,6 +82,21 @@ def augment_sequence(item, hflip, vflip, rot90):
     return out
 
 
+def permute_colours(item, order):
+    """Reorder the RGB channels of every radiance buffer (noisy, ref) and of the albedo (channels 0:3
+    of a gBuffer) of an item by `order` (a permutation of 0, 1, 2); normals and roughness stay."""
+    order = torch.as_tensor(order)
+    out = {}
+    for key, x in item.items():
+        if not torch.is_tensor(x):
+            out[key] = x
+        elif key.endswith("_gbuf"):
+            out[key] = torch.cat([x[:, :3][:, order], x[:, 3:]], 1)
+        else:
+            out[key] = x[:, order]
+    return out
+
+
 def _family_balanced(sequences, n):
     """Names of `n` sequences taken in turn from each scene family (the record's `family`, else the
     whole name), so a smaller training set keeps every kind of room."""
@@ -98,12 +119,13 @@ class SequenceDataset(Dataset):
     buffers: keys to load. seq_len: frames per item (None: whole sequences; shorter: every window of
     seq_len consecutive frames is an item). crop: LR crop size (None: full frames). augment: random
     flips / quarter turns. max_sequences: keep only that many sequences, taken in turn from each scene
-    family (None: all). Random crops and augmentations draw from a generator seeded by (seed, index,
-    number of items drawn so far by this object), so a run is reproducible for a fixed access order.
+    family (None: all). permute_colours: with augment, also a random order of the RGB channels (module
+    doc). Random crops and augmentations draw from a generator seeded by (seed, index, number of items
+    drawn so far by this object), so a run is reproducible for a fixed access order.
     """
 
     def __init__(self, root, split, buffers, seq_len=None, crop=None, augment=False, seed=0,
-                 gbuffer_channels=7, cache_bytes=CACHE_BYTES, max_sequences=None):
+                 gbuffer_channels=7, cache_bytes=CACHE_BYTES, max_sequences=None, permute_colours=False):
         self.root = os.fspath(root)
         with open(os.path.join(self.root, "manifest.json")) as f:
             manifest = json.load(f)
@@ -113,6 +135,7 @@ class SequenceDataset(Dataset):
         self.buffers = list(buffers)
         self.scale = int(manifest.get("spec", {}).get("scale", 2))
         self.crop, self.augment, self.seed = crop, augment, seed
+        self.permute_colours = permute_colours
         self.gbuffer_channels = int(gbuffer_channels)
         sequences = {}
         for rec in manifest["frames"]:
@@ -221,6 +244,8 @@ class SequenceDataset(Dataset):
             if self.crop is None and rot % 2:
                 rot -= 1  # keep full frames in their shape (only square crops are turned by 90 degrees)
             item = augment_sequence(item, hflip, vflip, rot)
+            if self.permute_colours:  # drawn after the flips, so items without it stay as they were
+                item = permute_colours(item, rng.permutation(3))
         item = {k: v.contiguous() for k, v in item.items()}
         item["meta"] = {"scene": frames[0]["scene"], "sequence": name, "frames": [r["frame"] for r in frames]}
         return item

@@ -19,7 +19,6 @@ from __future__ import annotations
 
 import contextlib
 import copy
-import functools
 import logging
 import math
 import random
@@ -36,7 +35,7 @@ from tqdm import tqdm
 
 from bench import distributed
 from bench.errors import UserError
-from bench.hdr import MODES, from_network, to_network
+from bench.hdr import MODES, to_network, transforms
 from bench.losses import weighted_loss
 from bench.macs import count_params
 from bench.sanitize import sanitize_inputs
@@ -108,12 +107,16 @@ class Recipe:
     ema: float | None = 0.999         # EMA decay of the weights used for evaluation; None: the raw weights
     hdr: str = "log1p"                # network domain (bench.hdr)
     train_sequences: int | None = None   # train on this many sequences of the split, family-balanced (None: all)
+    colour_permute: bool = False      # augmentation: a random order of the RGB channels per item (bench.dataset)
     checkpoint_every: int = 100
     checkpoint_every_s: float = 120.0  # also checkpoint when this much wall time passed since the last
     val_every: int = 0                # score the validation subset every this many steps (0: only at the end)
     val_sequences: int = 4            # validation sequences scored for the learning curve (0: no curve)
 
     NOT_IDENTITY = ("checkpoint_every", "checkpoint_every_s", "val_every", "val_sequences")
+    # options added after runs were recorded: in the identity only when set otherwise than their
+    # default, so that the runs recorded before them keep their hashes
+    ADDED_LATER = ("colour_permute",)
 
     def __post_init__(self):
         if self.schedule not in SCHEDULES:
@@ -133,7 +136,9 @@ class Recipe:
         return cls(**values)
 
     def identity(self) -> dict:
-        return {k: v for k, v in asdict(self).items() if k not in self.NOT_IDENTITY}
+        defaults = {f.name: f.default for f in fields(self)}
+        return {k: v for k, v in asdict(self).items()
+                if k not in self.NOT_IDENTITY and not (k in self.ADDED_LATER and v == defaults[k])}
 
 
 def lr_at(step: int, recipe: Recipe) -> float:
@@ -162,7 +167,7 @@ def batch_loss(model, batch: dict, task: Task, loss_weights: dict, hdr: str, fea
     """Total loss and its named parts for one batch of (B, T, C, H, W) buffers."""
     x, g = sanitize_inputs(batch[task.x], batch[task.g])
     out = model(to_network(x, hdr), g)
-    to_linear = functools.partial(from_network, mode=hdr)
+    to_linear = transforms(hdr)[0]
     total, parts = weighted_loss(out["final"], to_network(batch[task.y], hdr), loss_weights["final"], features,
                                  to_linear)
     parts = {f"final.{k}": v for k, v in parts.items()}

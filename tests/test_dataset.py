@@ -6,8 +6,8 @@ import numpy as np
 import pytest
 import torch
 
-from bench.dataset import SequenceDataset, augment_sequence
-from bench.exrio import write_exr
+from bench.dataset import SequenceDataset, augment_sequence, permute_colours
+from bench.exrio import read_exr, write_exr
 
 LR_H, LR_W, T = 10, 14, 3
 
@@ -106,6 +106,33 @@ def test_augmentation_turns_normals_with_the_image(tmp_path, hflip, vflip, rot):
     np.testing.assert_allclose(stored, implied, atol=2e-4)
     original = item["hr_gbuf"][0, 3:5].numpy().transpose(1, 2, 0)[1:-1, 1:-1]
     assert not np.allclose(stored[..., :2], original)   # every case really changes the normals
+
+
+def test_colour_permutation_reorders_radiance_and_albedo_and_keeps_the_crop(tmp_path):
+    _write_synthetic(tmp_path)
+    # albedo channel c is (c + 1) / 10 everywhere, so a permuted albedo names the order
+    for path in (tmp_path / "train" / "seq0").glob("*.exr"):
+        layers = read_exr(path)
+        layers["albedo"] = np.stack([np.full(layers["albedo"].shape[:2], (c + 1) / 10, np.float32)
+                                     for c in range(3)], -1)
+        write_exr(path, layers, suffixes={"normal": ("X", "Y", "Z"), "roughness": ("Y",)})
+    kwargs = dict(seq_len=2, crop=4, augment=True, seed=5)
+    plain = SequenceDataset(tmp_path, "train", ALL, **kwargs)
+    permuted = SequenceDataset(tmp_path, "train", ALL, permute_colours=True, **kwargs)
+    orders = set()
+    for draw in range(12):
+        a, b = plain.item(1, draw), permuted.item(1, draw)
+        order = tuple(round(10 * float(b["lr_gbuf"][0, c, 0, 0])) - 1 for c in range(3))
+        assert sorted(order) == [0, 1, 2]
+        orders.add(order)
+        for key in ("lr_noisy", "lr_ref", "hr_noisy", "hr_ref"):  # same crop and flips, channels reordered
+            torch.testing.assert_close(b[key], a[key][:, list(order)], rtol=0, atol=0)
+        for key in ("lr_gbuf", "hr_gbuf"):
+            torch.testing.assert_close(b[key][:, :3], a[key][:, list(order)], rtol=0, atol=0)
+            torch.testing.assert_close(b[key][:, 3:], a[key][:, 3:], rtol=0, atol=0)  # normals, roughness
+    assert len(orders) > 2   # the order is drawn per item
+    identity = permute_colours({"lr_noisy": a["lr_noisy"], "meta": a["meta"]}, [0, 1, 2])
+    assert torch.equal(identity["lr_noisy"], a["lr_noisy"]) and identity["meta"] is a["meta"]
 
 
 def test_left_out_roughness_is_the_constant_one(tmp_path):

@@ -69,6 +69,15 @@ def test_cosine_schedule_warms_up_linearly_then_decays_to_zero():
     assert all(a >= b for a, b in zip(lrs[10:], lrs[11:])) and lrs[-1] < 1e-6       # monotone to ~0
 
 
+def test_recipe_options_added_later_enter_the_identity_only_when_set():
+    recipe = Recipe(steps=1, batch_size=1, seq_len=1, crop=8, loss=WEIGHTS)
+    assert "colour_permute" not in recipe.identity()   # runs recorded before the option keep their hashes
+    assert Recipe(steps=1, batch_size=1, seq_len=1, crop=8, loss=WEIGHTS, colour_permute=True).identity()[
+        "colour_permute"] is True
+    assert set(recipe.identity()) == {f for f in Recipe.__dataclass_fields__} - set(Recipe.NOT_IDENTITY) - set(
+        Recipe.ADDED_LATER)
+
+
 def test_recipe_rejects_unknown_keys_and_values():
     with pytest.raises(ValueError, match="unknown train"):
         Recipe.from_config({"steps": 1, "batch_size": 1, "seq_len": 1, "crop": 8, "loss": WEIGHTS, "lrr": 1})
