@@ -78,6 +78,16 @@ def test_recipe_options_added_later_enter_the_identity_only_when_set():
         Recipe.ADDED_LATER)
 
 
+def test_a_loss_term_set_to_null_is_absent_from_the_recipe_and_its_identity():
+    base = {"steps": 1, "batch_size": 1, "seq_len": 1, "crop": 8}
+    with_term = {head: {**terms, "ssim": 8} for head, terms in WEIGHTS.items()}
+    nulled = {head: {**terms, "ssim": None} for head, terms in with_term.items()}
+    assert Recipe.from_config({**base, "loss": nulled}).identity() == Recipe.from_config(
+        {**base, "loss": WEIGHTS}).identity()
+    assert Recipe.from_config({**base, "loss": with_term}).identity() != Recipe.from_config(
+        {**base, "loss": WEIGHTS}).identity()
+
+
 def test_recipe_rejects_unknown_keys_and_values():
     with pytest.raises(ValueError, match="unknown train"):
         Recipe.from_config({"steps": 1, "batch_size": 1, "seq_len": 1, "crop": 8, "loss": WEIGHTS, "lrr": 1})
