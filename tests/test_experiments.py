@@ -195,6 +195,7 @@ def test_claims_give_each_paper_claim_a_verdict_from_the_recorded_tables(dirs):
     assert list(table["claim"].unique()) == [c["claim"] for c in exp["claims"]]
     assert set(table["verdict"]) <= {"holds", "reversed", "within noise"}
     assert table["basis"].str.contains("sequences|seeds").all()
+    assert table["recipe"].str.match(r"\d+ steps").all()   # every claim compares trained rows
 
 
 def test_claim_verdicts_follow_twice_the_standard_error(tmp_path):

@@ -68,6 +68,29 @@ def _per_sequence(ctx: Context, eval_hash: str, metric: str) -> pd.Series:
     return pd.read_csv(path).groupby("sequence")[metric].mean()
 
 
+def _record(ctx: Context, kind: str, run_hash: str) -> dict | None:
+    if ctx.runs_archive is not None:
+        runs.restore(ctx.runs_dir, ctx.runs_archive, kind, run_hash)
+    path = ctx.runs_dir / kind / run_hash / runs.RECORD
+    return runs.read_record(path) if path.exists() else None
+
+
+def recipe(ctx: Context, row: pd.Series) -> str | None:
+    """How a row's model was trained, as far as the cpu preset's history goes: its steps and SSIM term,
+    from the training run of its first evaluation; None for a row that trains nothing (or unrecorded).
+    Tables are rerun at different times, so the claims of one table can stand on an earlier recipe."""
+    evaluation = _record(ctx, "eval", str(row["runs"]).split()[0])
+    trained = evaluation and evaluation["identity"].get("trained")
+    if not isinstance(trained, str):   # a model that trains nothing is named by its config instead
+        return None
+    training = _record(ctx, "train", trained.split("+")[0])   # a Cascade's stages share one recipe
+    if training is None:
+        return None
+    train = training["identity"]["train"]
+    ssim = train["loss"]["final"].get("ssim")
+    return f"{train['steps']} steps" + (f" + SSIM term {ssim:g}" if ssim else "")
+
+
 def compare(ctx: Context, better: pd.Series, worse: pd.Series, metric: str) -> dict:
     """Oriented difference, its SE and the basis of the SE for one pair and metric."""
     sign = METRICS[metric]
@@ -122,12 +145,14 @@ def run(ctx: Context, name: str, claims: list[dict], metric: str, tables: list[s
                 log.warning("claims: %r not judged: %s", claim["claim"], missing)
                 rows.append({**row, **{f"{m} verdict": NOT_RUN for m in METRICS}, "basis": str(missing)})
                 continue
+            recipes = {r for r in (recipe(ctx, better), recipe(ctx, worse)) if r}
+            row["recipe"] = " / ".join(sorted(recipes)) or "runs not recorded"
             for m in METRICS:
                 c = compare(ctx, better, worse, m)
                 row[f"{m} diff"], row[f"{m} 2SE"], row[f"{m} verdict"] = c["diff"], 2 * c["se"], verdict(c["diff"], c["se"])
                 row["basis"] = c["basis"]
             rows.append(row)
-    columns = ["claim", "better (paper)", "worse (paper)", *(f"{m} {c}" for m in METRICS
+    columns = ["claim", "better (paper)", "worse (paper)", "recipe", *(f"{m} {c}" for m in METRICS
                                                              for c in ("diff", "2SE", "verdict")), "basis"]
     table = pd.DataFrame(rows, columns=columns)   # the same columns whichever claim comes first
     table.insert(1, "verdict", table.groupby("claim", sort=False)[f"{metric} verdict"].transform(
@@ -141,7 +166,10 @@ def run(ctx: Context, name: str, claims: list[dict], metric: str, tables: list[s
         f"per-sequence paired differences of one seed (data noise only). A pair's verdict: within noise when "
         f"|diff| < 2SE, else holds or reversed. verdict (the claim, on {metric}): holds when every pair "
         f"holds, reversed when any is reversed, else within noise; {NOT_RUN}: a row is missing from the recorded "
-        f"tables (basis says which and the command that records it) and no recorded pair is reversed."
+        f"tables (basis says which and the command that records it) and no recorded pair is reversed. "
+        f"recipe: the training steps (and SSIM term) of the pair's learned rows (runs not recorded: neither "
+        f"the run store nor the archive has them); a table rerun after the preset changed stands on the new "
+        f"recipe, one not yet rerun on the earlier."
         + (f" Judged: the claims made of rows of {', '.join(tables)} only." if tables is not None else "")))
     log.info("%s: %d comparisons, %s", name, len(table),
              ", ".join(f"{c}: {v}" for c, v in table.drop_duplicates("claim")[["claim", "verdict"]].values))
