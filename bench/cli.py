@@ -212,11 +212,21 @@ def _sweep_job_results(cfg: DictConfig) -> None:
     log.info("sweep job %s: tables go to %s", job.num, cfg.results_dir)
 
 
+def apply_pin(cfg: DictConfig) -> None:
+    """Merge the experiment's pin for this preset (`experiment.pin.<preset>`, conf/pin/studies.yaml) over
+    `train`, in place and before anything resolves, so that the rows' `${train.steps}` see it too."""
+    pin = OmegaConf.select(cfg, f"experiment.pin.{cfg.preset.name}", default=None)
+    if pin is not None:
+        cfg.train = OmegaConf.merge(cfg.train, pin)
+
+
 def run_experiment(cfg: DictConfig) -> None:
     if "experiment" not in cfg:
         raise UserError("choose an experiment: python -m bench +experiment=NAME; available: "
                         + ", ".join(available_experiments()))
+    apply_pin(cfg)
     exp = OmegaConf.to_container(cfg.experiment, resolve=True)
+    exp.pop("pin", None)
     kind = exp.pop("kind", "table")
     old_name = exp.pop("deprecated_name", None)
     if old_name:

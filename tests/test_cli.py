@@ -15,7 +15,7 @@ import torch
 from hydra import compose, initialize_config_dir
 from omegaconf import OmegaConf
 
-from bench.cli import CONF_DIR, available_experiments, make_context
+from bench.cli import CONF_DIR, apply_pin, available_experiments, make_context
 
 REPO = Path(__file__).resolve().parent.parent
 PRESETS = sorted(p.stem for p in (Path(CONF_DIR) / "preset").glob("*.yaml"))
@@ -30,6 +30,21 @@ def bench(*args, cwd=REPO, timeout=600):
 def compose_experiment(name, *overrides):
     with initialize_config_dir(config_dir=CONF_DIR, version_base=None):
         return compose("config", overrides=[f"+experiment={name}", *overrides])
+
+
+def test_a_study_is_pinned_to_the_recipe_it_was_measured_at_only_on_the_preset_that_moved_on():
+    """headroom was measured at the cpu preset's 1000-step recipe without the SSIM term; at cpu it keeps
+    that recipe (its 3x rows 3000 steps), at gpu it follows the gpu preset; other tables are not pinned."""
+    def recipe(name, preset):
+        cfg = compose_experiment(name, f"preset={preset}")
+        apply_pin(cfg)
+        rows = OmegaConf.to_container(cfg.experiment, resolve=True).get("rows", [])
+        three_x = [r["train"]["steps"] for r in rows if r["label"] == "Ours, 3x steps"]
+        return cfg.train.steps, cfg.train.loss.final.get("ssim"), three_x
+    assert recipe("headroom", "cpu") == (1000, None, [3000])
+    assert recipe("sota", "cpu") == (2000, 8, [])
+    gpu = compose_experiment("sota", "preset=gpu").train
+    assert recipe("headroom", "gpu") == (gpu.steps, gpu.loss.final.get("ssim"), [3 * gpu.steps])
 
 
 @pytest.mark.parametrize("name", available_experiments())

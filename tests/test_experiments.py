@@ -226,6 +226,9 @@ def test_claim_verdicts_follow_twice_the_standard_error(tmp_path):
     s = table.set_index("claim").loc["S1 beats S2"]
     assert s["basis"] == "seeds (2, 2)" and s["PSNR 2SE"] == pytest.approx(2 * (0.01 / 2 + 0.01 / 2) ** 0.5)
     assert table.set_index("claim").loc["A beats B", "basis"] == "4 sequences, 1 seed"
+    assert set(table["recipe"]) == {"runs not recorded"}   # these evaluations have no run records
+    assert claims.pair_recipe("2000 steps", "untrained") == claims.pair_recipe("untrained", "2000 steps") == "2000 steps"
+    assert claims.pair_recipe("2000 steps", "1000 steps") == "2000 steps vs 1000 steps"
 
     # a row no recorded table has, or a table not run: that claim is "not run" (and says what to run),
     # every other claim is still judged; with nothing recorded at all, a clear error

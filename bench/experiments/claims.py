@@ -75,20 +75,30 @@ def _record(ctx: Context, kind: str, run_hash: str) -> dict | None:
     return runs.read_record(path) if path.exists() else None
 
 
-def recipe(ctx: Context, row: pd.Series) -> str | None:
+def recipe(ctx: Context, row: pd.Series) -> str:
     """How a row's model was trained, as far as the cpu preset's history goes: its steps and SSIM term,
-    from the training run of its first evaluation; None for a row that trains nothing (or unrecorded).
-    Tables are rerun at different times, so the claims of one table can stand on an earlier recipe."""
+    from the training run of its first evaluation; "untrained" for a row that trains nothing, "runs not
+    recorded" when neither the run store nor the archive has them. Tables are rerun at different times,
+    so the claims of one table can stand on an earlier recipe than another's."""
     evaluation = _record(ctx, "eval", str(row["runs"]).split()[0])
-    trained = evaluation and evaluation["identity"].get("trained")
+    if evaluation is None:
+        return "runs not recorded"
+    trained = evaluation["identity"].get("trained")
     if not isinstance(trained, str):   # a model that trains nothing is named by its config instead
-        return None
+        return "untrained"
     training = _record(ctx, "train", trained.split("+")[0])   # a Cascade's stages share one recipe
     if training is None:
-        return None
+        return "runs not recorded"
     train = training["identity"]["train"]
     ssim = train["loss"]["final"].get("ssim")
     return f"{train['steps']} steps" + (f" + SSIM term {ssim:g}" if ssim else "")
+
+
+def pair_recipe(better: str, worse: str) -> str:
+    """One recipe when both rows share it (or one trains nothing), else 'better vs worse'."""
+    if better == worse or worse == "untrained":
+        return better
+    return worse if better == "untrained" else f"{better} vs {worse}"
 
 
 def compare(ctx: Context, better: pd.Series, worse: pd.Series, metric: str) -> dict:
@@ -145,8 +155,7 @@ def run(ctx: Context, name: str, claims: list[dict], metric: str, tables: list[s
                 log.warning("claims: %r not judged: %s", claim["claim"], missing)
                 rows.append({**row, **{f"{m} verdict": NOT_RUN for m in METRICS}, "basis": str(missing)})
                 continue
-            recipes = {r for r in (recipe(ctx, better), recipe(ctx, worse)) if r}
-            row["recipe"] = " / ".join(sorted(recipes)) or "runs not recorded"
+            row["recipe"] = pair_recipe(recipe(ctx, better), recipe(ctx, worse))
             for m in METRICS:
                 c = compare(ctx, better, worse, m)
                 row[f"{m} diff"], row[f"{m} 2SE"], row[f"{m} verdict"] = c["diff"], 2 * c["se"], verdict(c["diff"], c["se"])
@@ -167,9 +176,9 @@ def run(ctx: Context, name: str, claims: list[dict], metric: str, tables: list[s
         f"|diff| < 2SE, else holds or reversed. verdict (the claim, on {metric}): holds when every pair "
         f"holds, reversed when any is reversed, else within noise; {NOT_RUN}: a row is missing from the recorded "
         f"tables (basis says which and the command that records it) and no recorded pair is reversed. "
-        f"recipe: the training steps (and SSIM term) of the pair's learned rows (runs not recorded: neither "
-        f"the run store nor the archive has them); a table rerun after the preset changed stands on the new "
-        f"recipe, one not yet rerun on the earlier."
+        f"recipe: the training steps (and SSIM term) of the pair's learned rows, better vs worse where they "
+        f"differ (runs not recorded: neither the run store nor the archive has them); a table rerun after the "
+        f"preset changed stands on the new recipe, one not yet rerun on the earlier."
         + (f" Judged: the claims made of rows of {', '.join(tables)} only." if tables is not None else "")))
     log.info("%s: %d comparisons, %s", name, len(table),
              ", ".join(f"{c}: {v}" for c, v in table.drop_duplicates("claim")[["claim", "verdict"]].values))

@@ -1,6 +1,7 @@
 """`+experiment=lr_range`: a learning-rate range test (Smith 2017, "Cyclical Learning Rates") per model.
 
-Each model trains `steps` steps with the preset's recipe, except that the learning rate rises
+Each model trains `steps` steps with the preset's recipe (at cpu, the 1000-step recipe without the SSIM
+term it was run at: conf/pin/studies.yaml), except that the learning rate rises
 geometrically from lr_max * 1e-4 to lr_max (`train.schedule=range`); the loss per step is smoothed
 (exponential moving average, `smoothing`) and the test reports where the smoothed loss is lowest and
 where training diverges: the first rate whose smoothed loss exceeds `blowup` x its minimum so far. The

@@ -213,12 +213,14 @@ def run(ctx: Context, name: str, rows: list[dict], caption: str = "", task: str 
     paper_table = (name if name in TABLES else None) if paper == "auto" else paper
     table = with_paper(table, rows, paper_table)
     loss = ctx.train.loss["final"]
+    paper_terms = ("edge", "temporal", "spatial", "perceptual")
+    extra = "".join(f" + {name} {w:g}" for name, w in loss.items() if name not in paper_terms and w)
     tasks = ", ".join(dict.fromkeys(r["task"] for r in rows))
     notes = (f"Task {tasks}. {RELMSE_FORMULA}; robust relMSE leaves out the 0.1% of pixels with the highest "
              f"error; temporal relMSE scores the frame-to-frame change against the reference's; PSNR/SSIM on "
              f"images clamped to [0, 1]; (se ...): standard error over the split's sequences. Preset {ctx.preset}, split "
              f"{split or ctx.eval.split}, {ctx.train.steps} training steps, loss g:t:s:p = "
-             f"{loss['edge']}:{loss['temporal']}:{loss['spatial']}:{loss['perceptual']} (unless a row says "
+             f"{loss['edge']}:{loss['temporal']}:{loss['spatial']}:{loss['perceptual']}{extra} (unless a row says "
              f"otherwise), seeds {list(ctx.seeds)} (mean +- std over seeds when several); time_ms: "
              f"inference per frame on {ctx.device}.")
     if gmac_column:
