@@ -134,7 +134,7 @@ class Recipe:
         values = dict(config)
         values["betas"] = tuple(values.get("betas", cls.betas))
         # a loss term set to null is absent: how a study pinned to an earlier recipe takes out a term
-        # that the preset has since added (conf/pin/cpu.yaml), keeping its runs' identities
+        # that the preset has since added (conf/pin/studies.yaml), keeping its runs' identities
         if isinstance(values.get("loss"), dict):
             values["loss"] = {head: {name: w for name, w in terms.items() if w is not None}
                               if isinstance(terms, dict) else terms for head, terms in values["loss"].items()}
