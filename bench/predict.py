@@ -35,7 +35,7 @@ from bench.infer import REFERENCE
 from bench.measure import AUTO, choose_fast_path
 from bench.experiments.pipeline import build_model
 from bench.tasks import GBUF_LAYERS, get_task
-from bench.train import load_weights
+from bench.train import CHECKPOINT, load_weights
 
 FORMAT = "srd-bench-weights/1"
 
@@ -71,6 +71,11 @@ def export(run_hash: str, out: str | Path, runs_dir: str | Path = "runs") -> Pat
     cfg, task = identity["model"], get_task(identity["task"])
     if identity.get("stage"):
         raise UserError(f"run {run_hash} trained one stage of a Cascade; export a whole model's run")
+    if not (path.parent / CHECKPOINT).exists():
+        raise UserError(f"training run {run_hash} has no weights in {path.parent}: the archive keeps files over "
+                        f"{runs.ARCHIVED_FILE_MAX_BYTES // 2**20} MiB out of git. The run store of the machine "
+                        f"that trained it has them; elsewhere remove {path.parent} and run again the table that "
+                        f"trained it, which trains it again into {runs_dir}, then export")
     model = load_weights(build_model(cfg, task.scale), path.parent)
     meta = {"format": FORMAT, "model": cfg, "task": task.name, "scale": task.scale,
             "hdr": identity["train"]["hdr"], "run": run_hash, "identity": identity,

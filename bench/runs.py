@@ -213,11 +213,14 @@ def _reusable(runs_dir, kind: str, identity: dict, code: dict | None, reuse_stal
 
 
 PARTIAL = ".partial"  # copies being written and the archive's locks: never a run, never committed
+ARCHIVED_FILE_MAX_BYTES = 5 * 2**20  # the archive is committed: a larger file (a big model's weights) stays out
 
 
 def archive(run: Run, archive_dir: str | Path, files: tuple = (), write=None) -> Path | None:
     """Copy a complete run into `archive_dir/<kind>/<hash>/`: its record, the `files` of its directory
-    that exist, and what `write(directory)` writes there (e.g. a slimmed checkpoint). The record is
+    that exist, and what `write(directory)` writes there (e.g. a slimmed checkpoint), each if it is at
+    most ARCHIVED_FILE_MAX_BYTES: the run restores without a larger one (a training without its weights
+    is trained again by whoever needs them, `bench.experiments.pipeline.trained_model`). The record is
     compared first, so archiving an archived run again does nothing. The copy is written in
     `archive_dir/.partial/` and renamed into place under the archived run's lock, so a restore never
     sees half of it. Returns the archived directory, or None for a run that is not complete or is stale
@@ -238,6 +241,11 @@ def archive(run: Run, archive_dir: str | Path, files: tuple = (), write=None) ->
                 shutil.copy2(run.dir / name, tmp / name)
         if write is not None:
             write(tmp)
+        for path in tmp.iterdir():
+            if path.stat().st_size > ARCHIVED_FILE_MAX_BYTES:
+                log.info("runs: archiving %s/%s without %s (%.1f MiB, over the archive's %d MiB)", run.kind,
+                         run.hash, path.name, path.stat().st_size / 2**20, ARCHIVED_FILE_MAX_BYTES // 2**20)
+                path.unlink()
         (tmp / RECORD).write_bytes(record)
         dest.parent.mkdir(parents=True, exist_ok=True)
         with contextlib.closing(acquire(partial / f"{run.kind}.{run.hash}.lock", f"archiving {run.kind}/{run.hash}")):

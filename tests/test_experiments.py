@@ -114,6 +114,31 @@ def test_a_lost_run_store_is_rebuilt_from_the_archive_without_training(dirs, tmp
     assert claims.loc[claims["claim"].str.startswith("IPT"), "PSNR 2SE"].notna().all()
 
 
+def test_weights_the_archive_left_out_are_trained_again_only_where_a_figure_needs_them(dirs, tmp_path, caplog,
+                                                                                       monkeypatch):
+    """Weights over the archive's file limit stay out of git (a big model's); a fresh store restores the
+    table from the archived evaluations, and trains again only the runs whose weights crops.png runs."""
+    from bench import runs
+    overrides, _ = dirs
+    mine = [o for o in overrides if not o.startswith(("runs_dir=", "results_dir="))]
+    mine += [f"results_dir={tmp_path / 'results'}", f"runs_archive={tmp_path / 'archive'}"]
+    monkeypatch.setattr(runs, "ARCHIVED_FILE_MAX_BYTES", 100_000)  # smoke weights: about 1 MB
+    run_experiment(compose_experiment("ipt", mine + [f"runs_dir={tmp_path / 'lost'}"]))
+    first = pd.read_csv(tmp_path / "results" / "ipt" / "table.csv")
+    assert not list((tmp_path / "archive").glob("train/*/checkpoint.pt"))     # left out: over the limit
+    assert list((tmp_path / "archive").glob("train/*/val_curve.csv"))         # the small files are kept
+    with caplog.at_level("INFO", logger="bench"):
+        run_experiment(compose_experiment("ipt", mine + [f"runs_dir={tmp_path / 'fresh'}", "++experiment.figure=false"]))
+    assert "4 of 4 rows reused" in caplog.text and "trained in" not in caplog.text  # no figure: nothing to train
+    caplog.clear()
+    with caplog.at_level("INFO", logger="bench"):
+        run_experiment(compose_experiment("ipt", mine + [f"runs_dir={tmp_path / 'fresh'}"]))
+    assert "archived without its weights" in caplog.text and caplog.text.count("trained in") == 4
+    assert len(list((tmp_path / "fresh" / "train").glob("*/checkpoint.pt"))) == 4
+    again = pd.read_csv(tmp_path / "results" / "ipt" / "table.csv")
+    pd.testing.assert_frame_equal(first[["method", "PSNR", "SSIM"]], again[["method", "PSNR", "SSIM"]])
+
+
 def test_seeds_give_mean_and_std(dirs):
     overrides, root = dirs
     run_experiment(compose_experiment("perceptual", overrides + ["seeds=[0,1]", "++experiment.figure=false"]))

@@ -134,3 +134,16 @@ def test_a_run_kept_only_in_an_archive_exports_the_same_weights(recorded, tmp_pa
     assert from_store.keys() == from_archive.keys()
     for name, tensor in from_store.items():
         torch.testing.assert_close(tensor, from_archive[name], rtol=0, atol=0)
+
+
+def test_a_run_archived_without_its_weights_says_where_they_are(recorded, tmp_path, monkeypatch):
+    """Weights over the archive's file limit stay out of git: export says so instead of a missing file."""
+    from bench.experiments.pipeline import archive_training
+    from conftest import smoke_context
+    runs_dir, run_hash = recorded
+    run = runs.Run("train", run_hash, runs_dir / "train" / run_hash, runs.read_record(runs_dir / "train" / run_hash / runs.RECORD))
+    monkeypatch.chdir(tmp_path)
+    monkeypatch.setattr(runs, "ARCHIVED_FILE_MAX_BYTES", 1000)
+    archive_training(smoke_context(runs_archive=Path("results/cpu/runs")), run)
+    with pytest.raises(UserError, match="no weights.*out of git.*trains it again"):
+        export(run_hash, tmp_path / "out.pt", tmp_path / "no_store")

@@ -208,6 +208,20 @@ def test_archive_keeps_a_finished_run_that_a_lost_store_gets_back(tmp_path):
     assert not runs.restore(lost, archive, "train", back.hash)           # already there: left alone
 
 
+def test_a_file_over_the_archive_limit_stays_out_and_the_run_restores_without_it(tmp_path, monkeypatch, caplog):
+    store, archive = tmp_path / "runs", tmp_path / "archive"
+    monkeypatch.setattr(runs, "ARCHIVED_FILE_MAX_BYTES", 100)
+    run = runs.begin(store, "train", {"model": "big"})
+    (run.dir / "curve.csv").write_text("step,loss\n1,0.5\n")
+    runs.complete(run, {"relMSE": 0.2})
+    with caplog.at_level(logging.INFO, logger="bench"):
+        kept = runs.archive(run, archive, ("curve.csv",), write=lambda d: (d / "checkpoint.pt").write_bytes(bytes(101)))
+    assert sorted(p.name for p in kept.iterdir()) == ["curve.csv", runs.RECORD]
+    assert "without checkpoint.pt" in caplog.text
+    back = runs.begin(tmp_path / "fresh", "train", {"model": "big"}, archive=archive)
+    assert back.reused and back.metrics["relMSE"] == 0.2 and not (back.dir / "checkpoint.pt").exists()
+
+
 def test_an_interrupted_run_in_the_store_resumes_rather_than_being_replaced_from_the_archive(tmp_path):
     store, archive, other = tmp_path / "runs", tmp_path / "archive", tmp_path / "other"
     ident = {"model": "w"}

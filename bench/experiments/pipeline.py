@@ -391,7 +391,8 @@ def trained_model(ctx: Context, cfg: dict, task: Task, seed: int, label: str = "
     """The model of `cfg` trained on `task`, from the run store when recorded. Returns (model, run or None).
 
     With load=False a recorded run's weights are not read (the caller may not need them; see
-    `evaluated`) and the model returned is None: build it and `load_weights(model, run.dir)` when needed.
+    `evaluated`) and the model returned is None: call again with load=True when needed. A recorded run
+    restored from the archive without its weights (runs.ARCHIVED_FILE_MAX_BYTES) is trained again then.
     With `stage` ("sr" or "dn") only that stage of an SRDNet (built at the SRD scale, 2) is trained on
     `task`, through SRDStage. With `divergence_ends` (a learning-rate range test) a diverging training is
     recorded complete with the step it diverged at, instead of failing."""
@@ -405,6 +406,12 @@ def trained_model(ctx: Context, cfg: dict, task: Task, seed: int, label: str = "
     run = runs.begin(ctx.runs_dir, "train", identity, seed=seed, device=ctx.device, label=label,
                      force=ctx.force, code=code_of(cfg, *TRAINING_CODE), reuse_stale=ctx.reuse_stale,
                      archive=ctx.runs_archive)
+    if run.reused and load and not (run.dir / CHECKPOINT).exists():
+        # restored from an archive, which keeps weights over its file limit out of git: train them again
+        log.info("train %s: run %s was archived without its weights (over %d MiB); training it again",
+                 label or cfg["_target_"], run.hash, runs.ARCHIVED_FILE_MAX_BYTES // 2**20)
+        run = runs.begin(ctx.runs_dir, "train", identity, seed=seed, device=ctx.device, label=label,
+                         force=True, code=code_of(cfg, *TRAINING_CODE))
     if run.reused:
         log.info("train %s: reusing run %s", label or cfg["_target_"], run.hash)
         archive_training(ctx, run)
@@ -515,8 +522,8 @@ def evaluated(ctx: Context, cfg: dict, task: Task, seed: int, split: str, label:
     if run.reused:
         log.info("eval %s: reusing run %s", label, run.hash)
         return archive_evaluation(ctx, run)
-    if model is None:  # a recorded training whose weights trained_model did not read
-        model = load_weights(build_model(cfg, task.scale), train_run.dir, ctx.device)
+    if model is None:  # a recorded training whose weights trained_model did not read (or that lacks them)
+        model, train_run = trained_model(ctx, cfg, task, seed, label)
     try:
         _, metrics = evaluate(model, dataset(frames, split, task, training=False), task, hdr=hdr,
                               device=ctx.device, out_dir=run.dir, save_exr=ctx.eval.save_exr,
