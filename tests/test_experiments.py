@@ -98,14 +98,15 @@ def test_a_lost_run_store_is_rebuilt_from_the_archive_without_training(dirs, tmp
     mine += [f"results_dir={tmp_path / 'results'}", f"runs_archive={tmp_path / 'archive'}"]
     run_experiment(compose_experiment("ipt", mine + [f"runs_dir={tmp_path / 'lost'}"]))
     first = pd.read_csv(tmp_path / "results" / "ipt" / "table.csv")
+    n = len(first)  # every row learned
     weights = sorted((tmp_path / "archive" / "train").glob("*/checkpoint.pt"))
-    assert len(weights) == 4 and len(list((tmp_path / "archive" / "eval").glob("*/per_image.csv"))) == 4
+    assert len(weights) == n and len(list((tmp_path / "archive" / "eval").glob("*/per_image.csv"))) == n
     slim = torch.load(weights[0], weights_only=False)
     assert "optimizer" not in slim and "curve" not in slim and slim["ema"]  # what evaluation reads (adopt: curve.csv)
     (tmp_path / "results" / "ipt" / "crops.png").unlink()
     with caplog.at_level("INFO", logger="bench"):
         run_experiment(compose_experiment("ipt", mine + [f"runs_dir={tmp_path / 'fresh'}"]))
-    assert "4 of 4 rows reused" in caplog.text and "trained in" not in caplog.text
+    assert f"{n} of {n} rows reused" in caplog.text and "trained in" not in caplog.text
     again = pd.read_csv(tmp_path / "results" / "ipt" / "table.csv")
     pd.testing.assert_frame_equal(first[["method", "runs", "PSNR", "SSIM"]], again[["method", "runs", "PSNR", "SSIM"]])
     assert (tmp_path / "results" / "ipt" / "crops.png").stat().st_size > 0
@@ -125,16 +126,17 @@ def test_weights_the_archive_left_out_are_trained_again_only_where_a_figure_need
     monkeypatch.setattr(runs, "ARCHIVED_FILE_MAX_BYTES", 100_000)  # smoke weights: about 1 MB
     run_experiment(compose_experiment("ipt", mine + [f"runs_dir={tmp_path / 'lost'}"]))
     first = pd.read_csv(tmp_path / "results" / "ipt" / "table.csv")
+    n = len(first)  # every row learned
     assert not list((tmp_path / "archive").glob("train/*/checkpoint.pt"))     # left out: over the limit
     assert list((tmp_path / "archive").glob("train/*/val_curve.csv"))         # the small files are kept
     with caplog.at_level("INFO", logger="bench"):
         run_experiment(compose_experiment("ipt", mine + [f"runs_dir={tmp_path / 'fresh'}", "++experiment.figure=false"]))
-    assert "4 of 4 rows reused" in caplog.text and "trained in" not in caplog.text  # no figure: nothing to train
+    assert f"{n} of {n} rows reused" in caplog.text and "trained in" not in caplog.text  # no figure: nothing to train
     caplog.clear()
     with caplog.at_level("INFO", logger="bench"):
         run_experiment(compose_experiment("ipt", mine + [f"runs_dir={tmp_path / 'fresh'}"]))
-    assert "archived without its weights" in caplog.text and caplog.text.count("trained in") == 4
-    assert len(list((tmp_path / "fresh" / "train").glob("*/checkpoint.pt"))) == 4
+    assert "archived without its weights" in caplog.text and caplog.text.count("trained in") == n
+    assert len(list((tmp_path / "fresh" / "train").glob("*/checkpoint.pt"))) == n
     again = pd.read_csv(tmp_path / "results" / "ipt" / "table.csv")
     pd.testing.assert_frame_equal(first[["method", "PSNR", "SSIM"]], again[["method", "PSNR", "SSIM"]])
 
@@ -156,7 +158,8 @@ def test_all_runs_the_listed_tables_and_reuses_them(dirs):
                               *overrides], capture_output=True, text=True, env=env, timeout=600)
         assert out.returncode == 0, out.stderr[-3000:]
     log = out.stdout + out.stderr
-    assert "4 of 4 rows reused" in log and "6 of 6 rows reused" in log
+    rows = {name: len(expected_labels(name, overrides)[0]) for name in ("ipt", "deform_num")}
+    assert all(f"{n} of {n} rows reused" in log for n in rows.values())
     summary = pd.read_csv(root / "results" / "all" / "table.csv")
     assert list(summary["experiment"]) == ["ipt", "deform_num"]
     assert (summary["compute (min)"] > 0).all()  # recorded when the runs were computed, not this reuse
