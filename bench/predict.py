@@ -72,10 +72,12 @@ def export(run_hash: str, out: str | Path, runs_dir: str | Path = "runs") -> Pat
     if identity.get("stage"):
         raise UserError(f"run {run_hash} trained one stage of a Cascade; export a whole model's run")
     if not (path.parent / CHECKPOINT).exists():
+        seed = identity.get("seed", record.get("seed"))
         raise UserError(f"training run {run_hash} has no weights in {path.parent}: the archive keeps files over "
-                        f"{runs.ARCHIVED_FILE_MAX_BYTES // 2**20} MiB out of git. The run store of the machine "
-                        f"that trained it has them; elsewhere remove {path.parent} and run again the table that "
-                        f"trained it, which trains it again into {runs_dir}, then export")
+                        f"{runs.ARCHIVED_FILE_MAX_BYTES / 2**20:.1f} MiB out of git. The run store of the machine "
+                        f"that trained it has them. Elsewhere, run the table whose row it is with seeds=[{seed}] "
+                        f"results_dir=<a scratch folder>: its crops.png loads that seed's weights, which trains "
+                        f"the run again into {runs_dir}; then export")
     model = load_weights(build_model(cfg, task.scale), path.parent)
     meta = {"format": FORMAT, "model": cfg, "task": task.name, "scale": task.scale,
             "hdr": identity["train"]["hdr"], "run": run_hash, "identity": identity,

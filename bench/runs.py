@@ -136,17 +136,20 @@ def wall_time_s(runs_dir: str | Path, kind: str, hashes: str | None) -> float:
 
 def begin(runs_dir: str | Path, kind: str, identity: dict, config: dict | None = None,
           seed: int | None = None, device: str = "cpu", label: str = "", force: bool = False,
-          code: dict | None = None, reuse_stale: bool = False, archive: str | Path | None = None) -> Run:
+          code: dict | None = None, reuse_stale: bool = False, archive: str | Path | None = None,
+          needs: tuple = ()) -> Run:
     """Reuse a complete run, or open (or re-open, to resume) its directory for computing.
 
     Check `run.reused`: when True the caller must not recompute. With `force`, an existing directory is
     wiped first so nothing stale (checkpoints, outputs) survives. `code` is the run's code fingerprint
     (`code_fingerprint`); a recorded run computed with other code is recomputed from scratch, its
     checkpoints included, unless `reuse_stale`. `archive`: a run the store lacks is restored from there
-    first (`restore`), and then reused like any recorded run.
+    first (`restore`), and then reused like any recorded run. `needs`: files the caller reads from the
+    run's directory; a complete run without one of them (restored from an archive that left it out,
+    ARCHIVED_FILE_MAX_BYTES) is computed again from scratch, under its lock, so only one process does.
     """
     if not force:
-        done = _reusable(runs_dir, kind, identity, code, reuse_stale, label, quiet=True)
+        done = _reusable(runs_dir, kind, identity, code, reuse_stale, label, quiet=True, needs=needs)
         if done is not None:
             return done
     h = config_hash(identity)
@@ -156,11 +159,13 @@ def begin(runs_dir: str | Path, kind: str, identity: dict, config: dict | None =
     if not force:  # another process may have completed it while we waited for the lock
         if archive is not None:
             _restore_locked(runs_dir, archive, kind, h, code)
-        done = _reusable(runs_dir, kind, identity, code, reuse_stale, label)
+        done = _reusable(runs_dir, kind, identity, code, reuse_stale, label, needs=needs)
         if done is not None:
             lock.close()
             return done
     earlier = read_record(run_dir / RECORD) if (run_dir / RECORD).exists() else {}
+    if earlier.get("status") == "complete":  # not reusable (code changed, or lacks what `needs` names)
+        force = True
     if earlier.get("status") == "running":  # we hold its lock, so the process that wrote this is gone
         log.info("%s %s: run %s was left running by process %s on %s, which is gone (abandoned); taking it over",
                  kind, label, h, earlier.get("pid", "?"), earlier.get("host", "?"))
@@ -185,10 +190,16 @@ def begin(runs_dir: str | Path, kind: str, identity: dict, config: dict | None =
 
 
 def _reusable(runs_dir, kind: str, identity: dict, code: dict | None, reuse_stale: bool,
-              label: str, quiet: bool = False) -> Run | None:
+              label: str, quiet: bool = False, needs: tuple = ()) -> Run | None:
     """The complete run to reuse, or None; `quiet`: a first look before the lock, which logs nothing."""
     done = lookup(runs_dir, kind, identity)
     if done is None:
+        return None
+    missing = [name for name in needs if not (done.dir / name).exists()]
+    if missing:
+        if not quiet:
+            log.info("%s %s: computing run %s again: it has no %s (an archive keeps files over %.1f MiB out)",
+                     kind, label, done.hash, ", ".join(missing), ARCHIVED_FILE_MAX_BYTES / 2**20)
         return None
     done.stale = code_changes(done.record, code)
     if not done.stale:
@@ -243,8 +254,8 @@ def archive(run: Run, archive_dir: str | Path, files: tuple = (), write=None) ->
             write(tmp)
         for path in tmp.iterdir():
             if path.stat().st_size > ARCHIVED_FILE_MAX_BYTES:
-                log.info("runs: archiving %s/%s without %s (%.1f MiB, over the archive's %d MiB)", run.kind,
-                         run.hash, path.name, path.stat().st_size / 2**20, ARCHIVED_FILE_MAX_BYTES // 2**20)
+                log.info("runs: archiving %s/%s without %s (%.1f MiB, over the archive's %.1f MiB)", run.kind,
+                         run.hash, path.name, path.stat().st_size / 2**20, ARCHIVED_FILE_MAX_BYTES / 2**20)
                 path.unlink()
         (tmp / RECORD).write_bytes(record)
         dest.parent.mkdir(parents=True, exist_ok=True)

@@ -176,6 +176,7 @@ def test_adopt_stops_on_ctrl_c_or_sigterm_during_a_replay(monkeypatch, tmp_path)
     from bench.experiments import adopt
     from bench.train import TrainingInterrupted
     witness = runs.Run("train", "0" * 16, tmp_path, {"identity": {"model": {"_target_": "x"}}, "label": "row"})
+    (tmp_path / "checkpoint.pt").write_text("weights")                   # a witness has them
     monkeypatch.setattr(adopt, "stale_groups", lambda ctx: {"g": [witness]})
     monkeypatch.setattr(adopt, "code_of", lambda *a: {})
     monkeypatch.setattr(runs, "code_changes", lambda *a: [])
@@ -502,3 +503,34 @@ def test_renamed_overrides_map_the_old_preset_name_and_nothing_else(arg, expecte
     from bench.cli import renamed_overrides
     assert renamed_overrides([arg]) == [expected]
     assert ("deprecated" in capsys.readouterr().err) == (arg != expected)
+
+
+def test_adopt_restamps_a_run_its_archive_kept_without_weights_beside_a_witness_that_has_them(monkeypatch,
+                                                                                              tmp_path):
+    """An archive leaves big weights out (runs.ARCHIVED_FILE_MAX_BYTES): such a complete run joins its
+    group after the runs with weights and is restamped with them; a group with none stays not checked."""
+    import types
+    import torch
+    from bench import runs
+    from bench.experiments import adopt
+    ident = {"model": {"_target_": "x"}, "data": "d", "seed": 0}
+    made = {}
+    for seed, weights in ((0, False), (1, True)):
+        run = runs.complete(runs.begin(tmp_path / "runs", "train", {**ident, "seed": seed}, seed=seed,
+                                       code={"bench/x.py": "old"}), {})
+        if weights:
+            torch.save({"model": {"w": torch.zeros(1)}, "ema": None}, run.dir / "checkpoint.pt")
+        made[weights] = run
+    lone = runs.complete(runs.begin(tmp_path / "runs", "train", {**ident, "model": {"_target_": "y"}}, seed=0,
+                                    code={"bench/x.py": "old"}), {})
+    monkeypatch.setattr(adopt, "data_fingerprint", lambda *a: "d")
+    monkeypatch.setattr(adopt, "code_of", lambda *a: {"bench/x.py": "new"})
+    groups = sorted(adopt.stale_groups(types.SimpleNamespace(runs_dir=tmp_path / "runs")).values(), key=len)
+    assert [[r.hash for r in g] for g in groups] == [[lone.hash], [made[True].hash, made[False].hash]]
+    monkeypatch.setattr(adopt, "evaluations_of", lambda *a: [])
+    monkeypatch.setattr(adopt, "check_training", lambda *a: {"step 1 loss": 0.0, "later loss": 0.0})
+    ctx = types.SimpleNamespace(runs_dir=tmp_path / "runs", runs_archive=None, results_dir=tmp_path / "results")
+    table = adopt.run(ctx, "adopt", 10, 1e-5, 1e-3, dry_run=False).set_index("witness")["verdict"]
+    assert table[made[True].hash] == "adopted" and "has its weights" in table[lone.hash]
+    assert runs.read_record(made[False].dir / runs.RECORD)["code"] == {"bench/x.py": "new"}
+    assert runs.read_record(lone.dir / runs.RECORD)["code"] == {"bench/x.py": "old"}

@@ -1,6 +1,7 @@
 """Every paper table at `smoke` scale with a few training steps: rows, formats, paper values, figures,
 run reuse within and across tables, seeds as mean +- std, and `all`."""
 import os
+import shutil
 import subprocess
 import sys
 
@@ -115,30 +116,45 @@ def test_a_lost_run_store_is_rebuilt_from_the_archive_without_training(dirs, tmp
     assert claims.loc[claims["claim"].str.startswith("IPT"), "PSNR 2SE"].notna().all()
 
 
-def test_weights_the_archive_left_out_are_trained_again_only_where_a_figure_needs_them(dirs, tmp_path, caplog,
-                                                                                       monkeypatch):
-    """Weights over the archive's file limit stay out of git (a big model's); a fresh store restores the
-    table from the archived evaluations, and trains again only the runs whose weights crops.png runs."""
+def test_weights_the_archive_left_out_are_trained_again_only_where_they_are_run(dirs, tmp_path, caplog,
+                                                                                monkeypatch):
+    """Weights over the archive's file limit stay out of git (a big model's). A fresh store restores the
+    table from the archived evaluations; crops.png trains again the first seed's runs only, an evaluation
+    the archive lacks its run's, and the archive keeps the records its evaluations scored."""
     from bench import runs
     overrides, _ = dirs
     mine = [o for o in overrides if not o.startswith(("runs_dir=", "results_dir="))]
-    mine += [f"results_dir={tmp_path / 'results'}", f"runs_archive={tmp_path / 'archive'}"]
-    monkeypatch.setattr(runs, "ARCHIVED_FILE_MAX_BYTES", 100_000)  # smoke weights: about 1 MB
-    run_experiment(compose_experiment("ipt", mine + [f"runs_dir={tmp_path / 'lost'}"]))
-    first = pd.read_csv(tmp_path / "results" / "ipt" / "table.csv")
+    mine += [f"results_dir={tmp_path / 'results'}", f"runs_archive={tmp_path / 'archive'}", "seeds=[0,1]",
+             "experiment.rows.0.sweep.dilation=[1]"]                          # one row, two seeds
+    name, archive = "dilation_crop", tmp_path / "archive"
+    monkeypatch.setattr(runs, "ARCHIVED_FILE_MAX_BYTES", 100_000)  # smoke weights: about 0.2 MB and more
+    run_experiment(compose_experiment(name, mine + [f"runs_dir={tmp_path / 'lost'}"]))
+    first = pd.read_csv(tmp_path / "results" / name / "table.csv")
     n = len(first)  # every row learned
-    assert not list((tmp_path / "archive").glob("train/*/checkpoint.pt"))     # left out: over the limit
-    assert list((tmp_path / "archive").glob("train/*/val_curve.csv"))         # the small files are kept
-    with caplog.at_level("INFO", logger="bench"):
-        run_experiment(compose_experiment("ipt", mine + [f"runs_dir={tmp_path / 'fresh'}", "++experiment.figure=false"]))
-    assert f"{n} of {n} rows reused" in caplog.text and "trained in" not in caplog.text  # no figure: nothing to train
-    caplog.clear()
-    with caplog.at_level("INFO", logger="bench"):
-        run_experiment(compose_experiment("ipt", mine + [f"runs_dir={tmp_path / 'fresh'}"]))
-    assert "archived without its weights" in caplog.text and caplog.text.count("trained in") == n
-    assert len(list((tmp_path / "fresh" / "train").glob("*/checkpoint.pt"))) == n
-    again = pd.read_csv(tmp_path / "results" / "ipt" / "table.csv")
-    pd.testing.assert_frame_equal(first[["method", "PSNR", "SSIM"]], again[["method", "PSNR", "SSIM"]])
+    assert not list(archive.glob("train/*/checkpoint.pt"))                    # left out: over the limit
+    assert len(list(archive.glob("train/*/val_curve.csv"))) == 2 * n          # the small files are kept
+    records = {p: p.read_bytes() for p in archive.glob("train/*/run.json")}
+
+    def rerun(*more):
+        caplog.clear()
+        with caplog.at_level("INFO", logger="bench"):
+            run_experiment(compose_experiment(name, mine + [f"runs_dir={tmp_path / 'fresh'}", *more]))
+        return caplog.text
+
+    log = rerun("++experiment.figure=false")
+    assert f"{n} of {n} rows reused" in log and "trained in" not in log      # scores only: nothing to train
+    log = rerun()                                                              # crops.png runs seed 0
+    assert log.count("has no checkpoint.pt") == n and log.count("trained in") == n
+    fresh = {runs.read_record(p)["seed"]: p.parent for p in (tmp_path / "fresh" / "train").glob("*/run.json")}
+    assert (fresh[0] / "checkpoint.pt").exists() and not (fresh[1] / "checkpoint.pt").exists()
+    assert {p: p.read_bytes() for p in archive.glob("train/*/run.json")} == records  # what was scored
+    again = pd.read_csv(tmp_path / "results" / name / "table.csv")
+    pd.testing.assert_frame_equal(first[["method", "runs", "PSNR", "SSIM"]], again[["method", "runs", "PSNR", "SSIM"]])
+    seed1 = next(p.parent for p in (tmp_path / "fresh" / "eval").glob("*/run.json") if runs.read_record(p)["seed"] == 1)
+    shutil.rmtree(seed1), shutil.rmtree(archive / "eval" / seed1.name)        # an evaluation neither has
+    log = rerun("++experiment.figure=false")
+    assert log.count("has no checkpoint.pt") == 1 and log.count("trained in") == 1
+    assert (tmp_path / "fresh" / "eval" / seed1.name / "per_image.csv").exists()
 
 
 def test_seeds_give_mean_and_std(dirs):
@@ -159,7 +175,7 @@ def test_all_runs_the_listed_tables_and_reuses_them(dirs):
         assert out.returncode == 0, out.stderr[-3000:]
     log = out.stdout + out.stderr
     rows = {name: len(expected_labels(name, overrides)[0]) for name in ("ipt", "deform_num")}
-    assert all(f"{n} of {n} rows reused" in log for n in rows.values())
+    assert all(f"{name}: {n} of {n} rows reused" in log for name, n in rows.items())
     summary = pd.read_csv(root / "results" / "all" / "table.csv")
     assert list(summary["experiment"]) == ["ipt", "deform_num"]
     assert (summary["compute (min)"] > 0).all()  # recorded when the runs were computed, not this reuse

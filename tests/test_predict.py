@@ -145,5 +145,5 @@ def test_a_run_archived_without_its_weights_says_where_they_are(recorded, tmp_pa
     monkeypatch.chdir(tmp_path)
     monkeypatch.setattr(runs, "ARCHIVED_FILE_MAX_BYTES", 1000)
     archive_training(smoke_context(runs_archive=Path("results/cpu/runs")), run)
-    with pytest.raises(UserError, match="no weights.*out of git.*trains it again"):
+    with pytest.raises(UserError, match=r"no weights.*out of git.*seeds=\[\d\].*trains the run again"):
         export(run_hash, tmp_path / "out.pt", tmp_path / "no_store")

@@ -222,6 +222,22 @@ def test_a_file_over_the_archive_limit_stays_out_and_the_run_restores_without_it
     assert back.reused and back.metrics["relMSE"] == 0.2 and not (back.dir / "checkpoint.pt").exists()
 
 
+def test_a_complete_run_without_a_file_its_caller_needs_is_computed_again_from_scratch(tmp_path, caplog):
+    """begin(needs=...): the weights an archive left out are computed again, under the run's lock (a
+    second process waiting on it then reuses the result) and from scratch (no earlier time, no files)."""
+    ident = {"model": "big"}
+    done = runs.complete(runs.begin(tmp_path, "train", ident), {"relMSE": 0.2, "wall_time_s": 60.0})
+    (done.dir / "curve.csv").write_text("step,loss\n1,0.5\n")
+    assert runs.begin(tmp_path, "train", ident).reused                  # no needs: reused as it is
+    with caplog.at_level(logging.INFO, logger="bench"):
+        again = runs.begin(tmp_path, "train", ident, needs=("checkpoint.pt",))
+    assert not again.reused and "has no checkpoint.pt" in caplog.text
+    assert list(again.dir.iterdir()) == [again.dir / runs.RECORD] and "resumed_wall_time_s" not in again.record
+    (again.dir / "checkpoint.pt").write_text("weights")
+    runs.complete(again, {"relMSE": 0.2})
+    assert runs.begin(tmp_path, "train", ident, needs=("checkpoint.pt",)).reused
+
+
 def test_an_interrupted_run_in_the_store_resumes_rather_than_being_replaced_from_the_archive(tmp_path):
     store, archive, other = tmp_path / "runs", tmp_path / "archive", tmp_path / "other"
     ident = {"model": "w"}

@@ -41,6 +41,7 @@ import pandas as pd
 import torch
 
 from bench import runs
+from bench.errors import UserError
 from bench.evaluate import evaluate
 from bench.experiments.pipeline import (EVALUATION_CODE, TRAINING_CODE, Context, archive_evaluation,
                                         archive_training, build_model, code_of, data_fingerprint, dataset,
@@ -134,25 +135,28 @@ RESUMABLE = ("complete", "interrupted", "failed")  # a stopped training resumes 
 
 
 def stale_groups(ctx: Context) -> dict[str, list[runs.Run]]:
-    """Training runs with a checkpoint (complete, or stopped and resumable) whose code changed since they
-    were recorded and whose data is this data_dir's, grouped by identity without the seed (one table
-    row), lowest seed first; complete runs first among equal seeds (their evaluations can be checked)."""
+    """Training runs with a checkpoint (complete, or stopped and resumable), or complete without one (an
+    archive left its weights out: restamped with its group, never its witness), whose code changed since
+    they were recorded and whose data is this data_dir's, grouped by identity without the seed (one
+    table row): runs with weights first, then lowest seed first; complete runs first among equal seeds
+    (their evaluations can be checked)."""
     data = data_fingerprint(ctx, "train")
     groups: dict[str, list[runs.Run]] = {}
     for path in sorted((ctx.runs_dir / "train").glob(f"*/{runs.RECORD}")):
         record = runs.read_record(path)
         identity = record.get("identity") or {}
         abandoned = record.get("status") == "running" and not runs.computing(path.parent)  # killed mid-run
-        if (record.get("status") not in RESUMABLE and not abandoned) or not (path.parent / CHECKPOINT).exists() \
-                or identity.get("data") != data or "model" not in identity:
+        weightless = not (path.parent / CHECKPOINT).exists()
+        if (record.get("status") not in RESUMABLE and not abandoned) or identity.get("data") != data \
+                or (weightless and record.get("status") != "complete") or "model" not in identity:
             continue
         code = code_of(identity["model"], *TRAINING_CODE)
         if not runs.code_changes(record, code):
             continue
         key = runs.config_hash({k: v for k, v in identity.items() if k != "seed"})
         groups.setdefault(key, []).append(runs.Run("train", record["hash"], path.parent, record))
-    return {k: sorted(v, key=lambda r: (r.record["seed"] or 0, r.record["status"] != "complete"))
-            for k, v in groups.items()}
+    return {k: sorted(v, key=lambda r: (not (r.dir / CHECKPOINT).exists(), r.record["seed"] or 0,
+                                        r.record["status"] != "complete")) for k, v in groups.items()}
 
 
 def evaluations_of(runs_dir: Path, train_hashes: set[str]) -> list[runs.Run]:
@@ -206,6 +210,8 @@ def run(ctx: Context, name: str, steps: int, rtol: float, rtol_later_steps: floa
         row = {"label": witness.record.get("label"), "runs": len(group), "witness": witness.hash,
                "changed": ", ".join(runs.code_changes(witness.record, code))}
         try:
+            if not (witness.dir / CHECKPOINT).exists():
+                raise UserError("no run of the group has its weights (its archive left them out)")
             row |= {f"train {k}": v for k, v in check_training(ctx, witness.record, witness.dir, steps).items()}
             evals = [e for e in evaluations_of(ctx.runs_dir, {witness.hash}) if scored_here(ctx, e)]
             if evals:

@@ -392,7 +392,8 @@ def trained_model(ctx: Context, cfg: dict, task: Task, seed: int, label: str = "
 
     With load=False a recorded run's weights are not read (the caller may not need them; see
     `evaluated`) and the model returned is None: call again with load=True when needed. A recorded run
-    restored from the archive without its weights (runs.ARCHIVED_FILE_MAX_BYTES) is trained again then.
+    restored from the archive without its weights (runs.ARCHIVED_FILE_MAX_BYTES) is trained again then,
+    into the store only: the archive keeps the record its evaluations scored.
     With `stage` ("sr" or "dn") only that stage of an SRDNet (built at the SRD scale, 2) is trained on
     `task`, through SRDStage. With `divergence_ends` (a learning-rate range test) a diverging training is
     recorded complete with the step it diverged at, instead of failing."""
@@ -403,18 +404,16 @@ def trained_model(ctx: Context, cfg: dict, task: Task, seed: int, label: str = "
     identity = _train_identity(ctx, cfg, task, seed, vgg_id, stage)
     if not ctx.render_data:  # your own data: a frame the trainer cannot crop is named before a run is recorded
         check_training_frames(ctx)
+    code = code_of(cfg, *TRAINING_CODE)
     run = runs.begin(ctx.runs_dir, "train", identity, seed=seed, device=ctx.device, label=label,
-                     force=ctx.force, code=code_of(cfg, *TRAINING_CODE), reuse_stale=ctx.reuse_stale,
-                     archive=ctx.runs_archive)
-    if run.reused and load and not (run.dir / CHECKPOINT).exists():
-        # restored from an archive, which keeps weights over its file limit out of git: train them again
-        log.info("train %s: run %s was archived without its weights (over %d MiB); training it again",
-                 label or cfg["_target_"], run.hash, runs.ARCHIVED_FILE_MAX_BYTES // 2**20)
-        run = runs.begin(ctx.runs_dir, "train", identity, seed=seed, device=ctx.device, label=label,
-                         force=True, code=code_of(cfg, *TRAINING_CODE))
+                     force=ctx.force, code=code, reuse_stale=ctx.reuse_stale, archive=ctx.runs_archive,
+                     needs=(CHECKPOINT,) if load else ())
+    # a run trained again for the weights its archive left out: the archive keeps the run it scored
+    weights_only = None if ctx.force else archived_without_weights(ctx, run, code)
     if run.reused:
         log.info("train %s: reusing run %s", label or cfg["_target_"], run.hash)
-        archive_training(ctx, run)
+        if not weights_only:
+            archive_training(ctx, run)
         return (load_weights(model, run.dir, ctx.device) if load else None), run
     recipe = ctx.train
     if distributed.rank_and_size()[1] > 1:  # the other torchrun ranks (serve_trainings) join this training
@@ -439,10 +438,32 @@ def trained_model(ctx: Context, cfg: dict, task: Task, seed: int, label: str = "
         runs.fail(run, f"{type(err).__name__}: {err}")
         raise
     summary["render"] = render_digest(ctx, "train")  # which render it trained on (adopt compares it)
-    archive_training(ctx, runs.complete(run, summary))
+    runs.complete(run, summary)
+    if weights_only:
+        log.warning("train %s: run %s trained again for its weights, which its archive left out; they match "
+                    "the archived run's bit for bit only on the same CPU and threads (archived final val PSNR "
+                    "%s, now %s)", label or cfg["_target_"], run.hash, _final_val_psnr(weights_only),
+                    _final_val_psnr(run.record))
+    else:
+        archive_training(ctx, run)
     log.info("train %s: trained in %.1f min (run %s)", label or cfg["_target_"], run.record["wall_time_s"] / 60,
              run.hash)
     return model, run
+
+
+def archived_without_weights(ctx: Context, run: runs.Run, code: dict) -> dict | None:
+    """The record `ctx.runs_archive` holds of this training, complete, of this code and without its
+    weights (over the archive's file limit), else None."""
+    archived = ctx.runs_archive / "train" / run.hash if ctx.runs_archive is not None else None
+    if archived is None or not (archived / runs.RECORD).exists() or (archived / CHECKPOINT).exists():
+        return None
+    record = runs.read_record(archived / runs.RECORD)
+    return record if record.get("status") == "complete" and not runs.code_changes(record, code) else None
+
+
+def _final_val_psnr(record: dict) -> str:
+    psnr = record.get("metrics", {}).get("val", {}).get("PSNR")
+    return f"{psnr:.3f} dB" if psnr is not None else "not recorded"
 
 
 def _initial_model(cfg: dict, task: Task, seed: int, stage: str | None):

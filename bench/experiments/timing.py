@@ -51,6 +51,7 @@ from bench.measure import time_call
 from bench.metrics import HIGHER_IS_BETTER, LOWER_IS_BETTER, METRICS, RELMSE_FORMULA, mse
 from bench.table_writer import write_table
 from bench.tasks import GBUF_LAYERS, get_task
+from bench.train import CHECKPOINT
 
 log = logging.getLogger("bench")
 
@@ -272,10 +273,11 @@ def resolve_method(ctx: Context, method: dict, train_missing: bool):
     seed = ctx.seeds[0]
     if not is_learned(build_model(cfg, task.scale)):
         return build_model(cfg, task.scale)
-    if not train_missing and recorded_training(ctx, cfg, task, seed) is None:
-        log.warning("time: %s skipped: no recorded %s-task training run at preset %s (train it with its table, "
-                    "e.g. sota or sr_denoise, or set experiment.train_missing=true)",
-                    method["label"], task.name, ctx.preset)
+    recorded = recorded_training(ctx, cfg, task, seed)
+    if not train_missing and (recorded is None or not (recorded.dir / CHECKPOINT).exists()):
+        log.warning("time: %s skipped: no recorded %s-task training run at preset %s%s (train it with its "
+                    "table, e.g. sota or sr_denoise, or set experiment.train_missing=true)", method["label"],
+                    task.name, ctx.preset, "" if recorded is None else " with its weights (its archive left them out)")
         return None
     model, _ = trained_model(dataclasses.replace(ctx, force=False), cfg, task, seed, method["label"])
     return model.to(ctx.device).eval()
