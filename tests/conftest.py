@@ -1,7 +1,14 @@
-"""Helpers shared by the tests that run experiments at the smoke preset."""
+"""Helpers shared by the tests: smoke-preset experiments, small models and their inputs."""
 import dataclasses
 import os
 import tempfile
+
+import torch
+
+from baselines.cfm import CFMNet
+from baselines.edsr import EDSR
+from baselines.kpcn import KPCN
+from baselines.rae import RAE
 
 # Mirroring to MLflow costs seconds per command; the tests that check it turn it on (tracking=mlflow).
 os.environ.setdefault("SRD_TRACKING", "none")
@@ -24,3 +31,22 @@ def smoke_context(**fields):
     with initialize_config_dir(config_dir=CONF_DIR, version_base=None):
         ctx = make_context(compose("config", overrides=["preset=smoke"]))
     return dataclasses.replace(ctx, **fields)
+
+
+
+# Small instances of every learned baseline, (constructor, arguments), and their inputs: shared by the
+# files that check models on every device.
+SMALL = {
+    "edsr": (EDSR, dict(channels=8, blocks=2)),
+    "edsr_dilated_deform": (EDSR, dict(channels=8, blocks=2, dilation=2, deformable=True)),
+    "rae": (RAE, dict(width=8)),
+    "kpcn": (KPCN, dict(channels=8, layers=3, filter_size=5)),
+    "cfm": (CFMNet, dict(channels=8, blocks=2)),
+    "cfm_deform": (CFMNet, dict(channels=8, blocks=2, deformable_blocks=2)),
+}
+
+
+def inputs(b=2, t=3, h=13, w=17, g=7, seed=0):
+    """Noisy LR frames (b, t, 3, h, w) and a gBuffer (b, t, g, h, w), uniform in [0, 1)."""
+    gen = torch.Generator().manual_seed(seed)
+    return torch.rand(b, t, 3, h, w, generator=gen), torch.rand(b, t, g, h, w, generator=gen)

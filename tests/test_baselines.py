@@ -12,22 +12,9 @@ from baselines.edsr import EDSR
 from baselines.kpcn import KPCN
 from baselines.oidn import OIDN
 from baselines.rae import RAE
+from conftest import SMALL, inputs
 
 torch.set_num_threads(1)
-
-SMALL = {
-    "edsr": (EDSR, dict(channels=8, blocks=2)),
-    "edsr_dilated_deform": (EDSR, dict(channels=8, blocks=2, dilation=2, deformable=True)),
-    "rae": (RAE, dict(width=8)),
-    "kpcn": (KPCN, dict(channels=8, layers=3, filter_size=5)),
-    "cfm": (CFMNet, dict(channels=8, blocks=2)),
-    "cfm_deform": (CFMNet, dict(channels=8, blocks=2, deformable_blocks=2)),
-}
-
-
-def inputs(b=2, t=3, h=13, w=17, g=7, seed=0):
-    gen = torch.Generator().manual_seed(seed)
-    return torch.rand(b, t, 3, h, w, generator=gen), torch.rand(b, t, g, h, w, generator=gen)
 
 
 @pytest.mark.parametrize("scale", [1, 2])
