@@ -53,12 +53,11 @@ ARCHIVES = "results/*/runs"  # the tables' archived runs (conf/config.yaml runs_
 def training_record(run_hash: str, runs_dir: str | Path = "runs") -> Path:
     """The run.json of training run `run_hash`: in the run store, else in a committed archive (a fresh
     clone has no run store)."""
-    path = Path(runs_dir) / "train" / run_hash / runs.RECORD
-    archived = sorted(Path().glob(f"{ARCHIVES}/train/{run_hash}/{runs.RECORD}"))
-    if not path.exists() and not archived:
+    path = runs.record_path("train", run_hash, runs_dir, sorted(Path().glob(ARCHIVES)))
+    if path is None:
         raise UserError(f"no training run {run_hash} in {runs_dir} (runs are directories of "
                         f"{Path(runs_dir) / 'train'}) or in {ARCHIVES}/train")
-    return path if path.exists() else archived[0]
+    return path
 
 
 def export(run_hash: str, out: str | Path, runs_dir: str | Path = "runs") -> Path:

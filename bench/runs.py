@@ -124,6 +124,16 @@ def lookup(runs_dir: str | Path, kind: str, identity: dict, archive: str | Path 
     return Run(kind, h, path.parent, record, reused=True)
 
 
+def record_path(kind: str, run_hash: str, runs_dir: str | Path, archives=()) -> Path | None:
+    """Where the record of run `run_hash` is: in the run store, else in the first of `archives` that
+    holds it (read there, not restored), else None."""
+    for root in (runs_dir, *archives):
+        path = Path(root) / kind / run_hash / RECORD
+        if path.exists():
+            return path
+    return None
+
+
 def wall_time_s(runs_dir: str | Path, kind: str, hashes: str | None) -> float:
     """Recorded wall time of runs named by hash ("a+b" for several, e.g. a Cascade's stages); 0 for none."""
     total = 0.0

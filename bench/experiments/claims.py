@@ -69,10 +69,9 @@ def _per_sequence(ctx: Context, eval_hash: str, metric: str) -> pd.Series:
 
 
 def _record(ctx: Context, kind: str, run_hash: str) -> dict | None:
-    if ctx.runs_archive is not None:
-        runs.restore(ctx.runs_dir, ctx.runs_archive, kind, run_hash)
-    path = ctx.runs_dir / kind / run_hash / runs.RECORD
-    return runs.read_record(path) if path.exists() else None
+    archives = [ctx.runs_archive] if ctx.runs_archive is not None else []
+    path = runs.record_path(kind, run_hash, ctx.runs_dir, archives)
+    return runs.read_record(path) if path is not None else None
 
 
 def recipe(ctx: Context, row: pd.Series) -> str:

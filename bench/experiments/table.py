@@ -214,7 +214,7 @@ def run(ctx: Context, name: str, rows: list[dict], caption: str = "", task: str 
     table = with_paper(table, rows, paper_table)
     loss = ctx.train.loss["final"]
     paper_terms = ("edge", "temporal", "spatial", "perceptual")
-    extra = "".join(f" + {name} {w:g}" for name, w in loss.items() if name not in paper_terms and w)
+    extra = "".join(f" + {term} {w:g}" for term, w in loss.items() if term not in paper_terms and w)
     tasks = ", ".join(dict.fromkeys(r["task"] for r in rows))
     notes = (f"Task {tasks}. {RELMSE_FORMULA}; robust relMSE leaves out the 0.1% of pixels with the highest "
              f"error; temporal relMSE scores the frame-to-frame change against the reference's; PSNR/SSIM on "
