@@ -33,7 +33,6 @@ def smoke_context(**fields):
     return dataclasses.replace(ctx, **fields)
 
 
-
 # Small instances of every learned baseline, (constructor, arguments), and their inputs: shared by the
 # files that check models on every device.
 SMALL = {
