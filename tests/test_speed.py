@@ -241,6 +241,14 @@ def test_the_caption_names_the_cpu_isa():
     assert isa in machine_caption("cpu")
 
 
+def test_a_gpu_caption_names_the_gpu_and_its_host_cpu_isa(monkeypatch):
+    from bench.experiments.speed import machine_caption
+    from bench.measure import cpu_isa
+    monkeypatch.setattr(torch.cuda, "get_device_name", lambda device=None: "NVIDIA H200")
+    caption = machine_caption("cuda")
+    assert caption.startswith("NVIDIA H200 (CUDA ") and cpu_isa() in caption
+
+
 def test_auto_choice_notes_a_path_the_table_did_not_time_and_survives_a_machine_with_no_path(monkeypatch):
     import bench.experiments.speed as speed
     rows = [{"fast path": "fp32", "ms": 2.0}, {"fast path": "channels_last", "ms": float("nan"), "note": "failed: X"}]

@@ -74,16 +74,19 @@ def isa_tag(flags: set[str] | None = None) -> str:
     return "no-avx2" if flags else "isa-unknown"
 
 
+def cpu_model() -> str:
+    """This CPU's model name, as /proc/cpuinfo gives it."""
+    name = platform.processor() or "unknown"
+    with contextlib.suppress(OSError):
+        found = re.search(r"model name\s*:\s*(.+)", Path("/proc/cpuinfo").read_text())
+        name = found.group(1) if found else name
+    return name
+
+
 def device_tag(device: str) -> str:
     """A directory name for the machine: cpu-<cpu model>-<ISA> or cuda-<gpu model>, lower case (one
     cloud CPU model name covers AVX2-only and AVX512-BF16 hosts)."""
-    if str(device).startswith("cuda"):
-        name = torch.cuda.get_device_name(torch.device(device))
-    else:
-        name = platform.processor() or "unknown"
-        with contextlib.suppress(OSError):
-            found = re.search(r"model name\s*:\s*(.+)", Path("/proc/cpuinfo").read_text())
-            name = found.group(1) if found else name
+    name = torch.cuda.get_device_name(torch.device(device)) if str(device).startswith("cuda") else cpu_model()
     slug = re.sub(r"\(r\)|\(tm\)|cpu|processor|@.*|\d+-core", " ", name.lower())
     slug = re.sub(r"[^a-z0-9]+", "-", slug).strip("-")
     if str(device).startswith("cuda"):
@@ -94,7 +97,9 @@ def device_tag(device: str) -> str:
 def machine_caption(device: str) -> str:
     """Device, ISA, library and thread settings of this run, for the caption."""
     if str(device).startswith("cuda"):
-        where = f"{torch.cuda.get_device_name(torch.device(device))} (CUDA {torch.version.cuda})"
+        # the host CPU runs the Python and the launches (and OIDN's row): its ISA belongs to the figures too
+        where = (f"{torch.cuda.get_device_name(torch.device(device))} (CUDA {torch.version.cuda}), host CPU "
+                 f"{cpu_model().strip()}, {cpu_isa()}")
     else:
         where = (f"{device_tag(device)[4:].removesuffix('-' + isa_tag())} CPU, {cpu_isa()}, {torch.get_num_threads()} torch threads, glibc malloc "
                  f"{'keeping freed memory' if freed_memory_kept() else 'default (mmap per big tensor)'}")
