@@ -158,45 +158,59 @@ def resolve_device(device: str) -> str:
 
 def run_all(tables: list[str], overrides: list[str], summary_dir: Path) -> None:
     """Run each experiment in `tables` with the command line's other overrides, one after the other;
-    write each one's wall time to `<summary_dir>/table.{csv,md,tex}`. Runs shared between tables are
-    trained once (the run store), so a restarted `all` continues where it stopped."""
+    write each one's wall time and recorded compute to `<summary_dir>/table.{csv,md,tex}`, and a last row
+    that counts every run once. Runs shared between tables are trained once (the run store), so a
+    restarted `all` continues where it stopped."""
     import pandas as pd
     from hydra import compose
     from bench.table_writer import write_table
-    rows = []
+    rows, every_run = [], {}
     for name in tables:
         if name not in available_experiments() or name == "all":
             raise UserError(f"experiment.tables: unknown experiment {name!r}")
         t0 = time.perf_counter()
         cfg = compose(config_name="config", overrides=overrides + [f"+experiment={name}"])
         run_experiment(cfg)
-        rows.append({"experiment": name, **table_summary(Path(cfg.results_dir) / name),
-                     "this invocation (min)": (time.perf_counter() - t0) / 60})
-        write_table(pd.DataFrame(rows), summary_dir,
+        archives = (cfg.runs_archive,) if cfg.get("runs_archive") else ()
+        summary, minutes = table_summary(Path(cfg.results_dir) / name, cfg.runs_dir, archives)
+        every_run.update(minutes)
+        rows.append({"experiment": name, **summary, "this invocation (min)": (time.perf_counter() - t0) / 60})
+        total = {"experiment": "all (each run once)", "this invocation (min)": sum(r["this invocation (min)"] for r in rows),
+                 **compute_columns(every_run)}
+        write_table(pd.DataFrame(rows + [total]), summary_dir,
                     caption="Time per table of `+experiment=all`. compute: the training and evaluation wall time "
-                            "of the table's runs as recorded in the run store, whenever and wherever they ran "
-                            "(a run shared by several tables counts in each; empty for tables that are not "
-                            "made of trained rows). 'order as paper': pairs of rows whose order by that metric is "
-                            "the paper's, of the pairs both have. this invocation: wall time of this command, ~0 "
-                            "for reused runs.")
+                            "of the table's runs as recorded in the run store or its archive, whenever and "
+                            "wherever they ran (every seed; a run shared by several tables counts in each, and "
+                            "once in the last row; empty for tables that are not made of trained rows). "
+                            "trainings: the distinct training runs (each stage of a Cascade counts). 'order as "
+                            "paper': pairs of rows whose order by that metric is the paper's, of the pairs both "
+                            "have. this invocation: wall time of this command, ~0 for reused runs.")
 
 
-def table_summary(table_dir: Path) -> dict:
-    """From a table's table.csv: training + evaluation minutes of its distinct runs, and per metric the
-    pairs of rows ordered as in the paper (empty for tables that are not made of trained rows)."""
+def compute_columns(minutes: dict[str, float]) -> dict:
+    """The compute (min) and trainings columns of `run_all`'s table, from `recorded_minutes`."""
+    return {"compute (min)": float(sum(minutes.values())),
+            "trainings": sum(key.startswith("train/") for key in minutes)}
+
+
+def table_summary(table_dir: Path, runs_dir, archives=()) -> tuple[dict, dict[str, float]]:
+    """From a table's table.csv: the recorded minutes of its distinct runs (`recorded_minutes`), their
+    compute columns and, per metric, the pairs of rows ordered as in the paper (empty for tables that
+    are not made of trained rows)."""
     import pandas as pd
+    from bench.experiments.pipeline import recorded_minutes
     from bench.experiments.table import paper_agreement
     path = table_dir / "table.csv"
     if not path.exists():
-        return {}
+        return {}, {}
     table = pd.read_csv(path)
-    out = {}
+    out, minutes = {}, {}
     if "train (min)" in table:
-        distinct = table.drop_duplicates("runs")
-        out["compute (min)"] = float(distinct["train (min)"].sum() + distinct["eval (min)"].sum())
+        minutes = recorded_minutes(" ".join(table["runs"].dropna().astype(str)).split(), runs_dir, archives)
+        out.update(compute_columns(minutes))
     for metric, (agree, total) in paper_agreement(table).items():
         out[f"{metric} order as paper"] = f"{agree}/{total}"
-    return out
+    return out, minutes
 
 
 def _sweep_job_results(cfg: DictConfig) -> None:

@@ -534,3 +534,34 @@ def test_adopt_restamps_a_run_its_archive_kept_without_weights_beside_a_witness_
     assert table[made[True].hash] == "adopted" and "has its weights" in table[lone.hash]
     assert runs.read_record(made[False].dir / runs.RECORD)["code"] == {"bench/x.py": "new"}
     assert runs.read_record(lone.dir / runs.RECORD)["code"] == {"bench/x.py": "old"}
+
+
+def test_all_counts_every_seed_and_each_shared_run_once(tmp_path):
+    """The `all` table's compute column sums the recorded wall time of every seed's runs (not a seed
+    average), and its last row counts a run that two tables share once."""
+    from bench.cli import compute_columns, table_summary
+
+    def record(root, kind, run_hash, seconds, train_run=None):
+        folder = root / kind / run_hash
+        folder.mkdir(parents=True)
+        metrics = {"train_run": train_run} if kind == "eval" else {}
+        (folder / "run.json").write_text(json.dumps({"status": "complete", "wall_time_s": seconds, "metrics": metrics}))
+
+    store, archive = tmp_path / "runs", tmp_path / "archive"
+    record(store, "train", "t0", 600), record(store, "train", "t1", 1200)        # one row, two seeds
+    record(archive, "train", "s1", 60), record(archive, "train", "s2", 120)     # a Cascade's two stages
+    record(store, "eval", "e0", 6, "t0"), record(store, "eval", "e1", 12, "t1")
+    record(archive, "eval", "c0", 30, "s1+s2")
+    record(store, "eval", "g0", 18, "t0")                                       # another table scores t0 again
+    tables = {"a": "e0 e1\nc0", "b": "g0\ne_missing"}
+    for name, cells in tables.items():
+        (tmp_path / name).mkdir()
+        pd.DataFrame({"method": ["x", "y"], "train (min)": [1.0, 1.0], "eval (min)": [0.1, 0.1],
+                      "runs": cells.split("\n")}).to_csv(tmp_path / name / "table.csv", index=False)
+    a, minutes_a = table_summary(tmp_path / "a", store, (archive,))
+    b, minutes_b = table_summary(tmp_path / "b", store, (archive,))
+    assert a["compute (min)"] == pytest.approx((600 + 1200 + 60 + 120 + 6 + 12 + 30) / 60) and a["trainings"] == 4
+    assert b["compute (min)"] == pytest.approx((600 + 18) / 60) and b["trainings"] == 1
+    both = compute_columns({**minutes_a, **minutes_b})
+    assert both["compute (min)"] == pytest.approx((600 + 1200 + 60 + 120 + 6 + 12 + 30 + 18) / 60)
+    assert both["trainings"] == 4

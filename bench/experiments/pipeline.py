@@ -584,6 +584,23 @@ def archive_evaluation(ctx: Context, run: runs.Run) -> runs.Run:
     return run
 
 
+def recorded_minutes(eval_hashes, runs_dir: str | Path, archives=()) -> dict[str, float]:
+    """Recorded wall minutes of each distinct run behind these evaluations, keyed "eval/<hash>" and
+    "train/<hash>": the evaluations and the trainings they scored (each stage of a Cascade). A run
+    neither the store nor the archives hold is left out."""
+    minutes = {}
+    for h in eval_hashes:
+        path = runs.record_path("eval", h, runs_dir, archives)
+        if path is None:
+            continue
+        record = runs.read_record(path)
+        minutes[f"eval/{h}"] = (record.get("wall_time_s") or 0.0) / 60
+        for t in filter(None, (record.get("metrics", {}).get("train_run") or "").split("+")):
+            if (train_path := runs.record_path("train", t, runs_dir, archives)) is not None:
+                minutes[f"train/{t}"] = (runs.read_record(train_path).get("wall_time_s") or 0.0) / 60
+    return minutes
+
+
 def measured_fast_path(ctx: Context, cfg: dict, task: Task, split: str, label: str) -> str:
     """eval.fast_path=auto: the fastest correct path for this model on this machine (bench.measure),
     timed on an untrained copy (speed does not depend on the weights) and one sequence of the split,
