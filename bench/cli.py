@@ -182,15 +182,19 @@ def run_all(tables: list[str], overrides: list[str], summary_dir: Path) -> None:
                             "of the table's runs as recorded in the run store or its archive, whenever and "
                             "wherever they ran (every seed; a run shared by several tables counts in each, and "
                             "once in the last row; empty for tables that are not made of trained rows). "
-                            "trainings: the distinct training runs (each stage of a Cascade counts). 'order as "
+                            "trainings: the distinct training runs (each stage of a Cascade counts). runs not found: "
+                            "runs of the table neither the store nor the archive holds, left out of compute (a "
+                            "missing evaluation hides its trainings too). 'order as "
                             "paper': pairs of rows whose order by that metric is the paper's, of the pairs both "
                             "have. this invocation: wall time of this command, ~0 for reused runs.")
 
 
 def compute_columns(minutes: dict[str, float]) -> dict:
-    """The compute (min) and trainings columns of `run_all`'s table, from `recorded_minutes`."""
-    return {"compute (min)": float(sum(minutes.values())),
-            "trainings": sum(key.startswith("train/") for key in minutes)}
+    """The compute (min), trainings and runs not found columns of `run_all`'s table, from
+    `recorded_minutes` (None: a run neither the store nor the archive holds)."""
+    return {"compute (min)": float(sum(m for m in minutes.values() if m is not None)),
+            "trainings": sum(key.startswith("train/") for key in minutes),
+            "runs not found": sum(m is None for m in minutes.values())}
 
 
 def table_summary(table_dir: Path, runs_dir, archives=()) -> tuple[dict, dict[str, float]]:
@@ -208,6 +212,9 @@ def table_summary(table_dir: Path, runs_dir, archives=()) -> tuple[dict, dict[st
     if "train (min)" in table:
         minutes = recorded_minutes(" ".join(table["runs"].dropna().astype(str)).split(), runs_dir, archives)
         out.update(compute_columns(minutes))
+        if out["runs not found"]:
+            log.warning("%s: %d of its runs are in neither the run store nor the archive; compute (min) "
+                        "leaves them out", table_dir.name, out["runs not found"])
     for metric, (agree, total) in paper_agreement(table).items():
         out[f"{metric} order as paper"] = f"{agree}/{total}"
     return out, minutes

@@ -134,14 +134,17 @@ def record_path(kind: str, run_hash: str, runs_dir: str | Path, archives=()) -> 
     return None
 
 
+def recorded_wall_s(kind: str, run_hash: str, runs_dir: str | Path, archives=()) -> float | None:
+    """Recorded wall time of one run, from the run store or an archive (`record_path`); None when
+    neither holds it, so a caller can tell a missing run from a fast one."""
+    path = record_path(kind, run_hash, runs_dir, archives)
+    return None if path is None else float(read_record(path).get("wall_time_s") or 0.0)
+
+
 def wall_time_s(runs_dir: str | Path, kind: str, hashes: str | None) -> float:
-    """Recorded wall time of runs named by hash ("a+b" for several, e.g. a Cascade's stages); 0 for none."""
-    total = 0.0
-    for h in (hashes or "").split("+"):
-        path = Path(runs_dir) / kind / h / RECORD
-        if h and path.exists():
-            total += read_record(path).get("wall_time_s") or 0.0
-    return total
+    """Recorded wall time of runs named by hash ("a+b" for several, e.g. a Cascade's stages) in the
+    run store; 0 for none, and for a run the store lacks."""
+    return sum(recorded_wall_s(kind, h, runs_dir) or 0.0 for h in (hashes or "").split("+") if h)
 
 
 def begin(runs_dir: str | Path, kind: str, identity: dict, config: dict | None = None,

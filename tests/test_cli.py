@@ -538,8 +538,11 @@ def test_adopt_restamps_a_run_its_archive_kept_without_weights_beside_a_witness_
 
 def test_all_counts_every_seed_and_each_shared_run_once(tmp_path):
     """The `all` table's compute column sums the recorded wall time of every seed's runs (not a seed
-    average), and its last row counts a run that two tables share once."""
+    average), its last row counts a run that two tables share once, and a run neither the store nor
+    the archive holds is counted as not found, not as 0 minutes."""
+    from bench import runs
     from bench.cli import compute_columns, table_summary
+    from bench.experiments.pipeline import recorded_minutes
 
     def record(root, kind, run_hash, seconds, train_run=None):
         folder = root / kind / run_hash
@@ -562,6 +565,11 @@ def test_all_counts_every_seed_and_each_shared_run_once(tmp_path):
     b, minutes_b = table_summary(tmp_path / "b", store, (archive,))
     assert a["compute (min)"] == pytest.approx((600 + 1200 + 60 + 120 + 6 + 12 + 30) / 60) and a["trainings"] == 4
     assert b["compute (min)"] == pytest.approx((600 + 18) / 60) and b["trainings"] == 1
+    assert a["runs not found"] == 0 and b["runs not found"] == 1                # e_missing: reported, not 0 min
     both = compute_columns({**minutes_a, **minutes_b})
     assert both["compute (min)"] == pytest.approx((600 + 1200 + 60 + 120 + 6 + 12 + 30 + 18) / 60)
-    assert both["trainings"] == 4
+    assert both["trainings"] == 4 and both["runs not found"] == 1
+    record(store, "eval", "h0", 6, "t0+t_gone")                                 # a stage the store lost
+    minutes = recorded_minutes(["h0"], store, (archive,))
+    assert minutes == {"eval/h0": pytest.approx(0.1), "train/t0": pytest.approx(10.0), "train/t_gone": None}
+    assert runs.wall_time_s(store, "train", "t0+t_gone") == pytest.approx(600)

@@ -584,20 +584,18 @@ def archive_evaluation(ctx: Context, run: runs.Run) -> runs.Run:
     return run
 
 
-def recorded_minutes(eval_hashes, runs_dir: str | Path, archives=()) -> dict[str, float]:
+def recorded_minutes(eval_hashes, runs_dir: str | Path, archives=()) -> dict[str, float | None]:
     """Recorded wall minutes of each distinct run behind these evaluations, keyed "eval/<hash>" and
     "train/<hash>": the evaluations and the trainings they scored (each stage of a Cascade). A run
-    neither the store nor the archives hold is left out."""
+    neither the store nor the archives hold maps to None; a missing evaluation hides its trainings."""
     minutes = {}
     for h in eval_hashes:
         path = runs.record_path("eval", h, runs_dir, archives)
-        if path is None:
-            continue
-        record = runs.read_record(path)
-        minutes[f"eval/{h}"] = (record.get("wall_time_s") or 0.0) / 60
+        record = runs.read_record(path) if path is not None else {}
+        minutes[f"eval/{h}"] = None if path is None else (record.get("wall_time_s") or 0.0) / 60
         for t in filter(None, (record.get("metrics", {}).get("train_run") or "").split("+")):
-            if (train_path := runs.record_path("train", t, runs_dir, archives)) is not None:
-                minutes[f"train/{t}"] = (runs.read_record(train_path).get("wall_time_s") or 0.0) / 60
+            seconds = runs.recorded_wall_s("train", t, runs_dir, archives)
+            minutes[f"train/{t}"] = None if seconds is None else seconds / 60
     return minutes
 
 
