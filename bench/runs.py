@@ -435,6 +435,19 @@ def acquire(path: Path, what: str):
     return handle
 
 
+def try_acquire(path: Path):
+    """An exclusive lock on `path` if no other holder has it: the open file (close it to release), else
+    None. Unlike `acquire`, never waits."""
+    path.parent.mkdir(parents=True, exist_ok=True)
+    handle = open(path, "a")
+    try:
+        fcntl.flock(handle, fcntl.LOCK_EX | fcntl.LOCK_NB)
+    except BlockingIOError:
+        handle.close()
+        return None
+    return handle
+
+
 def complete(run: Run, metrics: dict, **extra) -> Run:
     """Record metrics and wall time; the run becomes reusable."""
     run.record.update(extra)

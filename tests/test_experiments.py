@@ -13,7 +13,7 @@ from omegaconf import OmegaConf
 
 from bench.cli import CONF_DIR, run_experiment
 from bench.errors import UserError
-from bench.experiments.table import expand_rows, paper_agreement, reference_check, shard_units
+from bench.experiments.table import compute_shard, expand_rows, paper_agreement, reference_check, shard_units
 from bench.models.srd import SRDNet, SRDStage, load_stage
 from bench.paper import paper_values
 from conftest import smoke_context, smoke_overrides
@@ -204,6 +204,32 @@ def test_shards_cover_every_row_and_seed_once_and_stay_balanced(count):
     every = [pair for shard in shards for pair in shard]
     assert sorted(every) == sorted((r["label"], s) for r in rows for s in (0, 1, 2))
     assert max(map(len, shards)) - min(map(len, shards)) <= 1
+
+
+def test_a_shard_that_runs_out_of_units_takes_those_no_other_process_holds(tmp_path):
+    """While shard 1 is busy on its first unit, shard 0 does its own units, then shard 1's that have
+    not started; the unit shard 1 holds it leaves alone. Shard 1 then finds the rest free (in a real
+    table its row() reuses them)."""
+    rows = [{"label": "cheap"}, {"label": "dear"}]
+    calls, inner = [], []
+
+    def shard(index):
+        return [(r["label"], seed) for r, seed in
+                compute_shard(rows, [0, 1, 2], index, 2, tmp_path, "t", lambda r, seed: compute(index, r, seed))]
+
+    def compute(index, r, seed):
+        calls.append((index, r["label"], seed))
+        if (index, r["label"], seed) == (1, "cheap", 1):  # shard 1's first unit: shard 0 runs meanwhile
+            inner.extend(shard(0))
+
+    outer = shard(1)
+    assert inner == [("cheap", 0), ("cheap", 2), ("dear", 1), ("dear", 0), ("dear", 2)]
+    assert (0, "cheap", 1) not in calls
+    assert outer == [("cheap", 1), ("dear", 0), ("dear", 2), ("cheap", 0), ("cheap", 2), ("dear", 1)]
+    # a unit of another table (another key) held meanwhile does not hold this table's same unit
+    meanwhile = []
+    compute_shard(rows, [0], 0, 1, tmp_path, "another table", lambda r, seed: meanwhile.append(shard(0)))
+    assert all(len(units) == 6 for units in meanwhile) and len(meanwhile) == 2
 
 
 @pytest.mark.parametrize("stage_order", ["sr_dn", "dn_sr"])

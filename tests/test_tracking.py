@@ -2,6 +2,7 @@
 reuses them and mirrors the run store into MLflow, read back with MLflow's own client."""
 import json
 import os
+import re
 import subprocess
 import sys
 from pathlib import Path
@@ -47,8 +48,8 @@ def mirrored(client, kind):
 
 def test_joblib_shards_train_disjoint_runs_and_the_final_run_reuses_them(store):
     root, sweep_log, final_log = store
-    assert "shard 0/2 computed 1 of 2 (row, seed) runs" in sweep_log
-    assert "shard 1/2 computed 1 of 2 (row, seed) runs" in sweep_log
+    for index in (0, 1):  # its own unit, and the other's too when that one was free (then reused)
+        assert re.search(rf"shard {index}/2 computed or found [12] of 2 \(row, seed\) runs", sweep_log)
     assert sweep_log.count("train Ours: trained") == 1          # one shard trained it, once
     assert "2 of 2 rows reused" in final_log
     assert not list((root / "results" / "sweeps").glob("*/smoke/table.csv"))  # shards write no table

@@ -86,7 +86,7 @@ class Context:
     progress: bool
     render_data: bool
     model_lr: dict                                  # model name -> peak learning rate (else train.lr)
-    shard: tuple[int, int] | None                   # (i, n): a table computes only its (row, seed) runs i, i+n, ...
+    shard: tuple[int, int] | None                   # (i, n): a table computes its (row, seed) runs i, i+n, ... first
     reuse_stale: bool                               # reuse runs whose code changed since they were recorded
     runs_archive: Path | None = None                # finished trainings and evaluations kept with the results
                                                     # (bench.runs.archive); None: the run store only

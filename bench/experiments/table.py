@@ -14,13 +14,18 @@ A row of the experiment file:
 """
 from __future__ import annotations
 
+import contextlib
 import copy
 import dataclasses
+import hashlib
 import itertools
+import json
 import logging
+from pathlib import Path
 
 import pandas as pd
 
+from bench import runs
 from bench.datagen import load_manifest
 from bench.experiments.figure import crop_figure, curve_figure
 from bench.experiments.macs import frame_inputs
@@ -85,6 +90,29 @@ def shard_units(rows: list[dict], seeds: list, index: int, count: int) -> list[t
     """Shard `index` of `count`: every count-th (row, seed) pair, so that shards stay balanced when a
     table has fewer rows than shards or rows of unequal cost."""
     return [(r, seed) for r in rows for seed in seeds][index::count]
+
+
+def compute_shard(rows: list[dict], seeds: list, index: int, count: int, lock_dir: Path, key: str,
+                  compute) -> list[tuple[dict, int]]:
+    """Shard `index` of `count` works through every (row, seed) unit, its own (`shard_units`) first and
+    then the other shards' in turn, calling `compute(row, seed)` on each unit no other process holds
+    (a lock per unit under `lock_dir`, named from `key`, the row and the seed). A shard that runs out of
+    its own units so takes those a slower shard has not started: shards of unequal cost (3 seeds of
+    rows that alternate cheap and dear over 2 shards) finish together. `compute` reuses what is
+    recorded, so a unit that another process finished costs only its lookup. Returns the units it ran."""
+    own = shard_units(rows, seeds, index, count)
+    others = [u for i in range(1, count) for u in shard_units(rows, seeds, (index + i) % count, count)]
+    done = []
+    for r, seed in own + others:
+        name = hashlib.sha256(json.dumps([key, r, seed], sort_keys=True, default=str).encode()).hexdigest()[:16]
+        handle = runs.try_acquire(Path(lock_dir) / f"{name}.lock")
+        if handle is None:
+            log.info("shard %d/%d: %s seed %s is another process's; next", index, count, r["label"], seed)
+            continue
+        with contextlib.closing(handle):
+            compute(r, seed)
+        done.append((r, seed))
+    return done
 
 
 def passes_for(rows: list[dict], default_task: str) -> set[str]:
@@ -195,12 +223,13 @@ def run(ctx: Context, name: str, rows: list[dict], caption: str = "", task: str 
         ensure_data(frames, set())
     if ctx.shard:  # compute this shard's runs only; a run without a shard assembles the table from them
         index, count = ctx.shard
-        units = shard_units(rows, ctx.seeds, index, count)
-        for r, seed in units:
-            row(dataclasses.replace(ctx, seeds=[seed]), r["label"], r["model"], r.get("overrides"), r["task"],
-                r.get("split", split), r.get("train"), r.get("cascade", False))
-        log.info("%s: shard %d/%d computed %d of %d (row, seed) runs; run without shard= to write the table",
-                 name, index, count, len(units), len(rows) * len(ctx.seeds))
+        units = compute_shard(
+            rows, ctx.seeds, index, count, ctx.runs_dir / "units", f"{name} {ctx.data_dir} {ctx.train}",
+            lambda r, seed: row(dataclasses.replace(ctx, seeds=[seed]), r["label"], r["model"], r.get("overrides"),
+                                r["task"], r.get("split", split), r.get("train"), r.get("cascade", False)))
+        log.info("%s: shard %d/%d computed or found %d of %d (row, seed) runs, the others were other "
+                 "processes'; run without shard= to write the table", name, index, count, len(units),
+                 len(rows) * len(ctx.seeds))
         return pd.DataFrame()
     table = pd.DataFrame([row(ctx, r["label"], r["model"], r.get("overrides"), r["task"],
                               r.get("split", split), r.get("train"), r.get("cascade", False))
