@@ -184,12 +184,13 @@ def run_all(tables: list[str], overrides: list[str], summary_dir: Path) -> None:
                             "once in the last row; empty for tables that are not made of trained rows). "
                             "trainings: the distinct training runs (each stage of a Cascade counts). runs not found: "
                             "runs of the table neither the store nor the archive holds, left out of compute (a "
-                            "missing evaluation hides its trainings too). 'order as "
+                            "missing training still counts in trainings; a missing evaluation hides its "
+                            "trainings from both). 'order as "
                             "paper': pairs of rows whose order by that metric is the paper's, of the pairs both "
                             "have. this invocation: wall time of this command, ~0 for reused runs.")
 
 
-def compute_columns(minutes: dict[str, float]) -> dict:
+def compute_columns(minutes: dict[str, float | None]) -> dict:
     """The compute (min), trainings and runs not found columns of `run_all`'s table, from
     `recorded_minutes` (None: a run neither the store nor the archive holds)."""
     return {"compute (min)": float(sum(m for m in minutes.values() if m is not None)),
@@ -197,7 +198,7 @@ def compute_columns(minutes: dict[str, float]) -> dict:
             "runs not found": sum(m is None for m in minutes.values())}
 
 
-def table_summary(table_dir: Path, runs_dir, archives=()) -> tuple[dict, dict[str, float]]:
+def table_summary(table_dir: Path, runs_dir, archives=()) -> tuple[dict, dict[str, float | None]]:
     """From a table's table.csv: the recorded minutes of its distinct runs (`recorded_minutes`), their
     compute columns and, per metric, the pairs of rows ordered as in the paper (empty for tables that
     are not made of trained rows)."""

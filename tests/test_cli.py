@@ -536,7 +536,7 @@ def test_adopt_restamps_a_run_its_archive_kept_without_weights_beside_a_witness_
     assert runs.read_record(lone.dir / runs.RECORD)["code"] == {"bench/x.py": "old"}
 
 
-def test_all_counts_every_seed_and_each_shared_run_once(tmp_path):
+def test_all_counts_every_seed_and_each_shared_run_once(tmp_path, caplog):
     """The `all` table's compute column sums the recorded wall time of every seed's runs (not a seed
     average), its last row counts a run that two tables share once, and a run neither the store nor
     the archive holds is counted as not found, not as 0 minutes."""
@@ -562,7 +562,9 @@ def test_all_counts_every_seed_and_each_shared_run_once(tmp_path):
         pd.DataFrame({"method": ["x", "y"], "train (min)": [1.0, 1.0], "eval (min)": [0.1, 0.1],
                       "runs": cells.split("\n")}).to_csv(tmp_path / name / "table.csv", index=False)
     a, minutes_a = table_summary(tmp_path / "a", store, (archive,))
-    b, minutes_b = table_summary(tmp_path / "b", store, (archive,))
+    with caplog.at_level("WARNING", logger="bench"):
+        b, minutes_b = table_summary(tmp_path / "b", store, (archive,))
+    assert "b: 1 of its runs are in neither the run store nor the archive" in caplog.text
     assert a["compute (min)"] == pytest.approx((600 + 1200 + 60 + 120 + 6 + 12 + 30) / 60) and a["trainings"] == 4
     assert b["compute (min)"] == pytest.approx((600 + 18) / 60) and b["trainings"] == 1
     assert a["runs not found"] == 0 and b["runs not found"] == 1                # e_missing: reported, not 0 min

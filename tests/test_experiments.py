@@ -11,9 +11,11 @@ import torch
 from hydra import compose, initialize_config_dir
 from omegaconf import OmegaConf
 
+from bench import runs
 from bench.cli import CONF_DIR, run_experiment
 from bench.errors import UserError
-from bench.experiments.table import compute_shard, expand_rows, paper_agreement, reference_check, shard_units
+from bench.experiments.table import (compute_shard, expand_rows, paper_agreement, reference_check, shard_units,
+                                    unit_lock)
 from bench.models.srd import SRDNet, SRDStage, load_stage
 from bench.paper import paper_values
 from conftest import smoke_context, smoke_overrides
@@ -121,7 +123,6 @@ def test_weights_the_archive_left_out_are_trained_again_only_where_they_are_run(
     """Weights over the archive's file limit stay out of git (a big model's). A fresh store restores the
     table from the archived evaluations; crops.png trains again the first seed's runs only, an evaluation
     the archive lacks its run's, and the archive keeps the records its evaluations scored."""
-    from bench import runs
     overrides, _ = dirs
     mine = [o for o in overrides if not o.startswith(("runs_dir=", "results_dir="))]
     mine += [f"results_dir={tmp_path / 'results'}", f"runs_archive={tmp_path / 'archive'}", "seeds=[0,1]",
@@ -226,6 +227,18 @@ def test_a_shard_that_runs_out_of_units_takes_those_no_other_process_holds(tmp_p
     assert inner == [("cheap", 0), ("cheap", 2), ("dear", 1), ("dear", 0), ("dear", 2)]
     assert (0, "cheap", 1) not in calls
     assert outer == [("cheap", 1), ("dear", 0), ("dear", 2), ("cheap", 0), ("cheap", 2), ("dear", 1)]
+    # a unit held when the shard reaches it and freed before the end (its holder died) is tried again
+    held, order = runs.try_acquire(unit_lock(tmp_path, "u", rows[0], 2)), []
+
+    def release_at_dear_0(r, seed):
+        order.append((r["label"], seed))
+        if (r["label"], seed) == ("dear", 0):
+            held.close()
+    assert len(compute_shard(rows, [0, 1, 2], 0, 2, tmp_path, "u", release_at_dear_0)) == 6
+    assert order == [("cheap", 0), ("dear", 1), ("cheap", 1), ("dear", 0), ("dear", 2), ("cheap", 2)]
+    # force: each shard its own units only
+    own = compute_shard(rows, [0, 1, 2], 1, 2, tmp_path, "v", lambda r, seed: None, take_others=False)
+    assert [(r["label"], seed) for r, seed in own] == [("cheap", 1), ("dear", 0), ("dear", 2)]
     # a unit of another table (another key) held meanwhile does not hold this table's same unit
     meanwhile = []
     compute_shard(rows, [0], 0, 1, tmp_path, "another table", lambda r, seed: meanwhile.append(shard(0)))

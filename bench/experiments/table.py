@@ -92,27 +92,41 @@ def shard_units(rows: list[dict], seeds: list, index: int, count: int) -> list[t
     return [(r, seed) for r in rows for seed in seeds][index::count]
 
 
+def unit_lock(lock_dir: Path, key: str, r: dict, seed) -> Path:
+    """The lock file of one (row, seed) unit of the table and configuration `key`."""
+    name = hashlib.sha256(json.dumps([key, r, seed], sort_keys=True, default=str).encode()).hexdigest()[:16]
+    return Path(lock_dir) / f"{name}.lock"
+
+
 def compute_shard(rows: list[dict], seeds: list, index: int, count: int, lock_dir: Path, key: str,
-                  compute) -> list[tuple[dict, int]]:
-    """Shard `index` of `count` works through every (row, seed) unit, its own (`shard_units`) first and
-    then the other shards' in turn, calling `compute(row, seed)` on each unit no other process holds
-    (a lock per unit under `lock_dir`, named from `key`, the row and the seed). A shard that runs out of
-    its own units so takes those a slower shard has not started: shards of unequal cost (3 seeds of
-    rows that alternate cheap and dear over 2 shards) finish together. `compute` reuses what is
-    recorded, so a unit that another process finished costs only its lookup. Returns the units it ran."""
+                  compute, take_others: bool = True) -> list[tuple[dict, int]]:
+    """Shard `index` of `count` calls `compute(row, seed)` on its own (row, seed) units (`shard_units`)
+    and then, with `take_others`, on the other shards' in turn, skipping any unit another process is
+    computing (a lock per unit under `lock_dir`, named from `key`, the row and the seed). A shard that
+    runs out of its own units so takes those a slower shard has not reached, and shards of unequal
+    cost (3 seeds of rows that alternate cheap and dear, over 2 shards) finish together. `compute`
+    reuses what is recorded, so a unit another process finished costs only its lookup. The skipped
+    units are tried once more at the end (a holder may have died); one still held is left to its
+    holder, and to the run without shard=, which computes whatever is missing, so a shard never idles
+    on a cluster allocation. Returns the units it ran."""
     own = shard_units(rows, seeds, index, count)
     others = [u for i in range(1, count) for u in shard_units(rows, seeds, (index + i) % count, count)]
-    done = []
-    for r, seed in own + others:
-        name = hashlib.sha256(json.dumps([key, r, seed], sort_keys=True, default=str).encode()).hexdigest()[:16]
-        handle = runs.try_acquire(Path(lock_dir) / f"{name}.lock")
+
+    def attempt(r, seed) -> bool:
+        handle = runs.try_acquire(unit_lock(lock_dir, key, r, seed))
         if handle is None:
-            log.info("shard %d/%d: %s seed %s is another process's; next", index, count, r["label"], seed)
-            continue
+            return False
         with contextlib.closing(handle):
             compute(r, seed)
-        done.append((r, seed))
-    return done
+        return True
+
+    units = own + (others if take_others else [])
+    skipped = [u for u in units if not attempt(*u)]
+    left = [u for u in skipped if not attempt(*u)]
+    if left:
+        log.info("shard %d/%d: left to the processes computing them: %s", index, count,
+                 ", ".join(f"{r['label']} seed {seed}" for r, seed in left))
+    return [u for u in units if u not in left]
 
 
 def passes_for(rows: list[dict], default_task: str) -> set[str]:
@@ -223,9 +237,12 @@ def run(ctx: Context, name: str, rows: list[dict], caption: str = "", task: str 
         ensure_data(frames, set())
     if ctx.shard:  # compute this shard's runs only; a run without a shard assembles the table from them
         index, count = ctx.shard
+        # a unit's lock is this table under this whole configuration, whichever process runs it
+        key = f"{name} {dataclasses.replace(ctx, shard=None, progress=False, workers=0)!r}"
         units = compute_shard(
-            rows, ctx.seeds, index, count, ctx.runs_dir / "units", f"{name} {ctx.data_dir} {ctx.train}",
-            lambda r, seed: row(dataclasses.replace(ctx, seeds=[seed]), r["label"], r["model"], r.get("overrides"),
+            rows, ctx.seeds, index, count, ctx.runs_dir / "units", key,
+            take_others=not ctx.force,  # force recomputes: each shard its own units, once
+            compute=lambda r, seed: row(dataclasses.replace(ctx, seeds=[seed]), r["label"], r["model"], r.get("overrides"),
                                 r["task"], r.get("split", split), r.get("train"), r.get("cascade", False)))
         log.info("%s: shard %d/%d computed or found %d of %d (row, seed) runs, the others were other "
                  "processes'; run without shard= to write the table", name, index, count, len(units),
