@@ -244,8 +244,8 @@ def run(ctx: Context, name: str, rows: list[dict], caption: str = "", task: str 
             take_others=not ctx.force,  # force recomputes: each shard its own units, once
             compute=lambda r, seed: row(dataclasses.replace(ctx, seeds=[seed]), r["label"], r["model"], r.get("overrides"),
                                 r["task"], r.get("split", split), r.get("train"), r.get("cascade", False)))
-        log.info("%s: shard %d/%d computed or found %d of %d (row, seed) runs, the others were other "
-                 "processes'; run without shard= to write the table", name, index, count, len(units),
+        log.info("%s: shard %d/%d computed or found %d of %d (row, seed) runs (the rest: left to other "
+                 "processes); run without shard= to write the table", name, index, count, len(units),
                  len(rows) * len(ctx.seeds))
         return pd.DataFrame()
     table = pd.DataFrame([row(ctx, r["label"], r["model"], r.get("overrides"), r["task"],
