@@ -426,12 +426,12 @@ def acquire(path: Path, what: str):
     key = str(path.resolve())
     if key in _HELD and not _HELD[key].closed:
         _HELD[key].close()
-    handle = _HELD[key] = open(path, "a")
-    try:
-        fcntl.flock(handle, fcntl.LOCK_EX | fcntl.LOCK_NB)
-    except BlockingIOError:
+    handle = try_acquire(path)
+    if handle is None:
         print(f"[runs] waiting for another process {what}", flush=True)
+        handle = open(path, "a")
         fcntl.flock(handle, fcntl.LOCK_EX)
+    _HELD[key] = handle
     return handle
 
 
@@ -498,11 +498,10 @@ def computing(run_dir: Path) -> bool:
     lock = run_dir.parent / f".{run_dir.name}.lock"
     if not lock.exists():
         return False
-    with open(lock, "a") as handle:  # flock conflicts with any other open file, this process's too
-        try:
-            fcntl.flock(handle, fcntl.LOCK_EX | fcntl.LOCK_NB)
-        except BlockingIOError:
-            return True
+    handle = try_acquire(lock)  # flock conflicts with any other open file, this process's too
+    if handle is None:
+        return True
+    handle.close()
     return False
 
 

@@ -591,8 +591,11 @@ def recorded_minutes(eval_hashes, runs_dir: str | Path, archives=()) -> dict[str
     minutes = {}
     for h in eval_hashes:
         path = runs.record_path("eval", h, runs_dir, archives)
-        record = runs.read_record(path) if path is not None else {}
-        minutes[f"eval/{h}"] = None if path is None else (record.get("wall_time_s") or 0.0) / 60
+        if path is None:
+            minutes[f"eval/{h}"] = None
+            continue
+        record = runs.read_record(path)
+        minutes[f"eval/{h}"] = (record.get("wall_time_s") or 0.0) / 60
         for t in filter(None, (record.get("metrics", {}).get("train_run") or "").split("+")):
             seconds = runs.recorded_wall_s("train", t, runs_dir, archives)
             minutes[f"train/{t}"] = None if seconds is None else seconds / 60
