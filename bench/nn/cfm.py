@@ -14,7 +14,7 @@ import torch
 import torch.nn as nn
 import torch.nn.functional as F
 
-from . import native
+from . import fused, native
 from .native import CFM_CHANNELS, DTYPE_CODES, kernels_available
 
 
@@ -36,6 +36,8 @@ class CFM(nn.Module):
 
     def forward(self, x, cond, relu=False):
         """CFM(x, cond), then ReLU when relu (every CFM here but a ResBlock's second one is followed by ReLU)."""
+        if fused.applies(x, max(x.shape[1], cond.shape[1])):
+            return _triton_cfm(x, cond, self.gamma, self.beta, relu)
         if _fused_kernel_applies(x, cond, self.gamma.weight):
             return _fused_cfm(x, cond, self.gamma, self.beta, relu)
         # gamma and beta as ONE conv and the affine as x + beta + x * gamma (two passes over x, not four):
@@ -70,6 +72,16 @@ def _fused_cfm(x, cond, gamma, beta, relu):
     out = torch.empty_like(x, memory_format=torch.channels_last)
     native.cfm_affine(x, cond, weight, bias, relu, out)
     return out
+
+
+def _triton_cfm(x, cond, gamma, beta, relu):
+    """The whole CFM (and ReLU) as one Triton kernel (bench.nn.triton_kernels.cfm_fused), training too."""
+    dtype = fused.compute_dtype(x)
+    weight = torch.cat((gamma.weight, beta.weight)).to(dtype)
+    bias = torch.cat((gamma.bias, beta.bias)).to(dtype)
+    with torch.autocast(x.device.type, enabled=False):
+        out = fused.kernels().cfm_fused(x.to(dtype), cond.to(dtype), weight, bias, relu)
+    return fused.same_layout(out, x)
 
 
 class ConditionNet(nn.Module):

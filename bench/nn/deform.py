@@ -56,7 +56,7 @@ import torch
 import torch.nn as nn
 import torch.nn.functional as F
 
-from . import native
+from . import fused, native
 from .native import DTYPE_CODES, kernels_available
 
 
@@ -234,6 +234,15 @@ def grid_sample_training():
         _use_training_kernel = previous
 
 
+def _deform_fused(x, offset, weight, bias, mask, padding, dilation):
+    """The fused Triton kernels (bench.nn.triton_kernels); offsets and mask are read in float32."""
+    dtype = fused.compute_dtype(x)
+    with torch.autocast(x.device.type, enabled=False):
+        out = fused.kernels().deform_conv_fused(x.to(dtype), offset, mask, weight.to(dtype),
+                                                None if bias is None else bias.to(dtype), padding, dilation)
+    return fused.same_layout(out, x)
+
+
 @contextlib.contextmanager
 def eager_gather():
     """Inference takes the eager gather sampler even where the compiled one applies (to compare them)."""
@@ -253,8 +262,10 @@ def _columns_kernel_applies(*tensors):
             and kernels_available())
 
 
-def inference_sampler(x) -> str:
-    """The sampler deform_conv2d takes without autograd for input x: "columns" or "gather"."""
+def inference_sampler(x, weight=None) -> str:
+    """The sampler deform_conv2d takes for input x (without autograd): "fused", "columns" or "gather"."""
+    if fused.applies(x, weight.shape[0] if weight is not None else 1):
+        return "fused"
     return "columns" if _columns_kernel_applies(x) else "gather"
 
 
@@ -359,6 +370,8 @@ def deform_conv2d(x, offset, weight, bias=None, padding=1, dilation=1, mask=None
         raise ValueError(f"offset must be {(b, 2 * taps, out_h, out_w)}, got {tuple(offset.shape)}")
     if 0 in (b, in_h, in_w, out_h, out_w):  # no pixels: what nn.Conv2d does (empty output or its error)
         return F.conv2d(x, weight, bias, padding=padding, dilation=dilation)
+    if fused.applies(x, out_ch):
+        return _deform_fused(x, offset, weight, bias, mask, padding, dilation)
     needs_grad = torch.is_grad_enabled() and any(
         t is not None and t.requires_grad for t in (x, offset, weight, bias, mask))
     if needs_grad and not x.is_meta and _use_training_kernel and _columns_training_applies(x, offset, weight, bias, mask):

@@ -1,0 +1,58 @@
+"""Which calls take the fused Triton kernels (bench.nn.triton_kernels): the deformable conv and CFM.
+
+On CUDA they are taken only where SRD_BENCH_FUSED_GPU=1, until tests/test_cuda.py has passed with them
+on a GPU (scripts/gpu_job.sh runs it); `forced()` makes every call on any device take them (CPU tensors
+need Triton's interpreter, TRITON_INTERPRET=1: the tests) or none. Triton ships with CUDA builds of
+torch; the CPU wheel has none, and then nothing here applies.
+"""
+import contextlib
+import importlib
+import os
+
+import torch
+
+_on_cuda = os.environ.get("SRD_BENCH_FUSED_GPU", "0") == "1"
+_forced = None  # True or False inside forced()
+
+
+@contextlib.contextmanager
+def forced(enabled: bool = True):
+    """Inside, every deformable conv and CFM call takes the fused kernels (enabled), or none does."""
+    global _forced
+    previous, _forced = _forced, enabled
+    try:
+        yield
+    finally:
+        _forced = previous
+
+
+def kernels():
+    """bench.nn.triton_kernels, or None where Triton is not installed."""
+    try:
+        return importlib.import_module("bench.nn.triton_kernels")
+    except ImportError:
+        return None
+
+
+MAX_CHANNELS = 128  # the kernels keep a pixel's output (or CFM's conditioning) channels in registers
+
+
+def applies(x: torch.Tensor, channels: int) -> bool:
+    """The fused kernels take a call on x: asked for (forced(), or CUDA with SRD_BENCH_FUSED_GPU=1),
+    float32/bfloat16, at most MAX_CHANNELS `channels` (the call's widest), Triton installed."""
+    wanted = _forced if _forced is not None else (_on_cuda and x.is_cuda)
+    return (wanted and not x.is_meta and x.dtype in (torch.float32, torch.bfloat16)
+            and channels <= MAX_CHANNELS and kernels() is not None)
+
+
+def compute_dtype(x: torch.Tensor) -> torch.dtype:
+    """The dtype a fused call computes in: autocast's where it is on (autocast does not see custom
+    ops, so the caller casts), else x's."""
+    device = x.device.type
+    return torch.get_autocast_dtype(device) if torch.is_autocast_enabled(device) else x.dtype
+
+
+def same_layout(out: torch.Tensor, x: torch.Tensor) -> torch.Tensor:
+    """The kernels' channels-last output, kept so where x is channels-last, made contiguous elsewhere."""
+    channels_last = not x.is_contiguous() and x.is_contiguous(memory_format=torch.channels_last)
+    return out if channels_last else out.contiguous()

@@ -1,0 +1,184 @@
+"""The fused Triton kernels (bench/nn/triton_kernels.py): the deformable conv, forward and every
+gradient, and CFM, against float64 references.
+
+Without a GPU they run in Triton's interpreter (conftest sets TRITON_INTERPRET=1), in float32 only: the
+interpreter's bf16 dot is wrong, and it runs one program at a time, so the input gradient's atomic
+scatter cannot race here. bf16 and repeatability are checked on a GPU (tests/test_cuda.py).
+Tolerances, relative to the reference's largest magnitude: forward and gradients 1e-5 against float64
+(float32 sums of up to K*C terms; measured 1e-7 to 1e-6); finite differences 2e-3 (central differences
+of float32 outputs, step 1e-3).
+"""
+import pytest
+import torch
+import torch.nn.functional as F
+
+from bench.nn import CFM, DeformConv2d, deform_conv2d, fused, inference_sampler
+from bench.nn.triton_kernels import cfm_fused, deform_conv_fused
+from test_layers import brute_force_deform
+
+pytestmark = pytest.mark.skipif(torch.cuda.is_available(), reason="on a GPU tests/test_cuda.py compiles the kernels")
+
+# (batch, channels, height, width, out channels, kernel, padding, dilation): odd sizes, a batch of
+# several frames, more channels than one block (70 > 64) and more outputs than one forward block (72)
+SHAPES = [(3, 5, 7, 9, 6, 3, 1, 1), (2, 16, 13, 11, 16, 3, 2, 2), (1, 70, 5, 6, 72, 3, 1, 1), (2, 4, 6, 5, 3, 1, 0, 1)]
+
+
+def _inputs(shape, seed=0, offset_scale=3.0):
+    b, c, h, w, o, k, pad, dil = shape
+    gen = torch.Generator().manual_seed(seed)
+    out_h, out_w = h + 2 * pad - dil * (k - 1), w + 2 * pad - dil * (k - 1)
+    return dict(x=torch.randn(b, c, h, w, generator=gen),
+                offset=offset_scale * torch.randn(b, 2 * k * k, out_h, out_w, generator=gen),
+                weight=torch.randn(o, c, k, k, generator=gen), bias=torch.randn(o, generator=gen),
+                mask=torch.rand(b, k * k, out_h, out_w, generator=gen))
+
+
+def _relative(got, want):
+    return ((got.double() - want).abs().max() / want.abs().max().clamp_min(1e-30)).item()
+
+
+def _gradients(fn, tensors, grad_out):
+    """fn(**tensors)'s output and the gradient of <output, grad_out> for every tensor."""
+    leaves = {k: v.clone().requires_grad_() for k, v in tensors.items()}
+    out = fn(**leaves)
+    out.backward(grad_out.to(out.dtype))
+    return out.detach(), {k: v.grad for k, v in leaves.items()}
+
+
+@pytest.mark.parametrize("modulated", [False, True])
+@pytest.mark.parametrize("shape", SHAPES, ids=lambda s: "x".join(map(str, s)))
+def test_fused_deform_matches_the_float64_reference(shape, modulated):
+    """Forward against the per-pixel numpy reference; every gradient (input, offsets, mask, weight,
+    bias) against autograd of the float64 sampler (itself checked against that reference and by
+    gradcheck in tests/test_layers.py)."""
+    pad, dil = shape[-2:]
+    t = _inputs(shape)
+    if not modulated:
+        t.pop("mask")
+    mask = t.get("mask")
+    out = deform_conv_fused(t["x"], t["offset"], mask, t["weight"], t["bias"], pad, dil)
+    assert out.dtype == torch.float32 and out.is_contiguous(memory_format=torch.channels_last)
+    ref = brute_force_deform(*(t[k].double() for k in ("x", "offset", "weight", "bias")), pad, dil,
+                             None if mask is None else mask.double())
+    assert _relative(out, ref) < 1e-5
+
+    grad_out = torch.randn(ref.shape, generator=torch.Generator().manual_seed(1), dtype=torch.float64)
+    _, grads = _gradients(lambda **a: deform_conv_fused(a["x"], a["offset"], a.get("mask"), a["weight"], a["bias"],
+                                                        pad, dil), t, grad_out)
+    _, ref_grads = _gradients(lambda **a: deform_conv2d(a["x"], a["offset"], a["weight"], a["bias"], pad, dil,
+                                                        a.get("mask")),
+                              {k: v.double() for k, v in t.items()}, grad_out)
+    for name, want in ref_grads.items():
+        assert _relative(grads[name], want) < 1e-5, name
+
+
+def test_fused_deform_gradients_match_finite_differences():
+    """<grad, v> against (f(t + h v) - f(t - h v)) / 2h for a random direction v of each input, with the
+    samples away from pixel boundaries (bilinear sampling is only piecewise smooth)."""
+    shape = (2, 6, 7, 8, 5, 3, 1, 1)
+    t = _inputs(shape, seed=3)
+    offset = t["offset"].round() + 0.2 + 0.6 * torch.rand(t["offset"].shape, generator=torch.Generator().manual_seed(4))
+    t["offset"] = offset
+    grad_out = torch.randn(2, 5, 7, 8, generator=torch.Generator().manual_seed(5))
+
+    def f(**a):
+        return deform_conv_fused(a["x"], a["offset"], a["mask"], a["weight"], a["bias"], 1, 1)
+
+    _, grads = _gradients(f, t, grad_out)
+    h = 1e-3
+    for name, value in t.items():
+        v = torch.randn(value.shape, generator=torch.Generator().manual_seed(6))
+        plus, minus = f(**{**t, name: value + h * v}), f(**{**t, name: value - h * v})
+        numeric = ((plus - minus) * grad_out).sum().item() / (2 * h)
+        analytic = (grads[name] * v).sum().item()
+        assert abs(numeric - analytic) <= 2e-3 * max(abs(analytic), 1.0), (name, numeric, analytic)
+
+
+def test_fused_deform_extreme_and_infinite_offsets_read_zero_with_zero_offset_gradient():
+    shape = (2, 4, 5, 6, 3, 3, 1, 1)
+    t = _inputs(shape, seed=7)
+    far = t["offset"].clone()
+    far[0, 0::2, 1:3] = float("inf")     # some pixels' taps off every edge: +-inf, +-1e30, +-1e4
+    far[0, 1::2, 3:] = -float("inf")
+    far[1, :, :2] = 1e30                 # (rows of batch 1)
+    far[1, :, 2:4] = -1e4
+    out, grads = _gradients(lambda **a: deform_conv_fused(a["x"], a["offset"], a["mask"], a["weight"], a["bias"], 1, 1),
+                            {**t, "offset": far}, torch.ones(2, 3, 5, 6))
+    assert torch.isfinite(out).all()
+    ref = brute_force_deform(t["x"].double(), far.double().clamp(-1e6, 1e6), t["weight"].double(),
+                             t["bias"].double(), 1, 1, t["mask"].double())
+    assert _relative(out, ref) < 1e-5
+    # a sample outside [-1, H] x [-1, W] is constant zero: no gradient reaches its offset
+    assert (grads["offset"][0, 0::2, 1:3] == 0).all() and (grads["offset"][0, 1::2, 3:] == 0).all()
+    assert (grads["offset"][1, :, :4] == 0).all()
+    assert torch.isfinite(grads["x"]).all() and torch.isfinite(grads["weight"]).all()
+    # every tap of batch 1's first four rows reads zero: those outputs are the bias alone
+    torch.testing.assert_close(out[1, :, :4], t["bias"].view(3, 1, 1).expand(3, 4, 6))
+
+
+def test_fused_deform_propagates_a_nan_offset_to_its_pixel_only():
+    t = _inputs((1, 3, 5, 5, 2, 3, 1, 1), seed=8)
+    t["offset"][0, 4, 2, 3] = float("nan")
+    out = deform_conv_fused(t["x"], t["offset"], None, t["weight"], t["bias"], 1, 1)
+    assert torch.isnan(out[0, :, 2, 3]).all()
+    out[0, :, 2, 3] = 0
+    assert torch.isfinite(out).all()
+
+
+def test_deform_conv2d_and_the_layer_take_the_fused_kernels_when_asked():
+    """deform_conv2d under fused.forced() takes the kernels (the sampler says so) and keeps its
+    contract: NCHW in, NCHW out; channels-last in, channels-last out; zero offsets = conv2d."""
+    torch.manual_seed(0)
+    layer = DeformConv2d(6, 5, modulated=True)
+    torch.nn.init.normal_(layer.offset_conv.weight, std=0.5)
+    x = torch.randn(2, 6, 9, 7)
+    default = layer(x)
+    with fused.forced():
+        assert inference_sampler(x, layer.weight) == "fused"
+        out = layer(x)
+        out_cl = layer(x.contiguous(memory_format=torch.channels_last))
+        zero = deform_conv2d(x, torch.zeros(2, 18, 9, 7), layer.weight, layer.bias)
+    assert out.is_contiguous() and out_cl.is_contiguous(memory_format=torch.channels_last)
+    torch.testing.assert_close(out, default, rtol=1e-5, atol=1e-5)
+    torch.testing.assert_close(out_cl, default, rtol=1e-5, atol=1e-5)
+    torch.testing.assert_close(zero, F.conv2d(x, layer.weight, layer.bias, padding=1), rtol=1e-5, atol=1e-5)
+    with fused.forced(False):
+        assert inference_sampler(x, layer.weight) != "fused"
+
+
+def test_the_fused_ops_pass_torch_library_opcheck():
+    """Schema, fake (meta) kernels, autograd registration and torch.compile's view of each op."""
+    t = _inputs((1, 3, 4, 5, 2, 3, 1, 1), seed=9)
+    for mask in (None, t["mask"]):
+        args = (t["x"].requires_grad_(), t["offset"].requires_grad_(), mask, t["weight"].requires_grad_(),
+                t["bias"], 1, 1)
+        torch.library.opcheck(deform_conv_fused, args, test_utils=("test_schema", "test_faketensor",
+                                                                   "test_autograd_registration"))
+    x, cond = torch.randn(1, 4, 3, 5), torch.randn(1, 3, 3, 5)
+    torch.library.opcheck(cfm_fused, (x, cond, torch.randn(8, 3, 1, 1), torch.randn(8), True),
+                          test_utils=("test_schema", "test_faketensor", "test_autograd_registration"))
+
+
+@pytest.mark.parametrize("relu", [False, True])
+@pytest.mark.parametrize("channels,cond_channels", [(16, 16), (5, 7), (32, 70)])
+def test_fused_cfm_matches_the_module_forward_and_gradients(channels, cond_channels, relu):
+    """CFM under fused.forced() against the eager module in float64, forward and every gradient."""
+    torch.manual_seed(1)
+    module = CFM(channels, cond_channels)
+    for p in module.parameters():
+        torch.nn.init.normal_(p, std=0.3)
+    x, cond = torch.randn(2, channels, 5, 7), torch.randn(2, cond_channels, 5, 7)
+    grad_out = torch.randn(2, channels, 5, 7, dtype=torch.float64)
+
+    def run(m, dtype, force):
+        xs, cs = x.to(dtype).requires_grad_(), cond.to(dtype).requires_grad_()
+        with fused.forced(force):
+            out = m.to(dtype)(xs, cs, relu=relu)
+        m.zero_grad()
+        out.backward(grad_out.to(dtype))
+        return [out.detach(), xs.grad, cs.grad] + [p.grad.clone() for p in m.parameters()]
+
+    want = run(module, torch.float64, False)
+    got = run(module, torch.float32, True)
+    for name, g, w in zip(["out", "x", "cond", "gamma.w", "gamma.b", "beta.w", "beta.b"], got, want):
+        assert _relative(g, w) < 1e-5, name
