@@ -1,18 +1,21 @@
 """The GPU path (device=cuda): every learned model, the deformable conv, the fast paths and the trainer
 give on a CUDA GPU what they give on the CPU. CI has no GPU, so this file skips there; on a machine with
-one, `pytest tests/test_cuda.py` runs it (12 s on an H200).
+one, `pytest tests/test_cuda.py` runs it (12 s on an H200 before the fused kernels' tests).
 
 CUDA runs other code than the CPU: the deformable conv samples with grid_sample in training and a gather
-in inference (bench.nn.deform) instead of the compiled column kernels, CFM runs its eager ops, and cuDNN
-picks its own conv algorithms. TF32 is turned off while comparing, so fp32 on both devices agrees to
-float rounding."""
+in inference (bench.nn.deform), or with the fused Triton kernels (bench.nn.triton_kernels, with
+SRD_BENCH_FUSED_GPU=1 or fused.forced()), instead of the compiled column kernels; CFM runs its eager ops
+or the fused kernel; cuDNN picks its own conv algorithms. TF32 is turned off while comparing, so fp32
+on both devices agrees to float rounding. The tests that take a `fused` parameter run both samplers; the
+fused kernels' bf16 path and the race-freedom of their input-gradient scatter are checked only here
+(Triton's interpreter, which runs tests/test_fused_gpu.py in CI, cannot)."""
 import pytest
 import torch
 import torch.nn.functional as F
 
 from bench.infer import max_abs_diff, prepare
 from bench.models import SRDNet
-from bench.nn import DeformConv2d
+from bench.nn import CFM, DeformConv2d, deform_conv2d, fused
 from bench.tasks import get_task
 from bench.train import load_weights, train
 from conftest import SMALL, inputs
@@ -23,6 +26,14 @@ pytestmark = pytest.mark.skipif(not torch.cuda.is_available(),
 
 MODELS = {**SMALL, "srd": (SRDNet, dict(channels=8)),
           "srd_cascade_concat": (SRDNet, dict(channels=8, stage_order="dn_sr", gbuffer_mode="concat"))}
+
+
+@pytest.fixture(params=[False, True], ids=["pytorch_ops", "fused"])
+def sampler(request):
+    """Each test that takes it runs with the PyTorch-op samplers and with the fused Triton kernels on
+    CUDA (the CPU side of a comparison keeps its own kernels)."""
+    with fused.on_cuda(request.param):
+        yield request.param
 
 
 @pytest.fixture(autouse=True)
@@ -53,7 +64,7 @@ def _close(cuda, cpu, rtol=1e-4):
 
 
 @pytest.mark.parametrize("name", sorted(MODELS))
-def test_model_forward_and_gradients_match_cpu(name):
+def test_model_forward_and_gradients_match_cpu(name, sampler):
     model = _perturbed(name)
     x, g = inputs(b=1, t=3)
     target = torch.rand(1, 3, 3, 26, 34, generator=torch.Generator().manual_seed(1))
@@ -75,7 +86,7 @@ def test_model_forward_and_gradients_match_cpu(name):
 
 
 @pytest.mark.parametrize("dilation,modulated", [(1, False), (2, True)])
-def test_deform_conv_matches_cpu_kernels(dilation, modulated):
+def test_deform_conv_matches_cpu_kernels(dilation, modulated, sampler):
     """grid_sample on CUDA against the CPU's compiled columns, forward and every gradient, with offsets
     of several pixels (samples land between pixels and outside the image)."""
     torch.manual_seed(0)
@@ -102,7 +113,7 @@ def test_deform_conv_matches_cpu_kernels(dilation, modulated):
 
 @pytest.mark.parametrize("path", ["inference_mode", "channels_last", "bf16"])
 @pytest.mark.parametrize("name", ["srd", "edsr", "rae", "kpcn", "cfm_deform"])
-def test_fast_paths_on_cuda(name, path):
+def test_fast_paths_on_cuda(name, path, sampler):
     """bench.infer's fast paths run on CUDA and stay near the fp32 reference (bf16: its rounding)."""
     model = _perturbed(name).cuda().eval()
     x, g = (t.cuda() for t in inputs(b=1, t=2))
@@ -130,3 +141,91 @@ def test_trainer_on_cuda_matches_cpu_and_resumes(tmp_path):
     assert all(p.device.type == "cpu" for p in on_cpu.parameters())
     x, g = inputs(b=1, t=2, g=7)
     _close(on_cpu(x, g)["final"], cuda_model.cpu()(x, g)["final"].detach())
+
+
+# ---- the fused Triton kernels at sizes and in dtypes the interpreter cannot run ---------------------
+
+def _deform_inputs(b, c, h, w, o, seed=0, offset_scale=2.0, device="cuda"):
+    gen = torch.Generator().manual_seed(seed)
+    t = dict(x=torch.randn(b, c, h, w, generator=gen), offset=offset_scale * torch.randn(b, 18, h, w, generator=gen),
+             weight=torch.randn(o, c, 3, 3, generator=gen) / (3 * c ** 0.5), bias=torch.randn(o, generator=gen),
+             mask=2 * torch.rand(b, 9, h, w, generator=gen))
+    return {k: v.to(device) for k, v in t.items()}
+
+
+def _run_deform(t, dtype=torch.float32, grad_out=None):
+    leaves = {k: v.clone().requires_grad_() for k, v in t.items()}
+    with torch.autocast("cuda", dtype=torch.bfloat16, enabled=dtype == torch.bfloat16):
+        out = deform_conv2d(leaves["x"], leaves["offset"], leaves["weight"], leaves["bias"], 1, 1, leaves["mask"])
+    out.float().backward(grad_out if grad_out is not None else torch.ones_like(out, dtype=torch.float32))
+    return out.detach().float(), {k: v.grad.float() for k, v in leaves.items()}
+
+
+def _relative(got, want):
+    return ((got.double() - want.double()).norm() / want.double().norm()).item()
+
+
+@pytest.mark.parametrize("shape", [(2, 32, 67, 121, 32), (1, 64, 33, 40, 16), (3, 16, 17, 9, 72)])
+def test_fused_deform_matches_the_pytorch_sampler_at_size(shape):
+    """fp32 (TF32 off): the fused forward and every gradient against the grid_sample sampler in float64
+    on the GPU, at sizes with thousands of programs and overlapping scatters."""
+    t = _deform_inputs(*shape)
+    grad_out = torch.randn(shape[0], shape[4], shape[2], shape[3], generator=torch.Generator().manual_seed(1)).cuda()
+    with fused.forced():
+        out, grads = _run_deform(t, grad_out=grad_out)
+    with fused.forced(False):
+        ref, ref_grads = _run_deform({k: v.double() for k, v in t.items()}, torch.float64, grad_out.double())
+    assert _relative(out, ref) < 1e-5
+    for name in grads:
+        assert _relative(grads[name], ref_grads[name]) < 1e-5, name
+
+
+def test_fused_deform_bf16_is_within_bf16_rounding_of_fp32():
+    """bf16 autocast: operands rounded to 8 bits, sums in float32: within 1e-2 (relative L2) of fp32."""
+    t = _deform_inputs(2, 32, 45, 64, 32, seed=2)
+    with fused.forced():
+        ref, ref_grads = _run_deform(t)
+        out, grads = _run_deform(t, torch.bfloat16)
+    assert _relative(out, ref) < 1e-2
+    for name in ("x", "offset", "weight", "mask"):
+        assert _relative(grads[name], ref_grads[name]) < 2e-2, name
+
+
+def test_fused_deform_input_gradient_scatter_is_race_free():
+    """Zero offsets send every input pixel's gradient from 9 taps of 9 programs' pixels, all by atomics;
+    then offsets that pull every sample onto a few pixels: repeated runs agree to float reordering and
+    with the float64 sampler (a lost update would show as a difference of a whole term)."""
+    for offset_scale, pile_up in ((0.0, False), (1.0, True)):
+        t = _deform_inputs(2, 32, 96, 128, 32, seed=3, offset_scale=offset_scale)
+        if pile_up:  # every tap of every pixel samples near (5.5, 7.5) of the image
+            ys, xs = torch.meshgrid(torch.arange(96.0), torch.arange(128.0), indexing="ij")
+            tap_y = torch.arange(3.0).repeat_interleave(3) - 1
+            tap_x = torch.arange(3.0).repeat(3) - 1
+            t["offset"][:, 0::2] = (5.5 - ys - tap_y.view(9, 1, 1)).cuda()
+            t["offset"][:, 1::2] = (7.5 - xs - tap_x.view(9, 1, 1)).cuda()
+        with fused.forced():
+            runs = [_run_deform(t)[1]["x"] for _ in range(3)]
+        with fused.forced(False):
+            ref = _run_deform({k: v.double() for k, v in t.items()}, torch.float64)[1]["x"]
+        for grad in runs:
+            assert _relative(grad, ref) < 1e-5
+            assert _relative(grad, runs[0]) < 1e-6
+
+
+@pytest.mark.parametrize("dtype,tolerance", [(torch.float32, 1e-5), (torch.bfloat16, 1e-2)])
+def test_fused_cfm_on_cuda(dtype, tolerance):
+    torch.manual_seed(0)
+    module = CFM(32, 16).cuda()
+    for p in module.parameters():
+        torch.nn.init.normal_(p, std=0.3)
+    x, cond = torch.randn(2, 32, 50, 70, device="cuda"), torch.randn(2, 16, 50, 70, device="cuda")
+    results = {}
+    for force in (False, True):
+        xs, cs = x.clone().requires_grad_(), cond.clone().requires_grad_()
+        with fused.forced(force), torch.autocast("cuda", dtype=torch.bfloat16, enabled=dtype == torch.bfloat16):
+            out = module(xs, cs, relu=True)
+        module.zero_grad()
+        out.float().sum().backward()
+        results[force] = [out.float(), xs.grad, cs.grad] + [p.grad.clone() for p in module.parameters()]
+    for got, want in zip(results[True], results[False]):
+        assert _relative(got, want) < tolerance

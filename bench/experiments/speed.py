@@ -49,7 +49,7 @@ from bench.infer import freed_memory_kept, max_abs_diff, parse_path, prepare, re
 from bench.losses import weighted_loss
 from bench.measure import candidate_paths, choose_fast_path, cpu_flags, cpu_isa, time_call
 from bench.macs import count_macs, on_meta
-from bench.nn import DeformConv2d, eager_gather, grid_sample_training, inference_sampler
+from bench.nn import DeformConv2d, eager_gather, fused, grid_sample_training, inference_sampler, training_sampler
 from bench.table_writer import write_table
 
 log = logging.getLogger("bench")
@@ -270,13 +270,23 @@ def note_auto_choice(rows: list[dict], model, x, g, device, repeats) -> str | No
 
 
 def training_rows(label: str, model, train: dict, loss_weights: dict, lr: float, device, repeats, warmup) -> list[dict]:
-    """The training step with the deformable convs' default training sampler (compiled on CPU) and,
-    for models that have deformable convs, with the grid_sample sampler it replaced."""
+    """The training step with the deformable convs' default training sampler (compiled on CPU; on CUDA
+    the fused kernels where SRD_BENCH_FUSED_GPU=1) and, for models that have deformable convs, with
+    the grid_sample sampler and, on CUDA, the fused Triton kernels (deformable conv and CFM)."""
     rows = [training_row(label, model, train, loss_weights, lr, device, repeats, warmup)]
-    if any(isinstance(m, DeformConv2d) for m in model.modules()):
-        with grid_sample_training():
+    deform = next((m for m in model.modules() if isinstance(m, DeformConv2d)), None)
+    if deform is None:
+        return rows
+    probe = torch.empty(1, device=device)
+    default = training_sampler(probe, deform.weight)
+    if default != "grid_sample":
+        with grid_sample_training(), fused.forced(False):
             rows.append(training_row(label, model, train, loss_weights, lr, device, repeats, warmup,
                                      path="fp32, grid_sample sampler"))
+    if default != "fused" and probe.is_cuda and fused.kernels() is not None:
+        with fused.on_cuda():
+            rows.append(training_row(label, model, train, loss_weights, lr, device, repeats, warmup,
+                                     path="fp32, fused sampler"))
     return rows
 
 
@@ -356,7 +366,7 @@ def deform_rows(channels: int, sizes, device, repeats, warmup) -> list[dict]:
         x = torch.randn(1, channels, *hw, generator=torch.Generator().manual_seed(5)).to(device)
         x_cl = x.contiguous(memory_format=torch.channels_last)
         macs = hw[0] * hw[1] * channels * channels * 9
-        sampler = inference_sampler(x)
+        sampler = inference_sampler(x, deform.weight)
 
         def row(method, path, fn, conv_ms=None, mode=torch.no_grad):
             with mode():
@@ -367,18 +377,26 @@ def deform_rows(channels: int, sizes, device, repeats, warmup) -> list[dict]:
                                  "time / plain conv": timing["ms"] / (conv_ms or timing["ms"])}))
             return timing["ms"]
 
+        fused_too = x.is_cuda and sampler != "fused" and fused.kernels() is not None
         for path, inputs, bf16 in (("fp32", x, False), ("channels_last", x_cl, False),
                                    ("channels_last+bf16", x_cl, True)):
             with torch.autocast(torch.device(device).type, dtype=torch.bfloat16, enabled=bf16):
                 conv_ms = row("nn.Conv2d", path, lambda: conv(inputs))
                 row(f"DeformConv2d ({sampler} sampler)", path, lambda: deform(inputs), conv_ms)
+                if fused_too:
+                    with fused.on_cuda():
+                        row("DeformConv2d (fused sampler)", path, lambda: deform(inputs), conv_ms)
                 if sampler != "gather":
-                    with eager_gather():
+                    with eager_gather(), fused.forced(False):
                         row("DeformConv2d (eager gather sampler)", path, lambda: deform(inputs), conv_ms)
                 if path == "fp32":
                     x_grad = inputs.clone().requires_grad_(True)
-                    row("DeformConv2d (grid_sample sampler, autograd on)", path, lambda: deform(x_grad), conv_ms,
-                        torch.enable_grad)
+                    row(f"DeformConv2d ({training_sampler(x_grad, deform.weight)} sampler, autograd on)", path,
+                        lambda: deform(x_grad), conv_ms, torch.enable_grad)
+                    if fused_too:
+                        with fused.on_cuda():
+                            row("DeformConv2d (fused sampler, forward + backward)", path,
+                                lambda: deform(x_grad).sum().backward(), conv_ms, torch.enable_grad)
     return rows
 
 

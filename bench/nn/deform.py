@@ -343,6 +343,14 @@ class _ColumnsTraining(torch.autograd.Function):
         return grad_image.permute(0, 3, 1, 2), grad_offset, grad_mask, grad_weight, grad_bias, None, None
 
 
+def training_sampler(x, weight=None) -> str:
+    """The sampler deform_conv2d takes for input x when autograd needs a gradient: "fused", "columns"
+    or "grid_sample"."""
+    if fused.applies(x, weight.shape[0] if weight is not None else 1):
+        return "fused"
+    return "columns" if _use_training_kernel and _columns_training_applies(x) else "grid_sample"
+
+
 def _columns_training_applies(*tensors):
     """The compiled training sampler applies: float32 CPU tensors (None allowed), no autocast, kernels built."""
     return (_use_columns_kernel and not torch.is_autocast_enabled("cpu")

@@ -26,6 +26,18 @@ def forced(enabled: bool = True):
         _forced = previous
 
 
+@contextlib.contextmanager
+def on_cuda(enabled: bool = True):
+    """Inside, CUDA calls take the fused kernels (enabled) or not, as SRD_BENCH_FUSED_GPU says outside;
+    CPU calls never do."""
+    global _on_cuda
+    previous, _on_cuda = _on_cuda, enabled
+    try:
+        yield
+    finally:
+        _on_cuda = previous
+
+
 def kernels():
     """bench.nn.triton_kernels, or None where Triton is not installed."""
     try:
