@@ -9,7 +9,7 @@ Tap k of output pixel (y, x) reads the input at
     (y - padding + i*dilation + dy_k,  x - padding + j*dilation + dx_k)
 with bilinear interpolation; every bilinear corner outside the image contributes zero.
 
-Implementation: four samplers, by device, dtype and whether autograd needs a gradient; they agree to
+Implementation: five samplers, by device, dtype and whether autograd needs a gradient; they agree to
 float rounding (tests/test_layers.py). None loops over taps or pixels in Python; all work in strips of
 output rows.
   - columns, inference on CPU in float32/bfloat16 (the default there). Per strip of ~8k output pixels, a
@@ -38,6 +38,12 @@ output rows.
     backward is about 2x faster than embedding_bag's (which sorts the indices), and gradients flow to
     input, offsets, mask, weight and bias. Positions are clamped like the other samplers' (huge or
     infinite offsets read zeros, with zero offset gradient).
+  - fused, training and inference on CUDA where SRD_BENCH_FUSED_GPU=1 (bench.nn.fused decides; off by
+    default until tests/test_cuda.py has passed with it on a GPU): one Triton kernel per direction
+    (bench/nn/triton_kernels.py) samples a tile's taps and multiplies them by the weight on the
+    tensor cores without writing columns; its backward recomputes the samples, scatters the input's
+    gradient with atomics and sums the weight's per chunk of tiles. float32 (TF32 where torch allows
+    it) and bfloat16 under autocast. No GPU measurement of it yet.
 Measured forward time / a plain nn.Conv2d of the same shape and layout (32->32, 3x3, 2 threads, glibc
 keeping freed memory, see bench.infer.keep_freed_memory; results/*/speed/<machine>/ and runs of the
 same day). AVX512-BF16 EPYC: columns with channels-last input 2.1-2.8x in fp32 and 2.6-3.0x in bf16
