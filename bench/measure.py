@@ -7,10 +7,13 @@ natively: fp32 and channels_last everywhere, their bf16 variants only where bf16
 or a CPU with AVX512-BF16 or AMX-BF16), never where it is emulated (AVX2 only: several times slower than
 fp32). Which path wins depends on the CPU, the model and its width (on one 2-core AVX2 machine
 channels_last was 1.4x slower than fp32 at cpu widths and 2x faster at the paper's), so it is measured,
-not assumed, and cached per machine, model, input size, threads and torch version in a JSON file.
+not assumed, and cached per machine, model, weights, input size, threads and torch version in a JSON
+file: bf16's error depends on the weights (untrained ones can fail the tolerance that trained ones pass),
+so a choice made with one set of weights is never reused for another.
 """
 from __future__ import annotations
 
+import hashlib
 import json
 import platform
 import re
@@ -87,7 +90,8 @@ def choose_fast_path(model, x: torch.Tensor, g: torch.Tensor | None, device: str
     added here. A model without parameters (bilinear, OIDN) runs its own way: fp32."""
     if not any(True for _ in model.parameters()):
         return REFERENCE, {}
-    key = {**key, "cpu": platform.processor() or platform.machine(), "isa": cpu_isa(), "device": str(device),
+    key = {**key, "weights": weights_digest(model),
+           "cpu": platform.processor() or platform.machine(), "isa": cpu_isa(), "device": str(device),
            "input": list(x.shape), "threads": torch.get_num_threads(), "torch": torch.__version__}
     text = json.dumps(key, sort_keys=True, default=str)
     cached = _read_cache(cache)
@@ -117,6 +121,15 @@ def choose_fast_path(model, x: torch.Tensor, g: torch.Tensor | None, device: str
         Path(cache).parent.mkdir(parents=True, exist_ok=True)
         Path(cache).write_text(json.dumps(cached, indent=1, sort_keys=True))
     return fastest, times
+
+
+def weights_digest(model) -> str:
+    """A short hash of the model's parameters and buffers (names, dtypes, values)."""
+    digest = hashlib.sha256()
+    for name, t in model.state_dict().items():
+        digest.update(f"{name}:{t.dtype}:{tuple(t.shape)}".encode())
+        digest.update(t.detach().cpu().contiguous().view(torch.uint8).numpy().tobytes())
+    return digest.hexdigest()[:16]
 
 
 def _read_cache(cache: str | Path | None) -> dict:

@@ -46,6 +46,10 @@ def test_the_fastest_correct_path_wins_and_a_wrong_one_is_refused(monkeypatch, t
     assert again == "bf16" and calls == []                   # from the cache
     measure.choose_fast_path(model, x, None, "cpu", tmp_path / "cache.json", {"model": "other"})
     assert calls == ["fp32", "channels_last", "bf16"]        # another model is measured
+    with torch.no_grad():
+        model.weight.add_(1.0)                               # the same model with other (say trained) weights
+    measure.choose_fast_path(model, x, None, "cpu", tmp_path / "cache.json", {"model": "m"})
+    assert calls == ["fp32", "channels_last", "bf16"] * 2    # is judged on its own weights
 
 
 def test_a_model_without_parameters_runs_its_own_way():
