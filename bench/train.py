@@ -36,6 +36,7 @@ from tqdm import tqdm
 from bench import distributed
 from bench.errors import UserError
 from bench.hdr import MODES, to_network, transforms
+from bench.infer import frames_channels_last
 from bench.losses import weighted_loss
 from bench.macs import count_params
 from bench.sanitize import sanitize_inputs
@@ -46,6 +47,7 @@ LOG_EVERY_S = 60.0   # without a terminal (logs, clusters) progress is a log lin
 
 log = logging.getLogger("bench")
 SCHEDULES = ("cosine", "halve", "constant", "range")
+PRECISIONS = ("fp32", "bf16")
 
 
 class TrainingInterrupted(UserError):
@@ -108,6 +110,9 @@ class Recipe:
     hdr: str = "log1p"                # network domain (bench.hdr)
     train_sequences: int | None = None   # train on this many sequences of the split, family-balanced (None: all)
     colour_permute: bool = False      # augmentation: a random order of the RGB channels per item (bench.dataset)
+    precision: str = "fp32"           # fp32 | bf16: forward and loss under bfloat16 autocast (weights, Adam and
+                                      # EMA stay float32); for GPUs and AVX512-BF16 CPUs, emulated on AVX2
+    channels_last: bool = False       # the model and every frame in channels-last memory format
     checkpoint_every: int = 100
     checkpoint_every_s: float = 120.0  # also checkpoint when this much wall time passed since the last
     val_every: int = 0                # score the validation subset every this many steps (0: only at the end)
@@ -116,13 +121,15 @@ class Recipe:
     NOT_IDENTITY = ("checkpoint_every", "checkpoint_every_s", "val_every", "val_sequences")
     # options added after runs were recorded: in the identity only when set otherwise than their
     # default, so that the runs recorded before them keep their hashes
-    ADDED_LATER = ("colour_permute",)
+    ADDED_LATER = ("colour_permute", "precision", "channels_last")
 
     def __post_init__(self):
         if self.schedule not in SCHEDULES:
             raise ValueError(f"train.schedule must be one of {SCHEDULES}, got {self.schedule!r}")
         if self.hdr not in MODES:
             raise ValueError(f"train.hdr must be one of {MODES}, got {self.hdr!r}")
+        if self.precision not in PRECISIONS:
+            raise ValueError(f"train.precision must be one of {PRECISIONS}, got {self.precision!r}")
 
     @classmethod
     def from_config(cls, config: dict) -> "Recipe":
@@ -269,6 +276,8 @@ def train(model, dataset, task: Task, out_dir: str | Path, recipe: Recipe, *, fe
         raise UserError(f"train.batch_size={recipe.batch_size} is not divisible by the {ranks} processes")
     writes = rank == 0  # the one process that writes checkpoints and curves
     model.to(device).train()
+    if recipe.channels_last:
+        model.to(memory_format=torch.channels_last)
     ema_model = copy.deepcopy(model).eval().requires_grad_(False) if recipe.ema else None
     optimizer = torch.optim.Adam(model.parameters(), lr=recipe.lr, betas=tuple(recipe.betas))
     state = _resume(ckpt_path, model, ema_model, optimizer, device)
@@ -290,6 +299,7 @@ def train(model, dataset, task: Task, out_dir: str | Path, recipe: Recipe, *, fe
         log.info("train %s: resuming from step %d of %d", type(model).__name__, resumed_from, recipe.steps)
     last_line = last_checkpoint = time.perf_counter()
     first_step, first_s = state.step, state.train_s
+    data_s = 0.0  # of this process's steps: building and moving batches (the share the GPU may wait on)
     with _stop_requests() as stop:  # Ctrl-C or preemption: finish the step, checkpoint, stop
         while state.step < recipe.steps:
             t0 = time.perf_counter()
@@ -300,10 +310,14 @@ def train(model, dataset, task: Task, out_dir: str | Path, recipe: Recipe, *, fe
             indices = [rng.randrange(len(dataset)) for _ in range(recipe.batch_size)]
             items = [dataset.item(indices[slot], step * recipe.batch_size + slot)
                      for slot in range(rank, recipe.batch_size, ranks)]  # this rank's slots of the batch
-            batch = {k: v.to(device) for k, v in collate(items, keys).items()}
+            batch = {k: v.to(device, non_blocking=True) for k, v in collate(items, keys).items()}
+            if recipe.channels_last:
+                batch = {k: frames_channels_last(v) for k, v in batch.items()}
+            data_s += time.perf_counter() - t0
             for group in optimizer.param_groups:
                 group["lr"] = lr_at(step, recipe)
-            loss, parts = batch_loss(net, batch, task, recipe.loss, recipe.hdr, features)
+            with torch.autocast(torch.device(device).type, dtype=torch.bfloat16, enabled=recipe.precision == "bf16"):
+                loss, parts = batch_loss(net, batch, task, recipe.loss, recipe.hdr, features)
             reported = {"loss": loss.detach(), **{k: v.detach() for k, v in parts.items()}}
             stopping = bool(stop)  # decided here, once per step: with several ranks, the same on all
             if ranks > 1:  # the global batch's loss (a mean of equal shares), and a stop asked on any rank
@@ -365,6 +379,10 @@ def train(model, dataset, task: Task, out_dir: str | Path, recipe: Recipe, *, fe
     summary = {"steps": state.step, "resumed_from_step": resumed_from, "final_loss": sum(tail) / len(tail),
                "first_loss": state.curve[0]["loss"] if state.curve else float("nan"),
                "train_time_s": state.train_s, "params": count_params(model)}
+    if state.step > first_step:  # throughput of this process's steps (a resumed run: since it resumed)
+        seconds = state.train_s - first_s
+        summary["samples_per_s"] = (state.step - first_step) * recipe.batch_size / seconds
+        summary["data_share"] = data_s / seconds
     if state.val_curve:
         summary["val"] = {k: v for k, v in state.val_curve[-1].items() if k not in ("step", "train_s", "loss")}
     return summary

@@ -95,6 +95,26 @@ def test_recipe_rejects_unknown_keys_and_values():
         Recipe(steps=1, batch_size=1, seq_len=1, crop=8, loss=WEIGHTS, schedule="step")
 
 
+def test_channels_last_training_is_the_same_training_and_bf16_stays_near_it(tmp_path):
+    """train.channels_last changes the memory format only (the same losses to float reordering);
+    train.precision=bf16 runs forward and loss under bfloat16 autocast, close to fp32 and with float32
+    weights; every run records its throughput and the share of it spent building batches."""
+    data = SyntheticSequences()
+    fp32 = _train(data, tmp_path / "fp32", steps=4)
+    nhwc_model = _model()
+    nhwc = _train(data, tmp_path / "nhwc", steps=4, model=nhwc_model, channels_last=True)
+    assert next(p for p in nhwc_model.parameters() if p.dim() == 4).is_contiguous(memory_format=torch.channels_last)
+    assert nhwc["final_loss"] == pytest.approx(fp32["final_loss"], rel=1e-4)
+    bf16_model = _model()
+    bf16 = _train(data, tmp_path / "bf16", steps=4, model=bf16_model, precision="bf16")
+    assert all(p.dtype == torch.float32 for p in bf16_model.parameters())
+    assert bf16["final_loss"] == pytest.approx(fp32["final_loss"], rel=0.05) and bf16["final_loss"] != fp32["final_loss"]
+    for summary in (fp32, nhwc, bf16):
+        assert summary["samples_per_s"] > 0 and 0 < summary["data_share"] < 1
+    with pytest.raises(ValueError, match="precision"):
+        Recipe(steps=1, batch_size=1, seq_len=1, crop=8, loss=WEIGHTS, precision="fp16")
+
+
 def test_ema_is_the_average_of_the_weights_and_what_the_run_keeps(tmp_path):
     model = _model()
     _train(SyntheticSequences(), tmp_path, steps=8, model=model, ema=0.5)

@@ -45,7 +45,8 @@ import torch.nn as nn
 
 from bench.evaluate import sync
 from bench.experiments.pipeline import build_model
-from bench.infer import freed_memory_kept, max_abs_diff, parse_path, prepare, release_free_memory, tiled_predict
+from bench.infer import (frames_channels_last, freed_memory_kept, max_abs_diff, parse_path, prepare, release_free_memory,
+                         tiled_predict)
 from bench.losses import weighted_loss
 from bench.measure import candidate_paths, choose_fast_path, cpu_flags, cpu_isa, time_call
 from bench.macs import count_macs, on_meta
@@ -283,20 +284,28 @@ def training_rows(label: str, model, train: dict, loss_weights: dict, lr: float,
         with grid_sample_training(), fused.forced(False):
             rows.append(training_row(label, model, train, loss_weights, lr, device, repeats, warmup,
                                      path="fp32, grid_sample sampler"))
-    if default != "fused" and probe.is_cuda and fused.kernels() is not None:
+    if probe.is_cuda and fused.kernels() is not None:
         with fused.on_cuda():
+            if default != "fused":
+                rows.append(training_row(label, model, train, loss_weights, lr, device, repeats, warmup,
+                                         path="fp32, fused sampler"))
+            # the trainer's train.precision=bf16 and train.channels_last=true
             rows.append(training_row(label, model, train, loss_weights, lr, device, repeats, warmup,
-                                     path="fp32, fused sampler"))
+                                     path="bf16+channels_last, fused sampler", bf16=True, channels_last=True))
     return rows
 
 
 def training_row(label: str, model, train: dict, loss_weights: dict, lr: float, device, repeats, warmup,
-                 in_channels: int = 3, out_channels: int = 3, scale: int = 2, path: str = "fp32") -> dict:
+                 in_channels: int = 3, out_channels: int = 3, scale: int = 2, path: str = "fp32",
+                 bf16: bool = False, channels_last: bool = False) -> dict:
     """Time of one optimisation step (forward, loss, backward, Adam) on a random batch of the training
-    crop, fp32. The loss is the trainer's weighted loss without the perceptual term (no VGG here)."""
+    crop, fp32 (or as the trainer's train.precision=bf16 and train.channels_last=true do). The loss is
+    the trainer's weighted loss without the perceptual term (no VGG here)."""
     model = copy.deepcopy(model).train()
     batch, frames, crop = train["batch"], train["frames"], train["crop"]
     x, g = frame_inputs(batch, frames, (crop, crop), device, seed=1, in_channels=in_channels)
+    if channels_last:
+        model, x, g = model.to(memory_format=torch.channels_last), frames_channels_last(x), frames_channels_last(g)
     target = torch.rand(batch, frames, out_channels, scale * crop, scale * crop,
                         generator=torch.Generator().manual_seed(2)).to(device)
     optimizer = torch.optim.Adam(model.parameters(), lr=lr)
@@ -304,10 +313,11 @@ def training_row(label: str, model, train: dict, loss_weights: dict, lr: float, 
 
     def step():
         optimizer.zero_grad(set_to_none=True)
-        out = model(x, g)
-        loss, _ = weighted_loss(out["final"], target, weights["final"])
-        if out.get("intermediate") is not None and any(weights["intermediate"].values()):
-            loss = loss + weighted_loss(out["intermediate"], target, weights["intermediate"])[0]
+        with torch.autocast(torch.device(device).type, dtype=torch.bfloat16, enabled=bf16):
+            out = model(x, g)
+            loss, _ = weighted_loss(out["final"], target, weights["final"])
+            if out.get("intermediate") is not None and any(weights["intermediate"].values()):
+                loss = loss + weighted_loss(out["intermediate"], target, weights["intermediate"])[0]
         loss.backward()
         optimizer.step()
 
