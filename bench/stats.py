@@ -9,8 +9,9 @@ is broadcast against every seed of the other. d is modelled as a two-way random 
 
 so the mean difference has variance  sequence var / Q + seed var / S + residual var / (S Q).  The
 components come from the ANOVA mean squares (truncated at zero), its degrees of freedom from
-Satterthwaite's approximation (capped at the df of the largest mean square), and the interval and p-value from Student's t. With one seed this is the
-paired t-test over sequences; with one sequence, the one-sample t-test over seeds. Pure: numpy and scipy.
+Satterthwaite's approximation (capped at the df of the largest mean square), and the interval and
+p-value from Student's t. With one seed this is the paired t-test over sequences; with one sequence, the
+one-sample t-test over seeds. Pure: numpy and scipy.
 """
 from __future__ import annotations
 
