@@ -285,34 +285,64 @@ def test_claims_give_each_paper_claim_a_verdict_from_the_recorded_tables(dirs):
     assert table["recipe"].str.match(r"\d+ steps").all()   # every claim compares trained rows
 
 
-def test_claim_verdicts_follow_twice_the_standard_error(tmp_path):
-    """Synthetic tables: one seed uses the paired per-sequence SE; several seeds the SE over seeds."""
-    from bench.experiments import claims
+def _claims_fixture(tmp_path):
+    """Synthetic evaluation runs: 3 seeds x 6 sequences of families x, y, z (two frames each), and a
+    table of rows built from them: B a base, A = B + 1 dB, C deterministic (one run listed per seed),
+    X = B - 1 dB on family x and + 0.5 dB elsewhere (within noise, holds without x)."""
+    import numpy as np
     ctx = smoke_context(preset="t", runs_dir=tmp_path / "runs", results_dir=tmp_path / "results", data_dir=tmp_path)
-    per_seq = {"a": [30.0, 31.0, 32.0, 33.0], "b": [29.0, 30.1, 30.9, 32.0], "c": [30.0, 31.2, 31.8, 33.1]}
-    for run, values in per_seq.items():
+    sequences = ["x-1-v0", "x-2-v0", "y-3-v0", "y-4-v0", "z-5-v0", "z-6-v0"]
+    base, rng = np.array([30.0, 35.0, 28.0, 40.0, 33.0, 31.0]), np.random.default_rng(0)
+    shift = {"a": 1.0, "b": 0.0, "x": np.array([-1.0, -0.9, 0.5, 0.52, 0.48, 0.51])}
+    per_run = {f"{row}{s}": base + offset + rng.normal(0, 0.01, 6) for row, offset in shift.items() for s in range(3)}
+    per_run["c"] = base - 0.01
+    for run, values in per_run.items():
         (ctx.runs_dir / "eval" / run).mkdir(parents=True)
-        pd.DataFrame({"sequence": list("wxyz"), "frame": 0, "PSNR": values, "SSIM": 0.5,
-                      "relMSE": 0.1}).to_csv(ctx.runs_dir / "eval" / run / "per_image.csv", index=False)
+        pd.DataFrame({"sequence": sequences * 2, "frame": [0] * 6 + [1] * 6, "PSNR": np.tile(values, 2),
+                      "SSIM": np.tile(values, 2) / 100, "relMSE": 1 / np.tile(values, 2)}).to_csv(
+            ctx.runs_dir / "eval" / run / "per_image.csv", index=False)
+    rows = {"A": "a0 a1 a2", "B": "b0 b1 b2", "C": "c c c", "X": "x0 x1 x2"}
+    table = pd.DataFrame({"method": list(rows), "runs": list(rows.values())})
+    for metric in ("PSNR", "SSIM", "relMSE"):
+        means = [np.mean([pd.read_csv(ctx.runs_dir / "eval" / r / "per_image.csv")[metric].mean()
+                          for r in runs_.split()]) for runs_ in rows.values()]
+        table[metric], table[f"{metric} std"] = means, 0.1
     (ctx.results_dir / "t").mkdir(parents=True)
-    pd.DataFrame({"method": ["A", "B", "C", "S1", "S2"], "runs": ["a", "b", "c", "a b", "b c"],
-                  "PSNR": [31.5, 30.5, 31.525, 31.0, 30.0], "PSNR std": [None, None, None, 0.1, 0.1],
-                  "SSIM": 0.5, "SSIM std": [None, None, None, 0.0, 0.0], "relMSE": 0.1,
-                  "relMSE std": [None, None, None, 0.0, 0.0]}).to_csv(ctx.results_dir / "t" / "table.csv", index=False)
+    table.to_csv(ctx.results_dir / "t" / "table.csv", index=False)
+    return ctx
+
+
+def test_claim_verdicts_pair_seeds_and_sequences_with_holm_and_scene_robustness(tmp_path):
+    from bench.experiments import claims
+    ctx = _claims_fixture(tmp_path)
     claim_list = [
-        {"claim": "A beats B", "better": "t:A", "worse": "t:B"},       # +1.0 +- 0.05 per sequence: holds
-        {"claim": "B beats A", "better": "t:B", "worse": "t:A"},       # reversed
-        {"claim": "A beats C", "better": "t:A", "worse": "t:C"},       # -0.025, SE ~0.1: within noise
-        {"claim": "S1 beats S2", "better": "t:S1", "worse": "t:S2"},   # 1.0 vs 2SE = 0.2 over 2 seeds: holds
-        {"claim": "both", "better": "t:A", "worse": ["t:B", "t:C"]}]   # holds + within noise
+        {"claim": "A beats B", "better": "t:A", "worse": "t:B"},       # +1 dB on every sequence: holds
+        {"claim": "B beats A", "better": "t:B", "worse": "t:A"},       # the same comparison: reversed
+        {"claim": "A beats C", "better": "t:A", "worse": "t:C"},       # against a deterministic row
+        {"claim": "X beats B", "better": "t:X", "worse": "t:B"},       # +0.02 dB, rests on family x
+        {"claim": "both", "better": "t:X", "worse": ["t:B", "t:A"]}]   # within noise + reversed
     elsewhere = {"claim": "in a table not rerun", "better": "t:A", "worse": "other:X"}
     table = claims.run(ctx, "claims", claim_list + [elsewhere], "PSNR", tables=["t"])  # `other` is not read
-    verdicts = table.drop_duplicates("claim").set_index("claim")["verdict"].to_dict()
-    assert verdicts == {"A beats B": "holds", "B beats A": "reversed", "A beats C": "within noise",
-                        "S1 beats S2": "holds", "both": "within noise"}
-    s = table.set_index("claim").loc["S1 beats S2"]
-    assert s["basis"] == "seeds (2, 2)" and s["PSNR 2SE"] == pytest.approx(2 * (0.01 / 2 + 0.01 / 2) ** 0.5)
-    assert table.set_index("claim").loc["A beats B", "basis"] == "4 sequences, 1 seed"
+    by_claim = table.drop_duplicates("claim").set_index("claim")
+    assert by_claim["verdict"].to_dict() == {"A beats B": "holds", "B beats A": "reversed", "A beats C": "holds",
+                                             "X beats B": "within noise", "both": "reversed"}
+    # the earlier test (2SE over seeds from the std columns, 0.16 here) calls X's +0.02 dB within noise too
+    assert by_claim.loc["X beats B", "verdict (2SE)"] == "within noise"
+    assert by_claim.loc["X beats B", "rests on"] == "x -> holds" and by_claim.loc["A beats B", "rests on"] == "-"
+    ab = by_claim.loc["A beats B"]
+    assert ab["PSNR diff"] == pytest.approx(1.0, abs=0.02) and ab["PSNR low"] < 1.0 < ab["PSNR high"]
+    assert ab["PSNR diff"] == pytest.approx(by_claim.loc["B beats A", "PSNR diff"] * -1)
+    assert ab["relMSE diff"] > 0 and ab["SSIM diff"] > 0   # relMSE oriented: worse minus better
+    assert by_claim.loc["A beats C", "basis"] == "seeds 3 vs 1 (deterministic row broadcast), 6 sequences"
+    assert ab["basis"] == "seeds 3 vs 3 (paired by index), 6 sequences"
+    # Holm over the 4 distinct comparisons (A-B twice counts once): p Holm = 4 x p for the smallest
+    distinct = table.drop_duplicates("PSNR p")["PSNR p"].sort_values()
+    assert len(distinct) == 4 and table["PSNR p Holm"].min() == pytest.approx(4 * distinct.iloc[0])
+    written = pd.read_csv(ctx.results_dir / "claims" / "table.csv")   # the CSV keeps the per-family columns
+    assert written.set_index("claim").loc["X beats B", "PSNR diff x"] == pytest.approx(-0.95, abs=0.02)
+    assert "PSNR diff x" not in (ctx.results_dir / "claims" / "table.md").read_text()
+    assert "Holm" in (ctx.results_dir / "claims" / "table.md").read_text().splitlines()[0]
+    assert claims.family_of("dining-1877746876-v0") == "dining" and claims.family_of("my_scene") == "my_scene"
     assert set(table["recipe"]) == {"runs not recorded"}   # these evaluations have no run records
     assert claims.pair_recipe("2000 steps", "untrained") == claims.pair_recipe("untrained", "2000 steps") == "2000 steps"
     assert claims.pair_recipe("2000 steps", "1000 steps") == "2000 steps vs 1000 steps"
@@ -323,8 +353,9 @@ def test_claim_verdicts_follow_twice_the_standard_error(tmp_path):
                {"claim": "needs a table not run", "better": "t:A", "worse": "other:X"}]
     table = claims.run(ctx, "claims", claim_list + missing, "PSNR", tables=None)
     verdicts = table.drop_duplicates("claim").set_index("claim")["verdict"].to_dict()
+    assert table.loc[table["PSNR verdict"] == "not run", "PSNR p Holm"].isna().all()
     assert verdicts["needs a row added later"] == verdicts["needs a table not run"] == "not run"
-    assert verdicts["A beats B"] == "holds" and verdicts["both"] == "within noise"
+    assert verdicts["A beats B"] == "holds" and verdicts["both"] == "reversed"
     later = table[table["claim"] == "needs a row added later"].set_index("worse (paper)")
     assert later.loc["t:B", "PSNR verdict"] == "holds" and later.loc["t:D", "PSNR verdict"] == "not run"
     assert "no row 'D'" in later.loc["t:D", "basis"] and "+experiment=t" in later.loc["t:D", "basis"]
