@@ -22,7 +22,7 @@ from omegaconf import DictConfig, OmegaConf
 from bench.errors import UserError
 from bench.exrio import ExrError
 from bench.infer import keep_freed_memory
-from bench.runs import ensure_writable
+from bench.runs import ensure_writable, out_of_space
 from bench.train import TrainingInterrupted
 from bench.experiments import KINDS
 
@@ -58,10 +58,13 @@ def available_experiments() -> list[str]:
     return sorted(p.stem for p in (Path(CONF_DIR) / "experiment").glob("*.yaml"))
 
 
-_POSITIVE_INTS = ("train.steps", "train.batch_size", "train.seq_len", "train.crop", "train.checkpoint_every",
-                  "workers")
-_NON_NEGATIVE_INTS = ("train.val_every", "train.val_sequences")
-_POSITIVE_NUMBERS = ("train.lr", "train.checkpoint_every_s")
+_TRAIN_POSITIVE_INTS = ("steps", "batch_size", "seq_len", "crop", "checkpoint_every")
+_TRAIN_NON_NEGATIVE_INTS = ("val_every", "val_sequences")
+_TRAIN_POSITIVE_NUMBERS = ("lr", "checkpoint_every_s")
+# model arguments that are widths or counts (channels, blocks, layers, kernel sizes, ...): integers >= 1,
+# or >= 0 for the optional parts (deformable blocks, gBuffer channels)
+_MODEL_COUNT = re.compile(r"(channels|blocks|width|layers|size|hidden|dilation)$")
+_MODEL_OPTIONAL_COUNT = re.compile(r"deform|gbuffer")
 
 
 def _lookup(plain: dict, dotted: str):
@@ -75,24 +78,87 @@ def _is_int(value) -> bool:
     return isinstance(value, int) and not isinstance(value, bool)
 
 
+def _is_number(value) -> bool:
+    return isinstance(value, (int, float)) and not isinstance(value, bool)
+
+
+def train_problems(train: dict, data: dict | None, where: str = "train.") -> list[str]:
+    """Bad values of a `train:` dict (`where` names it: the command line's, or a table row's), and a crop
+    or sequence length the rendered data (`data`, its spec; None: your own frames) cannot give."""
+    problems = [f"{where}{key}={train.get(key)!r}: expected a positive integer"
+                for key in _TRAIN_POSITIVE_INTS if not (_is_int(train.get(key)) and train[key] > 0)]
+    problems += [f"{where}{key}={train.get(key)!r}: expected an integer >= 0"
+                 for key in _TRAIN_NON_NEGATIVE_INTS if not (_is_int(train.get(key)) and train[key] >= 0)]
+    problems += [f"{where}{key}={train.get(key)!r}: expected a positive number"
+                 for key in _TRAIN_POSITIVE_NUMBERS if not (_is_number(train.get(key)) and train[key] > 0)]
+    if problems or data is None:
+        return problems
+    width, height, frames = data.get("lr_width"), data.get("lr_height"), data.get("seq_len")
+    if _is_int(width) and _is_int(height) and train["crop"] > min(width, height):
+        problems.append(f"{where}crop={train['crop']}: larger than the LR frame {width}x{height} (data.lr_width, "
+                        "data.lr_height); the crop must fit inside it")
+    if _is_int(frames) and train["seq_len"] > frames:
+        problems.append(f"{where}seq_len={train['seq_len']}: longer than the dataset's sequences "
+                        f"({frames} frames, data.seq_len)")
+    return problems
+
+
+def model_problems(model: dict, where: str) -> list[str]:
+    """Bad widths and counts among a model's arguments (`where` names the model: models.srd, a row)."""
+    problems = []
+    for key, value in model.items():
+        if key.startswith("_") or not _MODEL_COUNT.search(key):
+            continue
+        least = 0 if _MODEL_OPTIONAL_COUNT.search(key) else 1
+        if not (_is_int(value) and value >= least):
+            problems.append(f"{where}.{key}={value!r}: expected an integer >= {least}")
+    return problems
+
+
+def row_problems(plain: dict, data: dict | None) -> list[str]:
+    """Bad values inside a table experiment's rows: their model arguments and training overrides."""
+    from bench.experiments.pipeline import deep_merge, recipe_from
+    from bench.experiments.table import expand_rows
+    experiment = plain.get("experiment") or {}
+    if experiment.get("kind", "table") != "table" or not isinstance(experiment.get("rows"), list):
+        return []
+    try:
+        rows = expand_rows(experiment["rows"], experiment.get("task", "srd"))
+    except (ValueError, KeyError, TypeError) as err:
+        return [f"experiment.rows: {err}"]
+    problems = []
+    shared = set(train_problems(plain["train"], data))  # said once, for train.*, not again per row
+    for r in rows:
+        where = f"experiment.rows[{r['label']!r}]"
+        problems += model_problems(r.get("overrides") or {}, f"{where}.overrides")
+        if not isinstance(r.get("train") or {}, dict):
+            problems.append(f"{where}.train={r.get('train')!r}: expected a dict of train.* overrides")
+            continue
+        train = deep_merge(plain["train"], r.get("train"))
+        own = train_problems(train, data, f"{where}.train.")
+        problems += [p for p in own if "train." + p.removeprefix(f"{where}.train.") not in shared]
+        try:
+            recipe_from(train)  # unknown keys, a bad schedule or domain
+        except UserError as err:
+            problems.append(f"{where}.{err}")
+    return problems
+
+
 def config_problems(plain: dict) -> list[str]:
     """What is wrong with a resolved config, one line per bad value: the key, the value, what is allowed."""
     from bench.infer import parse_path
-    problems = []
-    for key in _POSITIVE_INTS:
-        if not (_is_int(v := _lookup(plain, key)) and v > 0):
-            problems.append(f"{key}={v!r}: expected a positive integer")
-    for key in _NON_NEGATIVE_INTS:
-        if not (_is_int(v := _lookup(plain, key)) and v >= 0):
-            problems.append(f"{key}={v!r}: expected an integer >= 0")
-    for key in _POSITIVE_NUMBERS:
-        if not (isinstance(v := _lookup(plain, key), (int, float)) and not isinstance(v, bool) and v > 0):
-            problems.append(f"{key}={v!r}: expected a positive number")
+    data = plain.get("data") if plain.get("render_data", True) else None  # your own frames: checked at start
+    problems = train_problems(plain["train"], data)
+    if not (_is_int(plain.get("workers")) and plain["workers"] > 0):
+        problems.append(f"workers={plain.get('workers')!r}: expected a positive integer")
+    for name, model in (plain.get("models") or {}).items():
+        problems += model_problems(model or {}, f"models.{name}")
+    problems += row_problems(plain, data)
     seeds = plain.get("seeds")
     if not (isinstance(seeds, list) and seeds and all(_is_int(s) for s in seeds)):
         problems.append(f"seeds={seeds!r}: expected a non-empty list of integers, e.g. seeds=[0,1,2]")
     for name, lr in (plain.get("model_lr") or {}).items():
-        if not (isinstance(lr, (int, float)) and not isinstance(lr, bool) and lr > 0):
+        if not (_is_number(lr) and lr > 0):
             problems.append(f"model_lr.{name}={lr!r}: expected a positive number")
     try:
         if _lookup(plain, "eval.fast_path") != "auto":  # auto: chosen by measurement (bench.measure)
@@ -115,8 +181,9 @@ def make_context(cfg: DictConfig):
         plain["eval"]["fast_path"] = plain["eval"].pop("path")
     plain["eval"].pop("path", None)
     problems = config_problems(plain)
-    if problems:
-        raise UserError("bad config (nothing was run):\n  " + "\n  ".join(problems))
+    if problems:  # one bad value: one line
+        listed = problems[0] if len(problems) == 1 else "\n  " + "\n  ".join(problems)
+        raise UserError(f"bad config (nothing was run): {listed}")
     try:
         evaluation, vgg = EvalSpec(**plain["eval"]), VggSpec(**plain["vgg"])
     except TypeError as err:  # a key that is not a field (a typo in an override)
@@ -368,9 +435,16 @@ def main(cfg: DictConfig) -> None:
               "trainings from their checkpoints", file=sys.stderr)
         sys.exit(getattr(err, "exit_code", 130))
     except ExrError as err:  # a frame damaged after the last check (headers are checked at every start)
-        fix = (f"`python -m bench +experiment=data preset={cfg.preset.name} verify=true` reads every frame and "
-               "renders the damaged ones again" if cfg.render_data else
+        fix = (f"`python -m bench +experiment=data preset={cfg.preset.name} experiment.verify=true` reads every "
+               "frame and renders the damaged ones again" if cfg.render_data else
                f"the frames are yours to replace (render_data=false); `python -m bench +experiment=data "
-               f"render_data=false data_dir={cfg.data_dir} verify=true` lists every damaged one")
+               f"render_data=false data_dir={cfg.data_dir} experiment.verify=true` lists every damaged one")
         print(f"error: {err}; {fix}", file=sys.stderr)
         sys.exit(2)
+    except (OSError, RuntimeError) as err:  # torch's own file writer says a full disk as a RuntimeError
+        if not out_of_space(err, Path(cfg.runs_dir)):
+            raise
+        print(f"error: no space left on the device under runs_dir={cfg.runs_dir} ({err}); free some space, or "
+              "set runs_dir=... to another disk, and run the same command again: recorded runs are kept and "
+              "trainings resume from their last checkpoint", file=sys.stderr)
+        sys.exit(1)

@@ -38,7 +38,7 @@ import pandas as pd
 import torch
 from tqdm import tqdm
 
-from bench import exrio, metrics, render, scenes
+from bench import exrio, metrics, render, runs, scenes
 from bench.tasks import BUFFERS, GBUF_LAYERS
 
 log = logging.getLogger("bench")
@@ -246,7 +246,8 @@ def manifest_problems(root, shown=8):
         return [f"{root} has no manifest.json: point data_dir at a dataset in the documented layout (README, "
                 "'Dataset layout')"]
     except ValueError as err:
-        return [f"{path}: not JSON ({err})"]
+        return [f"{path}: not JSON ({err}): damaged; restore it from your copy of the dataset or write it again "
+                "(README, 'Dataset layout'); with render_data=false the suite never rewrites your files"]
     if not isinstance(manifest, dict) or not isinstance(manifest.get("frames"), list) or not manifest["frames"]:
         return [f'{path}: expected an object with "frames": a non-empty list of frame records']
     spec = manifest.get("spec", {})
@@ -439,10 +440,7 @@ def _device(variant):
 def _write_json(path, obj):
     """Atomic JSON write (temp file + rename)."""
     os.makedirs(os.path.dirname(os.path.abspath(path)), exist_ok=True)
-    tmp = f"{path}.{os.getpid()}.tmp"
-    with open(tmp, "w") as f:
-        json.dump(obj, f, indent=1, default=float)
-    os.replace(tmp, path)
+    runs.write_atomic(path, lambda tmp: tmp.write_text(json.dumps(obj, indent=1, default=float)))
 
 
 def _leave_interrupts_to_the_parent():
@@ -524,6 +522,25 @@ def build_dataset(root, spec, passes=BUFFERS, workers=1, progress=True, variant=
                 "build_wall_time_s": time.perf_counter() - start, "frames": records}
     _write_json(os.path.join(root, "manifest.json"), manifest)
     return manifest_frame(records)
+
+
+def rebuild_manifest(root, spec):
+    """Write `root`'s manifest again from the frame records beside it (each written when its frame was
+    complete), rendering nothing: for a manifest that was damaged. Returns the manifest, or None when a
+    frame of `spec` has no record rendered with its settings (building the dataset renders it)."""
+    records = []
+    for job in plan_sequences(spec):
+        features = scenes.scene_features(scenes.make_scene(job["family"], job["scene_seed"]))
+        digest = _settings_hash(_render_settings(spec, features, job["split"]))
+        for frame in range(int(spec["seq_len"])):
+            record = _load_record(frame_paths(root, job["split"], job["sequence"], frame)[2], digest)
+            if record is None:
+                return None
+            records.append(record)
+    manifest = {"spec": spec, "passes": sorted(set().union(*(r.get("buffers", []) for r in records))),
+                "variant": records[0]["variant"] if records else None, "frames": records}
+    _write_json(os.path.join(root, "manifest.json"), manifest)
+    return manifest
 
 
 def manifest_frame(records):

@@ -19,6 +19,7 @@ from __future__ import annotations
 
 import ast
 import contextlib
+import errno
 import fcntl
 import functools
 import getpass
@@ -28,12 +29,14 @@ import json
 import logging
 import math
 import os
+import pickle
 import platform
 import shutil
 import socket
 import subprocess
 import tempfile
 import time
+import zipfile
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -42,6 +45,7 @@ import pandas as pd
 log = logging.getLogger("bench")
 
 RECORD = "run.json"
+COMMAND_STARTED_S = time.time()  # force=true recomputes what was recorded before this; a run computed since is reused
 _LIBRARIES = ("torch", "mitsuba", "drjit", "numpy", "OpenEXR", "pyoidn", "scikit-image", "hydra-core")
 
 
@@ -67,10 +71,8 @@ class Run:
         return self.record.get("metrics", {})
 
     def save(self) -> None:
-        tmp = self.dir / (RECORD + ".tmp")
-        tmp.write_text(json.dumps(_encode(self.record), indent=2, sort_keys=True, allow_nan=False,
-                                  default=_json_default))
-        tmp.replace(self.dir / RECORD)
+        text = json.dumps(_encode(self.record), indent=2, sort_keys=True, allow_nan=False, default=_json_default)
+        write_atomic(self.dir / RECORD, lambda tmp: tmp.write_text(text))
 
     def release(self) -> None:
         if self._lock is not None:
@@ -96,10 +98,74 @@ def _decode_metrics(metrics: dict) -> dict:
     return {k: _NONFINITE.get(v, v) if isinstance(v, str) else v for k, v in (metrics or {}).items()}
 
 
-def read_record(path: Path) -> dict:
-    """A run.json, its non-finite metrics decoded."""
-    record = json.loads(path.read_text())
-    record["metrics"] = _decode_metrics(record.get("metrics"))
+# ---------------------------------------------------------------- files written and read back
+# Any file the suite reads back (a record, a checkpoint, a curve, a manifest) may have been cut short
+# or overwritten since: one that does not parse counts as missing, so what it held is computed again.
+
+DAMAGED = (ValueError, EOFError, RuntimeError, UnicodeDecodeError, zipfile.BadZipFile, pickle.UnpicklingError)
+
+
+def _check_zip(path: Path) -> bool:
+    """A torch checkpoint is a zip archive: every member's CRC is checked, without unpickling."""
+    with zipfile.ZipFile(path) as archive:
+        bad = archive.testzip()
+    if bad is not None:
+        raise zipfile.BadZipFile(f"member {bad} fails its CRC check")
+    return True
+
+
+def _read_json_object(path: Path) -> dict:
+    value = json.loads(Path(path).read_text())
+    if not isinstance(value, dict):
+        raise ValueError(f"expected a JSON object, found {type(value).__name__}")
+    return value
+
+
+_READERS = {".json": _read_json_object, ".csv": pd.read_csv, ".pt": _check_zip}
+
+
+def read_or_none(path: str | Path, read=None):
+    """`read(path)` (by default the reader of its suffix: a JSON object, a CSV as a DataFrame, a
+    checkpoint's integrity), or None when the file is missing or damaged: a damaged file is treated as
+    missing, and the log names it."""
+    try:
+        return (read or _READERS[Path(path).suffix])(path)
+    except (FileNotFoundError, NotADirectoryError):
+        return None
+    except DAMAGED as err:
+        log.warning("%s is damaged (%s: %s); treating it as missing", path, type(err).__name__, err)
+        return None
+
+
+def read_json_or_none(path: str | Path) -> dict | None:
+    """A JSON object the suite wrote, or None when missing or damaged (`read_or_none`)."""
+    return read_or_none(path, _read_json_object)
+
+
+def write_atomic(path: Path, write) -> None:
+    """Write `path` by `write(tmp)` into a temporary file beside it, then rename it into place: readers
+    never see half a file, and the temporary file never outlives a failed write (a full disk)."""
+    path = Path(path)
+    tmp = path.with_name(f"{path.name}.{os.getpid()}.tmp")
+    try:
+        write(tmp)
+        os.replace(tmp, path)
+    finally:
+        tmp.unlink(missing_ok=True)
+
+
+def remove_temporary_files(run_dir: Path) -> None:
+    """Remove the half-written files (`*.tmp`: a write that failed, or a process killed mid-write) of a
+    run whose lock this process holds: no other process writes there."""
+    for leftover in Path(run_dir).glob("*.tmp"):
+        leftover.unlink(missing_ok=True)
+
+
+def read_record(path: Path) -> dict | None:
+    """A run.json, its non-finite metrics decoded; None when missing or damaged (`read_or_none`)."""
+    record = read_json_or_none(path)
+    if record is not None:
+        record["metrics"] = _decode_metrics(record.get("metrics"))
     return record
 
 
@@ -116,10 +182,8 @@ def lookup(runs_dir: str | Path, kind: str, identity: dict, archive: str | Path 
     path = Path(runs_dir) / kind / h / RECORD
     if archive is not None:
         restore(runs_dir, archive, kind, h)
-    if not path.exists():
-        return None
     record = read_record(path)
-    if record.get("status") != "complete":
+    if record is None or record.get("status") != "complete":
         return None
     return Run(kind, h, path.parent, record, reused=True)
 
@@ -127,18 +191,25 @@ def lookup(runs_dir: str | Path, kind: str, identity: dict, archive: str | Path 
 def record_path(kind: str, run_hash: str, runs_dir: str | Path, archives=()) -> Path | None:
     """Where the record of run `run_hash` is: in the run store, else in the first of `archives` that
     holds it (read there, not restored), else None."""
+    return find_record(kind, run_hash, runs_dir, archives)[0]
+
+
+def find_record(kind: str, run_hash: str, runs_dir, archives=()) -> tuple[Path | None, dict | None]:
+    """(path, record) of the first record of run `run_hash` that reads, the run store's first, then the
+    archives'; (None, None) when none does (missing or damaged)."""
     for root in (runs_dir, *archives):
         path = Path(root) / kind / run_hash / RECORD
-        if path.exists():
-            return path
-    return None
+        record = read_record(path)
+        if record is not None:
+            return path, record
+    return None, None
 
 
 def recorded_wall_s(kind: str, run_hash: str, runs_dir: str | Path, archives=()) -> float | None:
     """Recorded wall time of one run, from the run store or an archive (`record_path`); None when
     neither holds it, so a caller can tell a missing run from a fast one."""
-    path = record_path(kind, run_hash, runs_dir, archives)
-    return None if path is None else float(read_record(path).get("wall_time_s") or 0.0)
+    record = find_record(kind, run_hash, runs_dir, archives)[1]
+    return None if record is None else float(record.get("wall_time_s") or 0.0)
 
 
 def wall_time_s(runs_dir: str | Path, kind: str, hashes: str | None) -> float:
@@ -150,16 +221,19 @@ def wall_time_s(runs_dir: str | Path, kind: str, hashes: str | None) -> float:
 def begin(runs_dir: str | Path, kind: str, identity: dict, config: dict | None = None,
           seed: int | None = None, device: str = "cpu", label: str = "", force: bool = False,
           code: dict | None = None, reuse_stale: bool = False, archive: str | Path | None = None,
-          needs: tuple = ()) -> Run:
+          needs: tuple = (), every_call: bool = False) -> Run:
     """Reuse a complete run, or open (or re-open, to resume) its directory for computing.
 
-    Check `run.reused`: when True the caller must not recompute. With `force`, an existing directory is
-    wiped first so nothing stale (checkpoints, outputs) survives. `code` is the run's code fingerprint
-    (`code_fingerprint`); a recorded run computed with other code is recomputed from scratch, its
-    checkpoints included, unless `reuse_stale`. `archive`: a run the store lacks is restored from there
-    first (`restore`), and then reused like any recorded run. `needs`: files the caller reads from the
-    run's directory; a complete run without one of them (restored from an archive that left it out,
-    ARCHIVED_FILE_MAX_BYTES) is computed again from scratch, under its lock, so only one process does.
+    Check `run.reused`: when True the caller must not recompute. With `force`, a run recorded before
+    this command started is computed again, its directory wiped first so nothing stale (checkpoints,
+    outputs) survives; one completed since (by this process, or a concurrent forced one) is reused, so
+    force computes each run once per command; `every_call` computes it at every call (a render job's
+    record). `code` is the run's code fingerprint (`code_fingerprint`); a recorded run computed with
+    other code is recomputed from scratch, its checkpoints included, unless `reuse_stale`. `archive`: a
+    run the store lacks is restored from there first (`restore`), and then reused like any recorded run.
+    `needs`: files the caller reads from the run's directory; a complete run without one of them, or
+    with one damaged (`read_or_none`), is computed again from scratch, under its lock, so only one
+    process does.
     """
     if not force:
         done = _reusable(runs_dir, kind, identity, code, reuse_stale, label, quiet=True, needs=needs)
@@ -169,14 +243,15 @@ def begin(runs_dir: str | Path, kind: str, identity: dict, config: dict | None =
     run_dir = Path(runs_dir) / kind / h
     ensure_writable(run_dir)
     lock = acquire(run_dir.parent / f".{h}.lock", f"computing {kind}/{h}")
-    if not force:  # another process may have completed it while we waited for the lock
-        if archive is not None:
-            _restore_locked(runs_dir, archive, kind, h, code)
-        done = _reusable(runs_dir, kind, identity, code, reuse_stale, label, needs=needs)
-        if done is not None:
-            lock.close()
-            return done
-    earlier = read_record(run_dir / RECORD) if (run_dir / RECORD).exists() else {}
+    if force:  # a forced run computed since this command started (here, or by a concurrent command)
+        done = None if every_call else _computed_this_command(runs_dir, kind, identity, label)
+    else:  # another process may have completed it while we waited for the lock
+        done = _reusable_locked(runs_dir, archive, kind, identity, code, reuse_stale, label, needs)
+    if done is not None:
+        lock.close()
+        return done
+    remove_temporary_files(run_dir)  # a killed process's half-written files
+    earlier = read_record(run_dir / RECORD) or {}
     if earlier.get("status") == "complete":  # not reusable (code changed, or lacks what `needs` names)
         force = True
     if earlier.get("status") == "running":  # we hold its lock, so the process that wrote this is gone
@@ -191,15 +266,46 @@ def begin(runs_dir: str | Path, kind: str, identity: dict, config: dict | None =
     record = {
         "kind": kind, "hash": h, "label": label, "status": "running", "identity": identity,
         "config": config if config is not None else identity, "seed": seed, "device": device, "pid": os.getpid(),
-        "started": earlier.get("started", time.strftime("%Y-%m-%dT%H:%M:%S%z")), **provenance(),
+        "started": earlier.get("started", time.strftime("%Y-%m-%dT%H:%M:%S%z")), "part_started_s": time.time(),
+        **provenance(),
     }
     if code is not None:
         record["code"] = code
-    if earlier:  # an interrupted or failed run resumes: its earlier time still counts
-        record["resumed_wall_time_s"] = earlier.get("wall_time_s", 0.0) or 0.0
+    if earlier:  # an interrupted, failed or killed run resumes: its earlier time still counts
+        record["resumed_wall_time_s"] = _earlier_wall_s(earlier, run_dir)
     run = Run(kind, h, run_dir, record, _lock=lock)
     run.save()
     return run
+
+
+def _reusable_locked(runs_dir, archive, kind: str, identity: dict, code, reuse_stale: bool, label: str,
+                     needs: tuple) -> Run | None:
+    """`_reusable` under the run's lock, after restoring the run from `archive` when the store lacks it."""
+    if archive is not None:
+        _restore_locked(runs_dir, archive, kind, config_hash(identity), code)
+    return _reusable(runs_dir, kind, identity, code, reuse_stale, label, needs=needs)
+
+
+def _computed_this_command(runs_dir, kind: str, identity: dict, label: str) -> Run | None:
+    """The complete run with this identity if it finished after this command started (force computes
+    each run once: a table asking twice, or a concurrent forced command, finds it done), else None."""
+    done = lookup(runs_dir, kind, identity)
+    if done is None or done.record.get("finished_s", 0.0) < COMMAND_STARTED_S:
+        return None
+    log.info("%s %s: run %s was computed since this command started; force=true does not compute it twice",
+             kind, label, done.hash)
+    return done
+
+
+def _earlier_wall_s(earlier: dict, run_dir: Path) -> float:
+    """Wall time of a resumed run's earlier parts: as recorded when the last part ended (failed,
+    interrupted); after a kill -9 (still "running"), that part counts from its start to the last file it
+    wrote (its last checkpoint: what came after is computed again)."""
+    if earlier.get("wall_time_s") is not None:
+        return float(earlier["wall_time_s"])
+    last_write = max((p.stat().st_mtime for p in run_dir.iterdir() if p.is_file()), default=0.0)
+    part = max(0.0, last_write - earlier.get("part_started_s", last_write))
+    return float(earlier.get("resumed_wall_time_s") or 0.0) + part
 
 
 def _reusable(runs_dir, kind: str, identity: dict, code: dict | None, reuse_stale: bool,
@@ -208,11 +314,12 @@ def _reusable(runs_dir, kind: str, identity: dict, code: dict | None, reuse_stal
     done = lookup(runs_dir, kind, identity)
     if done is None:
         return None
-    missing = [name for name in needs if not (done.dir / name).exists()]
+    missing = [name for name in needs if read_or_none(done.dir / name) is None]
     if missing:
         if not quiet:
-            log.info("%s %s: computing run %s again: it has no %s (an archive keeps files over %.1f MiB out)",
-                     kind, label, done.hash, ", ".join(missing), ARCHIVED_FILE_MAX_BYTES / 2**20)
+            log.info("%s %s: computing run %s again: it has no %s that reads (damaged, or left out by an archive, "
+                     "which keeps files over %.1f MiB out)", kind, label, done.hash, ", ".join(missing),
+                     ARCHIVED_FILE_MAX_BYTES / 2**20)
         return None
     done.stale = code_changes(done.record, code)
     if not done.stale:
@@ -301,7 +408,8 @@ def _restore_locked(runs_dir, archive_dir, kind: str, run_hash: str, code: dict 
     if not (src / RECORD).exists():
         return False
     if (dst / RECORD).exists():
-        if not (code_changes(read_record(dst / RECORD), code) and not code_changes(read_record(src / RECORD), code)):
+        stored, archived = read_record(dst / RECORD) or {}, read_record(src / RECORD) or {}
+        if not (code_changes(stored, code) and not code_changes(archived, code)):
             return False
         shutil.rmtree(dst)  # we hold its lock; begin would wipe it anyway
         log.info("runs: %s/%s in the store was computed with other code; the archive's run is current", kind, run_hash)
@@ -310,7 +418,7 @@ def _restore_locked(runs_dir, archive_dir, kind: str, run_hash: str, code: dict 
     tmp = Path(runs_dir) / PARTIAL / f"{kind}.{run_hash}.{os.getpid()}"
     try:
         with contextlib.closing(acquire(partial / f"{kind}.{run_hash}.lock", f"archiving {kind}/{run_hash}")):
-            if read_record(src / RECORD).get("status") != "complete":
+            if (read_record(src / RECORD) or {}).get("status") != "complete":
                 return False
             shutil.copytree(src, tmp)
         if dst.exists():
@@ -452,22 +560,32 @@ def complete(run: Run, metrics: dict, **extra) -> Run:
     """Record metrics and wall time; the run becomes reusable."""
     run.record.update(extra)
     run.record["metrics"] = metrics
-    run.record["wall_time_s"] = run.record.get("resumed_wall_time_s", 0.0) + time.perf_counter() - run._t0
-    run.record["status"] = "complete"
     run.record["finished"] = time.strftime("%Y-%m-%dT%H:%M:%S%z")
-    run.save()
-    run.release()
-    return run
+    run.record["finished_s"] = time.time()
+    return _close(run, "complete")
 
 
 def fail(run: Run, message: str, status: str = "failed") -> Run:
     """Record that the run stopped without a result ("failed", or "interrupted" on request); its
     directory stays, so a checkpoint in it can be resumed."""
-    run.record["status"] = status
     run.record["error"] = message
+    return _close(run, status)
+
+
+def _close(run: Run, status: str) -> Run:
+    """Save the run's last record (its status and wall time, the earlier parts' included) and drop its
+    lock. A record that cannot be saved (a full disk) is removed rather than left saying "running": the
+    run is then missing, and its checkpoints resume."""
+    run.record["status"] = status
     run.record["wall_time_s"] = run.record.get("resumed_wall_time_s", 0.0) + time.perf_counter() - run._t0
-    run.save()
-    run.release()
+    remove_temporary_files(run.dir)
+    try:
+        run.save()
+    except OSError:
+        (run.dir / RECORD).unlink(missing_ok=True)
+        raise
+    finally:
+        run.release()
     return run
 
 
@@ -481,6 +599,8 @@ def load(runs_dir: str | Path = "runs", kind: str | None = None) -> pd.DataFrame
         if path.parts[-3].startswith(".") or path.parts[-2].startswith("."):  # a copy being restored (PARTIAL)
             continue
         record = read_record(path)
+        if record is None:  # damaged: named in the log, and computed again when a table asks for it
+            continue
         row = {k: record.get(k) for k in ("kind", "hash", "label", "status", "seed", "device",
                                           "wall_time_s", "git_commit", "git_dirty", "host", "started")}
         if row["status"] == "running" and not computing(path.parent):
@@ -527,6 +647,24 @@ def ensure_writable(path: Path, setting: str = "runs_dir") -> None:
     except OSError as err:
         raise PermissionError(f"{setting.removesuffix('_dir')} directory {path} is not writable "
                               f"({err.strerror}); set {setting}=... to a writable place") from err
+
+
+def out_of_space(err: BaseException, path: Path) -> bool:
+    """Whether `err` is a full disk (or quota): ENOSPC/EDQUOT, or any write error at a time when a write
+    of a few pages under `path` fails with one (torch's file writer loses the errno)."""
+    if isinstance(err, OSError) and err.errno in (errno.ENOSPC, errno.EDQUOT):
+        return True
+    probe = Path(path) / f".space_probe.{os.getpid()}"
+    try:
+        with open(probe, "wb") as file:
+            file.write(b"\0" * 65536)
+            file.flush()
+            os.fsync(file.fileno())
+    except OSError as probe_err:
+        return probe_err.errno in (errno.ENOSPC, errno.EDQUOT)
+    finally:
+        probe.unlink(missing_ok=True)
+    return False
 
 
 _PROVENANCE: dict | None = None

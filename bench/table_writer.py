@@ -14,6 +14,8 @@ from pathlib import Path
 
 import pandas as pd
 
+from bench.runs import write_atomic
+
 DOWN, UP = "\u2193", "\u2191"
 
 
@@ -137,10 +139,11 @@ def write_table(df: pd.DataFrame, out_dir: str | Path, name: str = "table", capt
     df = df.reset_index(drop=True)
     paths = {"csv": out_dir / f"{name}.csv", "md": out_dir / f"{name}.md", "tex": out_dir / f"{name}.tex"}
     try:
-        df.drop(columns=["compete"], errors="ignore").to_csv(paths["csv"], index=False)
-        paths["md"].write_text(to_markdown(df, lower_is_better, higher_is_better, digits, caption))
-        paths["tex"].write_text(to_latex(df, lower_is_better, higher_is_better, digits,
-                                         _latex_escape(caption), f"tab:{out_dir.name}"))
+        write_atomic(paths["csv"], lambda tmp: df.drop(columns=["compete"], errors="ignore").to_csv(tmp, index=False))
+        markdown = to_markdown(df, lower_is_better, higher_is_better, digits, caption)
+        latex = to_latex(df, lower_is_better, higher_is_better, digits, _latex_escape(caption), f"tab:{out_dir.name}")
+        write_atomic(paths["md"], lambda tmp: tmp.write_text(markdown))
+        write_atomic(paths["tex"], lambda tmp: tmp.write_text(latex))
     except OSError as err:
         raise PermissionError(f"cannot write tables to {out_dir}: {err.strerror}") from err
     return paths

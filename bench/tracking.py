@@ -109,10 +109,9 @@ def _mirror(client, experiment: str, record: dict, old, tables: dict[str, Path],
 def _records(kind_dir: Path) -> list[dict]:
     out = []
     for path in sorted(kind_dir.glob(f"*/{runs.RECORD}")):
-        try:
-            out.append(runs.read_record(path))
-        except (OSError, ValueError):  # a record being written: the next sync takes it
-            continue
+        record = runs.read_record(path)  # None: damaged (the log names it)
+        if record is not None:
+            out.append(record)
     return out
 
 

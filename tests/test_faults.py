@@ -1,8 +1,16 @@
 """Faults and bad input with real files and real processes: damaged frames are found and repaired (or
-named), nothing computed is lost. (Signals: tests/test_train.py; bad config values: tests/test_cli.py;
-stale code and abandoned runs: tests/test_runs.py, and a real edit to a model file:
-tests/test_cli.py.)"""
+named), damaged run files are treated as missing, a full disk is one line, force computes each run once,
+bad values stop a command before anything runs, nothing computed is lost. (Signals: tests/test_train.py;
+bad train.* values: tests/test_cli.py; stale code and abandoned runs: tests/test_runs.py, and a real edit
+to a model file: tests/test_cli.py.)"""
+import dataclasses
+import json
 import os
+import shutil
+import subprocess
+import sys
+import time
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -230,3 +238,268 @@ def test_a_split_rendered_again_with_fewer_buffers_gets_the_rest_when_a_table_ne
     for f in _frames(tmp_path):
         assert "lr_ref" in f["buffers"]
         assert "ref" in exrio.exr_layers(tmp_path / "data" / f["split"] / f["sequence"] / f"{f['frame']:04d}_lr.exr")
+
+
+# ---------------------------------------------------------------- issue 44: the run store's files, force, values
+
+REPO = Path(__file__).resolve().parent.parent
+EDSR = {"label": "E", "model": "edsr"}
+# the command line of a table of one tiny EDSR row on tiny renders (2 frames of 8x6), scored on train
+TINY_CLI = ["+experiment=smoke", "preset=smoke", "data.lr_width=8", "data.lr_height=6", "data.spp=1", "data.ref_spp=4",
+            "data.seq_len=2", "data.max_depth=4", "data.splits.train.sequences=1", "data.splits.train.families=[living_room]",
+            "~data.splits.val", "~data.splits.generalization", "eval.split=train", "train.steps=2", "train.crop=4",
+            "train.seq_len=2", "train.batch_size=1", "train.checkpoint_every=1", "train.val_sequences=1",
+            "train.val_every=1", "models.edsr.channels=4", "models.edsr.blocks=1", "workers=1", "progress=false",
+            "tracking=none", "experiment.rows=[{label:E,model:edsr}]"]
+
+
+def _table_ctx(root, **changes):
+    """`_ctx` with a tiny EDSR trained for 2 steps, scored on the train split (the tiny data has no other)."""
+    from bench.experiments.pipeline import recipe_from
+    ctx = _ctx(root)
+    train = {**dataclasses.asdict(ctx.train), "steps": 2, "crop": 4, "seq_len": 2, "batch_size": 1,
+             "checkpoint_every": 1, "val_every": 1, "val_sequences": 1}
+    return dataclasses.replace(ctx, device="cpu", train=recipe_from(train), eval=dataclasses.replace(ctx.eval, split="train"),
+                               models={**ctx.models, "edsr": {**ctx.models["edsr"], "channels": 4, "blocks": 1}},
+                               **changes)
+
+
+def _table(ctx, figure=False):
+    from bench.experiments import table
+    return table.run(ctx, "t", rows=[dict(EDSR)], figure=figure)
+
+
+@pytest.fixture(scope="module")
+def tiny_store(tmp_path_factory):
+    """A run store with one recorded tiny training and its evaluation, and the data it read."""
+    root = tmp_path_factory.mktemp("store")
+    _table(_table_ctx(root))
+    return root
+
+
+@pytest.fixture
+def store(tiny_store, tmp_path):
+    """A copy of `tiny_store` for one test to damage."""
+    for part in ("runs", "data"):
+        shutil.copytree(tiny_store / part, tmp_path / part)
+    return tmp_path
+
+
+def _run_dir(root, kind):
+    (path,) = (root / "runs" / kind).glob(f"*/{'run.json'}")
+    return path.parent
+
+
+def _cut(path):
+    path.write_bytes(path.read_bytes()[:len(path.read_bytes()) // 2])
+
+
+def _edsr_training(ctx):
+    from bench.experiments.pipeline import model_config, trained_model
+    from bench.tasks import get_task
+    return trained_model(ctx, model_config(ctx, "edsr"), get_task("srd"), 0, "E")
+
+
+def test_a_damaged_run_record_is_named_and_its_run_computed_again(store, caplog):
+    record = _run_dir(store, "eval") / "run.json"
+    _cut(record)
+    with caplog.at_level("INFO", logger="bench"):
+        table = _table(_table_ctx(store))
+    assert f"{record} is damaged" in caplog.text and "reusing run" in caplog.text   # the training is reused
+    assert json.loads(record.read_text())["status"] == "complete" and table["PSNR"].notna().all()
+
+
+def test_a_damaged_checkpoint_of_a_finished_training_is_trained_again_when_its_weights_are_read(store, caplog):
+    import torch
+    checkpoint = _run_dir(store, "train") / "checkpoint.pt"
+    _cut(checkpoint)
+    with caplog.at_level("INFO", logger="bench"):
+        model, run = _edsr_training(_table_ctx(store))
+    assert f"{checkpoint} is damaged" in caplog.text and "trained in" in caplog.text
+    assert run.record["status"] == "complete" and torch.load(checkpoint, weights_only=False)["step"] == 2
+
+
+def test_an_interrupted_training_whose_checkpoint_is_damaged_starts_over(store, caplog):
+    run_dir = _run_dir(store, "train")
+    record = json.loads((run_dir / "run.json").read_text())
+    (run_dir / "run.json").write_text(json.dumps({**record, "status": "interrupted"}))
+    (run_dir / "checkpoint.pt").write_bytes(b"PK\x03\x04 not a whole checkpoint")
+    with caplog.at_level("INFO", logger="bench"):
+        _, run = _edsr_training(_table_ctx(store))
+    assert f"{run_dir / 'checkpoint.pt'} is damaged" in caplog.text
+    assert run.record["status"] == "complete" and run.metrics["resumed_from_step"] == 0
+
+
+def test_a_damaged_curve_is_treated_as_missing_and_named(store, caplog):
+    from bench.experiments.figure import curve_figure
+    from bench.experiments.pipeline import last_fifth_gain
+    run_dir = _run_dir(store, "train")
+    (run_dir / "val_curve.csv").write_bytes(b"")                  # what a full disk leaves of a CSV
+    with caplog.at_level("WARNING", logger="bench"):
+        assert last_fifth_gain(run_dir / "val_curve.csv") is None
+        assert curve_figure(store / "runs", {"E": [run_dir.name]}, store / "curves.png") is None
+    assert f"{run_dir / 'val_curve.csv'} is damaged" in caplog.text
+
+
+def test_a_damaged_manifest_is_rebuilt_from_the_frame_records_without_rendering(rendered, caplog):
+    root, _, _ = rendered
+    manifest = root / "data" / "manifest.json"
+    frames = json.loads(manifest.read_text())["frames"]
+    written = {p: p.stat().st_mtime_ns for p in (root / "data").rglob("*.exr")}
+    _cut(manifest)
+    with caplog.at_level("INFO", logger="bench"):
+        ensure_data(_ctx(root), PASSES)
+    assert f"{manifest} is damaged" in caplog.text and "rebuilt" in caplog.text
+    assert [f["sequence"] for f in json.loads(manifest.read_text())["frames"]] == [f["sequence"] for f in frames]
+    assert {p: p.stat().st_mtime_ns for p in written} == written      # nothing rendered
+    assert not list((root / "runs").glob("data/*/run.json"))[1:]     # no second render job
+
+
+def test_your_own_damaged_manifest_is_one_line_naming_it_and_what_to_do(rendered):
+    root, _, _ = rendered
+    manifest = root / "data" / "manifest.json"
+    _cut(manifest)
+    with pytest.raises(UserError) as err:
+        ensure_data(_ctx(root, render_data=False), PASSES)
+    assert f"{manifest}: not JSON" in str(err.value) and "restore it" in str(err.value) and "\n" not in str(err.value)
+
+
+def test_a_failed_write_leaves_no_temporary_file_and_a_killed_ones_is_removed_at_the_next_start(tmp_path):
+    from bench import runs
+    target = tmp_path / "run.json"
+
+    def fails(tmp):
+        tmp.write_text("half")
+        raise OSError(28, "No space left on device")
+    with pytest.raises(OSError):
+        runs.write_atomic(target, fails)
+    assert list(tmp_path.iterdir()) == []
+    run = runs.begin(tmp_path / "runs", "eval", {"a": 1})
+    runs.fail(run, "killed")
+    (run.dir / "checkpoint.pt.4242.tmp").write_bytes(b"half")        # what kill -9 mid-write leaves
+    runs.begin(tmp_path / "runs", "eval", {"a": 1})
+    assert not list(run.dir.glob("*.tmp"))
+
+
+def _bench(root, *args, env=None):
+    return subprocess.Popen([sys.executable, "-m", "bench", *TINY_CLI, f"runs_dir={root / 'runs'}",
+                             f"results_dir={root / 'results'}", f"data_dir={root / 'data'}", *args], cwd=REPO,
+                            stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True,
+                            env=dict(os.environ, HYDRA_FULL_ERROR="0", **(env or {})))
+
+
+# A full disk under runs_dir from the first checkpoint on, as the child process sees it: torch's writer
+# fails as it does on a full disk (a RuntimeError, after part of the file), Python's writes with ENOSPC.
+FULL_DISK = '''
+import builtins, errno, io, os
+import torch
+FULL, UNDER, real_open, real_save = [], os.environ["FULL_DISK_UNDER"], io.open, torch.save
+
+def under(file):
+    return isinstance(file, (str, os.PathLike)) and os.path.abspath(file).startswith(UNDER)
+
+def save(obj, f, *args, **kwargs):
+    if under(f):
+        FULL.append(f)
+        with real_open(f, "wb") as out:
+            out.write(b"PK")
+        raise RuntimeError("[enforce fail at inline_container.cc:672] . unexpected pos 704 vs 598")
+    return real_save(obj, f, *args, **kwargs)
+
+def open_(file, mode="r", *args, **kwargs):
+    if FULL and under(file) and set(mode) & set("wx"):
+        real_open(file, mode, *args, **kwargs).close()
+        raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC), os.fspath(file))
+    return real_open(file, mode, *args, **kwargs)
+
+torch.save, builtins.open, io.open = save, open_, open_
+'''
+
+
+def test_a_full_disk_is_one_line_and_leaves_no_running_record_and_no_temporary_file(tmp_path):
+    (tmp_path / "inject").mkdir()
+    (tmp_path / "inject" / "sitecustomize.py").write_text(FULL_DISK)
+    out, _ = _bench(tmp_path, env={"FULL_DISK_UNDER": str(tmp_path / "runs"),
+                                   "PYTHONPATH": os.pathsep.join([str(tmp_path / "inject"), str(REPO)])}).communicate(timeout=300)
+    assert "No space left on device" in out and "Traceback" not in out, out[-3000:]
+    (line,) = [x for x in out.splitlines() if x.startswith("error:")]
+    assert "no space left on the device under runs_dir" in line
+    records = [json.loads(p.read_text()) for p in (tmp_path / "runs").glob("*/*/run.json")]
+    assert records and not [r for r in records if r["status"] == "running"]
+    assert not list((tmp_path / "runs").rglob("*.tmp"))
+
+
+def test_force_computes_each_run_once_per_command_the_crops_figure_included(store, caplog, monkeypatch):
+    from bench import runs
+    monkeypatch.setattr(runs, "COMMAND_STARTED_S", time.time())   # a new command, after the store was made
+    with caplog.at_level("INFO", logger="bench"):
+        table = _table(_table_ctx(store, force=True), figure=True)
+    assert caplog.text.count("trained in") == 1 and "does not compute it twice" in caplog.text
+    assert table.loc[0, "train (min)"] > 0 and table["last fifth (dB)"].notna().all()
+
+
+def test_concurrent_forced_commands_compute_each_run_once_between_them(tmp_path):
+    import pandas as pd
+    procs = [_bench(tmp_path, "force=true", f"results_dir={tmp_path / name}") for name in ("a", "b")]
+    outs = [p.communicate(timeout=300)[0] for p in procs]
+    assert all(p.returncode == 0 for p in procs), outs[0][-2000:] + outs[1][-2000:]
+    assert sum(out.count("trained in") for out in outs) == 1
+    for name in ("a", "b"):
+        table = pd.read_csv(tmp_path / name / "smoke" / "table.csv")
+        assert table.loc[0, "train (min)"] > 0 and table["last fifth (dB)"].notna().all(), table.to_string()
+
+
+@pytest.mark.parametrize("override,message", [
+    ("models.srd.channels=0", "models.srd.channels=0: expected an integer >= 1"),
+    ("models.srd.channels=-4", "models.srd.channels=-4: expected an integer >= 1"),
+    ("train.crop=64", "train.crop=64: larger than the LR frame 32x24"),
+    ("train.seq_len=9", "train.seq_len=9: longer than the dataset's sequences (3 frames"),
+    ("experiment.rows=[{label:a,model:srd,train:{steps:abc}}]", "experiment.rows['a'].train.steps='abc': expected a positive"),
+    ("experiment.rows=[{label:a,model:srd,train:{steps:-5}}]", "experiment.rows['a'].train.steps=-5: expected a positive"),
+    ("experiment.rows=[{label:a,model:edsr,overrides:{blocks:0}}]", "experiment.rows['a'].overrides.blocks=0"),
+])
+def test_a_bad_value_inside_a_model_or_a_row_is_one_line_before_anything_runs(tmp_path, override, message):
+    from hydra import compose, initialize_config_dir
+    from bench.cli import CONF_DIR, make_context
+    with initialize_config_dir(config_dir=CONF_DIR, version_base=None):
+        cfg = compose("config", overrides=["+experiment=smoke", "preset=smoke", override, f"runs_dir={tmp_path}/runs"])
+    with pytest.raises(UserError) as err:
+        make_context(cfg)
+    assert message in str(err.value) and "\n" not in str(err.value)
+    assert not (tmp_path / "runs").exists()
+
+
+def test_a_bad_model_width_on_the_command_line_exits_2_with_one_line_and_no_record(tmp_path):
+    out, _ = _bench(tmp_path, "models.edsr.channels=-4").communicate(timeout=300)
+    assert "Traceback" not in out and "error: bad config (nothing was run): models.edsr.channels=-4" in out, out[-2000:]
+    assert not list((tmp_path / "runs").glob("*/*/run.json"))
+
+
+def test_the_readmes_verify_command_is_one_hydra_accepts():
+    import re
+    from hydra import compose, initialize_config_dir
+    from bench.cli import CONF_DIR
+    commands = re.findall(r"`(\+experiment=data [^`]*verify=true)`", (REPO / "README.md").read_text())
+    assert commands
+    for command in commands:
+        with initialize_config_dir(config_dir=CONF_DIR, version_base=None):
+            assert compose("config", overrides=command.split()).experiment.verify is True
+
+
+def test_a_training_killed_and_resumed_records_the_wall_time_of_both_parts(tmp_path):
+    """kill -9 leaves the record "running" with no time of its own: the resumed run counts the killed
+    part from its start to its last write (its checkpoint), then its own."""
+    from bench import runs
+    child = subprocess.Popen([sys.executable, "-c", (
+        "import sys, time; from pathlib import Path; from bench import runs\n"
+        f"run = runs.begin({str(tmp_path)!r}, 'train', {{'a': 1}})\n"
+        "time.sleep(1.5); (run.dir / 'checkpoint.pt').write_bytes(b'step 1')\n"
+        "print('checkpointed', flush=True); time.sleep(60)")], cwd=REPO, stdout=subprocess.PIPE, text=True)
+    assert child.stdout.readline().strip() == "checkpointed"
+    child.kill()
+    child.wait()
+    run = runs.begin(tmp_path, "train", {"a": 1})
+    assert 1.4 < run.record["resumed_wall_time_s"] < 5
+    time.sleep(0.2)
+    done = runs.complete(run, {})
+    assert done.record["wall_time_s"] >= run.record["resumed_wall_time_s"] + 0.2

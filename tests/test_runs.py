@@ -1,8 +1,10 @@
 import json
 import logging
 import os
+import time
 
 import pytest
+import torch
 
 from bench import runs
 
@@ -12,7 +14,7 @@ def test_hash_ignores_key_order_and_changes_with_values():
     assert runs.config_hash({"a": 1}) != runs.config_hash({"a": 2})
 
 
-def test_begin_complete_reuse_and_force(tmp_path):
+def test_begin_complete_reuse_and_force(tmp_path, monkeypatch):
     ident = {"model": "x", "steps": 3}
     run = runs.begin(tmp_path, "train", ident, seed=0, label="x")
     assert not run.reused and run.record["status"] == "running"
@@ -21,6 +23,8 @@ def test_begin_complete_reuse_and_force(tmp_path):
     runs.complete(run, {"relMSE": 0.5})
     again = runs.begin(tmp_path, "train", ident)
     assert again.reused and again.metrics["relMSE"] == 0.5
+    assert runs.begin(tmp_path, "train", ident, force=True).reused   # computed since this command started
+    monkeypatch.setattr(runs, "COMMAND_STARTED_S", time.time())      # a later command
     forced = runs.begin(tmp_path, "train", ident, force=True)
     assert not forced.reused and not (forced.dir / "artifact.txt").exists()
 
@@ -246,7 +250,7 @@ def test_a_complete_run_without_a_file_its_caller_needs_is_computed_again_from_s
         again = runs.begin(tmp_path, "train", ident, needs=("checkpoint.pt",))
     assert not again.reused and "has no checkpoint.pt" in caplog.text
     assert list(again.dir.iterdir()) == [again.dir / runs.RECORD] and "resumed_wall_time_s" not in again.record
-    (again.dir / "checkpoint.pt").write_text("weights")
+    torch.save({"model": {}}, again.dir / "checkpoint.pt")        # a checkpoint that reads
     runs.complete(again, {"relMSE": 0.2})
     assert runs.begin(tmp_path, "train", ident, needs=("checkpoint.pt",)).reused
 

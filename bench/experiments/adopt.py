@@ -143,7 +143,7 @@ def stale_groups(ctx: Context) -> dict[str, list[runs.Run]]:
     data = data_fingerprint(ctx, "train")
     groups: dict[str, list[runs.Run]] = {}
     for path in sorted((ctx.runs_dir / "train").glob(f"*/{runs.RECORD}")):
-        record = runs.read_record(path)
+        record = runs.read_record(path) or {}  # a damaged record is missing
         identity = record.get("identity") or {}
         abandoned = record.get("status") == "running" and not runs.computing(path.parent)  # killed mid-run
         weightless = not (path.parent / CHECKPOINT).exists()
@@ -163,7 +163,7 @@ def evaluations_of(runs_dir: Path, train_hashes: set[str]) -> list[runs.Run]:
     """Complete evaluation runs whose trainings are all among `train_hashes` (a Cascade's eval has two)."""
     out = []
     for path in sorted((runs_dir / "eval").glob(f"*/{runs.RECORD}")):
-        record = runs.read_record(path)
+        record = runs.read_record(path) or {}
         trained = record.get("metrics", {}).get("train_run") or ""
         if record.get("status") == "complete" and trained and set(trained.split("+")) <= train_hashes:
             out.append(runs.Run("eval", record["hash"], path.parent, record))

@@ -14,6 +14,7 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 
+from bench import runs
 from bench.evaluate import predict
 from bench.experiments.pipeline import (Context, cascade_model, dataset, evaluation_data, model_config,
                                         trained_model, with_training)
@@ -97,16 +98,14 @@ def curve_figure(runs_dir: Path, curves: dict[str, list[str]], path: Path, metri
     import matplotlib
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
-    import pandas as pd
 
     fig, (by_step, by_time) = plt.subplots(1, 2, figsize=(11, 4))
     drawn = 0
     for i, (label, hashes) in enumerate(curves.items()):
         for j, h in enumerate(hashes):
-            file = Path(runs_dir) / "train" / h / "val_curve.csv"
-            if not file.exists():
+            curve = runs.read_or_none(Path(runs_dir) / "train" / h / "val_curve.csv")  # None: missing or damaged
+            if curve is None or not {"step", "train_s", metric} <= set(curve):
                 continue
-            curve = pd.read_csv(file)
             style = {"color": f"C{i % 10}", "label": label if j == 0 else None, "alpha": 1.0 if j == 0 else 0.5}
             by_step.plot(curve["step"], curve[metric], marker=".", **style)
             by_time.plot(curve["train_s"] / 60, curve[metric], marker=".", **style)

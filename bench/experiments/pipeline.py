@@ -29,7 +29,8 @@ import torch
 from hydra.utils import instantiate
 
 from bench import distributed, runs
-from bench.datagen import build_dataset, damaged_frames, frame_paths, load_manifest, manifest_problems
+from bench.datagen import (build_dataset, damaged_frames, frame_paths, load_manifest, manifest_problems,
+                           rebuild_manifest)
 from bench.dataset import SequenceDataset
 from bench.errors import UserError
 from bench.evaluate import SCORES, evaluate
@@ -223,9 +224,10 @@ def ensure_data(ctx: Context, passes: set[str]) -> str:
     missing; returns the data fingerprint. With render_data=false the directory is used as it is."""
     if not ctx.render_data:
         problems = manifest_problems(ctx.data_dir)
-        if problems:
+        if problems:  # one problem (a damaged manifest) on one line
+            listed = problems[0] if len(problems) == 1 else "\n  " + "\n  ".join(problems)
             raise UserError(f"data: {ctx.data_dir} is not a dataset in the documented layout (README, 'Dataset "
-                            "layout'):\n  " + "\n  ".join(problems))
+                            f"layout'): {listed}")
         fingerprint = data_fingerprint(ctx)
         manifest = load_manifest(ctx.data_dir)
         damaged = damaged_frames(ctx.data_dir, manifest["frames"], manifest.get("passes", []), stamps=False)
@@ -242,9 +244,8 @@ def ensure_data(ctx: Context, passes: set[str]) -> str:
 
 
 def _render_missing(ctx: Context, passes: set[str]) -> str:
-    path = ctx.data_dir / "manifest.json"
-    if path.exists():
-        manifest = load_manifest(ctx.data_dir)
+    manifest = _manifest_or_rebuilt(ctx)
+    if manifest is not None:
         if _canonical(manifest.get("spec")) == _canonical(ctx.data_spec):
             # per frame: a split re-rendered for another table (new settings) may hold fewer buffers
             lacking = [f for f in manifest["frames"] if not passes <= set(f.get("buffers", []))]
@@ -256,7 +257,7 @@ def _render_missing(ctx: Context, passes: set[str]) -> str:
                 log.warning("data: %d damaged frame files (%s); rendering them again", len(damaged), _listed(damaged))
     identity = {"spec": ctx.data_spec, "passes": sorted(passes)}
     run = runs.begin(ctx.runs_dir, "data", identity, seed=ctx.data_spec.get("seed"), device=ctx.device,
-                     label=f"data {ctx.preset}", force=True)  # a data run records one render job
+                     label=f"data {ctx.preset}", force=True, every_call=True)  # a data run records one render job
     try:
         log.info("data: making sure %s holds %s (rendering what is missing)", ctx.data_dir, ", ".join(sorted(passes)))
         manifest = build_dataset(ctx.data_dir, ctx.data_spec, sorted(passes), workers=ctx.workers,
@@ -272,6 +273,18 @@ def _render_missing(ctx: Context, passes: set[str]) -> str:
     log.info("data: %d frames rendered, %d were already complete (%.1f min)", len(manifest) - complete, complete,
              run.record["wall_time_s"] / 60)
     return data_fingerprint(ctx)
+
+
+def _manifest_or_rebuilt(ctx: Context) -> dict | None:
+    """The rendered dataset's manifest; a damaged one is rebuilt from the frame records beside it, without
+    rendering. None when there is none (or a frame lacks its record): rendering makes it."""
+    path = ctx.data_dir / "manifest.json"
+    manifest = runs.read_json_or_none(path)  # damaged: the log names it
+    if manifest is None and path.exists():
+        manifest = rebuild_manifest(ctx.data_dir, ctx.data_spec)
+        if manifest is not None:
+            log.info("data: rebuilt %s from its %d frame records (nothing rendered)", path, len(manifest["frames"]))
+    return manifest
 
 
 def _listed(problems: list, shown: int = 3) -> str:
@@ -416,6 +429,7 @@ def trained_model(ctx: Context, cfg: dict, task: Task, seed: int, label: str = "
             archive_training(ctx, run)
         return (load_weights(model, run.dir, ctx.device) if load else None), run
     recipe = ctx.train
+    _drop_damaged_checkpoint(run.dir / CHECKPOINT)
     if distributed.rank_and_size()[1] > 1:  # the other torchrun ranks (serve_trainings) join this training
         distributed.share((ctx, cfg, task.name, seed, stage, str(run.dir)))
     try:
@@ -451,13 +465,20 @@ def trained_model(ctx: Context, cfg: dict, task: Task, seed: int, label: str = "
     return model, run
 
 
+def _drop_damaged_checkpoint(path: Path) -> None:
+    """A checkpoint that does not read (cut short, overwritten) is no checkpoint: removed, so the
+    training starts over instead of failing to resume (the log names it, `runs.read_or_none`)."""
+    if path.exists() and runs.read_or_none(path) is None:
+        path.unlink()
+
+
 def archived_without_weights(ctx: Context, run: runs.Run, code: dict) -> dict | None:
     """The record `ctx.runs_archive` holds of this training, complete, of this code and without its
     weights (over the archive's file limit), else None."""
     archived = ctx.runs_archive / "train" / run.hash if ctx.runs_archive is not None else None
-    if archived is None or not (archived / runs.RECORD).exists() or (archived / CHECKPOINT).exists():
+    if archived is None or (archived / CHECKPOINT).exists():
         return None
-    record = runs.read_record(archived / runs.RECORD)
+    record = runs.read_record(archived / runs.RECORD) or {}
     return record if record.get("status") == "complete" and not runs.code_changes(record, code) else None
 
 
@@ -590,11 +611,10 @@ def recorded_minutes(eval_hashes, runs_dir: str | Path, archives=()) -> dict[str
     neither the store nor the archives hold maps to None; a missing evaluation hides its trainings."""
     minutes = {}
     for h in eval_hashes:
-        path = runs.record_path("eval", h, runs_dir, archives)
-        if path is None:
+        record = runs.find_record("eval", h, runs_dir, archives)[1]
+        if record is None:
             minutes[f"eval/{h}"] = None
             continue
-        record = runs.read_record(path)
         minutes[f"eval/{h}"] = (record.get("wall_time_s") or 0.0) / 60
         for t in filter(None, (record.get("metrics", {}).get("train_run") or "").split("+")):
             seconds = runs.recorded_wall_s("train", t, runs_dir, archives)
@@ -621,10 +641,8 @@ def last_fifth_gain(curve_csv: Path, metric: str = "PSNR") -> float | None:
     """How much the validation `metric` rose over the last fifth of a training (the final point minus
     the point at 80% of the steps, from val_curve.csv): near 0, the curve has flattened; None without
     a curve."""
-    if not curve_csv.exists():
-        return None
-    curve = pd.read_csv(curve_csv)
-    if len(curve) < 2:
+    curve = runs.read_or_none(curve_csv)  # None: missing or damaged (the log names it)
+    if curve is None or len(curve) < 2 or not {"step", metric} <= set(curve):
         return None
     last = curve.iloc[-1]
     before = curve[curve["step"] <= 0.8 * last["step"]].iloc[-1]
