@@ -243,8 +243,8 @@ def manifest_problems(root, shown=8):
         with open(path) as f:
             manifest = json.load(f)
     except FileNotFoundError:
-        return [f"{root} has no manifest.json: point data_dir at a dataset in the documented layout (README, "
-                "'Dataset layout')"]
+        return [f"{root} has no manifest.json: point data_dir at a dataset in the documented layout "
+                "(docs/data.md)"]
     except ValueError as err:
         return [f"{path}: not JSON ({err})"]
     if not isinstance(manifest, dict) or not isinstance(manifest.get("frames"), list) or not manifest["frames"]:
