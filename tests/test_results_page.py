@@ -40,3 +40,10 @@ def test_readme_is_short_and_quotes_no_result():
     assert "results/cpu/README.md" in readme
     top = "\n".join(readme.splitlines()[:20])
     assert "make run" in top and "make test" in top                       # the two commands first
+
+
+def test_docs_tell_no_result_and_no_dated_history():
+    for page in (ROOT / "docs").glob("*.md"):
+        text = re.sub(r"\[[^\]]*\]\([^)]*\)", "", page.read_text())
+        assert not re.findall(r"\d\s*dB\b", text), f"{page.name}: a result typed by hand"
+        assert not re.findall(r"\b20\d\d-\d\d-\d\d\b", text), f"{page.name}: dated history"
