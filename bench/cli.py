@@ -226,18 +226,21 @@ def resolve_device(device: str) -> str:
 def run_all(tables: list[str], overrides: list[str], summary_dir: Path) -> None:
     """Run each experiment in `tables` with the command line's other overrides, one after the other;
     write each one's wall time and recorded compute to `<summary_dir>/table.{csv,md,tex}`, and a last row
-    that counts every run once. Runs shared between tables are trained once (the run store), so a
-    restarted `all` continues where it stopped."""
+    that counts every run once; then rewrite the results page `<results_dir>/README.md` from the tables.
+    Runs shared between tables are trained once (the run store), so a restarted `all` continues where it
+    stopped."""
     import pandas as pd
     from hydra import compose
+    from bench.experiments import results_page
     from bench.table_writer import write_table
-    rows, every_run = [], {}
+    rows, every_run, preset = [], {}, None
     for name in tables:
         if name not in available_experiments() or name == "all":
             raise UserError(f"experiment.tables: unknown experiment {name!r}")
         t0 = time.perf_counter()
         cfg = compose(config_name="config", overrides=overrides + [f"+experiment={name}"])
         run_experiment(cfg)
+        preset = cfg.preset.name
         archives = (cfg.runs_archive,) if cfg.get("runs_archive") else ()
         summary, minutes = table_summary(Path(cfg.results_dir) / name, cfg.runs_dir, archives)
         every_run.update(minutes)
@@ -255,6 +258,8 @@ def run_all(tables: list[str], overrides: list[str], summary_dir: Path) -> None:
                             "trainings from both). 'order as "
                             "paper': pairs of rows whose order by that metric is the paper's, of the pairs both "
                             "have. this invocation: wall time of this command, ~0 for reused runs.")
+    if preset is not None:
+        log.info("results page: %s", results_page.write(summary_dir.parent, preset))
 
 
 def compute_columns(minutes: dict[str, float | None]) -> dict:

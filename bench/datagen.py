@@ -243,8 +243,8 @@ def manifest_problems(root, shown=8):
         with open(path) as f:
             manifest = json.load(f)
     except FileNotFoundError:
-        return [f"{root} has no manifest.json: point data_dir at a dataset in the documented layout (README, "
-                "'Dataset layout')"]
+        return [f"{root} has no manifest.json: point data_dir at a dataset in the documented layout "
+                "(docs/data.md)"]
     except ValueError as err:
         return [f"{path}: not JSON ({err}): damaged; restore it from your copy of the dataset or write it again "
                 "(README, 'Dataset layout'); with render_data=false the suite never rewrites your files"]

@@ -328,6 +328,8 @@ def test_claim_verdicts_pair_seeds_and_sequences_with_holm_and_scene_robustness(
                                              "X beats B": "within noise", "both": "reversed"}
     # the earlier test (2SE over seeds from the std columns, 0.16 here) calls X's +0.02 dB within noise too
     assert by_claim.loc["X beats B", "verdict (2SE)"] == "within noise"
+    page = (ctx.results_dir / "README.md").read_text()     # the results page, rewritten from the tables
+    assert "| A beats B | **holds** |" in page and "[`" in page and "t/table.csv" in page
     assert by_claim.loc["X beats B", "rests on"] == "x -> holds" and by_claim.loc["A beats B", "rests on"] == "-"
     ab = by_claim.loc["A beats B"]
     assert ab["PSNR diff"] == pytest.approx(1.0, abs=0.02) and ab["PSNR low"] < 1.0 < ab["PSNR high"]

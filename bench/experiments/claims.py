@@ -18,7 +18,8 @@ differences and the variance components are in the CSV only.
 The rows are read from the tables' CSVs (views of the run store) and their evaluation runs: run the
 tables first (`+experiment=all`, then `+experiment=claims`). A claim with a row that no recorded table has (its
 table not run, or run before the row was added) is listed as "not run", with the command that records
-it; the others are still judged. Writes `<results_dir>/claims/table.{csv,md,tex}`.
+it; the others are still judged. Writes `<results_dir>/claims/table.{csv,md,tex}`, then rewrites the results
+page `<results_dir>/README.md` from the tables (bench/experiments/results_page.py).
 """
 from __future__ import annotations
 
@@ -31,6 +32,7 @@ import pandas as pd
 
 from bench import runs, stats
 from bench.errors import UserError
+from bench.experiments import results_page
 from bench.experiments.pipeline import Context
 from bench.table_writer import write_table
 
@@ -322,4 +324,5 @@ def run(ctx: Context, name: str, claims: list[dict], metric: str, tables: list[s
     table.to_csv(paths["csv"], index=False)   # the CSV keeps the per-family differences and components
     log.info("%s: %d comparisons, %s", name, len(table),
              ", ".join(f"{c}: {v}" for c, v in table.drop_duplicates("claim")[["claim", "verdict"]].values))
+    log.info("results page: %s", results_page.write(ctx.results_dir, ctx.preset))
     return table

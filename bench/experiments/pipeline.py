@@ -98,7 +98,7 @@ class Context:
 def model_config(ctx: Context, name: str, overrides: dict | None = None) -> dict:
     if name not in ctx.models:
         raise UserError(f"unknown model {name!r}; known models: {', '.join(sorted(ctx.models))} "
-                        f"(add one as conf/model/<name>.yaml, see README)")
+                        f"(add one as conf/model/<name>.yaml, see README, 'Adding a model')")
     cfg = copy.deepcopy(ctx.models[name])
     cfg.update(overrides or {})
     return cfg
@@ -181,7 +181,7 @@ def data_fingerprint(ctx: Context, split: str | None = None) -> str:
     if not path.exists():
         raise UserError(f"data directory {ctx.data_dir} has no manifest.json; render it with "
                         f"`python -m bench +experiment=data preset={ctx.preset}` or point data_dir=... at a "
-                        f"dataset in the documented layout (README, 'Dataset layout')")
+                        f"dataset in the documented layout (docs/data.md)")
     files = None if ctx.render_data else _file_stats(ctx.data_dir, split)
     return _fingerprint(str(path.resolve()), path.stat().st_mtime_ns, split, files)
 
@@ -226,8 +226,8 @@ def ensure_data(ctx: Context, passes: set[str]) -> str:
         problems = manifest_problems(ctx.data_dir)
         if problems:  # one problem (a damaged manifest) on one line
             listed = problems[0] if len(problems) == 1 else "\n  " + "\n  ".join(problems)
-            raise UserError(f"data: {ctx.data_dir} is not a dataset in the documented layout (README, 'Dataset "
-                            f"layout'): {listed}")
+            raise UserError(f"data: {ctx.data_dir} is not a dataset in the documented layout (docs/data.md): "
+                            f"{listed}")
         fingerprint = data_fingerprint(ctx)
         manifest = load_manifest(ctx.data_dir)
         damaged = damaged_frames(ctx.data_dir, manifest["frames"], manifest.get("passes", []), stamps=False)

@@ -1,0 +1,380 @@
+"""The results page, `<results_dir>/README.md`: what the recorded tables say, in words and their numbers.
+
+`page(results_dir, preset)` reads only the tables under `results_dir` (each `table.csv`, and the caption
+at the top of its `table.md`) and returns Markdown: per table what it compares, its rows with their
+numbers, and per claim the verdict, difference, 95% interval and p-value of `claims/table.csv`. Every
+number on the page is copied from a table, and the table's file is named beside it. No run store, no
+config, no clock: the same tables give the same page, so a test regenerates the committed page and
+compares. `+experiment=claims` and `+experiment=all` rewrite it at their end;
+`python -m bench.experiments.results_page results/<preset>` rewrites it by hand.
+"""
+from __future__ import annotations
+
+import math
+import re
+import sys
+from pathlib import Path
+
+import pandas as pd
+
+PAGE = "README.md"
+ROOT = Path(__file__).resolve().parents[2]   # the repository
+
+# (folder, what it compares). The paper's tables, then the controls the claims read, the studies, the tools.
+PAPER_TABLES = [
+    ("sr_denoise", "Table 1: EDSR and RAE on super-resolution alone and on denoising alone."),
+    ("dilation", "Table 2: the dilation rate of the residual blocks' second conv, on SR and on denoising."),
+    ("stage_order", "Table 3: stage order (SR->dn, dn->SR) and coupling (Cascade of stages trained apart, "
+                    "or one End2End network)."),
+    ("deform", "Table 4: deformable convs in one stage (ours), in both stages, and in the CFM baseline."),
+    ("sota", "Table 5: the baselines at a matched compute budget, ours, and OIDN before or after upscaling."),
+    ("ipt", "Table 6: information propagation added one by one to Simple End2End (SR->dn)."),
+    ("deform_num", "Table 7: how many of the denoiser's decoder blocks are deformable."),
+    ("perceptual", "Fig. 11: ours with and without the VGG16 perceptual term."),
+    ("generalization", "Fig. 10: the Table 5 methods on scene families never seen in training."),
+]
+CONTROLS = [
+    ("dilation_crop", "A control for Table 2: its denoising rows at rates 1 and 5, trained on twice the crop."),
+]
+STUDIES = [
+    ("recipe", "What each change of the training recipe buys (the proposed model, one seed)."),
+    ("headroom", "The proposed model with more steps or a larger crop, against OIDN at LR then bilinear."),
+    ("ssim_term", "An SSIM term in the loss, at two weights, at 3x the steps, and on linear radiance."),
+    ("dark_bias", "A dark scene's colour: a linear bilinear base, a relative-MSE term, permuted colour channels."),
+    ("baseline_lr", "EDSR and CFM at the learning rates of the range test without and with the SSIM term."),
+]
+METRICS = [("PSNR", 2), ("SSIM", 3), ("relMSE", 4)]   # (column, decimals), the verdict's metric first
+
+
+def _num(value, digits: int) -> str:
+    """A table's number as the page prints it: `digits` decimals, or two significant digits when that
+    would show none (a small difference or spread)."""
+    if value is None or (isinstance(value, float) and math.isnan(value)):
+        return "-"
+    value = float(value)
+    if math.isinf(value):
+        return "inf" if value > 0 else "-inf"
+    if value != 0 and abs(value) < 10 ** -digits:
+        if abs(value) < 1e-6:
+            return f"{value:.1e}"
+        return f"{value:.{1 - math.floor(math.log10(abs(value)))}f}"
+    return f"{value:.{digits}f}"
+
+
+def _p(value) -> str:
+    if value is None or (isinstance(value, float) and math.isnan(value)):
+        return "-"
+    return f"{float(value):.3f}" if value >= 0.001 else f"{float(value):.1e}"
+
+
+def _link(results_dir: Path, relative: str) -> str:
+    """A table's file, named by its path from the repository's results folder and linked from the page."""
+    return f"[`{results_dir.as_posix().rstrip('/')}/{relative}`]({relative})"
+
+
+def _markdown_table(header: list[str], rows: list[list[str]]) -> list[str]:
+    cells = [[str(c).replace("|", "\\|") for c in row] for row in rows]
+    return (["| " + " | ".join(header) + " |", "|" + "|".join("---" for _ in header) + "|"]
+            + ["| " + " | ".join(row) + " |" for row in cells] + [""])
+
+
+def _caption(path: Path) -> str:
+    """The caption of a table.md (the paragraph before its table), or ''."""
+    if not path.exists():
+        return ""
+    first = path.read_text().split("\n\n", 1)[0]
+    return "" if first.startswith("|") else first.strip()
+
+
+def _recipe(caption: str) -> list[str]:
+    """The caption's sentences on how the rows were made and scored (preset, split, steps, loss, seeds)
+    and on the references, as the table states them."""
+    sentences = re.split(r"(?<=\.) ", caption)
+    said = [s.split("; time_ms")[0].rstrip(".") + "." for s in sentences if s.startswith(("Preset ", "Scale "))]
+    return said + [s for s in sentences if s.startswith("References")]
+
+
+def _seeds(row: pd.Series) -> int:
+    """Distinct evaluations of a row (a deterministic row repeats one per seed)."""
+    return len(set(row["runs"].split())) if isinstance(row.get("runs"), str) else 0
+
+
+def _mean_std(row: pd.Series, column: str, digits: int) -> str:
+    text = _num(row.get(column), digits)
+    std, mean = row.get(f"{column} std"), row.get(column)
+    if std is not None and not pd.isna(std) and float(std) > 1e-9 * max(1.0, abs(float(mean))):
+        text += " ± " + _num(std, digits)
+    return text
+
+
+def _claims(results_dir: Path) -> pd.DataFrame | None:
+    path = results_dir / "claims" / "table.csv"
+    return pd.read_csv(path) if path.exists() else None
+
+
+def _verdict_metric(claims: pd.DataFrame) -> str:
+    holm = [c for c in claims.columns if c.endswith(" p Holm")]
+    return holm[0][: -len(" p Holm")] if holm else "PSNR"
+
+
+def _claims_of(claims: pd.DataFrame | None, table: str) -> list[str]:
+    if claims is None:
+        return []
+    mine = claims[claims["better (paper)"].str.startswith(f"{table}:")
+                  | claims["worse (paper)"].str.startswith(f"{table}:")]
+    return [f"\"{c}\": **{v}**" for c, v in mine.drop_duplicates("claim")[["claim", "verdict"]].values]
+
+
+def metrics_section(results_dir: Path, name: str, what: str, claims: pd.DataFrame | None) -> list[str]:
+    """A metrics table: what it compares, each row's mean (± std over seeds) of PSNR, SSIM and relMSE."""
+    folder = results_dir / name
+    table = pd.read_csv(folder / "table.csv")
+    caption = _caption(folder / "table.md")
+    lines = [f"### {name}", "", what, "",
+             f"Numbers: {_link(results_dir, f'{name}/table.csv')} (mean ± std over seeds; "
+             f"[`table.md`]({name}/table.md) has every column)."]
+    said = _recipe(caption)
+    if said:
+        lines += [f"The table's caption: \"{' '.join(said)}\""]
+    lines.append("")
+    header = ["row", "seeds", *(f"{m} {'(dB) ↑' if m == 'PSNR' else '↑' if m == 'SSIM' else '↓'}" for m, _ in METRICS)]
+    rows = [[r["method"], str(_seeds(r) or "-"), *(_mean_std(r, m, d) for m, d in METRICS)]
+            for _, r in table.iterrows()]
+    lines += _markdown_table(header, rows)
+    verdicts = _claims_of(claims, name)
+    if verdicts:
+        lines += ["Claims on this table (from the claims table below): " + "; ".join(verdicts) + ".", ""]
+    return lines
+
+
+def claims_section(results_dir: Path, claims: pd.DataFrame | None) -> list[str]:
+    lines = ["## The paper's claims", ""]
+    if claims is None:
+        return lines + ["Not judged at this preset: there is no `claims/table.csv` "
+                        "(`python -m bench +experiment=claims`, after the tables).", ""]
+    metric = _verdict_metric(claims)
+    unit = " (dB)" if metric == "PSNR" else ""
+    lines += [f"From {_link(results_dir, 'claims/table.csv')}. Each claim compares rows of the tables; the "
+              f"verdict is taken on {metric}, from the difference per (seed, sequence), with Holm's correction "
+              f"over the table (method: [`docs/claims_statistics.md`](../../docs/claims_statistics.md)). "
+              f"diff: better minus worse as the paper orders them (> 0 supports the claim); interval: 95%; "
+              f"p: Holm-adjusted; 2SE: the earlier verdict, kept to show the change; rests on: the scene "
+              f"families whose leaving out changes the verdict.", ""]
+    header = ["claim", "verdict", "pair (better vs worse)", f"{metric} diff{unit}", "95% interval",
+              "p (Holm)", "pair verdict", "2SE verdict", "rests on"]
+    digits = dict(METRICS).get(metric, 3)
+    rows, seen = [], set()
+    for _, r in claims.iterrows():
+        first = r["claim"] not in seen
+        seen.add(r["claim"])
+        better = str(r["better (paper)"]).partition(":")[2]
+        worse = str(r["worse (paper)"])
+        worse = worse.partition(":")[2] if worse.partition(":")[0] == str(r["better (paper)"]).partition(":")[0] else worse
+        interval = (f"[{_num(r.get(f'{metric} low'), digits)}, {_num(r.get(f'{metric} high'), digits)}]"
+                    if not pd.isna(r.get(f"{metric} low", float("nan"))) else "-")
+        rows.append([r["claim"] if first else "", f"**{r['verdict']}**" if first else "",
+                     f"{better} vs {worse}", _num(r.get(f"{metric} diff"), digits), interval,
+                     _p(r.get(f"{metric} p Holm")), r.get(f"{metric} verdict", "-"),
+                     r.get(f"{metric} 2SE verdict", "-"), r.get(f"{metric} rests on", "-")])
+    lines += _markdown_table(header, rows)
+    counts = claims.drop_duplicates("claim")["verdict"].value_counts()
+    lines += [f"{int(counts.sum())} claims: "
+              + ", ".join(f"{int(n)} {v}" for v, n in counts.items()) + ".", ""]
+    return lines
+
+
+def macs_section(results_dir: Path) -> list[str]:
+    table = pd.read_csv(results_dir / "macs" / "table.csv")
+    lines = ["### macs", "", "The MAC audit: each learned model's multiply-accumulates per 960x540 input frame, "
+             f"counted two ways, at the widths fitted to the preset's budget. Numbers: "
+             f"{_link(results_dir, 'macs/table.csv')}.", ""]
+    rows = [[r["method"], str(r["width"]), str(int(r["params"])), _num(r["GMac (analytic)"], 1),
+             _num(r["budget deviation %"], 1)] for _, r in table.iterrows()]
+    return lines + _markdown_table(["model", "width", "params", "GMac", "off budget (%)"], rows)
+
+
+def time_section(results_dir: Path) -> list[str]:
+    folder = results_dir / "time"
+    lines = ["### time", "", "Error against run time on the machine that ran it: brute-force path tracing "
+             "(PT) against low-sample renders plus each method."]
+    if (folder / "speedup.csv").exists():
+        speed = pd.read_csv(folder / "speedup.csv")
+        lines += [f"Equal quality at 8 spp ({_link(results_dir, 'time/speedup.csv')}): the seconds PT needs to "
+                  "reach the method's error, over the method's seconds.", ""]
+        rows = [[r["method"], r["input"], _num(r["total s"], 3), _num(r["PSNR"], 2),
+                 _num(r["speed-up at equal PSNR"], 1), _num(r["speed-up at equal relMSE"], 1),
+                 _num(r["speed-up at equal SSIM"], 1), str(r.get("extrapolated", "-"))] for _, r in speed.iterrows()]
+        lines += _markdown_table(["method", "input", "s per frame", "PSNR (dB)", "x at equal PSNR",
+                                  "x at equal relMSE", "x at equal SSIM", "extrapolated"], rows)
+    if (folder / "equal_time.csv").exists():
+        equal = pd.read_csv(folder / "equal_time.csv")
+        lines += [f"Equal time ({_link(results_dir, 'time/equal_time.csv')}): each SRD method at LR 8 spp "
+                  "against a denoiser of HR renders given the same seconds.", ""]
+        rows = [[r["SRD method"], r["HR denoiser"], _num(r["SRD PSNR"], 2), _num(r["denoiser PSNR"], 2),
+                 _num(r["PSNR difference (dB)"], 2), str(r.get("extrapolated", "-"))] for _, r in equal.iterrows()]
+        lines += _markdown_table(["SRD method", "HR denoiser", "SRD PSNR", "denoiser PSNR", "difference (dB)",
+                                  "extrapolated"], rows)
+    return lines
+
+
+def stability_section(results_dir: Path) -> list[str]:
+    table = pd.read_csv(results_dir / "stability" / "table.csv")
+    lines = ["### stability", "", "Every model on fireflies, NaN/Inf, broken gBuffers, odd sizes, long "
+             f"sequences, bf16 and extreme offsets. Numbers: {_link(results_dir, 'stability/table.csv')}; "
+             "largest output: the largest |output| (linear radiance) over the cases that ran.", ""]
+    rows = []
+    for model, cases in table.groupby("model", sort=False):
+        status = cases["status"].astype(str)
+        rows.append([model, str(len(cases)), str(int(status.str.startswith("ok").sum())),
+                     str(int(status.str.startswith("error").sum())), str(int(status.str.startswith("FAIL").sum())),
+                     _num(pd.to_numeric(cases["max |output|"], errors="coerce").max(), 1)])
+    return lines + _markdown_table(["model", "cases", "ok", "refused (clear error)", "FAIL", "largest output"], rows)
+
+
+def speed_section(results_dir: Path) -> list[str]:
+    lines = ["### speed", "", "Milliseconds per 960x540 frame (1920x1080 out) and per training step, per "
+             "machine: a speed table describes the machine it ran on. auto: the fast path `fast_path=auto` "
+             "picks there.", ""]
+    for table_path in sorted((results_dir / "speed").glob("*/table.csv")):
+        device = table_path.parent.name
+        table = pd.read_csv(table_path)
+        inference = table[table["section"] == "inference"]
+        steps = table[table["section"] == "training step"]
+        lines += [f"{device}: {_link(results_dir, f'speed/{device}/table.csv')}", ""]
+        rows = []
+        for model, paths in inference.groupby("method", sort=False):
+            fp32 = paths[paths["fast path"] == "fp32"]["ms"]
+            picked = paths[paths["note"].astype(str).str.startswith("fast_path=auto picks")]
+            auto = "-"
+            if not picked.empty:
+                note = str(picked.iloc[0]["note"])
+                chosen = note.split("picks ", 1)[1].split(" of ", 1)[0]
+                chosen = picked.iloc[0]["fast path"] if chosen == "this" else chosen
+                timed = paths[paths["fast path"] == chosen]["ms"]
+                auto = f"{chosen}" + (f" ({_num(timed.iloc[0], 1)})" if not timed.empty else "")
+            step = steps[steps["method"] == model]["ms"]
+            rows.append([model, _num(fp32.iloc[0], 1) if not fp32.empty else "-", auto,
+                         _num(step.iloc[0], 1) if not step.empty else "-"])
+        lines += _markdown_table(["model", "fp32 ms/frame", "auto (ms/frame)", "training step ms"], rows)
+    return lines
+
+
+def data_section(results_dir: Path) -> list[str]:
+    table = pd.read_csv(results_dir / "data" / "table.csv")
+    lines = ["### data", "", "The rendered dataset per split. ref error: a reference's estimated relMSE against "
+             "the converged image, from its two half-sample renders (blank: one render). Numbers: "
+             f"{_link(results_dir, 'data/table.csv')}.", ""]
+    rows = [[r["split"], str(r["sequences"]), str(r["frames"]), str(r["ref spp"]),
+             _num(r.get("hr ref error median"), 4), _num(r.get("hr ref error max"), 4)] for _, r in table.iterrows()]
+    return lines + _markdown_table(["split", "sequences", "frames", "ref spp", "HR ref error median",
+                                    "HR ref error max"], rows)
+
+
+def lr_range_section(results_dir: Path, name: str) -> list[str]:
+    table = pd.read_csv(results_dir / name / "table.csv")
+    lines = [f"### {name}", "", "The learning-rate range test per model: the suggested peak rate is a tenth of "
+             "the rate where the smoothed loss blows up (the test's top rate / 10 when it never does). "
+             f"Numbers: {_link(results_dir, f'{name}/table.csv')}.", ""]
+    rows = [[r["model"], f"{float(r['suggested lr']):.2g}", str(bool(r["diverged"])).lower()]
+            for _, r in table.iterrows()]
+    return lines + _markdown_table(["model", "suggested lr", "diverged"], rows)
+
+
+def all_section(results_dir: Path) -> list[str]:
+    table = pd.read_csv(results_dir / "all" / "table.csv")
+    lines = ["### all", "", "What `+experiment=all` costs: the recorded training and evaluation minutes of each "
+             "table's runs (a run shared by tables counts in each; the last row counts it once). Numbers: "
+             f"{_link(results_dir, 'all/table.csv')}.", ""]
+    rows = [[r["experiment"], _num(r.get("compute (min)"), 0),
+             "-" if pd.isna(r.get("trainings")) else str(int(r["trainings"]))] for _, r in table.iterrows()]
+    return lines + _markdown_table(["experiment", "compute (min)", "trainings"], rows)
+
+
+def adopt_section(results_dir: Path) -> list[str]:
+    table = pd.read_csv(results_dir / "adopt" / "table.csv")
+    verdicts = table["verdict"].astype(str).str.split(" ").str[0].value_counts()
+    return ["### adopt", "", "The last check of stale trainings against the current code (replayed, then "
+            "re-stamped when they reproduce): " + ", ".join(f"{int(n)} {v}" for v, n in verdicts.items())
+            + f" of {len(table)} groups. Numbers: {_link(results_dir, 'adopt/table.csv')}.", ""]
+
+
+TOOLS = {"macs": macs_section, "time": time_section, "stability": stability_section, "data": data_section,
+         "all": all_section, "adopt": adopt_section}
+
+
+def _is_metrics_table(path: Path) -> bool:
+    if not path.exists():
+        return False
+    columns = pd.read_csv(path, nrows=0).columns
+    return "method" in columns and all(m in columns for m, _ in METRICS)
+
+
+def page(results_dir: str | Path, preset: str, shown_as: str | None = None) -> str:
+    """The results page of `results_dir`, from its tables only; `shown_as`: the folder's name on the page
+    (e.g. results/cpu; default: results_dir as given)."""
+    results_dir = Path(results_dir)
+    if shown_as is not None and shown_as != results_dir.as_posix():
+        return page(results_dir, preset).replace(results_dir.as_posix(), shown_as)
+    claims = _claims(results_dir)
+    lines = [f"# Results at preset `{preset}`", "",
+             f"Written by `bench/experiments/results_page.py` from the tables in `{results_dir.as_posix()}/` "
+             f"(`+experiment=claims` and `+experiment=all` rewrite it; by hand: `python -m "
+             f"bench.experiments.results_page {results_dir.as_posix()}`). Every number below is copied from "
+             "the table file named beside it; a test regenerates this page from the committed tables, so it "
+             "cannot drift from them. Do not edit it. Why the preset is what it is: "
+             "[`docs/decisions.md`](../../docs/decisions.md).", ""]
+    known = {n for n, _ in PAPER_TABLES + CONTROLS + STUDIES} | set(TOOLS) | {"claims", "speed", "lr_range",
+                                                                          "lr_range_ssim", "runs"}
+    present = lambda n: _is_metrics_table(results_dir / n / "table.csv")   # noqa: E731
+    paper = [(n, w) for n, w in PAPER_TABLES if present(n)]
+    if claims is None and not paper:
+        lines += [f"No paper table and no claims are recorded at preset `{preset}` yet: the tools' tables "
+                  "below are all this folder holds.", ""]
+    if claims is not None or paper:
+        lines += claims_section(results_dir, claims)
+    groups = [("The paper's tables", paper), ("Controls", [(n, w) for n, w in CONTROLS if present(n)]),
+              ("Studies", [(n, w) for n, w in STUDIES if present(n)]),
+              ("Other tables", [(p.parent.name, _caption(p.parent / "table.md").split(". ")[0] + ".")
+                                for p in sorted(results_dir.glob("*/table.csv"))
+                                if p.parent.name not in known and present(p.parent.name)])]
+    for title, tables in groups:
+        if tables:
+            lines += [f"## {title}", ""]
+            for name, what in tables:
+                lines += metrics_section(results_dir, name, what, claims)
+    tools = [name for name in ("macs", "time", "stability", "speed", "data", "lr_range", "lr_range_ssim",
+                               "all", "adopt")
+             if (results_dir / name).is_dir() and (name == "speed" or (results_dir / name / "table.csv").exists()
+                                                     or (results_dir / name / "speedup.csv").exists())]
+    if tools:
+        lines += ["## Tools", ""]
+        for name in tools:
+            if name == "speed":
+                lines += speed_section(results_dir)
+            elif name.startswith("lr_range"):
+                lines += lr_range_section(results_dir, name)
+            else:
+                lines += TOOLS[name](results_dir)
+    missing = [n for n, _ in PAPER_TABLES if not present(n)]
+    if missing:
+        lines += ["## Not recorded at this preset", "",
+                  ", ".join(f"`{n}`" for n in missing) + f": no table in `{results_dir.as_posix()}/` "
+                  f"(`python -m bench +experiment=NAME preset={preset}` records one).", ""]
+    return "\n".join(lines).rstrip("\n") + "\n"
+
+
+def write(results_dir: str | Path, preset: str, repository: str | Path = ROOT) -> Path:
+    """Write `<results_dir>/README.md`, naming the folder relative to `repository` when inside it."""
+    results_dir = Path(results_dir)
+    try:
+        shown = results_dir.resolve().relative_to(Path(repository).resolve()).as_posix()
+    except ValueError:
+        shown = None
+    path = results_dir / PAGE
+    path.write_text(page(results_dir, preset, shown))
+    return path
+
+
+if __name__ == "__main__":
+    for folder in sys.argv[1:] or ["results/cpu"]:
+        print(write(folder, Path(folder).name))

@@ -1,0 +1,49 @@
+"""The results pages (results/<preset>/README.md) are what bench/experiments/results_page.py makes of the
+committed tables, and README.md stays short and tells no result by hand."""
+import re
+from pathlib import Path
+
+import pandas as pd
+import pytest
+
+from bench.experiments import results_page
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+@pytest.mark.parametrize("preset", ["cpu", "gpu"])
+def test_the_committed_results_page_is_the_one_its_tables_give(preset):
+    folder = ROOT / "results" / preset
+    expected = results_page.page(folder, preset, shown_as=f"results/{preset}")
+    assert (folder / results_page.PAGE).read_text() == expected, (
+        f"results/{preset}/README.md is stale: python -m bench.experiments.results_page results/{preset}")
+
+
+def test_the_page_copies_its_numbers_from_the_tables_and_names_them(tmp_path):
+    table = pd.DataFrame({"method": ["Input bilinear", "Ours"], "PSNR": [31.6856, 36.548], "PSNR std": [0.0, 0.1196],
+                          "SSIM": [0.773, 0.9148], "SSIM std": [0.0, 0.0006], "relMSE": [0.1777, 0.01569],
+                          "relMSE std": [0.0, 0.0009], "runs": ["a a a", "b c d"]})
+    (tmp_path / "sota").mkdir()
+    table.to_csv(tmp_path / "sota" / "table.csv", index=False)
+    text = results_page.page(tmp_path, "mine", shown_as="results/mine")
+    assert "[`results/mine/sota/table.csv`](sota/table.csv)" in text
+    assert "| Ours | 3 | 36.55 ± 0.12 | 0.915 ± 0.00060 | 0.0157 ± 0.0009 |" in text
+    assert "| Input bilinear | 1 | 31.69 | 0.773 | 0.1777 |" in text
+    assert "Not judged at this preset" in text and "`deform`" in text   # no claims; the missing tables named
+
+
+def test_readme_is_short_and_quotes_no_result():
+    readme = (ROOT / "README.md").read_text()
+    assert len(readme.splitlines()) <= 300
+    prose = re.sub(r"\[[^\]]*\]\([^)]*\)", "", readme)          # link texts may name a table's file
+    assert not re.findall(r"\d\s*dB\b", prose), "a result typed by hand: link the results page instead"
+    assert "results/cpu/README.md" in readme
+    top = "\n".join(readme.splitlines()[:20])
+    assert "make run" in top and "make test" in top                       # the two commands first
+
+
+def test_docs_tell_no_result_and_no_dated_history():
+    for page in (ROOT / "docs").glob("*.md"):
+        text = re.sub(r"\[[^\]]*\]\([^)]*\)", "", page.read_text())
+        assert not re.findall(r"\d\s*dB\b", text), f"{page.name}: a result typed by hand"
+        assert not re.findall(r"\b20\d\d-\d\d-\d\d\b", text), f"{page.name}: dated history"
