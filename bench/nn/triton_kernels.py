@@ -54,7 +54,7 @@ def _tap_corners(off_ptr, os_b, os_k, os_y, os_x, b, oy, ox, live, k, KW: tl.con
     dx = tl.load(off_ptr + at + (2 * k + 1) * os_k, mask=live, other=0.0).to(tl.float32)
     py = (oy - pad + ki * dil).to(tl.float32) + dy
     px = (ox - pad + kj * dil).to(tl.float32) + dx
-    hf, wf = H.to(tl.float32), W.to(tl.float32)
+    hf, wf = H * 1.0, W * 1.0  # (not .to(): Triton may pass a size of 1 as a constant)
     # comparisons with NaN are false: a NaN position stays NaN here and in its fractions
     clamped_y = (py < -1.0) | (py > hf)
     clamped_x = (px < -1.0) | (px > wf)
