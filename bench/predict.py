@@ -2,6 +2,8 @@
 
     srd-bench export RUN_HASH --out results/cpu/weights/ours.pt      (or python -m bench.predict export ...)
     srd-bench predict --weights results/cpu/weights/ours.pt --output-dir out/ frame0_lr.exr frame1_lr.exr
+    srd-bench predict --weights results/cpu/weights/ours.pt --output-dir out/ data/cpu/val    (folders)
+    srd-bench score --outputs out/ --data data/cpu --split val --label NAME                (bench.score)
 
 An exported file holds the model's config (its `_target_` and arguments), the upsampling factor, the
 network domain (`hdr`) it was trained in, its evaluation weights (the EMA when the recipe kept one), the
@@ -21,6 +23,8 @@ before anything runs. Non-finite input values are repaired as in every evaluatio
 repair is printed and counted in the output's header (`srd_nonfinite_repaired`); a frame with more than
 `--max-nonfinite` of its pixels non-finite is refused unless `--accept-nonfinite`. Outputs get the
 file mode the umask gives.
+
+`srd-bench score` (bench.score) scores a folder of outputs, these or any method's, against a dataset.
 """
 from __future__ import annotations
 
@@ -34,7 +38,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from bench import exrio, runs
+from bench import exrio, runs, score
 from bench.dataset import DEFAULT_ROUGHNESS, GBUF_SIZES
 from bench.errors import UserError
 from bench.evaluate import predict as predict_batch
@@ -378,11 +382,14 @@ def main(argv: list[str] | None = None) -> int:
                     help=f"largest share of a frame's pixels that may be NaN/Inf and be repaired (default {MAX_NONFINITE})")
     pr.add_argument("--accept-nonfinite", action="store_true", help="repair any share of non-finite pixels")
     pr.add_argument("inputs", nargs="+", help="LR frames (*_lr.exr) and folders of them: each folder one sequence")
+    score.add_parser(commands)
     args = parser.parse_args(argv)
     try:
         if args.command == "export":
             print(export(args.run, args.out, args.runs_dir))
             return 0
+        if args.command == "score":
+            return score.run(args)
         check_fast_path(args.fast_path, args.tile)
         model, meta = load_exported(args.weights) if args.weights else from_run(args.run, args.runs_dir)
         limit = None if args.accept_nonfinite else args.max_nonfinite
