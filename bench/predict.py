@@ -2,6 +2,8 @@
 
     srd-bench export RUN_HASH --out results/cpu/weights/ours.pt      (or python -m bench.predict export ...)
     srd-bench predict --weights results/cpu/weights/ours.pt --output-dir out/ frame0_lr.exr frame1_lr.exr
+    srd-bench predict --weights results/cpu/weights/ours.pt --output-dir out/ data/cpu/val    (folders)
+    srd-bench score --outputs out/ --data data/cpu --split val --label NAME                (bench.score)
 
 An exported file holds the model's config (its `_target_` and arguments), the upsampling factor, the
 network domain (`hdr`) it was trained in, its evaluation weights (the EMA when the recipe kept one), the
@@ -9,10 +11,20 @@ training run's identity, metrics and code fingerprint. A JSON beside it repeats 
 adds the file's sha256, which `predict` checks.
 
 `predict` reads each input EXR's layers `noisy` (LR radiance), `albedo`, `normal` and `roughness` (the
-dataset layout's `*_lr.exr`; roughness may be left out: 1.0), treats the inputs as one sequence in the
-order given (a recurrent model keeps its state from frame to frame) and writes `<name>_hr.exr` with the
-layer `output` (linear HDR radiance at the model's scale). Non-finite input values are repaired as in
-every evaluation (bench.sanitize) and counted in the output's header (`srd_nonfinite_repaired`).
+dataset layout's `*_lr.exr`; roughness may be left out: 1.0). An input is a file or a folder: each folder
+holding `*_lr.exr` files (the folder given or any folder below it) is one sequence, its frames in name
+order; files given one by one form one sequence per folder they lie in, in the order given. A recurrent
+model keeps its state from frame to frame within a sequence and starts afresh at the next one. Each
+frame gives `<name>_hr.exr` with the layer `output` (linear HDR radiance at the model's scale), under
+--output-dir at the frame's place in the input tree (relative to the folder given; files given one by
+one, relative to the folder their folders share). Two frames that would write one file, or an output that
+would replace a file that is not a predict output (a dataset's `*_hr.exr` references), stop the command
+before anything runs. Non-finite input values are repaired as in every evaluation (bench.sanitize): each
+repair is printed and counted in the output's header (`srd_nonfinite_repaired`); a frame with more than
+`--max-nonfinite` of its pixels non-finite is refused unless `--accept-nonfinite`. Outputs get the
+file mode the umask gives.
+
+`srd-bench score` (bench.score) scores a folder of outputs, these or any method's, against a dataset.
 """
 from __future__ import annotations
 
@@ -26,12 +38,12 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from bench import exrio, runs
+from bench import exrio, runs, score
 from bench.dataset import DEFAULT_ROUGHNESS, GBUF_SIZES
 from bench.errors import UserError
 from bench.evaluate import predict as predict_batch
 from bench.evaluate import runner
-from bench.infer import REFERENCE
+from bench.infer import REFERENCE, parse_path
 from bench.measure import AUTO, choose_fast_path
 from bench.experiments.pipeline import build_model
 from bench.tasks import GBUF_LAYERS, get_task
@@ -90,24 +102,59 @@ def export(run_hash: str, out: str | Path, runs_dir: str | Path = "runs") -> Pat
     return out
 
 
+def _one_line(err: BaseException) -> str:
+    """An exception's message on one line (torch's load_state_dict errors span many)."""
+    text = " ".join(str(err).split())
+    return text if len(text) <= 300 else text[:297] + "..."
+
+
+def _model_with(cfg: dict, scale: int, state_dict, source) -> torch.nn.Module:
+    """The model `cfg` builds with `state_dict` loaded: a config that does not build or weights of
+    another model are one UserError naming `source`."""
+    try:
+        model = build_model(cfg, scale)
+    except Exception as err:  # hydra wraps whatever the constructor raised
+        target = cfg.get("_target_") if isinstance(cfg, dict) else repr(cfg)
+        raise UserError(f"{source}: its model config ({target}) does not build: {_one_line(err)}") from err
+    try:
+        model.load_state_dict(state_dict)
+    except (RuntimeError, TypeError, KeyError, AttributeError) as err:
+        raise UserError(f"{source}: its weights are not those of its model {cfg.get('_target_')} "
+                        f"({_one_line(err)})") from err
+    return model
+
+
+def _torch_load(path: Path, what: str):
+    """torch.load of a file the user gave or a run holds; a damaged one (truncated, not a torch file) is
+    one UserError."""
+    try:
+        return torch.load(path, map_location="cpu", weights_only=False)
+    except Exception as err:
+        raise UserError(f"{path}: {what} does not load (truncated or damaged: {_one_line(err)}); "
+                        "export it again") from err
+
+
 def load_exported(path: str | Path):
     """(model in eval mode, metadata) from an exported weights file; its sha256 is checked against the
     JSON beside it when there is one."""
     path = Path(path)
-    if not path.exists():
+    if not path.is_file():
         raise UserError(f"weights file {path} does not exist")
     sidecar = path.with_suffix(path.suffix + ".json")
     if sidecar.exists():
-        expected = json.loads(sidecar.read_text()).get("sha256")
+        recorded = runs.read_json_or_none(sidecar)
+        if recorded is None:
+            raise UserError(f"{sidecar} is damaged (not a JSON object): export the weights again, or remove it "
+                            "to load the weights without their sha256 check")
+        expected = recorded.get("sha256")
         actual = hashlib.sha256(path.read_bytes()).hexdigest()
         if expected and expected != actual:
             raise UserError(f"{path}: sha256 {actual[:16]}... does not match {sidecar.name} ({expected[:16]}...): "
                             "the file is damaged or not the one exported")
-    saved = torch.load(path, map_location="cpu", weights_only=False)
+    saved = _torch_load(path, "the weights file")
     if not isinstance(saved, dict) or saved.get("format") != FORMAT:
         raise UserError(f"{path} is not an SRD-Bench weights file (write one with `srd-bench export RUN`)")
-    model = build_model(saved["model"], saved["scale"])
-    model.load_state_dict(saved["state_dict"])
+    model = _model_with(saved["model"], saved["scale"], saved["state_dict"], path)
     return model.eval(), {k: v for k, v in saved.items() if k != "state_dict"}
 
 
@@ -116,7 +163,11 @@ def from_run(run_hash: str, runs_dir: str | Path = "runs"):
     path = training_record(run_hash, runs_dir)
     identity = json.loads(path.read_text())["identity"]
     task = get_task(identity["task"])
-    model = load_weights(build_model(identity["model"], task.scale), path.parent)
+    checkpoint = path.parent / CHECKPOINT
+    if not checkpoint.exists():
+        raise UserError(f"training run {run_hash} has no weights in {path.parent}")
+    state = _torch_load(checkpoint, "the run's checkpoint")
+    model = _model_with(identity["model"], task.scale, state.get("ema") or state["model"], checkpoint)
     return model.eval(), {"model": identity["model"], "task": task.name, "scale": task.scale,
                           "hdr": identity["train"]["hdr"], "run": run_hash}
 
@@ -147,70 +198,202 @@ def read_frame(path: str | Path) -> tuple[torch.Tensor, torch.Tensor]:
     return to_tensor(images["noisy"]), to_tensor(np.concatenate(planes, -1))
 
 
-def apply(model, meta: dict, inputs: list, output_dir: str | Path, tile: int | None = None,
-          fast_path: str = REFERENCE) -> list[Path]:
-    """Run `model` on the frames `inputs` (one sequence, in order) and write one HR EXR per frame.
-    `fast_path`: a path of bench.infer, or "auto" (the fastest correct one here, bench.measure, its
-    choice cached in `fast_path_cache()`)."""
+MAX_NONFINITE = 0.01  # share of a frame's pixels that may be non-finite (any channel) and be repaired
+
+
+def output_name(frame: Path) -> str:
+    """`0000_lr.exr` -> `0000_hr.exr` (any other name: `<stem>_hr.exr`)."""
+    return frame.name.removesuffix(".exr").removesuffix("_lr") + "_hr.exr"
+
+
+def _lr_frames(folder: Path) -> dict[Path, list[Path]]:
+    """Each folder at or below `folder` that holds `*_lr.exr` files -> those files in name order."""
+    found: dict[Path, list[Path]] = {}
+    for frame in sorted(folder.rglob("*_lr.exr")):
+        if frame.is_file():
+            found.setdefault(frame.parent, []).append(frame)
+    if not found:
+        raise UserError(f"{folder}: no *_lr.exr frames in it or below it")
+    return dict(sorted(found.items()))
+
+
+def plan(inputs: list, output_dir: str | Path) -> list[tuple[list[Path], list[Path]]]:
+    """The sequences to run, [(frames, output files)], in order (see the module docstring). Raises a
+    UserError, before anything runs, for a missing input, two frames writing one file, or an output
+    that would replace a file other than an earlier output of predict."""
     if not inputs:
         raise UserError("no input frames given")
-    frames = [read_frame(p) for p in inputs]
-    sizes = {tuple(x.shape[1:]) for x, _ in frames}
-    if len(sizes) > 1:
-        raise UserError(f"the input frames are one sequence and must share one size; got {sorted(sizes)}")
-    x = torch.stack([f[0] for f in frames])[None]     # (1, T, 3, h, w)
-    g = torch.stack([f[1] for f in frames])[None]
-    repaired = [int((~torch.isfinite(f[0])).sum() + (~torch.isfinite(f[1])).sum()) for f in frames]
-    if fast_path == AUTO:
-        first = (x, g) if getattr(model, "recurrent", False) else (x[:, :1], g[:, :1])
-        fast_path, times = choose_fast_path(model, *first, "cpu", fast_path_cache(), {"model": meta["model"]})
-        print(f"fast path: {fast_path} " + " ".join(f"({k} {v:.0f} ms)" if isinstance(v, float) else f"({k}: {v})"
-                                                    for k, v in times.items()), file=sys.stderr)
-    forward = runner(model, path=fast_path, tile=tile)
-    with torch.no_grad():
-        if getattr(model, "recurrent", False):
-            out = predict_batch(model, x, g, meta["hdr"], forward=forward)
-        else:  # frame by frame: bounded memory, same result
-            out = torch.cat([predict_batch(model, x[:, t:t + 1], g[:, t:t + 1], meta["hdr"], forward=forward)
-                             for t in range(x.shape[1])], 1)
     output_dir = Path(output_dir)
-    output_dir.mkdir(parents=True, exist_ok=True)
-    written = []
-    for t, source in enumerate(inputs):
-        target = output_dir / (Path(source).name.removesuffix(".exr").removesuffix("_lr") + "_hr.exr")
-        exrio.write_exr(target, {"output": out[0, t].permute(1, 2, 0).numpy().astype(np.float32)},
-                        attributes={"srd_weights": str(meta.get("run")), "srd_nonfinite_repaired": str(repaired[t]),
-                                    "srd_model": meta["model"]["_target_"]})
-        written.append(target)
+    sequences, files = [], {}
+    for given in map(Path, inputs):
+        if given.is_dir():
+            sequences += [(frames, [output_dir / folder.relative_to(given) / output_name(f) for f in frames])
+                          for folder, frames in _lr_frames(given).items()]
+        elif given.is_file():
+            files.setdefault(given.parent, []).append(given)
+        else:
+            raise UserError(f"input {given} does not exist (give *_lr.exr files or folders of them)")
+    if files:
+        root = Path(os.path.commonpath([str(folder.resolve()) for folder in files]))
+        sequences += [(frames, [output_dir / folder.resolve().relative_to(root) / output_name(f) for f in frames])
+                      for folder, frames in files.items()]
+    writers: dict[Path, Path] = {}
+    inputs_resolved = {f.resolve() for frames, _ in sequences for f in frames}
+    for frames, targets in sequences:
+        for frame, target in zip(frames, targets):
+            key = target.resolve()
+            if key in writers:
+                raise UserError(f"{writers[key]} and {frame} would both write {target}: give their folders "
+                                "(each folder one sequence, its outputs in its own folder) or rename one")
+            if key in inputs_resolved:
+                raise UserError(f"{frame} would write its output over the input {target}: choose another --output-dir")
+            if target.exists() and exrio.exr_layers(target) != ["output"]:
+                raise UserError(f"{frame} would write {target}, which exists and is not an output of predict "
+                                f"(its layers: {exrio.exr_layers(target)}): choose another --output-dir")
+            writers[key] = frame
+    return sequences
+
+
+def nonfinite(x: torch.Tensor, g: torch.Tensor) -> tuple[int, float]:
+    """(non-finite values, share of pixels with at least one) of one frame's radiance and gBuffer."""
+    bad = torch.cat([~torch.isfinite(x), ~torch.isfinite(g)])
+    return int(bad.sum()), float(bad.any(0).float().mean())
+
+
+def read_sequence(frames: list[Path], max_nonfinite: float | None) -> list[tuple[torch.Tensor, torch.Tensor]]:
+    """The frames of one sequence; one size for all, and no frame with more than `max_nonfinite` of its
+    pixels non-finite (None: any share is repaired)."""
+    read = [read_frame(f) for f in frames]
+    sizes = {tuple(x.shape[1:]) for x, _ in read}
+    if len(sizes) > 1:
+        raise UserError(f"the frames of one sequence must share one size; {frames[0].parent} has {sorted(sizes)}")
+    for frame, (x, g) in zip(frames, read):
+        share = nonfinite(x, g)[1]
+        if max_nonfinite is not None and share > max_nonfinite:
+            raise UserError(f"{frame}: {share:.1%} of its pixels are non-finite (NaN or Inf), over the "
+                            f"{max_nonfinite:.1%} predict repairs; fix the frame, or repair them anyway with "
+                            "--accept-nonfinite")
+    return read
+
+
+def file_mode() -> int:
+    """The mode a new file gets under this process's umask (0666 minus it)."""
+    mask = os.umask(0)
+    os.umask(mask)
+    return 0o666 & ~mask
+
+
+def apply(model, meta: dict, inputs: list, output_dir: str | Path, tile: int | None = None,
+          fast_path: str = REFERENCE, max_nonfinite: float | None = MAX_NONFINITE) -> list[Path]:
+    """Run `model` on the frames and folders `inputs` (see the module docstring: sequences, output
+    names) and write one HR EXR per frame. Every input is read and checked before the first output is
+    written. `fast_path`: a path of bench.infer, or "auto" (the fastest correct one here, bench.measure,
+    its choice cached in `fast_path_cache()`)."""
+    sequences = plan(inputs, output_dir)
+    for frames, _ in sequences:
+        read_sequence(frames, max_nonfinite)
+    recurrent, mode, written, forward = getattr(model, "recurrent", False), file_mode(), [], None
+    for frames, targets in sequences:
+        read = read_sequence(frames, max_nonfinite)
+        x = torch.stack([f[0] for f in read])[None]     # (1, T, 3, h, w)
+        g = torch.stack([f[1] for f in read])[None]
+        if forward is None:
+            if fast_path == AUTO:
+                first = (x, g) if recurrent else (x[:, :1], g[:, :1])
+                fast_path, times = choose_fast_path(model, *first, "cpu", fast_path_cache(), {"model": meta["model"]})
+                print(f"fast path: {fast_path} " + " ".join(f"({k} {v:.0f} ms)" if isinstance(v, float) else f"({k}: {v})"
+                                                            for k, v in times.items()), file=sys.stderr)
+            forward = runner(model, path=fast_path, tile=tile) or model
+        with torch.no_grad():  # one call per sequence: a recurrent model's state starts afresh
+            if recurrent:
+                out = predict_batch(model, x, g, meta["hdr"], forward=forward)
+            else:  # frame by frame: bounded memory, same result
+                out = torch.cat([predict_batch(model, x[:, t:t + 1], g[:, t:t + 1], meta["hdr"], forward=forward)
+                                 for t in range(x.shape[1])], 1)
+        for t, (source, target) in enumerate(zip(frames, targets)):
+            repaired, share = nonfinite(*read[t])
+            if repaired:
+                print(f"{source}: repaired {repaired} non-finite input values ({share:.2%} of its pixels) "
+                      "as every evaluation does (bench.sanitize)", file=sys.stderr)
+            exrio.write_exr(target, {"output": out[0, t].permute(1, 2, 0).numpy().astype(np.float32)},
+                            attributes={"srd_weights": str(meta.get("run")), "srd_nonfinite_repaired": str(repaired),
+                                        "srd_model": meta["model"]["_target_"]})
+            os.chmod(target, mode)   # exrio writes through a private temporary file (0600)
+            written.append(target)
     return written
 
 
 # ---------------------------------------------------------------- command line
 
+class _Parser(argparse.ArgumentParser):
+    """A bad argument is one line (and exit 2), like every other mistake predict reports."""
+
+    def error(self, message):
+        self.exit(2, f"error: {self.prog}: {message} (see {self.prog} --help)\n")
+
+
+def positive_int(text: str) -> int:
+    value = int(text) if text.lstrip("+").isdigit() else 0
+    if value <= 0:
+        raise argparse.ArgumentTypeError(f"{text!r} is not a positive number of pixels")
+    return value
+
+
+def share(text: str) -> float:
+    try:
+        value = float(text)
+    except ValueError:
+        value = -1.0
+    if not 0 <= value <= 1:
+        raise argparse.ArgumentTypeError(f"{text!r} is not a share between 0 and 1")
+    return value
+
+
+def check_fast_path(fast_path: str, tile: int | None) -> None:
+    if fast_path == AUTO:
+        return
+    try:
+        path = parse_path(fast_path)
+    except ValueError as err:
+        raise UserError(f"--fast-path: {err}") from err
+    if tile and path.compile:
+        raise UserError(f"--fast-path {fast_path} compiles the model, which --tile does not support "
+                        "(border tiles change shape); leave one out")
+
+
 def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(prog="srd-bench", description=__doc__.split("\n")[0])
+    parser = _Parser(prog="srd-bench", description=__doc__.split("\n")[0])
     commands = parser.add_subparsers(dest="command", required=True)
     ex = commands.add_parser("export", help="write a recorded training run's weights to a file")
     ex.add_argument("run", help="training run hash (runs/train/<hash>)")
     ex.add_argument("--out", required=True, help="weights file to write (.pt); a .json lands beside it")
     ex.add_argument("--runs-dir", default="runs")
-    pr = commands.add_parser("predict", help="apply trained weights to LR EXR frames")
+    pr = commands.add_parser("predict", help="apply trained weights to LR EXR frames and folders of them")
     source = pr.add_mutually_exclusive_group(required=True)
     source.add_argument("--weights", help="an exported weights file")
     source.add_argument("--run", help="a recorded training run hash")
     pr.add_argument("--runs-dir", default="runs")
-    pr.add_argument("--output-dir", required=True)
-    pr.add_argument("--tile", type=int, default=None, help="LR pixels per tile (bounded memory on large frames)")
+    pr.add_argument("--output-dir", required=True, help="outputs go here, at their frames' places in the input tree")
+    pr.add_argument("--tile", type=positive_int, default=None,
+                    help="LR pixels per tile (bounded memory on large frames)")
     pr.add_argument("--fast-path", default=AUTO, help="fp32, a bench.infer path (channels_last, bf16, ...) or auto "
                                                       "(default: the fastest correct one on this machine, measured once)")
-    pr.add_argument("inputs", nargs="+", help="LR frames (*_lr.exr), one sequence in order")
+    pr.add_argument("--max-nonfinite", type=share, default=MAX_NONFINITE,
+                    help=f"largest share of a frame's pixels that may be NaN/Inf and be repaired (default {MAX_NONFINITE})")
+    pr.add_argument("--accept-nonfinite", action="store_true", help="repair any share of non-finite pixels")
+    pr.add_argument("inputs", nargs="+", help="LR frames (*_lr.exr) and folders of them: each folder one sequence")
+    score.add_parser(commands)
     args = parser.parse_args(argv)
     try:
         if args.command == "export":
             print(export(args.run, args.out, args.runs_dir))
             return 0
+        if args.command == "score":
+            return score.run(args)
+        check_fast_path(args.fast_path, args.tile)
         model, meta = load_exported(args.weights) if args.weights else from_run(args.run, args.runs_dir)
-        for path in apply(model, meta, args.inputs, args.output_dir, args.tile, args.fast_path):
+        limit = None if args.accept_nonfinite else args.max_nonfinite
+        for path in apply(model, meta, args.inputs, args.output_dir, args.tile, args.fast_path, limit):
             print(path)
         return 0
     except (UserError, exrio.ExrError) as err:
