@@ -42,9 +42,12 @@ tag=$("$PYTHON" -c "from bench.experiments.speed import device_tag; print(device
     || { echo "gpu_job: bench does not import (missing packages? carry them as wheels)"; exit 1; }
 echo "gpu_job: $(date -u +%FT%TZ) on $tag, steps: $STEPS"
 tests_record=results/gpu/cuda_tests/$tag.txt
+# the record counts for these kernels only: a change to them is tested again before they are used
+kernels=$(cat bench/nn/triton_kernels.py bench/nn/fused.py bench/nn/deform.py bench/nn/cfm.py | sha256sum | cut -c1-16)
+tests_passed() { grep -q "^passed" "$tests_record" 2>/dev/null && grep -q "^kernels: $kernels" "$tests_record"; }
 
 step_tests() {
-    if grep -q "^passed" "$tests_record" 2>/dev/null; then echo "gpu_job: tests already passed ($tests_record)"; return; fi
+    if tests_passed; then echo "gpu_job: tests already passed with these kernels ($tests_record)"; return; fi
     mkdir -p "$(dirname "$tests_record")"
     local log=/tmp/cuda_tests.log
     SRD_BENCH_FUSED_GPU=1 timeout "$STEP_S" "$PYTHON" -m pytest -q -p no:cacheprovider tests/test_cuda.py \
@@ -54,6 +57,7 @@ step_tests() {
     gpu=$("$PYTHON" -c "import torch; print(torch.cuda.get_device_name() if torch.cuda.is_available() else '')")
     [ -n "$gpu" ] || rc="no CUDA GPU: the CUDA tests skipped"   # never a "passed" without a GPU
     { [ "$rc" = 0 ] && echo passed || echo "failed ($rc)"
+      echo "kernels: $kernels"
       echo "command: SRD_BENCH_FUSED_GPU=1 pytest -q tests/test_cuda.py tests/test_fused_gpu.py"
       echo "date: $(date -u +%FT%TZ)"
       "$PYTHON" -c "import torch, triton; print('torch', torch.__version__, 'triton', triton.__version__, '$gpu')"
@@ -64,7 +68,7 @@ step_tests() {
 step_speed() {
     if [ -f "results/gpu/speed/$tag/table.md" ]; then echo "gpu_job: speed table already there"; return; fi
     local fused=0
-    grep -q "^passed" "$tests_record" 2>/dev/null && fused=1
+    tests_passed && fused=1
     echo "gpu_job: speed with SRD_BENCH_FUSED_GPU=$fused"
     SRD_BENCH_FUSED_GPU=$fused timeout "$STEP_S" "$PYTHON" -m bench +experiment=speed preset="$PRESET" device="$DEVICE" \
         experiment.oidn=false
@@ -74,7 +78,7 @@ step_sota() {
     if [ -f "results/gpu/sota/table.md" ]; then echo "gpu_job: sota table already there"; return; fi
     "$PYTHON" -c "import mitsuba" 2>/dev/null || { echo "gpu_job: no mitsuba here (carry .whl-render): sota skipped"; return; }
     local fused=0
-    grep -q "^passed" "$tests_record" 2>/dev/null && fused=1
+    tests_passed && fused=1
     # SIGTERM at the limit: the trainer checkpoints and stops; the next call resumes it
     SRD_BENCH_FUSED_GPU=$fused timeout "$STEP_S" "$PYTHON" -m bench +experiment=sota preset="$PRESET" \
         device="$DEVICE" $SOTA_ARGS

@@ -157,7 +157,7 @@ def _run_deform(t, dtype=torch.float32, grad_out=None):
     leaves = {k: v.clone().requires_grad_() for k, v in t.items()}
     with torch.autocast("cuda", dtype=torch.bfloat16, enabled=dtype == torch.bfloat16):
         out = deform_conv2d(leaves["x"], leaves["offset"], leaves["weight"], leaves["bias"], 1, 1, leaves["mask"])
-    out.float().backward(grad_out if grad_out is not None else torch.ones_like(out, dtype=torch.float32))
+    out.backward(grad_out.to(out.dtype) if grad_out is not None else torch.ones_like(out))
     return out.detach().float(), {k: v.grad.float() for k, v in leaves.items()}
 
 
@@ -180,23 +180,44 @@ def test_fused_deform_matches_the_pytorch_sampler_at_size(shape):
         assert _relative(grads[name], ref_grads[name]) < 1e-5, name
 
 
-def test_fused_deform_bf16_is_within_bf16_rounding_of_fp32():
-    """bf16 autocast: operands rounded to 8 bits, sums in float32: within 1e-2 (relative L2) of fp32."""
+def test_fused_deform_bf16_matches_float64_on_the_same_rounded_operands():
+    """bf16 autocast: x, weight and (as autocast makes them) offsets and mask in bf16, sums in float32.
+    Against float64 on the very same bf16-rounded values the forward differs by float32 sums and the one
+    rounding of the sampled tile to bf16 before its dot (about 2^-9): relative L2 under 5e-3; the
+    gradients, which round grad_out and the samples too, under 1e-2."""
     t = _deform_inputs(2, 32, 45, 64, 32, seed=2)
+    t = {k: v.to(torch.bfloat16) for k, v in t.items()}   # the operands as bf16 autocast sees them
+    grad_out = torch.randn(2, 32, 45, 64, generator=torch.Generator().manual_seed(3)).cuda()
     with fused.forced():
-        ref, ref_grads = _run_deform(t)
-        out, grads = _run_deform(t, torch.bfloat16)
-    assert _relative(out, ref) < 1e-2
-    for name in ("x", "offset", "weight", "mask"):
-        assert _relative(grads[name], ref_grads[name]) < 2e-2, name
+        out, grads = _run_deform(t, torch.bfloat16, grad_out)
+    with fused.forced(False):
+        ref, ref_grads = _run_deform({k: v.double() for k, v in t.items()}, torch.float64, grad_out.double())
+    assert _relative(out, ref) < 5e-3
+    for name in ("x", "offset", "weight", "mask", "bias"):
+        assert _relative(grads[name], ref_grads[name]) < 1e-2, name
 
 
-def test_fused_deform_input_gradient_scatter_is_race_free():
-    """Zero offsets send every input pixel's gradient from 9 taps of 9 programs' pixels, all by atomics;
-    then offsets that pull every sample onto a few pixels: repeated runs agree to float reordering and
-    with the float64 sampler (a lost update would show as a difference of a whole term)."""
+def test_fused_deform_tf32_where_cudnn_allows_it():
+    """With TF32 convs allowed (PyTorch's default for cuDNN) the fused fp32 path takes TF32 dots:
+    within TF32 rounding (relative L2 under 5e-3) of float64."""
+    t = _deform_inputs(1, 32, 40, 52, 32, seed=4)
+    torch.backends.cudnn.allow_tf32 = True   # the exact_fp32 fixture restores it
+    with fused.forced():
+        out, _ = _run_deform(t)
+    with fused.forced(False):
+        ref, _ = _run_deform({k: v.double() for k, v in t.items()}, torch.float64)
+    assert _relative(out, ref) < 5e-3
+
+
+@pytest.mark.parametrize("channels", [32, 96])
+def test_fused_deform_gradients_repeat_and_agree_with_float64(channels):
+    """Zero offsets send every input pixel's gradient from 9 taps of 9 programs' pixels by atomics; then
+    offsets pull every sample between a few pixels (about 10^5 adds each). Atomics lose no update but add
+    in another order each run: grad x agrees across runs and with float64 to float32 reordering (5e-5).
+    The offset, mask and weight gradients are written without atomics (96 channels: in two channel
+    blocks, read-modify-write): bit-identical across runs."""
     for offset_scale, pile_up in ((0.0, False), (1.0, True)):
-        t = _deform_inputs(2, 32, 96, 128, 32, seed=3, offset_scale=offset_scale)
+        t = _deform_inputs(2, channels, 96, 128, 32, seed=3, offset_scale=offset_scale)
         if pile_up:  # every tap of every pixel samples near (5.5, 7.5) of the image
             ys, xs = torch.meshgrid(torch.arange(96.0), torch.arange(128.0), indexing="ij")
             tap_y = torch.arange(3.0).repeat_interleave(3) - 1
@@ -204,12 +225,18 @@ def test_fused_deform_input_gradient_scatter_is_race_free():
             t["offset"][:, 0::2] = (5.5 - ys - tap_y.view(9, 1, 1)).cuda()
             t["offset"][:, 1::2] = (7.5 - xs - tap_x.view(9, 1, 1)).cuda()
         with fused.forced():
-            runs = [_run_deform(t)[1]["x"] for _ in range(3)]
+            runs = [_run_deform(t)[1] for _ in range(3)]
         with fused.forced(False):
-            ref = _run_deform({k: v.double() for k, v in t.items()}, torch.float64)[1]["x"]
-        for grad in runs:
-            assert _relative(grad, ref) < 1e-5
-            assert _relative(grad, runs[0]) < 1e-6
+            ref = _run_deform({k: v.double() for k, v in t.items()}, torch.float64)[1]
+        for grads in runs:
+            assert _relative(grads["x"], ref["x"]) < 5e-5
+            assert _relative(grads["x"], runs[0]["x"]) < 5e-5
+            for name in ("offset", "mask", "weight"):
+                # (zero offsets sample at whole pixels, where bilinear sampling has a kink: the offsets'
+                # one-sided derivatives there are a convention, so they are compared off it only)
+                if name == "weight" or pile_up:
+                    assert _relative(grads[name], ref[name]) < 1e-5, name
+                assert torch.equal(grads[name], runs[0][name]), name
 
 
 @pytest.mark.parametrize("dtype,tolerance", [(torch.float32, 1e-5), (torch.bfloat16, 1e-2)])

@@ -1,9 +1,10 @@
 """The fused Triton kernels (bench/nn/triton_kernels.py): the deformable conv, forward and every
-gradient, and CFM, against float64 references.
+gradient, and CFM, against float64 references, in float32 (TF32 off).
 
-Without a GPU they run in Triton's interpreter (conftest sets TRITON_INTERPRET=1), in float32 only: the
-interpreter's bf16 dot is wrong, and it runs one program at a time, so the input gradient's atomic
-scatter cannot race here. bf16 and repeatability are checked on a GPU (tests/test_cuda.py).
+Without a GPU they run in Triton's interpreter (conftest sets TRITON_INTERPRET=1): the interpreter's
+bf16 dot is wrong, and it runs one program at a time, so the input gradient's atomic scatter cannot
+race here; with a GPU the same tests run compiled on it, and tests/test_cuda.py adds bf16, sizes with
+thousands of programs, and repeatability.
 Tolerances, relative to the reference's largest magnitude: forward and gradients 1e-5 against float64
 (float32 sums of up to K*C terms; measured 1e-7 to 1e-6); finite differences 2e-3 (central differences
 of float32 outputs, step 1e-3).
@@ -13,10 +14,19 @@ import torch
 import torch.nn.functional as F
 
 from bench.nn import CFM, DeformConv2d, deform_conv2d, fused, inference_sampler
-from bench.nn.triton_kernels import cfm_fused, deform_conv_fused
+from bench.nn.triton_kernels import cfm_fused, deform_conv_fused, deform_conv_fused_backward
 from test_layers import brute_force_deform
 
-pytestmark = pytest.mark.skipif(torch.cuda.is_available(), reason="on a GPU tests/test_cuda.py compiles the kernels")
+DEVICE = "cuda" if torch.cuda.is_available() else "cpu"   # cpu: Triton's interpreter
+
+
+@pytest.fixture(autouse=True)
+def exact_fp32():
+    """fp32 means IEEE fp32 (the kernels follow cuDNN's TF32 flag, as convs do)."""
+    saved = torch.backends.cudnn.allow_tf32
+    torch.backends.cudnn.allow_tf32 = False
+    yield
+    torch.backends.cudnn.allow_tf32 = saved
 
 # (batch, channels, height, width, out channels, kernel, padding, dilation): odd sizes, a batch of
 # several frames, more channels than one block (70 > 64) and more outputs than one forward block (72)
@@ -27,14 +37,23 @@ def _inputs(shape, seed=0, offset_scale=3.0):
     b, c, h, w, o, k, pad, dil = shape
     gen = torch.Generator().manual_seed(seed)
     out_h, out_w = h + 2 * pad - dil * (k - 1), w + 2 * pad - dil * (k - 1)
-    return dict(x=torch.randn(b, c, h, w, generator=gen),
-                offset=offset_scale * torch.randn(b, 2 * k * k, out_h, out_w, generator=gen),
-                weight=torch.randn(o, c, k, k, generator=gen), bias=torch.randn(o, generator=gen),
-                mask=torch.rand(b, k * k, out_h, out_w, generator=gen))
+    tensors = dict(x=torch.randn(b, c, h, w, generator=gen),
+                   offset=offset_scale * torch.randn(b, 2 * k * k, out_h, out_w, generator=gen),
+                   weight=torch.randn(o, c, k, k, generator=gen), bias=torch.randn(o, generator=gen),
+                   mask=torch.rand(b, k * k, out_h, out_w, generator=gen))
+    return {name: t.to(DEVICE) for name, t in tensors.items()}
 
 
 def _relative(got, want):
-    return ((got.double() - want).abs().max() / want.abs().max().clamp_min(1e-30)).item()
+    got, want = got.double().cpu(), want.double().cpu()
+    return ((got - want).abs().max() / want.abs().max().clamp_min(1e-30)).item()
+
+
+def _brute_force(t, pad, dil, mask=None, offset=None):
+    """The per-pixel numpy reference (tests/test_layers.py) of inputs t, on the CPU in float64."""
+    return brute_force_deform(*(v.double().cpu() for v in (t["x"], t["offset"] if offset is None else offset,
+                                                           t["weight"], t["bias"])), pad, dil,
+                              None if mask is None else mask.double().cpu())
 
 
 def _gradients(fn, tensors, grad_out):
@@ -58,11 +77,10 @@ def test_fused_deform_matches_the_float64_reference(shape, modulated):
     mask = t.get("mask")
     out = deform_conv_fused(t["x"], t["offset"], mask, t["weight"], t["bias"], pad, dil)
     assert out.dtype == torch.float32 and out.is_contiguous(memory_format=torch.channels_last)
-    ref = brute_force_deform(*(t[k].double() for k in ("x", "offset", "weight", "bias")), pad, dil,
-                             None if mask is None else mask.double())
+    ref = _brute_force(t, pad, dil, mask)
     assert _relative(out, ref) < 1e-5
 
-    grad_out = torch.randn(ref.shape, generator=torch.Generator().manual_seed(1), dtype=torch.float64)
+    grad_out = torch.randn(ref.shape, generator=torch.Generator().manual_seed(1), dtype=torch.float64).to(DEVICE)
     _, grads = _gradients(lambda **a: deform_conv_fused(a["x"], a["offset"], a.get("mask"), a["weight"], a["bias"],
                                                         pad, dil), t, grad_out)
     _, ref_grads = _gradients(lambda **a: deform_conv2d(a["x"], a["offset"], a["weight"], a["bias"], pad, dil,
@@ -77,9 +95,9 @@ def test_fused_deform_gradients_match_finite_differences():
     samples away from pixel boundaries (bilinear sampling is only piecewise smooth)."""
     shape = (2, 6, 7, 8, 5, 3, 1, 1)
     t = _inputs(shape, seed=3)
-    offset = t["offset"].round() + 0.2 + 0.6 * torch.rand(t["offset"].shape, generator=torch.Generator().manual_seed(4))
-    t["offset"] = offset
-    grad_out = torch.randn(2, 5, 7, 8, generator=torch.Generator().manual_seed(5))
+    fraction = torch.rand(t["offset"].shape, generator=torch.Generator().manual_seed(4)).to(DEVICE)
+    t["offset"] = t["offset"].round() + 0.2 + 0.6 * fraction
+    grad_out = torch.randn(2, 5, 7, 8, generator=torch.Generator().manual_seed(5)).to(DEVICE)
 
     def f(**a):
         return deform_conv_fused(a["x"], a["offset"], a["mask"], a["weight"], a["bias"], 1, 1)
@@ -87,7 +105,7 @@ def test_fused_deform_gradients_match_finite_differences():
     _, grads = _gradients(f, t, grad_out)
     h = 1e-3
     for name, value in t.items():
-        v = torch.randn(value.shape, generator=torch.Generator().manual_seed(6))
+        v = torch.randn(value.shape, generator=torch.Generator().manual_seed(6)).to(DEVICE)
         plus, minus = f(**{**t, name: value + h * v}), f(**{**t, name: value - h * v})
         numeric = ((plus - minus) * grad_out).sum().item() / (2 * h)
         analytic = (grads[name] * v).sum().item()
@@ -103,10 +121,9 @@ def test_fused_deform_extreme_and_infinite_offsets_read_zero_with_zero_offset_gr
     far[1, :, :2] = 1e30                 # (rows of batch 1)
     far[1, :, 2:4] = -1e4
     out, grads = _gradients(lambda **a: deform_conv_fused(a["x"], a["offset"], a["mask"], a["weight"], a["bias"], 1, 1),
-                            {**t, "offset": far}, torch.ones(2, 3, 5, 6))
+                            {**t, "offset": far}, torch.ones(2, 3, 5, 6, device=DEVICE))
     assert torch.isfinite(out).all()
-    ref = brute_force_deform(t["x"].double(), far.double().clamp(-1e6, 1e6), t["weight"].double(),
-                             t["bias"].double(), 1, 1, t["mask"].double())
+    ref = _brute_force(t, 1, 1, t["mask"], offset=far.clamp(-1e6, 1e6))
     assert _relative(out, ref) < 1e-5
     # a sample outside [-1, H] x [-1, W] is constant zero: no gradient reaches its offset
     assert (grads["offset"][0, 0::2, 1:3] == 0).all() and (grads["offset"][0, 1::2, 3:] == 0).all()
@@ -129,15 +146,18 @@ def test_deform_conv2d_and_the_layer_take_the_fused_kernels_when_asked():
     """deform_conv2d under fused.forced() takes the kernels (the sampler says so) and keeps its
     contract: NCHW in, NCHW out; channels-last in, channels-last out; zero offsets = conv2d."""
     torch.manual_seed(0)
-    layer = DeformConv2d(6, 5, modulated=True)
+    layer = DeformConv2d(6, 5, modulated=True).to(DEVICE)
     torch.nn.init.normal_(layer.offset_conv.weight, std=0.5)
-    x = torch.randn(2, 6, 9, 7)
-    default = layer(x)
+    x = torch.randn(2, 6, 9, 7, device=DEVICE)
+    with fused.forced(False):
+        default = layer(x)
     with fused.forced():
         assert inference_sampler(x, layer.weight) == "fused"
+        with torch.autocast(DEVICE, dtype=torch.float16):  # float16 autocast: not the kernels' dtypes
+            assert inference_sampler(x, layer.weight) != "fused"
         out = layer(x)
         out_cl = layer(x.contiguous(memory_format=torch.channels_last))
-        zero = deform_conv2d(x, torch.zeros(2, 18, 9, 7), layer.weight, layer.bias)
+        zero = deform_conv2d(x, torch.zeros(2, 18, 9, 7, device=DEVICE), layer.weight, layer.bias)
     assert out.is_contiguous() and out_cl.is_contiguous(memory_format=torch.channels_last)
     torch.testing.assert_close(out, default, rtol=1e-5, atol=1e-5)
     torch.testing.assert_close(out_cl, default, rtol=1e-5, atol=1e-5)
@@ -147,16 +167,22 @@ def test_deform_conv2d_and_the_layer_take_the_fused_kernels_when_asked():
 
 
 def test_the_fused_ops_pass_torch_library_opcheck():
-    """Schema, fake (meta) kernels, autograd registration and torch.compile's view of each op."""
+    """Schema, fake kernels (shapes AND strides, as torch.compile's Inductor checks them), autograd
+    registration of each op, the backward op included, with contiguous and channels-last offsets and mask
+    (a DeformConv2d on a channels-last input makes them channels-last)."""
+    checks = ("test_schema", "test_faketensor", "test_autograd_registration")
     t = _inputs((1, 3, 4, 5, 2, 3, 1, 1), seed=9)
-    for mask in (None, t["mask"]):
-        args = (t["x"].requires_grad_(), t["offset"].requires_grad_(), mask, t["weight"].requires_grad_(),
-                t["bias"], 1, 1)
-        torch.library.opcheck(deform_conv_fused, args, test_utils=("test_schema", "test_faketensor",
-                                                                   "test_autograd_registration"))
-    x, cond = torch.randn(1, 4, 3, 5), torch.randn(1, 3, 3, 5)
-    torch.library.opcheck(cfm_fused, (x, cond, torch.randn(8, 3, 1, 1), torch.randn(8), True),
-                          test_utils=("test_schema", "test_faketensor", "test_autograd_registration"))
+    channels_last = {k: t[k].contiguous(memory_format=torch.channels_last) for k in ("offset", "mask")}
+    for offset, mask in ((t["offset"], None), (t["offset"], t["mask"]), (channels_last["offset"], channels_last["mask"])):
+        args = (t["x"].requires_grad_(), offset.requires_grad_(), mask, t["weight"].requires_grad_(), t["bias"], 1, 1)
+        torch.library.opcheck(deform_conv_fused, args, test_utils=checks)
+        for need_input_grad in (True, False):
+            torch.library.opcheck(deform_conv_fused_backward, (torch.randn(1, 2, 4, 5, device=DEVICE), t["x"], offset,
+                                                               mask, t["weight"], 1, 1, need_input_grad),
+                                  test_utils=("test_schema", "test_faketensor"))
+    x, cond = torch.randn(1, 4, 3, 5, device=DEVICE), torch.randn(1, 3, 3, 5, device=DEVICE)
+    torch.library.opcheck(cfm_fused, (x, cond, torch.randn(8, 3, 1, 1, device=DEVICE), torch.randn(8, device=DEVICE),
+                                      True), test_utils=checks)
 
 
 @pytest.mark.parametrize("relu", [False, True])
@@ -164,11 +190,11 @@ def test_the_fused_ops_pass_torch_library_opcheck():
 def test_fused_cfm_matches_the_module_forward_and_gradients(channels, cond_channels, relu):
     """CFM under fused.forced() against the eager module in float64, forward and every gradient."""
     torch.manual_seed(1)
-    module = CFM(channels, cond_channels)
+    module = CFM(channels, cond_channels).to(DEVICE)
     for p in module.parameters():
         torch.nn.init.normal_(p, std=0.3)
-    x, cond = torch.randn(2, channels, 5, 7), torch.randn(2, cond_channels, 5, 7)
-    grad_out = torch.randn(2, channels, 5, 7, dtype=torch.float64)
+    x, cond = torch.randn(2, channels, 5, 7, device=DEVICE), torch.randn(2, cond_channels, 5, 7, device=DEVICE)
+    grad_out = torch.randn(2, channels, 5, 7, dtype=torch.float64, device=DEVICE)
 
     def run(m, dtype, force):
         xs, cs = x.to(dtype).requires_grad_(), cond.to(dtype).requires_grad_()
@@ -189,50 +215,37 @@ import inspect, triton
 from triton.backends.compiler import GPUTarget
 from triton.compiler import ASTSource
 import bench.nn.triton_kernels as kernels
-import sys
-TAPS = int(sys.argv[1])
 
 def compile_for_sm90(fn, pointers, constexprs):
     params = list(inspect.signature(fn.fn).parameters)
     signature = {p: pointers.get(p, "i32") for p in params}
     signature.update({p: "constexpr" for p in constexprs})
     source = ASTSource(fn=fn, signature=signature, constexprs={(params.index(k),): v for k, v in constexprs.items()})
-    triton.compile(source, target=GPUTarget("cuda", 90, 32))
+    triton.compile(source, target=GPUTarget("cuda", 90, 32), options=dict(num_warps=kernels.NUM_WARPS))
 
 for dtype in ("fp32", "bf16"):
     data = "*" + dtype
-    blocks = dict(KH=TAPS, KW=TAPS, BLOCK_P=64, BLOCK_C=32, BLOCK_O=32, PRECISION="ieee")
+    blocks = dict(KH=3, KW=3, BLOCK_P=64, BLOCK_C=32, BLOCK_O=32, PRECISION="ieee")
     compile_for_sm90(kernels._deform_forward, dict(x_ptr=data, off_ptr="*fp32", mask_ptr="*fp32", w_ptr=data,
                      bias_ptr=data, out_ptr=data), dict(HAS_MASK=True, HAS_BIAS=True, **blocks))
     compile_for_sm90(kernels._deform_backward, dict(x_ptr=data, off_ptr="*fp32", mask_ptr="*fp32", w_ptr=data,
                      gout_ptr=data, gx_ptr="*fp32", goff_ptr="*fp32", gmask_ptr="*fp32", gw_ptr="*fp32"),
-                     dict(HAS_MASK=True, **blocks))
+                     dict(HAS_MASK=True, NEED_GX=True, **blocks))
     compile_for_sm90(kernels._cfm_forward, dict(x_ptr=data, cond_ptr=data, w_ptr="*fp32", bias_ptr="*fp32",
                      out_ptr=data), dict(RELU=True, BLOCK_P=64, BLOCK_C=32, BLOCK_G=16, PRECISION="ieee"))
 print("compiled")
 '''
 
 
-def _compile_for_hopper(tmp_path, taps):
+def test_the_kernels_compile_for_hopper_without_a_gpu(tmp_path):
+    """The interpreter runs the kernels as Python: what only the compiler checks (types, a size of 1
+    passed as a constant, dot shapes and dtypes, shared memory per program) is checked by compiling
+    every kernel for sm_90 (H100/H200) in fp32 and bf16, which Triton does without a GPU (15 s)."""
     import os
     import subprocess
     import sys
     env = {k: v for k, v in os.environ.items() if k != "TRITON_INTERPRET"}
     env.update(TRITON_CACHE_DIR=str(tmp_path), TRITON_DEFAULT_FP_FUSION="1")
-    done = subprocess.run([sys.executable, "-c", _COMPILE_FOR_HOPPER, str(taps)], env=env, capture_output=True,
-                          text=True, timeout=900)
+    done = subprocess.run([sys.executable, "-c", _COMPILE_FOR_HOPPER], env=env, capture_output=True, text=True,
+                          timeout=600)
     assert done.returncode == 0 and "compiled" in done.stdout, done.stderr[-3000:]
-
-
-def test_the_kernels_compile_for_hopper_without_a_gpu(tmp_path):
-    """The interpreter runs the kernels as Python: what only the compiler checks (types, a size of 1
-    passed as a constant, dot shapes and dtypes, shared memory per program) is checked by compiling
-    every kernel for sm_90 (H100/H200) in fp32 and bf16, which Triton does without a GPU. With one tap
-    (20 s; a tap's code and memory are the same for any kernel size, the 3x3 kernel unrolls nine of
-    them and takes minutes to compile: the slow test below)."""
-    _compile_for_hopper(tmp_path, taps=1)
-
-
-@pytest.mark.slow
-def test_the_3x3_kernels_compile_for_hopper_without_a_gpu(tmp_path):
-    _compile_for_hopper(tmp_path, taps=3)

@@ -284,7 +284,7 @@ def training_rows(label: str, model, train: dict, loss_weights: dict, lr: float,
         with grid_sample_training(), fused.forced(False):
             rows.append(training_row(label, model, train, loss_weights, lr, device, repeats, warmup,
                                      path="fp32, grid_sample sampler"))
-    if probe.is_cuda and fused.kernels() is not None:
+    if probe.is_cuda and fused.available():
         with fused.on_cuda():
             if default != "fused":
                 rows.append(training_row(label, model, train, loss_weights, lr, device, repeats, warmup,
@@ -387,7 +387,7 @@ def deform_rows(channels: int, sizes, device, repeats, warmup) -> list[dict]:
                                  "time / plain conv": timing["ms"] / (conv_ms or timing["ms"])}))
             return timing["ms"]
 
-        fused_too = x.is_cuda and sampler != "fused" and fused.kernels() is not None
+        fused_too = x.is_cuda and sampler != "fused" and fused.available()
         for path, inputs, bf16 in (("fp32", x, False), ("channels_last", x_cl, False),
                                    ("channels_last+bf16", x_cl, True)):
             with torch.autocast(torch.device(device).type, dtype=torch.bfloat16, enabled=bf16):

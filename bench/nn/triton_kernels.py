@@ -12,7 +12,7 @@ BLOCK_O output channels. For each tap it computes the tile's sample positions fr
 layout of bench.nn.deform: offset[:, 2k] = dy_k, offset[:, 2k + 1] = dx_k, in pixels), reads the four
 bilinear corners of the channels-last input for BLOCK_C channels at a time, weights them (and the
 DCNv2 mask) in float32, and multiplies the sampled (BLOCK_P, BLOCK_C) tile by the tap's (BLOCK_C,
-BLOCK_O) weight tile on the tensor cores, accumulating the output in registers: no im2col column
+BLOCK_O) weight tile (a tl.dot), accumulating the output in registers: no im2col column
 reaches memory. Positions are clamped to [-1, H] x [-1, W], where every corner reads zero, so huge or
 infinite offsets read zero (and get a zero offset gradient, as torch.clamp gives); a NaN offset makes
 its pixel NaN.
@@ -25,8 +25,9 @@ unmodulated sample (mask gradient), both written without atomics (a (pixel, tap)
 program); the weight's gradient of the tap is the samples transposed times grad_out, summed over the
 chunk's tiles in registers and written per chunk (summed by torch: deterministic, no atomics).
 
-Operands of the dots are float32 (IEEE, or TF32 where torch.backends.cuda.matmul.allow_tf32 says so)
-or bfloat16 (the input's dtype); positions, bilinear weights and accumulators are float32.
+Operands of the dots are float32 (TF32 on the tensor cores where torch lets cuDNN's convs use it, its
+default; else IEEE on the FMA units) or bfloat16 (the input's dtype, on the tensor cores); positions,
+bilinear weights and accumulators are float32. Eight warps a program: four spill registers on sm_90.
 Stride 1, groups 1, any kernel size, dilation and padding, O <= 128.
 """
 from __future__ import annotations
@@ -90,7 +91,7 @@ def _deform_forward(x_ptr, off_ptr, mask_ptr, w_ptr, bias_ptr, out_ptr,
     om = o < O
     base = b.to(tl.int64) * H * W * C
     acc = tl.zeros((BLOCK_P, BLOCK_O), dtype=tl.float32)
-    for k in tl.static_range(KH * KW):
+    for k in range(KH * KW):  # not unrolled: nine unrolled taps spill registers and compile 18x slower
         y0, x0, fy, fx, _, _ = _tap_corners(off_ptr, os_b, os_k, os_y, os_x, b, oy, ox, live, k, KW, pad, dil, H, W)
         w00, w01, w10, w11 = (1 - fy) * (1 - fx), (1 - fy) * fx, fy * (1 - fx), fy * fx
         if HAS_MASK:
@@ -116,14 +117,15 @@ def _deform_forward(x_ptr, off_ptr, mask_ptr, w_ptr, bias_ptr, out_ptr,
 def _scatter(gx_ptr, base, yy, xx, c, live, cm, H, W, C, value):
     inside = live & (yy >= 0) & (yy < H) & (xx >= 0) & (xx < W)
     at = base + (yy * W + xx).to(tl.int64) * C
-    tl.atomic_add(gx_ptr + at[:, None] + c[None, :], value, mask=inside[:, None] & cm[None, :])
+    # relaxed: a fire-and-forget reduction (red.global), no fence per add
+    tl.atomic_add(gx_ptr + at[:, None] + c[None, :], value, mask=inside[:, None] & cm[None, :], sem="relaxed")
 
 
 @triton.jit
 def _deform_backward(x_ptr, off_ptr, mask_ptr, w_ptr, gout_ptr, gx_ptr, goff_ptr, gmask_ptr, gw_ptr,
                      P, H, W, C, HO, WO, O, pad, dil, TILES,
                      os_b, os_k, os_y, os_x, ms_b, ms_k, ms_y, ms_x,
-                     HAS_MASK: tl.constexpr, KH: tl.constexpr, KW: tl.constexpr,
+                     HAS_MASK: tl.constexpr, NEED_GX: tl.constexpr, KH: tl.constexpr, KW: tl.constexpr,
                      BLOCK_P: tl.constexpr, BLOCK_C: tl.constexpr, BLOCK_O: tl.constexpr,
                      PRECISION: tl.constexpr):
     chunk, k = tl.program_id(0), tl.program_id(1)
@@ -160,24 +162,26 @@ def _deform_backward(x_ptr, off_ptr, mask_ptr, w_ptr, gout_ptr, gx_ptr, goff_ptr
             grad_sample = tl.dot(gout, tl.trans(wk), input_precision=PRECISION)
             grad_wk += tl.dot(tl.trans((raw * m[:, None]).to(gout.dtype)), gout, input_precision=PRECISION)
             grad_raw = grad_sample * m[:, None]
-            _scatter(gx_ptr, base, y0, x0, c, live, cm, H, W, C, grad_raw * (gy * gx)[:, None])
-            _scatter(gx_ptr, base, y0, x0 + 1, c, live, cm, H, W, C, grad_raw * (gy * fx)[:, None])
-            _scatter(gx_ptr, base, y0 + 1, x0, c, live, cm, H, W, C, grad_raw * (fy * gx)[:, None])
-            _scatter(gx_ptr, base, y0 + 1, x0 + 1, c, live, cm, H, W, C, grad_raw * (fy * fx)[:, None])
+            if NEED_GX:
+                _scatter(gx_ptr, base, y0, x0, c, live, cm, H, W, C, grad_raw * (gy * gx)[:, None])
+                _scatter(gx_ptr, base, y0, x0 + 1, c, live, cm, H, W, C, grad_raw * (gy * fx)[:, None])
+                _scatter(gx_ptr, base, y0 + 1, x0, c, live, cm, H, W, C, grad_raw * (fy * gx)[:, None])
+                _scatter(gx_ptr, base, y0 + 1, x0 + 1, c, live, cm, H, W, C, grad_raw * (fy * fx)[:, None])
             # offsets: the sample's derivative along y and x, summed over channels; a clamped axis gets 0
             d_y = tl.sum(grad_raw * (gx[:, None] * (v10 - v00) + fx[:, None] * (v11 - v01)), axis=1)
             d_x = tl.sum(grad_raw * (gy[:, None] * (v01 - v00) + fy[:, None] * (v11 - v10)), axis=1)
             d_y = tl.where(clamped_y, 0.0, d_y)
             d_x = tl.where(clamped_x, 0.0, d_x)
             # goff is (B, 2K, HO, WO) contiguous float32; this (pixel, tap) belongs to this program only
-            at_g = b.to(tl.int64) * (2 * KH * KW * HO * WO) + oy * WO + ox
-            gy_at = goff_ptr + at_g + (2 * k) * HO * WO
-            gx_at = goff_ptr + at_g + (2 * k + 1) * HO * WO
+            plane = HO.to(tl.int64) * WO  # int64: 2K planes of an 8K frame pass 2^31
+            at_g = b.to(tl.int64) * (2 * KH * KW) * plane + oy * WO + ox
+            gy_at = goff_ptr + at_g + (2 * k) * plane
+            gx_at = goff_ptr + at_g + (2 * k + 1) * plane
             tl.store(gy_at, tl.load(gy_at, mask=live, other=0.0) + d_y, mask=live)
             tl.store(gx_at, tl.load(gx_at, mask=live, other=0.0) + d_x, mask=live)
             if HAS_MASK:
                 d_m = tl.sum(grad_sample * raw, axis=1)
-                gm_at = gmask_ptr + b.to(tl.int64) * (KH * KW * HO * WO) + k * HO * WO + oy * WO + ox
+                gm_at = gmask_ptr + b.to(tl.int64) * (KH * KW) * plane + k * plane + oy * WO + ox
                 tl.store(gm_at, tl.load(gm_at, mask=live, other=0.0) + d_m, mask=live)
         at_w = ((chunk * KH * KW + k) * C + c).to(tl.int64)[:, None] * O + o[None, :]
         tl.store(gw_ptr + at_w, grad_wk, mask=cm[:, None] & om[None, :])
@@ -186,15 +190,31 @@ def _deform_backward(x_ptr, off_ptr, mask_ptr, w_ptr, gout_ptr, gx_ptr, goff_ptr
 # ---- launch --------------------------------------------------------------------------------------
 
 def _precision(dtype: torch.dtype) -> str:
-    """IEEE fp32 dots unless torch allows TF32 matmuls; bf16 operands are exact products either way."""
-    return "tf32" if dtype == torch.float32 and torch.backends.cuda.matmul.allow_tf32 else "ieee"
+    """TF32 dots for float32 where torch lets cuDNN's convs use TF32 (its default: the op replaces a
+    conv), IEEE fp32 (FMA, no tensor cores) where it does not; bf16 operands are exact products."""
+    if dtype != torch.float32:
+        return "ieee"
+    try:
+        allowed = torch.backends.cudnn.allow_tf32
+    except RuntimeError:  # torch refuses the legacy flag once the new fp32_precision API was used
+        allowed = torch.backends.cudnn.conv.fp32_precision == "tf32"
+    return "tf32" if allowed else "ieee"
+
+
+NUM_WARPS = 8  # 4 spill registers in the backward and the forward on sm_90 (ptxas -v)
 
 
 def _blocks(c: int, o: int) -> tuple[int, int, int]:
-    block_c = min(64, _pow2(c))
-    block_o = min(64, _pow2(o))
-    block_p = 64 if block_c * block_o <= 64 * 64 else 32
-    return block_p, block_c, block_o
+    """(BLOCK_P, BLOCK_C, BLOCK_O) of the forward; the backward takes the whole O (<= 128) and, with more
+    than 64 outputs, 32 channels at a time (64 spill)."""
+    return 64, min(32 if o > 64 else 64, _pow2(c)), min(64, _pow2(o))
+
+
+def _chunks(tiles: int, taps: int, device: torch.device) -> int:
+    """Backward programs per tap: about four per multiprocessor in all, so the per-chunk weight
+    gradients (chunks x K x C x O floats) stay a few MB."""
+    units = torch.cuda.get_device_properties(device).multi_processor_count if device.type == "cuda" else 4
+    return max(1, min(tiles, -(-4 * units // taps)))
 
 
 def _check(x, offset, mask, weight, bias, padding, dilation):
@@ -241,11 +261,11 @@ def deform_conv_fused(x: torch.Tensor, offset: torch.Tensor, mask: Optional[torc
         block_p, block_c, block_o = _blocks(c, o)
         m = mask if mask is not None else offset  # a placeholder pointer, never read
         grid = (triton.cdiv(pixels, block_p), triton.cdiv(o, block_o))
-        _deform_forward[grid](_nhwc(x), offset, m, _tap_matrix(weight), bias if bias is not None else weight, out,
+        _deform_forward[grid](_nhwc(x), offset, m, _tap_matrix(weight), bias.contiguous() if bias is not None else weight, out,
                               pixels, h, w, c, out_h, out_w, o, padding, dilation,
                               *offset.stride(), *m.stride(), HAS_MASK=mask is not None, HAS_BIAS=bias is not None,
                               KH=kh, KW=kw, BLOCK_P=block_p, BLOCK_C=block_c, BLOCK_O=block_o,
-                              PRECISION=_precision(x.dtype))
+                              PRECISION=_precision(x.dtype), num_warps=NUM_WARPS)
     elif bias is not None:
         out[:] = bias
     else:
@@ -261,44 +281,42 @@ def _(x, offset, mask, weight, bias, padding, dilation):
 
 @torch.library.custom_op("srd_bench::deform_conv_fused_backward", mutates_args=())
 def deform_conv_fused_backward(grad_out: torch.Tensor, x: torch.Tensor, offset: torch.Tensor,
-                               mask: Optional[torch.Tensor], weight: torch.Tensor, padding: int,
-                               dilation: int) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
-    """Gradients of deform_conv_fused's output (without bias) for x, offset, mask (an empty tensor when
-    mask is None) and weight, each in its input's dtype."""
+                               mask: Optional[torch.Tensor], weight: torch.Tensor, padding: int, dilation: int,
+                               need_input_grad: bool) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
+    """Gradients of deform_conv_fused's output (without bias) for x (channels-last; an empty tensor
+    unless need_input_grad: its scatter is the costliest part), offset and mask (contiguous; an empty
+    tensor when mask is None) and weight (contiguous), each in its input's dtype."""
     b, c, h, w, o, kh, kw, out_h, out_w = _check(x, offset, mask, weight, None, padding, dilation)
     taps, pixels = kh * kw, b * out_h * out_w
     block_p, block_c, _ = _blocks(c, o)
     block_o = _pow2(o)  # the whole grad_out row of a pixel
     tiles = triton.cdiv(pixels, block_p)
-    # chunks of tiles per tap: enough programs to fill a GPU, few enough that the per-chunk weight
-    # gradients (chunks x K x C x O floats) stay small
-    chunks = max(1, min(tiles, 4096 // taps))
-    grad_x = torch.zeros((b, h, w, c), dtype=torch.float32, device=x.device)
+    chunks = _chunks(tiles, taps, x.device)
+    grad_x = torch.zeros((b, h, w, c) if need_input_grad else (0,), dtype=torch.float32, device=x.device)
     grad_offset = torch.zeros((b, 2 * taps, out_h, out_w), dtype=torch.float32, device=x.device)
     grad_mask = torch.zeros((b, taps, out_h, out_w) if mask is not None else (0,), dtype=torch.float32,
                             device=x.device)
-    grad_w = torch.empty((chunks, taps, c, o), dtype=torch.float32, device=x.device)
+    grad_w = torch.zeros((chunks, taps, c, o), dtype=torch.float32, device=x.device)
     if pixels and c:
         m = mask if mask is not None else offset
         _deform_backward[(chunks, taps)](
-            _nhwc(x), offset, m, _tap_matrix(weight), _nhwc(grad_out.to(x.dtype)), grad_x, grad_offset,
-            grad_mask if mask is not None else grad_offset, grad_w,
-            pixels, h, w, c, out_h, out_w, o, padding, dilation, tiles,
-            *offset.stride(), *m.stride(), HAS_MASK=mask is not None, KH=kh, KW=kw,
-            BLOCK_P=block_p, BLOCK_C=block_c, BLOCK_O=block_o, PRECISION=_precision(x.dtype))
-    else:
-        grad_w.zero_()
-    grad_weight = grad_w.sum(0).permute(2, 1, 0).reshape(o, c, kh, kw)
-    return (grad_x.permute(0, 3, 1, 2).to(x.dtype), grad_offset.to(offset.dtype),
+            _nhwc(x), offset, m, _tap_matrix(weight), _nhwc(grad_out.to(x.dtype)),
+            grad_x if need_input_grad else grad_offset, grad_offset, grad_mask if mask is not None else grad_offset,
+            grad_w, pixels, h, w, c, out_h, out_w, o, padding, dilation, tiles,
+            *offset.stride(), *m.stride(), HAS_MASK=mask is not None, NEED_GX=need_input_grad, KH=kh, KW=kw,
+            BLOCK_P=block_p, BLOCK_C=block_c, BLOCK_O=block_o, PRECISION=_precision(x.dtype), num_warps=NUM_WARPS)
+    grad_weight = grad_w.sum(0).permute(2, 1, 0).reshape(o, c, kh, kw).contiguous()
+    return ((grad_x.permute(0, 3, 1, 2) if need_input_grad else grad_x).to(x.dtype), grad_offset.to(offset.dtype),
             grad_mask.to(mask.dtype if mask is not None else torch.float32), grad_weight.to(weight.dtype))
 
 
 @deform_conv_fused_backward.register_fake
-def _(grad_out, x, offset, mask, weight, padding, dilation):
+def _(grad_out, x, offset, mask, weight, padding, dilation, need_input_grad):
     b, c, h, w, o, kh, kw, out_h, out_w = _check(x, offset, mask, weight, None, padding, dilation)
-    return (x.new_empty((b, h, w, c)).permute(0, 3, 1, 2), torch.empty_like(offset),
-            torch.empty_like(mask) if mask is not None else x.new_empty((0,), dtype=torch.float32),
-            torch.empty_like(weight))
+    grad_x = x.new_empty((b, h, w, c)).permute(0, 3, 1, 2) if need_input_grad else x.new_empty((0,))
+    return (grad_x, offset.new_empty(offset.shape),
+            mask.new_empty(mask.shape) if mask is not None else x.new_empty((0,), dtype=torch.float32),
+            weight.new_empty(weight.shape))
 
 
 def _setup_context(ctx, inputs, output):
@@ -309,10 +327,13 @@ def _setup_context(ctx, inputs, output):
 
 def _backward(ctx, grad_out):
     x, offset, mask, weight = ctx.saved_tensors
+    need_input_grad = ctx.needs_input_grad[0]
     grad_x, grad_offset, grad_mask, grad_weight = deform_conv_fused_backward(
-        grad_out.contiguous(memory_format=torch.channels_last), x, offset, mask, weight, ctx.padding, ctx.dilation)
+        grad_out.contiguous(memory_format=torch.channels_last), x, offset, mask, weight, ctx.padding, ctx.dilation,
+        need_input_grad)
     grad_bias = grad_out.sum((0, 2, 3)) if ctx.has_bias else None
-    return grad_x, grad_offset, (grad_mask if mask is not None else None), grad_weight, grad_bias, None, None
+    return (grad_x if need_input_grad else None, grad_offset, (grad_mask if mask is not None else None), grad_weight,
+            grad_bias, None, None)
 
 
 deform_conv_fused.register_autograd(_backward, setup_context=_setup_context)
@@ -373,7 +394,7 @@ def cfm_fused(x: torch.Tensor, cond: torch.Tensor, weight: torch.Tensor, bias: t
         _cfm_forward[(triton.cdiv(pixels, block_p),)](
             _nhwc(x), _nhwc(cond), weight.reshape(2 * c, g).t().float().contiguous(), bias.float().contiguous(), out,
             pixels, c, g, RELU=relu, BLOCK_P=block_p, BLOCK_C=_pow2(c), BLOCK_G=_pow2(g),
-            PRECISION=_precision(x.dtype))
+            PRECISION=_precision(x.dtype), num_warps=NUM_WARPS)
     return out.permute(0, 3, 1, 2)
 
 
