@@ -117,7 +117,7 @@ def model_problems(model: dict, where: str) -> list[str]:
 
 def row_problems(plain: dict, data: dict | None) -> list[str]:
     """Bad values inside a table experiment's rows: their model arguments and training overrides."""
-    from bench.experiments.pipeline import deep_merge, recipe_from
+    from bench.experiments.context import deep_merge, recipe_from
     from bench.experiments.table import expand_rows
     experiment = plain.get("experiment") or {}
     if experiment.get("kind", "table") != "table" or not isinstance(experiment.get("rows"), list):
@@ -174,7 +174,7 @@ def config_problems(plain: dict) -> list[str]:
 
 
 def make_context(cfg: DictConfig):
-    from bench.experiments.pipeline import Context, EvalSpec, VggSpec, recipe_from
+    from bench.experiments.context import Context, EvalSpec, VggSpec, recipe_from
     plain = OmegaConf.to_container(cfg, resolve=True)
     if plain["eval"].get("path") is not None:  # the old name, next to file paths in the same docs
         log.warning("eval.path is deprecated: use eval.fast_path=%s", plain["eval"]["path"])
@@ -270,7 +270,7 @@ def table_summary(table_dir: Path, runs_dir, archives=()) -> tuple[dict, dict[st
     compute columns and, per metric, the pairs of rows ordered as in the paper (empty for tables that
     are not made of trained rows)."""
     import pandas as pd
-    from bench.experiments.pipeline import recorded_minutes
+    from bench.experiments.row import recorded_minutes
     from bench.experiments.table import paper_agreement
     path = table_dir / "table.csv"
     if not path.exists():
@@ -361,7 +361,7 @@ def run_or_serve(cfg: DictConfig) -> None:
         return
     distributed.init(resolve_device(cfg.device))
     if distributed.rank_and_size()[0] > 0:
-        from bench.experiments.pipeline import serve_trainings
+        from bench.experiments.training import serve_trainings
         serve_trainings()
         return
     run_experiment(cfg)

@@ -387,7 +387,7 @@ def test_a_table_says_when_its_rows_scored_different_renders_of_the_split(tmp_pa
     import json
     import types
 
-    from bench.experiments.pipeline import render_digest
+    from bench.experiments.datasets import render_digest
     from bench.experiments.table import _renders_note
     frame = {"split": "val", "sequence": "s", "frame": 0,
              "files": {"lr": {"crc32": 1}, "hr": {"crc32": 2}}}
