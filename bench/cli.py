@@ -116,20 +116,27 @@ def model_problems(model: dict, where: str) -> list[str]:
 
 
 def row_problems(plain: dict, data: dict | None) -> list[str]:
-    """Bad values inside a table experiment's rows: their model arguments and training overrides."""
+    """Bad values inside a table experiment's rows (or the one row of `+experiment=train`): their model
+    arguments and training overrides."""
     from bench.experiments.context import deep_merge, recipe_from
+    from bench.experiments.one_model import one_row
     from bench.experiments.table import expand_rows
     experiment = plain.get("experiment") or {}
-    if experiment.get("kind", "table") != "table" or not isinstance(experiment.get("rows"), list):
-        return []
+    kind = experiment.get("kind", "table")
     try:
-        rows = expand_rows(experiment["rows"], experiment.get("task", "srd"))
+        if kind == "one_model":  # one row, written as a table's
+            rows = expand_rows([one_row(**{k: experiment.get(k) for k in ("model", "overrides", "task", "train",
+                                                                          "cascade", "label") if k in experiment})])
+        elif kind == "table" and isinstance(experiment.get("rows"), list):
+            rows = expand_rows(experiment["rows"], experiment.get("task", "srd"))
+        else:
+            return []
     except (ValueError, KeyError, TypeError) as err:
         return [f"experiment.rows: {err}"]
     problems = []
     shared = set(train_problems(plain["train"], data))  # said once, for train.*, not again per row
     for r in rows:
-        where = f"experiment.rows[{r['label']!r}]"
+        where = "experiment" if kind == "one_model" else f"experiment.rows[{r['label']!r}]"
         problems += model_problems(r.get("overrides") or {}, f"{where}.overrides")
         if not isinstance(r.get("train") or {}, dict):
             problems.append(f"{where}.train={r.get('train')!r}: expected a dict of train.* overrides")
