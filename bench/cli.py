@@ -116,20 +116,27 @@ def model_problems(model: dict, where: str) -> list[str]:
 
 
 def row_problems(plain: dict, data: dict | None) -> list[str]:
-    """Bad values inside a table experiment's rows: their model arguments and training overrides."""
-    from bench.experiments.pipeline import deep_merge, recipe_from
+    """Bad values inside a table experiment's rows (or the one row of `+experiment=train`): their model
+    arguments and training overrides."""
+    from bench.experiments.context import deep_merge, recipe_from
+    from bench.experiments.one_model import one_row
     from bench.experiments.table import expand_rows
     experiment = plain.get("experiment") or {}
-    if experiment.get("kind", "table") != "table" or not isinstance(experiment.get("rows"), list):
-        return []
+    kind = experiment.get("kind", "table")
     try:
-        rows = expand_rows(experiment["rows"], experiment.get("task", "srd"))
+        if kind == "one_model":  # one row, written as a table's
+            rows = expand_rows([one_row(**{k: experiment.get(k) for k in ("model", "overrides", "task", "train",
+                                                                          "cascade", "label") if k in experiment})])
+        elif kind == "table" and isinstance(experiment.get("rows"), list):
+            rows = expand_rows(experiment["rows"], experiment.get("task", "srd"))
+        else:
+            return []
     except (ValueError, KeyError, TypeError) as err:
         return [f"experiment.rows: {err}"]
     problems = []
     shared = set(train_problems(plain["train"], data))  # said once, for train.*, not again per row
     for r in rows:
-        where = f"experiment.rows[{r['label']!r}]"
+        where = "experiment" if kind == "one_model" else f"experiment.rows[{r['label']!r}]"
         problems += model_problems(r.get("overrides") or {}, f"{where}.overrides")
         if not isinstance(r.get("train") or {}, dict):
             problems.append(f"{where}.train={r.get('train')!r}: expected a dict of train.* overrides")
@@ -174,7 +181,7 @@ def config_problems(plain: dict) -> list[str]:
 
 
 def make_context(cfg: DictConfig):
-    from bench.experiments.pipeline import Context, EvalSpec, VggSpec, recipe_from
+    from bench.experiments.context import Context, EvalSpec, VggSpec, recipe_from
     plain = OmegaConf.to_container(cfg, resolve=True)
     if plain["eval"].get("path") is not None:  # the old name, next to file paths in the same docs
         log.warning("eval.path is deprecated: use eval.fast_path=%s", plain["eval"]["path"])
@@ -275,7 +282,7 @@ def table_summary(table_dir: Path, runs_dir, archives=()) -> tuple[dict, dict[st
     compute columns and, per metric, the pairs of rows ordered as in the paper (empty for tables that
     are not made of trained rows)."""
     import pandas as pd
-    from bench.experiments.pipeline import recorded_minutes
+    from bench.experiments.row import recorded_minutes
     from bench.experiments.table import paper_agreement
     path = table_dir / "table.csv"
     if not path.exists():
@@ -366,7 +373,7 @@ def run_or_serve(cfg: DictConfig) -> None:
         return
     distributed.init(resolve_device(cfg.device))
     if distributed.rank_and_size()[0] > 0:
-        from bench.experiments.pipeline import serve_trainings
+        from bench.experiments.training import serve_trainings
         serve_trainings()
         return
     run_experiment(cfg)

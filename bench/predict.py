@@ -5,10 +5,8 @@
     srd-bench predict --weights results/cpu/weights/ours.pt --output-dir out/ data/cpu/val    (folders)
     srd-bench score --outputs out/ --data data/cpu --split val --label NAME                (bench.score)
 
-An exported file holds the model's config (its `_target_` and arguments), the upsampling factor, the
-network domain (`hdr`) it was trained in, its evaluation weights (the EMA when the recipe kept one), the
-training run's identity, metrics and code fingerprint. A JSON beside it repeats all but the weights and
-adds the file's sha256, which `predict` checks.
+`export` writes the exported weights file (`bench.weights`, which says what it holds); `predict` checks
+its sha256 against the JSON beside it.
 
 `predict` reads each input EXR's layers `noisy` (LR radiance), `albedo`, `normal` and `roughness` (the
 dataset layout's `*_lr.exr`; roughness may be left out: 1.0). An input is a file or a folder: each folder
@@ -29,8 +27,6 @@ file mode the umask gives.
 from __future__ import annotations
 
 import argparse
-import hashlib
-import json
 import os
 import sys
 from pathlib import Path
@@ -38,138 +34,20 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from bench import exrio, runs, score
+from bench import exrio, score
 from bench.dataset import DEFAULT_ROUGHNESS, GBUF_SIZES
 from bench.errors import UserError
 from bench.evaluate import predict as predict_batch
 from bench.evaluate import runner
 from bench.infer import REFERENCE, parse_path
 from bench.measure import AUTO, choose_fast_path
-from bench.experiments.pipeline import build_model
-from bench.tasks import GBUF_LAYERS, get_task
-from bench.train import CHECKPOINT, load_weights
-
-FORMAT = "srd-bench-weights/1"
+from bench.tasks import GBUF_LAYERS
+from bench.weights import export, from_run, load_exported
 
 
 def fast_path_cache() -> Path:
     """Where predict remembers the fast path it measured ($XDG_CACHE_HOME, else ~/.cache)."""
     return Path(os.environ.get("XDG_CACHE_HOME") or Path.home() / ".cache") / "srd-bench" / "fast_paths.json"
-
-
-# ---------------------------------------------------------------- export
-
-ARCHIVES = "results/*/runs"  # the tables' archived runs (conf/config.yaml runs_archive), from the project root
-
-
-def training_record(run_hash: str, runs_dir: str | Path = "runs") -> Path:
-    """The run.json of training run `run_hash`: in the run store, else in a committed archive (a fresh
-    clone has no run store)."""
-    path = runs.record_path("train", run_hash, runs_dir, sorted(Path().glob(ARCHIVES)))
-    if path is None:
-        raise UserError(f"no training run {run_hash} in {runs_dir} (runs are directories of "
-                        f"{Path(runs_dir) / 'train'}) or in {ARCHIVES}/train")
-    return path
-
-
-def export(run_hash: str, out: str | Path, runs_dir: str | Path = "runs") -> Path:
-    """Write the weights of the complete training run `run_hash` to `out` (+ `out`.json)."""
-    path = training_record(run_hash, runs_dir)
-    record = json.loads(path.read_text())
-    if record.get("status") != "complete":
-        raise UserError(f"training run {run_hash} is {record.get('status')!r}, not complete: nothing to export")
-    identity = record["identity"]
-    cfg, task = identity["model"], get_task(identity["task"])
-    if identity.get("stage"):
-        raise UserError(f"run {run_hash} trained one stage of a Cascade; export a whole model's run")
-    if not (path.parent / CHECKPOINT).exists():
-        seed = identity.get("seed", record.get("seed"))
-        raise UserError(f"training run {run_hash} has no weights in {path.parent}: the archive keeps files over "
-                        f"{runs.ARCHIVED_FILE_MAX_BYTES / 2**20:.1f} MiB out of git. The run store of the machine "
-                        f"that trained it has them. Elsewhere, run the table whose row it is with seeds=[{seed}] "
-                        f"results_dir=<a scratch folder>: its crops.png loads that seed's weights, which trains "
-                        f"the run again into {runs_dir}; then export")
-    model = load_weights(build_model(cfg, task.scale), path.parent)
-    meta = {"format": FORMAT, "model": cfg, "task": task.name, "scale": task.scale,
-            "hdr": identity["train"]["hdr"], "run": run_hash, "identity": identity,
-            "metrics": record.get("metrics", {}), "code": record.get("code"),
-            "git_commit": record.get("git_commit"), "git_dirty": record.get("git_dirty")}
-    out = Path(out)
-    out.parent.mkdir(parents=True, exist_ok=True)
-    torch.save({**meta, "state_dict": model.state_dict()}, out)
-    meta["sha256"] = hashlib.sha256(out.read_bytes()).hexdigest()
-    out.with_suffix(out.suffix + ".json").write_text(json.dumps(meta, indent=2, sort_keys=True, default=str))
-    return out
-
-
-def _one_line(err: BaseException) -> str:
-    """An exception's message on one line (torch's load_state_dict errors span many)."""
-    text = " ".join(str(err).split())
-    return text if len(text) <= 300 else text[:297] + "..."
-
-
-def _model_with(cfg: dict, scale: int, state_dict, source) -> torch.nn.Module:
-    """The model `cfg` builds with `state_dict` loaded: a config that does not build or weights of
-    another model are one UserError naming `source`."""
-    try:
-        model = build_model(cfg, scale)
-    except Exception as err:  # hydra wraps whatever the constructor raised
-        target = cfg.get("_target_") if isinstance(cfg, dict) else repr(cfg)
-        raise UserError(f"{source}: its model config ({target}) does not build: {_one_line(err)}") from err
-    try:
-        model.load_state_dict(state_dict)
-    except (RuntimeError, TypeError, KeyError, AttributeError) as err:
-        raise UserError(f"{source}: its weights are not those of its model {cfg.get('_target_')} "
-                        f"({_one_line(err)})") from err
-    return model
-
-
-def _torch_load(path: Path, what: str):
-    """torch.load of a file the user gave or a run holds; a damaged one (truncated, not a torch file) is
-    one UserError."""
-    try:
-        return torch.load(path, map_location="cpu", weights_only=False)
-    except Exception as err:
-        raise UserError(f"{path}: {what} does not load (truncated or damaged: {_one_line(err)}); "
-                        "export it again") from err
-
-
-def load_exported(path: str | Path):
-    """(model in eval mode, metadata) from an exported weights file; its sha256 is checked against the
-    JSON beside it when there is one."""
-    path = Path(path)
-    if not path.is_file():
-        raise UserError(f"weights file {path} does not exist")
-    sidecar = path.with_suffix(path.suffix + ".json")
-    if sidecar.exists():
-        recorded = runs.read_json_or_none(sidecar)
-        if recorded is None:
-            raise UserError(f"{sidecar} is damaged (not a JSON object): export the weights again, or remove it "
-                            "to load the weights without their sha256 check")
-        expected = recorded.get("sha256")
-        actual = hashlib.sha256(path.read_bytes()).hexdigest()
-        if expected and expected != actual:
-            raise UserError(f"{path}: sha256 {actual[:16]}... does not match {sidecar.name} ({expected[:16]}...): "
-                            "the file is damaged or not the one exported")
-    saved = _torch_load(path, "the weights file")
-    if not isinstance(saved, dict) or saved.get("format") != FORMAT:
-        raise UserError(f"{path} is not an SRD-Bench weights file (write one with `srd-bench export RUN`)")
-    model = _model_with(saved["model"], saved["scale"], saved["state_dict"], path)
-    return model.eval(), {k: v for k, v in saved.items() if k != "state_dict"}
-
-
-def from_run(run_hash: str, runs_dir: str | Path = "runs"):
-    """(model, metadata) of a recorded training run, without exporting it."""
-    path = training_record(run_hash, runs_dir)
-    identity = json.loads(path.read_text())["identity"]
-    task = get_task(identity["task"])
-    checkpoint = path.parent / CHECKPOINT
-    if not checkpoint.exists():
-        raise UserError(f"training run {run_hash} has no weights in {path.parent}")
-    state = _torch_load(checkpoint, "the run's checkpoint")
-    model = _model_with(identity["model"], task.scale, state.get("ema") or state["model"], checkpoint)
-    return model.eval(), {"model": identity["model"], "task": task.name, "scale": task.scale,
-                          "hdr": identity["train"]["hdr"], "run": run_hash}
 
 
 # ---------------------------------------------------------------- predict

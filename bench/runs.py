@@ -351,7 +351,7 @@ def archive(run: Run, archive_dir: str | Path, files: tuple = (), write=None) ->
     """Copy a complete run into `archive_dir/<kind>/<hash>/`: its record, the `files` of its directory
     that exist, and what `write(directory)` writes there (e.g. a slimmed checkpoint), each if it is at
     most ARCHIVED_FILE_MAX_BYTES: the run restores without a larger one (a training without its weights
-    is trained again by whoever needs them, `bench.experiments.pipeline.trained_model`). The record is
+    is trained again by whoever needs them, `bench.experiments.training.trained_model`). The record is
     compared first, so archiving an archived run again does nothing. The copy is written in
     `archive_dir/.partial/` and renamed into place under the archived run's lock, so a restore never
     sees half of it. Returns the archived directory, or None for a run that is not complete or is stale

@@ -225,7 +225,7 @@ def _log_artifacts(client, run_id: str, record: dict, run_dir: Path) -> None:
         if (run_dir / file).exists():
             client.log_artifact(run_id, str(run_dir / file))
     if record["kind"] == "train" and record["status"] == "complete" and not record["identity"].get("stage"):
-        from bench.predict import export  # the published weights format, identity and sha256 beside them
+        from bench.weights import export  # the published weights format, identity and sha256 beside them
         with tempfile.TemporaryDirectory() as tmp:
             out = export(record["hash"], Path(tmp) / "weights.pt", run_dir.parent.parent)
             client.log_artifact(run_id, str(out))

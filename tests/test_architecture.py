@@ -2,7 +2,8 @@
 nothing is imported): a module imports only
 its own floor or lower ones (floor 1 nothing of the project but a sibling in bench/nn and bench/errors),
 with no import cycles; models never import data loading or the run store; metrics and losses never
-import models. The floors are read from ARCHITECTURE.md's table, so the document and the test cannot
+import models; the tools beside the experiments (predict, tracking) import nothing of them; one factory
+builds models. The floors are read from ARCHITECTURE.md's table, so the document and the test cannot
 drift apart."""
 import re
 from pathlib import Path
@@ -91,5 +92,21 @@ def test_models_never_import_data_loading_or_the_run_store_and_metrics_never_imp
             assert not [t for t in imports if t.startswith(("bench/models/", "baselines/"))], path
 
 
+def test_the_tools_beside_the_experiments_import_nothing_of_them():
+    """predict and tracking share floor 3 with the experiments without loading them: the standalone
+    predictor needs a model factory and a weights file, not the tables' pipeline."""
+    tools = [p for p, floor in FLOORS.items() if floor == 3 and not p.startswith("bench/experiments/")]
+    assert {"bench/predict.py", "bench/tracking.py"} <= set(tools)
+    for path in tools:
+        assert not [t for t in project_imports(path) if t.startswith("bench/experiments/")], path
+
+
+def test_one_factory_builds_models():
+    """`hydra.utils.instantiate` is called in one place, bench/models/factory.py (ARCHITECTURE.md)."""
+    callers = [p for p in SOURCES if re.search(r"\binstantiate\(", (ROOT / p).read_text())]
+    assert callers == ["bench/models/factory.py"]
+
+
 def test_the_floor_table_is_read():
     assert FLOORS["bench/runs.py"] == 1 and FLOORS["bench/experiments/"] == 3 and FLOORS["bench/cli.py"] == 4
+    assert FLOORS["bench/models/"] == 2 and FLOORS["bench/weights.py"] == 2 and FLOORS["bench/predict.py"] == 3

@@ -62,7 +62,7 @@ def test_every_model_config_is_configured_and_keeps_the_model_contract(name):
     """Each conf/model/*.yaml: in the root config's models, built by the one factory, (B, T, C, h, w) in,
     "final" (B, T, 3, 2h, 2w) out, finite, and the same whether the sequence comes at once or frame by
     frame for a model that is not recurrent."""
-    from bench.experiments.pipeline import build_model
+    from bench.models.factory import build_model
     cfg = compose_experiment("smoke", "preset=smoke")
     assert name in cfg.models, f"conf/model/{name}.yaml is not in conf/config.yaml's defaults"
     model = build_model(OmegaConf.to_container(cfg.models[name], resolve=True), 2)
@@ -542,7 +542,7 @@ def test_all_counts_every_seed_and_each_shared_run_once(tmp_path, caplog):
     the archive holds is counted as not found, not as 0 minutes."""
     from bench import runs
     from bench.cli import compute_columns, table_summary
-    from bench.experiments.pipeline import recorded_minutes
+    from bench.experiments.row import recorded_minutes
 
     def record(root, kind, run_hash, seconds, train_run=None):
         folder = root / kind / run_hash

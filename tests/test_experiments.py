@@ -167,6 +167,45 @@ def test_seeds_give_mean_and_std(dirs):
     assert r"$\pm$" in (root / "results" / "perceptual" / "table.tex").read_text()
 
 
+def test_the_one_model_command_is_the_sota_tables_ours_row():
+    """`+experiment=train experiment.model=srd` hands the table the row sota's Ours is (at the cpu preset
+    too): the same model, overrides, task, training overrides and cascade, so the same runs."""
+    from bench.experiments.one_model import one_row
+    keys = ("model", "overrides", "task", "train", "cascade")
+    for preset in ("smoke", "cpu"):
+        sota = expand_rows(OmegaConf.to_container(compose_experiment("sota", [f"preset={preset}"]).experiment,
+                                                  resolve=True)["rows"])
+        ours = next(r for r in sota if r["label"] == "Ours")
+        exp = OmegaConf.to_container(compose_experiment("train", [f"preset={preset}", "experiment.model=srd"])
+                                     .experiment, resolve=True)
+        mine = expand_rows([one_row(**{k: exp[k] for k in keys})])[0]
+        assert {k: mine[k] or None for k in keys} == {k: ours.get(k) or None for k in keys}
+
+
+def test_the_one_model_command_and_a_table_reuse_each_others_runs(dirs, caplog):
+    """A table trains, then the one-model command reuses its runs and says so; the one-model command
+    trains, then the table reuses its runs. Seeds no other test trains, so the first of each pair computes."""
+    overrides, root = dirs
+    one_model = lambda seed: compose_experiment("train", overrides + ["experiment.model=srd", f"seeds=[{seed}]",
+                                                                      "++experiment.figure=false"])
+    table = lambda seed: compose_experiment("smoke", overrides + [f"seeds=[{seed}]", "++experiment.figure=false"])
+    ours = lambda name: pd.read_csv(root / "results" / name / "table.csv").set_index("method")["runs"]
+    run_experiment(table(7))
+    caplog.clear()
+    with caplog.at_level("INFO", logger="bench"):
+        run_experiment(one_model(7))
+    assert ours("train/srd")["srd"] == ours("smoke")["Ours"]
+    said = next(line for line in caplog.text.splitlines() if "srd seed 7:" in line)
+    assert "reused training run" in said and "recorded by the row 'Ours'" in said and "computed" not in said
+
+    run_experiment(one_model(8))
+    caplog.clear()
+    with caplog.at_level("INFO", logger="bench"):
+        run_experiment(table(8))
+    assert ours("smoke")["Ours"] == ours("train/srd")["srd"]
+    assert "train Ours: reusing run" in caplog.text and "smoke: 2 of 2 rows reused" in caplog.text
+
+
 def test_all_runs_the_listed_tables_and_reuses_them(dirs):
     overrides, root = dirs
     env = dict(os.environ, HYDRA_FULL_ERROR="0")
@@ -389,7 +428,7 @@ def test_a_table_says_when_its_rows_scored_different_renders_of_the_split(tmp_pa
     import json
     import types
 
-    from bench.experiments.pipeline import render_digest
+    from bench.experiments.datasets import render_digest
     from bench.experiments.table import _renders_note
     frame = {"split": "val", "sequence": "s", "frame": 0,
              "files": {"lr": {"crc32": 1}, "hr": {"crc32": 2}}}

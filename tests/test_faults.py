@@ -17,7 +17,7 @@ import pytest
 
 from bench import datagen, exrio
 from bench.errors import UserError
-from bench.experiments.pipeline import ensure_data
+from bench.experiments.datasets import ensure_data
 from conftest import smoke_context
 
 SPEC = {"name": "tiny", "seed": 1, "lr_width": 8, "lr_height": 6, "scale": 2, "spp": 1, "ref_spp": 4,
@@ -121,7 +121,7 @@ def test_nan_written_into_a_rendered_frame_is_found_at_start_and_rendered_again(
     """The issue's case: NaN/Inf written into a rendered frame must not be trusted. The header check at
     every start sees the file changed since it was written; the frame is rendered again to the same
     pixels, so recorded runs stay valid (the data fingerprint is unchanged)."""
-    from bench.experiments.pipeline import data_fingerprint
+    from bench.experiments.datasets import data_fingerprint
     root, hr, original = rendered
     before = data_fingerprint(_ctx(root))
     _write_nan(hr)
@@ -255,7 +255,7 @@ TINY_CLI = ["+experiment=smoke", "preset=smoke", "data.lr_width=8", "data.lr_hei
 
 def _table_ctx(root, **changes):
     """`_ctx` with a tiny EDSR trained for 2 steps, scored on the train split (the tiny data has no other)."""
-    from bench.experiments.pipeline import recipe_from
+    from bench.experiments.context import recipe_from
     ctx = _ctx(root)
     train = {**dataclasses.asdict(ctx.train), "steps": 2, "crop": 4, "seq_len": 2, "batch_size": 1,
              "checkpoint_every": 1, "val_every": 1, "val_sequences": 1}
@@ -295,7 +295,8 @@ def _cut(path):
 
 
 def _edsr_training(ctx):
-    from bench.experiments.pipeline import model_config, trained_model
+    from bench.experiments.context import model_config
+    from bench.experiments.training import trained_model
     from bench.tasks import get_task
     return trained_model(ctx, model_config(ctx, "edsr"), get_task("srd"), 0, "E")
 
@@ -332,7 +333,7 @@ def test_an_interrupted_training_whose_checkpoint_is_damaged_starts_over(store, 
 
 def test_a_damaged_curve_is_treated_as_missing_and_named(store, caplog):
     from bench.experiments.figure import curve_figure
-    from bench.experiments.pipeline import last_fifth_gain
+    from bench.experiments.row import last_fifth_gain
     run_dir = _run_dir(store, "train")
     (run_dir / "val_curve.csv").write_bytes(b"")                  # what a full disk leaves of a CSV
     with caplog.at_level("WARNING", logger="bench"):

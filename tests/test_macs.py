@@ -13,7 +13,7 @@ from baselines.edsr import EDSR
 from baselines.kpcn import KPCN
 from baselines.rae import RAE
 from bench.experiments.macs import build_table
-from bench.experiments.pipeline import build_model
+from bench.models.factory import build_model
 from bench.macs import audit, count_macs, fit_width, macs_at, on_meta, torch_counter_macs
 from bench.models.srd import SRDNet
 

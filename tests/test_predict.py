@@ -9,7 +9,8 @@ import torch
 from bench import exrio, runs
 from bench.errors import UserError
 from bench.evaluate import predict as predict_batch
-from bench.predict import apply, export, fast_path_cache, load_exported, main, read_frame
+from bench.predict import apply, fast_path_cache, main, read_frame
+from bench.weights import export, load_exported
 from bench.tasks import get_task
 from bench.train import Recipe, train
 from test_train import WEIGHTS, SyntheticSequences
@@ -20,7 +21,7 @@ CFG = {"_target_": "baselines.edsr.EDSR", "channels": 8, "blocks": 2}
 @pytest.fixture(scope="module")
 def recorded(tmp_path_factory):
     """A complete training run of a tiny EDSR in a fresh run store: (runs_dir, hash)."""
-    from bench.experiments.pipeline import build_model
+    from bench.models.factory import build_model
     root = tmp_path_factory.mktemp("predict")
     recipe = Recipe(steps=4, batch_size=2, seq_len=2, crop=8, loss=WEIGHTS, hdr="pu", checkpoint_every=2)
     identity = {"model": CFG, "task": "srd", "train": recipe.identity(), "data": "synthetic", "seed": 0}
@@ -123,7 +124,7 @@ def test_committed_weights_load_into_todays_models(path):
 def test_a_run_kept_only_in_an_archive_exports_the_same_weights(recorded, tmp_path, monkeypatch):
     """A fresh clone has no run store: export finds the run in the tables' committed archive, whose
     checkpoint holds the EMA weights without the optimizer state."""
-    from bench.experiments.pipeline import archive_training
+    from bench.experiments.training import archive_training
     from conftest import smoke_context
     runs_dir, run_hash = recorded
     run = runs.Run("train", run_hash, runs_dir / "train" / run_hash, runs.read_record(runs_dir / "train" / run_hash / runs.RECORD))
@@ -138,7 +139,7 @@ def test_a_run_kept_only_in_an_archive_exports_the_same_weights(recorded, tmp_pa
 
 def test_a_run_archived_without_its_weights_says_where_they_are(recorded, tmp_path, monkeypatch):
     """Weights over the archive's file limit stay out of git: export says so instead of a missing file."""
-    from bench.experiments.pipeline import archive_training
+    from bench.experiments.training import archive_training
     from conftest import smoke_context
     runs_dir, run_hash = recorded
     run = runs.Run("train", run_hash, runs_dir / "train" / run_hash, runs.read_record(runs_dir / "train" / run_hash / runs.RECORD))

@@ -15,7 +15,7 @@ import pytest
 import torch
 
 from bench import exrio
-from bench.predict import FORMAT
+from bench.weights import FORMAT
 
 REPO = Path(__file__).resolve().parent.parent
 RAE = {"_target_": "baselines.rae.RAE", "width": 8}        # recurrent: its state crosses frames

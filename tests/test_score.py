@@ -48,7 +48,7 @@ def scored(tmp_path_factory):
     from bench import runs
     from bench.dataset import SequenceDataset
     from bench.evaluate import evaluate
-    from bench.predict import load_exported
+    from bench.weights import load_exported
     from bench.tasks import get_task
     root = tmp_path_factory.mktemp("score")
     data, weights = write_dataset(root / "data"), write_weights(root / "rae.pt")

@@ -8,7 +8,8 @@ import pytest
 import torch
 
 from baselines.edsr import EDSR
-from bench.experiments.pipeline import _train_identity, recipe_from
+from bench.experiments.context import recipe_from
+from bench.experiments.training import _train_identity
 from bench.tasks import get_task
 from bench.train import CHECKPOINT, Recipe, TrainingDiverged, load_weights, lr_at, train
 from conftest import smoke_context
@@ -252,7 +253,7 @@ def test_your_own_data_is_fingerprinted_by_its_files_size_and_mtime(ctx):
     """render_data=false: a changed pixel (new mtime) or a file of another size is other data; the
     rendered data's fingerprint (render_data=true) follows its spec and settings only."""
     import os
-    from bench.experiments.pipeline import data_fingerprint
+    from bench.experiments.datasets import data_fingerprint
     for split, seq in (("train", "a"), ("val", "b")):
         (ctx.data_dir / split / seq).mkdir(parents=True)
         for res in ("lr", "hr"):
@@ -373,7 +374,7 @@ def test_sigterm_saves_a_checkpoint_and_the_resumed_run_equals_an_uninterrupted_
 
 
 def test_last_fifth_gain_reads_the_learning_curve(tmp_path):
-    from bench.experiments.pipeline import last_fifth_gain
+    from bench.experiments.row import last_fifth_gain
     curve = tmp_path / "val_curve.csv"
     pd.DataFrame({"step": [0, 100, 200, 300, 400, 500], "PSNR": [20.0, 25, 27, 28, 28.5, 28.6]}).to_csv(curve)
     assert last_fifth_gain(curve) == pytest.approx(0.1)          # 500 vs the point at step 400

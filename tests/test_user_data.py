@@ -106,7 +106,7 @@ def test_training_on_frames_without_lr_size_names_the_key(tmp_path):
     """lr_size is optional for evaluation (whole frames) but training crops need it: one message, not a
     KeyError from inside the data loader."""
     from bench.errors import UserError
-    from bench.experiments.pipeline import dataset
+    from bench.experiments.datasets import dataset
     from bench.tasks import get_task
     from conftest import smoke_context
     write_dataset(tmp_path / "data", splits=("train",))

@@ -3,4 +3,5 @@
 An experiment is a YAML file in conf/experiment/ whose `experiment.kind` names a module here with a
 `run(ctx, **params)` function; the other keys of `experiment` are its params.
 """
-KINDS = ("table", "data", "macs", "stability", "timing", "speed", "lr_range", "claims", "adopt")  # modules in this package
+# modules in this package
+KINDS = ("table", "one_model", "data", "macs", "stability", "timing", "speed", "lr_range", "claims", "adopt")

@@ -43,10 +43,11 @@ import torch
 from bench import runs
 from bench.errors import UserError
 from bench.evaluate import evaluate
-from bench.experiments.pipeline import (EVALUATION_CODE, TRAINING_CODE, Context, archive_evaluation,
-                                        archive_training, build_model, code_of, data_fingerprint, dataset,
-                                        evaluation_data, perceptual_features, cascade_net, recipe_from,
-                                        render_digest)
+from bench.experiments.context import EVALUATION_CODE, TRAINING_CODE, Context, code_of, recipe_from
+from bench.experiments.datasets import data_fingerprint, dataset, evaluation_data, render_digest
+from bench.experiments.evaluation import archive_evaluation
+from bench.experiments.training import archive_training, cascade_net, perceptual_features
+from bench.models.factory import build_model
 from bench.models.srd import SRDStage
 from bench.table_writer import write_table
 from bench.tasks import get_task

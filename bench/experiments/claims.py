@@ -33,7 +33,7 @@ import pandas as pd
 from bench import runs, stats
 from bench.errors import UserError
 from bench.experiments import results_page
-from bench.experiments.pipeline import Context
+from bench.experiments.context import Context
 from bench.table_writer import write_table
 
 log = logging.getLogger("bench")

@@ -15,7 +15,8 @@ import pandas as pd
 from bench import runs
 from bench.datagen import damaged_frames, export_examples, load_manifest, stamp_frames
 from bench.errors import UserError
-from bench.experiments.pipeline import Context, ensure_data
+from bench.experiments.context import Context
+from bench.experiments.datasets import ensure_data
 from bench.table_writer import write_table
 from bench.tasks import BUFFERS
 

@@ -16,8 +16,9 @@ import torch.nn.functional as F
 
 from bench import runs
 from bench.evaluate import predict
-from bench.experiments.pipeline import (Context, cascade_model, dataset, evaluation_data, model_config,
-                                        trained_model, with_training)
+from bench.experiments.context import Context, model_config, with_training
+from bench.experiments.datasets import dataset, evaluation_data
+from bench.experiments.training import cascade_model, trained_model
 from bench.metrics import relmse
 from bench.nn.blocks import upsampled_input
 from bench.tasks import get_task

@@ -18,7 +18,9 @@ import logging
 import numpy as np
 import pandas as pd
 
-from bench.experiments.pipeline import Context, model_config, trained_model, with_training, ensure_data
+from bench.experiments.context import Context, model_config, with_training
+from bench.experiments.datasets import ensure_data
+from bench.experiments.training import trained_model
 from bench.table_writer import write_table
 from bench.tasks import get_task
 

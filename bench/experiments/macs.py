@@ -17,8 +17,8 @@ from pathlib import Path
 import pandas as pd
 import torch
 
-from bench.experiments.pipeline import build_model
 from bench.macs import audit, closest_width, count_params, on_meta
+from bench.models.factory import build_model
 from bench.paper import paper_values
 from bench.table_writer import write_table
 

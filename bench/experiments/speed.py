@@ -44,12 +44,12 @@ import torch
 import torch.nn as nn
 
 from bench.evaluate import sync
-from bench.experiments.pipeline import build_model
 from bench.infer import (frames_channels_last, freed_memory_kept, max_abs_diff, parse_path, prepare, release_free_memory,
                          tiled_predict)
 from bench.losses import weighted_loss
-from bench.measure import candidate_paths, choose_fast_path, cpu_flags, cpu_isa, time_call
 from bench.macs import count_macs, on_meta
+from bench.measure import candidate_paths, choose_fast_path, cpu_flags, cpu_isa, time_call
+from bench.models.factory import build_model
 from bench.nn import DeformConv2d, eager_gather, fused, grid_sample_training, inference_sampler, training_sampler
 from bench.table_writer import write_table
 

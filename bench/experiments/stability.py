@@ -25,11 +25,13 @@ import torch
 import torch.nn.functional as F
 
 from bench.evaluate import predict
+from bench.experiments.context import Context, model_config, with_training
+from bench.experiments.datasets import dataset, ensure_data
+from bench.experiments.training import trained_model
 from bench.hdr import to_network
-from bench.experiments.pipeline import (Context, dataset, ensure_data, is_learned, model_config, trained_model,
-                                        with_training)
 from bench.measure import time_call
 from bench.metrics import psnr, relmse, ssim
+from bench.models.factory import is_learned
 from bench.nn import DeformConv2d
 from bench.table_writer import write_table
 from bench.tasks import get_task

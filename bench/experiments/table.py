@@ -27,12 +27,14 @@ import pandas as pd
 
 from bench import runs
 from bench.datagen import load_manifest
+from bench.experiments.context import Context, model_config
+from bench.experiments.datasets import ensure_data, evaluation_data
 from bench.experiments.figure import crop_figure, curve_figure
 from bench.experiments.macs import frame_inputs
-from bench.experiments.pipeline import (Context, build_model, ensure_data, evaluation_data, is_learned,
-                                       model_config, row)
+from bench.experiments.row import row
 from bench.macs import count_macs, on_meta
 from bench.metrics import HIGHER_IS_BETTER, LOWER_IS_BETTER, RELMSE_FORMULA
+from bench.models.factory import build_model, is_learned
 from bench.paper import TABLES, paper_values
 from bench.table_writer import write_table
 from bench.tasks import CASCADE_STAGES, get_task

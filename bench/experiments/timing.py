@@ -45,10 +45,12 @@ from bench.datagen import derive_seed, frame_view
 from bench.dataset import SequenceDataset
 from bench.errors import UserError
 from bench.evaluate import predict, sync
-from bench.experiments.pipeline import (Context, build_model, ensure_data, is_learned, model_config,
-                                        recorded_training, trained_model, with_training)
+from bench.experiments.context import Context, model_config, with_training
+from bench.experiments.datasets import ensure_data
+from bench.experiments.training import recorded_training, trained_model
 from bench.measure import time_call
 from bench.metrics import HIGHER_IS_BETTER, LOWER_IS_BETTER, METRICS, RELMSE_FORMULA, mse
+from bench.models.factory import build_model, is_learned
 from bench.table_writer import write_table
 from bench.tasks import GBUF_LAYERS, get_task
 from bench.train import CHECKPOINT

@@ -1,0 +1,109 @@
+"""What every experiment is handed: the typed `Context` the CLI builds from the Hydra config, a row's
+model config and training recipe, and the code a run's fingerprint covers.
+
+A row is (model name, argument overrides, task, training overrides, cascade or not). Its identity hashes
+only what determines its numbers, so two tables that ask for the same row (the paper reuses "ours" across
+Tables 4, 5 and 7) share one run. Identities hash configuration; each run also records the fingerprint of
+the code it ran (the model's module, the trainer or evaluator, and what they import:
+`runs.code_fingerprint`). A recorded run whose code has changed since is recomputed, and the log names
+the changed files; `reuse_stale=true` reuses it.
+"""
+from __future__ import annotations
+
+import copy
+import dataclasses
+from dataclasses import dataclass
+from pathlib import Path
+
+from bench import runs
+from bench.errors import UserError
+from bench.train import Recipe
+
+
+@dataclass(frozen=True)
+class EvalSpec:
+    """How tables evaluate (conf/config.yaml `eval:`, where the defaults and their meaning are)."""
+    split: str
+    data_dir: Path | None        # another dataset to score (see evaluation_data); None: data_dir
+    save_exr: bool
+    fast_path: str
+    tile: int | None
+
+
+@dataclass(frozen=True)
+class VggSpec:
+    """The perceptual loss's features (conf/config.yaml `vgg:`)."""
+    weights: str | None
+    layer: str
+    allow_random: bool
+
+
+@dataclass
+class Context:
+    """Everything a table needs, as typed values built by the CLI from the Hydra config (`make_context`);
+    the defaults live in conf/, not here. `data_spec` and `models` stay dicts: the data description and
+    the model configs (`_target_` + arguments) are recorded and hashed as they are written."""
+    preset: str                                     # the size preset's name (smoke, cpu, paper)
+    runs_dir: Path
+    results_dir: Path
+    data_dir: Path
+    data_spec: dict
+    train: Recipe
+    eval: EvalSpec
+    vgg: VggSpec
+    models: dict
+    budget_gmac: float | None                       # the preset's MAC budget per 960x540 frame (GMac)
+    seeds: list
+    device: str
+    workers: int
+    force: bool
+    progress: bool
+    render_data: bool
+    model_lr: dict                                  # model name -> peak learning rate (else train.lr)
+    shard: tuple[int, int] | None                   # (i, n): a table computes its (row, seed) runs i, i+n, ... first
+    reuse_stale: bool                               # reuse runs whose code changed since they were recorded
+    runs_archive: Path | None = None                # finished trainings and evaluations kept with the results
+
+
+def model_config(ctx: Context, name: str, overrides: dict | None = None) -> dict:
+    if name not in ctx.models:
+        raise UserError(f"unknown model {name!r}; known models: {', '.join(sorted(ctx.models))} "
+                        f"(add one as conf/model/<name>.yaml, see README, 'Adding a model')")
+    cfg = copy.deepcopy(ctx.models[name])
+    cfg.update(overrides or {})
+    return cfg
+
+
+def deep_merge(base: dict, overrides: dict | None) -> dict:
+    """A copy of `base` with `overrides` merged in, nested dicts key by key."""
+    out = copy.deepcopy(base)
+    for key, value in (overrides or {}).items():
+        out[key] = deep_merge(out[key], value) if isinstance(value, dict) and isinstance(out.get(key), dict) \
+            else copy.deepcopy(value)
+    return out
+
+
+def with_training(ctx: Context, overrides: dict | None, model: str | None = None) -> Context:
+    """`ctx` with the recipe a row trains with: the model's own learning rate (`model_lr`, from the
+    range test), then the row's training overrides (e.g. the perceptual weight) merged in."""
+    if model in ctx.model_lr:
+        overrides = deep_merge({"lr": ctx.model_lr[model]}, overrides)
+    return dataclasses.replace(ctx, train=recipe_from(deep_merge(dataclasses.asdict(ctx.train), overrides))) \
+        if overrides else ctx
+
+
+def recipe_from(config: dict) -> Recipe:
+    """The training recipe of a `train:` dict, a bad key or value as a UserError."""
+    try:
+        return Recipe.from_config(config)
+    except (TypeError, ValueError) as err:
+        raise UserError(f"train: {err}") from err
+
+
+TRAINING_CODE = ("bench.train", "bench.dataset")
+
+EVALUATION_CODE = ("bench.evaluate", "bench.dataset")
+
+def code_of(cfg: dict, *modules: str) -> dict:
+    """Code fingerprint of a run of the model `cfg` that also runs `modules`."""
+    return runs.code_fingerprint([cfg["_target_"], *modules])

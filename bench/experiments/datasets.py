@@ -1,0 +1,203 @@
+"""The data a table reads: its fingerprint (what is on disk, hashed into training and evaluation
+identities), rendering what a table needs and is missing (a recorded `data` run), checking your own
+frames, and opening a split as a `SequenceDataset`.
+"""
+from __future__ import annotations
+
+import contextlib
+import copy
+import dataclasses
+import functools
+import json
+import logging
+import os
+from pathlib import Path
+
+from bench import runs
+from bench.datagen import (build_dataset, damaged_frames, frame_paths, load_manifest, manifest_problems,
+                           rebuild_manifest)
+from bench.dataset import SequenceDataset
+from bench.errors import UserError
+from bench.experiments.context import Context
+from bench.tasks import Task
+
+log = logging.getLogger("bench")
+
+
+def _canonical(value) -> str:
+    return json.dumps(value, sort_keys=True, default=str)
+
+
+@functools.lru_cache(maxsize=32)
+def _fingerprint(manifest_path: str, mtime_ns: int, split: str | None, files: str | None = None) -> str:
+    manifest = load_manifest(Path(manifest_path).parent)
+    spec = copy.deepcopy(manifest.get("spec") or {})  # your own renders may have none
+    if split is not None and isinstance(spec.get("splits"), dict):
+        spec["splits"] = {split: spec["splits"].get(split)}
+    frames = sorted((f["split"], f["sequence"], f["frame"], f.get("settings_hash")) for f in manifest["frames"]
+                    if split is None or f["split"] == split)
+    if not frames and split is not None:
+        splits = sorted({f["split"] for f in manifest["frames"]})
+        raise UserError(f"{Path(manifest_path).parent}: no frames in split {split!r} (it has {splits}); tables "
+                        f"score the split eval.split (e.g. eval.split={([s for s in splits if s != 'train'] or ['NAME'])[0]}), "
+                        "trainings read 'train'")
+    identity = {"spec": spec, "frames": frames}
+    if files is not None:
+        identity["files"] = files
+    return runs.config_hash(identity)
+
+
+def data_fingerprint(ctx: Context, split: str | None = None) -> str:
+    """Hash of what is on disk (the manifest's spec and every frame's render settings), not of the path:
+    runs trained on it are reused exactly while the data they saw is unchanged. With `split`, only that
+    split's part of the spec and its frames count: re-rendering the validation references does not make
+    the training runs stale."""
+    path = ctx.data_dir / "manifest.json"
+    if not path.exists():
+        raise UserError(f"data directory {ctx.data_dir} has no manifest.json; render it with "
+                        f"`python -m bench +experiment=data preset={ctx.preset}` or point data_dir=... at a "
+                        f"dataset in the documented layout (docs/data.md)")
+    files = None if ctx.render_data else _file_stats(ctx.data_dir, split)
+    return _fingerprint(str(path.resolve()), path.stat().st_mtime_ns, split, files)
+
+
+def _file_stats(root: Path, split: str | None) -> str:
+    """Your own renders (render_data=false) are fingerprinted by content too: each frame file's size
+    and modification time. Not its bytes: hashing gigabytes at every command would cost more than
+    the check is worth, and editing a frame, re-rendering it or copying a dataset (without `cp -p`)
+    changes its mtime. Rendered data needs none of this: its spec and settings determine the pixels on
+    one machine (a frame rendered again matches its file bit for bit). Across hosts Mitsuba's LLVM
+    backend compiles for the CPU, paths diverge on last-bit differences, and the noise differs with the
+    same statistics (the cpu val split's input bilinear: 31.68-31.70 dB over three hosts' renders)."""
+    stats = []
+    for frame in load_manifest(root)["frames"]:
+        if split is not None and frame["split"] != split:
+            continue
+        for name in frame_paths(root, frame["split"], frame["sequence"], frame["frame"])[:2]:
+            st = os.stat(name) if os.path.exists(name) else None
+            stats.append((name, st.st_size, st.st_mtime_ns) if st else (name, None, None))
+    return runs.config_hash({"files": stats})
+
+
+def render_digest(ctx: Context, split: str) -> str | None:
+    """Which render of `split` this is: a hash of its frame files' CRC-32 stamps in the manifest, or
+    None when a frame has none (your own data before `verify=true`). Not part of any identity: renders
+    of the same settings on other hosts share the data fingerprint but differ in their noise, and
+    tables use this to say when their rows were scored on different ones."""
+    crcs = []
+    for rec in load_manifest(ctx.data_dir)["frames"]:
+        if rec["split"] == split:
+            files = rec.get("files") or {}
+            if not (files.get("lr") and files.get("hr")):
+                return None
+            crcs.append((rec["sequence"], rec["frame"], files["lr"]["crc32"], files["hr"]["crc32"]))
+    return runs.config_hash({"render": sorted(crcs)})[:8]
+
+
+def ensure_data(ctx: Context, passes: set[str]) -> str:
+    """Make sure `data_dir` holds the preset's dataset with at least `passes`, rendering only what is
+    missing; returns the data fingerprint. With render_data=false the directory is used as it is."""
+    if not ctx.render_data:
+        problems = manifest_problems(ctx.data_dir)
+        if problems:  # one problem (a damaged manifest) on one line
+            listed = problems[0] if len(problems) == 1 else "\n  " + "\n  ".join(problems)
+            raise UserError(f"data: {ctx.data_dir} is not a dataset in the documented layout (docs/data.md): "
+                            f"{listed}")
+        fingerprint = data_fingerprint(ctx)
+        manifest = load_manifest(ctx.data_dir)
+        damaged = damaged_frames(ctx.data_dir, manifest["frames"], manifest.get("passes", []), stamps=False)
+        if damaged:
+            raise UserError(f"data: {len(damaged)} damaged frame files in {ctx.data_dir} ({_listed(damaged)}); "
+                            "with render_data=false they are yours to replace (or drop their records from "
+                            "manifest.json)")
+        return fingerprint
+    ctx.data_dir.mkdir(parents=True, exist_ok=True)
+    # one process checks and renders a dataset at a time: two tables needing other buffers would
+    # otherwise render the same frames at once, and each take the other's files for damaged ones
+    with contextlib.closing(runs.acquire(ctx.data_dir / ".render.lock", f"rendering {ctx.data_dir}")):
+        return _render_missing(ctx, passes)
+
+
+def _render_missing(ctx: Context, passes: set[str]) -> str:
+    manifest = _manifest_or_rebuilt(ctx)
+    if manifest is not None:
+        if _canonical(manifest.get("spec")) == _canonical(ctx.data_spec):
+            # per frame: a split re-rendered for another table (new settings) may hold fewer buffers
+            lacking = [f for f in manifest["frames"] if not passes <= set(f.get("buffers", []))]
+            damaged = damaged_frames(ctx.data_dir, manifest["frames"], manifest["passes"])
+            if not damaged and not lacking:
+                log.info("data: %s already holds %s", ctx.data_dir, ", ".join(sorted(passes)))
+                return data_fingerprint(ctx)
+            if damaged:
+                log.warning("data: %d damaged frame files (%s); rendering them again", len(damaged), _listed(damaged))
+    identity = {"spec": ctx.data_spec, "passes": sorted(passes)}
+    run = runs.begin(ctx.runs_dir, "data", identity, seed=ctx.data_spec.get("seed"), device=ctx.device,
+                     label=f"data {ctx.preset}", force=True, every_call=True)  # a data run records one render job
+    try:
+        log.info("data: making sure %s holds %s (rendering what is missing)", ctx.data_dir, ", ".join(sorted(passes)))
+        manifest = build_dataset(ctx.data_dir, ctx.data_spec, sorted(passes), workers=ctx.workers,
+                                 progress=ctx.progress, variant="cuda_ad_rgb" if ctx.device == "cuda" else None)
+    except BaseException as err:  # the record says so, never "running" forever; rendered frames are kept
+        runs.fail(run, f"{type(err).__name__}: {err}")
+        raise
+    timing_cols = [c for c in manifest.columns if c.startswith("time_s.")]
+    complete = int(manifest["resumed"].sum())
+    runs.complete(run, {"frames": int(len(manifest)), "resumed_frames": complete,
+                        "render_time_s": float(manifest[timing_cols].fillna(0).to_numpy().sum()),
+                        "nonfinite_repaired": int(manifest.get("nonfinite_repaired", 0).sum())})
+    log.info("data: %d frames rendered, %d were already complete (%.1f min)", len(manifest) - complete, complete,
+             run.record["wall_time_s"] / 60)
+    return data_fingerprint(ctx)
+
+
+def _manifest_or_rebuilt(ctx: Context) -> dict | None:
+    """The rendered dataset's manifest; a damaged one is rebuilt from the frame records beside it, without
+    rendering. None when there is none (or a frame lacks its record): rendering makes it."""
+    path = ctx.data_dir / "manifest.json"
+    manifest = runs.read_json_or_none(path)  # damaged: the log names it
+    if manifest is None and path.exists():
+        manifest = rebuild_manifest(ctx.data_dir, ctx.data_spec)
+        if manifest is not None:
+            log.info("data: rebuilt %s from its %d frame records (nothing rendered)", path, len(manifest["frames"]))
+    return manifest
+
+
+def _listed(problems: list, shown: int = 3) -> str:
+    """'path: problem; ...' for (path, problem) pairs, the first `shown` of them."""
+    text = "; ".join(f"{path}: {why}" for path, why in problems[:shown])
+    return text + (f"; and {len(problems) - shown} more" if len(problems) > shown else "")
+
+
+def evaluation_data(ctx: Context) -> Context:
+    """The context evaluations read their frames from: `eval.data_dir` when set (another dataset, e.g.
+    your own renders, used as it is), else `data_dir`. Trainings always read `data_dir`, so evaluating
+    recorded models on other data retrains nothing."""
+    other = ctx.eval.data_dir
+    return dataclasses.replace(ctx, data_dir=Path(other), render_data=False) if other else ctx
+
+
+def dataset(ctx: Context, split: str, task: Task, training: bool, seed: int = 0):
+    data_fingerprint(ctx)  # a clear error when the directory is not a dataset
+    buffers = task.buffers(with_mid=training)
+    if not training:
+        return SequenceDataset(ctx.data_dir, split, buffers)
+    recipe = ctx.train
+    manifest = load_manifest(ctx.data_dir)
+    frames = (manifest.get("spec") or {}).get("seq_len")
+    if frames is not None and recipe.seq_len > frames:
+        raise UserError(f"train.seq_len={recipe.seq_len} but the dataset's sequences have {frames} frames")
+    check_training_frames(ctx, split, manifest)
+    return SequenceDataset(ctx.data_dir, split, buffers, seq_len=recipe.seq_len, crop=recipe.crop,
+                           augment=True, seed=seed, max_sequences=recipe.train_sequences,
+                           permute_colours=recipe.colour_permute)
+
+
+def check_training_frames(ctx: Context, split: str = "train", manifest: dict | None = None) -> None:
+    """Training crops are drawn inside each frame's `lr_size`, optional for evaluation (whole frames):
+    a frame without it is named before a training run is recorded."""
+    manifest = manifest or load_manifest(ctx.data_dir)
+    unsized = [f"{r['sequence']}/{r['frame']}" for r in manifest["frames"] if r["split"] == split and "lr_size" not in r]
+    if unsized:
+        raise UserError(f"{ctx.data_dir}/manifest.json: training crops need each {split!r} frame's \"lr_size\" "
+                        f"([width, height] of its LR frame); missing on {len(unsized)} frames ({', '.join(unsized[:3])}"
+                        f"{', ...' if len(unsized) > 3 else ''})")

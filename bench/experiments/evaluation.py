@@ -1,0 +1,91 @@
+"""Evaluating a row: one recorded evaluation run per (training, split, data, domain, way of running),
+reused when recorded, else the trained model scored by `bench.evaluate` (training it first if needed);
+`eval.fast_path=auto` measures the fastest correct path first.
+"""
+from __future__ import annotations
+
+import logging
+
+from bench import runs
+from bench.evaluate import SCORES, evaluate
+from bench.experiments.context import EVALUATION_CODE, TRAINING_CODE, Context, code_of
+from bench.experiments.datasets import data_fingerprint, dataset, evaluation_data, render_digest
+from bench.experiments.training import cascade_model, trained_model
+from bench.exrio import write_exr
+from bench.infer import REFERENCE
+from bench.macs import count_params
+from bench.measure import AUTO, choose_fast_path
+from bench.models.factory import build_model
+from bench.tasks import Task
+
+log = logging.getLogger("bench")
+
+
+def evaluated(ctx: Context, cfg: dict, task: Task, seed: int, split: str, label: str = "",
+              cascade: bool = False) -> runs.Run:
+    """Evaluation run of a row (training it first if needed)."""
+    if cascade:
+        model, stage_runs = cascade_model(ctx, cfg, seed, label)
+        train_run, trained = None, "+".join(r.hash for r in stage_runs)
+    else:
+        model, train_run = trained_model(ctx, cfg, task, seed, label, load=False)
+        trained = train_run.hash if train_run else {"model": cfg, "task": task.name}
+    hdr = ctx.train.hdr
+    frames = evaluation_data(ctx)
+    identity = {"trained": trained, "split": split, "data": data_fingerprint(frames, split), "hdr": hdr}
+    if ctx.eval.save_exr:
+        identity["frames"] = True  # output frames are an artifact of their own run
+    fast_path, tile = ctx.eval.fast_path, ctx.eval.tile
+    if fast_path == AUTO:
+        fast_path = measured_fast_path(ctx, cfg, task, split, label)
+    if fast_path != REFERENCE or tile:  # only a non-default way of running changes the identity
+        identity.update(path=fast_path, tile=tile)  # ("path": the identity key from before the rename)
+    # a learned row's numbers also depend on the trainer: retraining it makes its evaluation stale too
+    code = code_of(cfg, *EVALUATION_CODE, *(TRAINING_CODE if train_run is not None or cascade else ()))
+    run = runs.begin(ctx.runs_dir, "eval", identity, seed=seed, device=ctx.device, label=label,
+                     force=ctx.force, code=code, reuse_stale=ctx.reuse_stale, archive=ctx.runs_archive)
+    missing = [m for m in SCORES if f"{m} se" not in run.metrics] if run.reused else []
+    if missing:  # recorded before the evaluator scored these: evaluating again is cheap, training is not
+        log.info("eval %s: re-evaluating run %s, recorded without %s", label, run.hash, ", ".join(missing))
+        run = runs.begin(ctx.runs_dir, "eval", identity, seed=seed, device=ctx.device, label=label,
+                         force=True, code=code)
+    if run.reused:
+        log.info("eval %s: reusing run %s", label, run.hash)
+        return archive_evaluation(ctx, run)
+    if model is None:  # a recorded training whose weights trained_model did not read (or that lacks them)
+        model, train_run = trained_model(ctx, cfg, task, seed, label)
+    try:
+        _, metrics = evaluate(model, dataset(frames, split, task, training=False), task, hdr=hdr,
+                              device=ctx.device, out_dir=run.dir, save_exr=ctx.eval.save_exr,
+                              write_exr=write_exr, path=fast_path, tile=tile)
+    except BaseException as err:  # the record says so, never "running" forever
+        runs.fail(run, f"{type(err).__name__}: {err}")
+        raise
+    metrics["params"] = count_params(model)
+    metrics["train_run"] = trained if isinstance(trained, str) else None
+    metrics["vgg"] = (train_run.record["identity"].get("vgg") if train_run else None)
+    metrics["render"] = render_digest(frames, split)
+    return archive_evaluation(ctx, runs.complete(run, metrics))
+
+
+def archive_evaluation(ctx: Context, run: runs.Run) -> runs.Run:
+    """Keep a finished evaluation in `ctx.runs_archive`: its record and per-frame scores (claims pair
+    them), not its output frames (`eval.save_exr`), which stay in the run store."""
+    if ctx.runs_archive is not None and not run.record["identity"].get("frames"):
+        runs.archive(run, ctx.runs_archive, ("per_image.csv",))
+    return run
+
+
+def measured_fast_path(ctx: Context, cfg: dict, task: Task, split: str, label: str) -> str:
+    """eval.fast_path=auto: the fastest correct path for this model on this machine (bench.measure),
+    timed on an untrained copy (speed does not depend on the weights) and one sequence of the split,
+    cached in <runs_dir>/fast_paths.json. The evaluation's identity records the path chosen."""
+    item = dataset(evaluation_data(ctx), split, task, training=False)[0]
+    model = build_model(cfg, task.scale).to(ctx.device).eval()
+    x, g = item[task.x][None].to(ctx.device), item[task.g][None].to(ctx.device)
+    chosen, times = choose_fast_path(model, x, g, ctx.device, ctx.runs_dir / "fast_paths.json",
+                                     {"model": cfg, "task": task.name})
+    if times:
+        log.info("eval %s: fast_path=auto chose %s (%s)", label, chosen,
+                 ", ".join(f"{k} {v:.0f} ms" if isinstance(v, float) else f"{k} {v}" for k, v in times.items()))
+    return chosen

@@ -1,0 +1,244 @@
+"""Training a row's model, once: the training run's identity, reusing a recorded run (from the run store
+or its archive), else training it with the one training loop (`bench.train.train`), the learning
+curve's validation and the perceptual loss's features; the Cascade's stages (paper Table 3), each
+trained alone on its own task and assembled; the torchrun ranks that join rank 0's trainings.
+"""
+from __future__ import annotations
+
+import functools
+import hashlib
+import logging
+from pathlib import Path
+
+import torch
+
+from bench import distributed, runs
+from bench.errors import UserError
+from bench.evaluate import evaluate
+from bench.experiments.context import TRAINING_CODE, Context, code_of
+from bench.experiments.datasets import check_training_frames, data_fingerprint, dataset, render_digest
+from bench.models.factory import build_model, is_learned
+from bench.models.srd import SRDNet, SRDStage, load_stage
+from bench.tasks import CASCADE_STAGES, Task, get_task
+from bench.train import CHECKPOINT, TrainingDiverged, TrainingInterrupted, load_weights, train
+
+log = logging.getLogger("bench")
+
+TORCH_HUB_VGG16 = Path.home() / ".cache/torch/hub/checkpoints/vgg16-397923af.pth"
+
+def validation(ctx: Context, task: Task, sequences: int):
+    """The learning curve's scorer: `validate(model) -> {relMSE, PSNR, SSIM}` on whole frames of
+    `sequences` validation sequences spread over the split (None when there are none to score)."""
+    if sequences <= 0:
+        return None
+    split = ctx.eval.split
+    try:
+        full = dataset(ctx, split, task, training=False)
+    except ValueError:  # no such split in this dataset: no curve, the final table still scores it
+        log.warning("no %r split for the learning curve; training without one", split)
+        return None
+    chosen = sorted({round(i * (len(full) - 1) / max(1, sequences - 1)) for i in range(min(sequences, len(full)))})
+    subset = torch.utils.data.Subset(full, chosen)
+    hdr = ctx.train.hdr
+
+    def validate(model) -> dict:
+        _, metrics = evaluate(model, subset, task, hdr=hdr, device=ctx.device)
+        return {k: metrics[k] for k in ("relMSE", "PSNR", "SSIM")}
+    return validate
+
+
+def perceptual_features(ctx: Context):
+    """(features module or None, identity dict saying which weights and layer are used)."""
+    from bench.nn.vgg import load_vgg16_features, random_vgg16_features
+    layer = ctx.vgg.layer
+    path = ctx.vgg.weights or (str(TORCH_HUB_VGG16) if TORCH_HUB_VGG16.exists() else None)
+    if path:
+        if not Path(path).exists():
+            raise UserError(f"VGG16 weights file {path} (vgg.weights / SRD_VGG16_WEIGHTS) does not exist")
+        return (load_vgg16_features(path, layer).to(ctx.device),
+                {"weights": Path(path).name, "sha256": _file_sha256(str(Path(path).resolve())), "layer": layer})
+    if ctx.vgg.allow_random:
+        log.warning("perceptual loss uses a fixed-seed RANDOM VGG16 (no weights found); tables will say so")
+        return random_vgg16_features(layer, seed=0).to(ctx.device), {"weights": "random(seed=0)", "layer": layer}
+    raise UserError("the perceptual loss needs ImageNet VGG16 weights in torchvision's format: set "
+                    "vgg.weights=/path/to/vgg16-397923af.pth (or SRD_VGG16_WEIGHTS), or put the file at "
+                    f"{TORCH_HUB_VGG16}; or allow a fixed-seed random VGG with vgg.allow_random=true; "
+                    "or turn the term off with train.loss.final.perceptual=0")
+
+
+@functools.lru_cache(maxsize=4)
+def _file_sha256(path: str) -> str:
+    digest = hashlib.sha256()
+    with open(path, "rb") as f:
+        for chunk in iter(lambda: f.read(1 << 20), b""):
+            digest.update(chunk)
+    return digest.hexdigest()[:16]
+
+
+def _train_identity(ctx: Context, cfg: dict, task: Task, seed: int, vgg_id: dict | None,
+                    stage: str | None = None) -> dict:
+    identity = {"model": cfg, "task": task.name, "train": ctx.train.identity(),
+                "data": data_fingerprint(ctx, "train"), "seed": seed, "vgg": vgg_id}
+    if stage is not None:
+        identity["stage"] = stage
+    return identity
+
+
+def recorded_training(ctx: Context, cfg: dict, task: Task, seed: int) -> runs.Run | None:
+    """The complete training run of (cfg, task, seed) in this context, or None; never trains."""
+    try:
+        vgg_id = _loss_features(ctx)[1]
+    except UserError:  # no VGG weights: nothing can have been trained with them here either
+        return None
+    return runs.lookup(ctx.runs_dir, "train", _train_identity(ctx, cfg, task, seed, vgg_id, None), ctx.runs_archive)
+
+
+def trained_model(ctx: Context, cfg: dict, task: Task, seed: int, label: str = "", load: bool = True,
+                  stage: str | None = None, divergence_ends: bool = False):
+    """The model of `cfg` trained on `task`, from the run store when recorded. Returns (model, run or None).
+
+    With load=False a recorded run's weights are not read (the caller may not need them; see
+    `evaluated`) and the model returned is None: call again with load=True when needed. A recorded run
+    restored from the archive without its weights (runs.ARCHIVED_FILE_MAX_BYTES) is trained again then,
+    into the store only: the archive keeps the record its evaluations scored.
+    With `stage` ("sr" or "dn") only that stage of an SRDNet (built at the SRD scale, 2) is trained on
+    `task`, through SRDStage. With `divergence_ends` (a learning-rate range test) a diverging training is
+    recorded complete with the step it diverged at, instead of failing."""
+    model = _initial_model(cfg, task, seed, stage)
+    if not is_learned(model):
+        return model, None
+    features, vgg_id = _loss_features(ctx)
+    identity = _train_identity(ctx, cfg, task, seed, vgg_id, stage)
+    if not ctx.render_data:  # your own data: a frame the trainer cannot crop is named before a run is recorded
+        check_training_frames(ctx)
+    code = code_of(cfg, *TRAINING_CODE)
+    run = runs.begin(ctx.runs_dir, "train", identity, seed=seed, device=ctx.device, label=label,
+                     force=ctx.force, code=code, reuse_stale=ctx.reuse_stale, archive=ctx.runs_archive,
+                     needs=(CHECKPOINT,) if load else ())
+    # a run trained again for the weights its archive left out: the archive keeps the run it scored
+    weights_only = None if ctx.force else archived_without_weights(ctx, run, code)
+    if run.reused:
+        log.info("train %s: reusing run %s", label or cfg["_target_"], run.hash)
+        if not weights_only:
+            archive_training(ctx, run)
+        return (load_weights(model, run.dir, ctx.device) if load else None), run
+    recipe = ctx.train
+    _drop_damaged_checkpoint(run.dir / CHECKPOINT)
+    if distributed.rank_and_size()[1] > 1:  # the other torchrun ranks (serve_trainings) join this training
+        distributed.share((ctx, cfg, task.name, seed, stage, str(run.dir)))
+    try:
+        summary = train(model, dataset(ctx, "train", task, training=True, seed=seed), task, run.dir, recipe,
+                        features=features, seed=seed, device=ctx.device, progress=ctx.progress,
+                        validate=validation(ctx, task, recipe.val_sequences) if stage is None else None,
+                        distributed_ranks=True)
+    except TrainingDiverged as err:
+        if divergence_ends:  # a learning-rate range test: divergence is its result, recorded as such
+            archive_training(ctx, runs.complete(run, {"diverged_at_step": err.step, "divergence": str(err)}))
+            log.info("train %s: diverged at step %d (expected in a range test)", label, err.step)
+            return model, run
+        runs.fail(run, str(err))
+        raise UserError(f"training {label or cfg['_target_']} (run {run.dir}) diverged: {err}") from err
+    except TrainingInterrupted as err:  # stopped on request with a checkpoint: resumable, not failed
+        runs.fail(run, str(err), status="interrupted")
+        raise TrainingInterrupted(f"training {label or cfg['_target_']} stopped by {err}", err.exit_code - 128) \
+            from None
+    except BaseException as err:  # interrupted or crashed: the record says so; the checkpoint stays
+        runs.fail(run, f"{type(err).__name__}: {err}")
+        raise
+    summary["render"] = render_digest(ctx, "train")  # which render it trained on (adopt compares it)
+    runs.complete(run, summary)
+    if weights_only:
+        log.warning("train %s: run %s trained again for its weights, which its archive left out; they match "
+                    "the archived run's bit for bit only on the same CPU and threads (archived final val PSNR "
+                    "%s, now %s)", label or cfg["_target_"], run.hash, _final_val_psnr(weights_only),
+                    _final_val_psnr(run.record))
+    else:
+        archive_training(ctx, run)
+    log.info("train %s: trained in %.1f min (run %s)", label or cfg["_target_"], run.record["wall_time_s"] / 60,
+             run.hash)
+    return model, run
+
+
+def _drop_damaged_checkpoint(path: Path) -> None:
+    """A checkpoint that does not read (cut short, overwritten) is no checkpoint: removed, so the
+    training starts over instead of failing to resume (the log names it, `runs.read_or_none`)."""
+    if path.exists() and runs.read_or_none(path) is None:
+        path.unlink()
+
+
+def archived_without_weights(ctx: Context, run: runs.Run, code: dict) -> dict | None:
+    """The record `ctx.runs_archive` holds of this training, complete, of this code and without its
+    weights (over the archive's file limit), else None."""
+    archived = ctx.runs_archive / "train" / run.hash if ctx.runs_archive is not None else None
+    if archived is None or (archived / CHECKPOINT).exists():
+        return None
+    record = runs.read_record(archived / runs.RECORD) or {}
+    return record if record.get("status") == "complete" and not runs.code_changes(record, code) else None
+
+
+def _final_val_psnr(record: dict) -> str:
+    psnr = record.get("metrics", {}).get("val", {}).get("PSNR")
+    return f"{psnr:.3f} dB" if psnr is not None else "not recorded"
+
+
+def _initial_model(cfg: dict, task: Task, seed: int, stage: str | None):
+    """The model of `cfg` as its training starts (seeded), or one stage of it (SRDStage)."""
+    torch.manual_seed(seed)
+    return build_model(cfg, task.scale) if stage is None else SRDStage(cascade_net(cfg), stage)
+
+
+def _loss_features(ctx: Context):
+    """(VGG16 features, their identity) when the recipe has a perceptual term, else (None, None)."""
+    uses_vgg = any(w.get("perceptual", 0) > 0 for w in ctx.train.loss.values())
+    return perceptual_features(ctx) if uses_vgg else (None, None)
+
+
+def serve_trainings() -> None:
+    """A torchrun rank other than 0: join each training that rank 0 starts (`trained_model` shares what
+    it trains), until rank 0 says there is none left. Rank 0 records the runs; this process writes nothing."""
+    while (job := distributed.share()) is not None:
+        ctx, cfg, task_name, seed, stage, run_dir = job
+        task = get_task(task_name)
+        model = _initial_model(cfg, task, seed, stage)
+        try:
+            train(model, dataset(ctx, "train", task, training=True, seed=seed), task, run_dir, ctx.train,
+                  features=_loss_features(ctx)[0], seed=seed, device=ctx.device, progress=False,
+                  distributed_ranks=True)
+        except TrainingDiverged:  # rank 0 diverged at the same step and records it (a range test goes on)
+            continue
+
+
+def cascade_net(cfg: dict) -> SRDNet:
+    net = build_model(cfg, get_task("srd").scale)
+    if not isinstance(net, SRDNet):
+        raise UserError(f"a Cascade row needs the proposed model (SRDNet), got {cfg['_target_']}")
+    return net
+
+
+def cascade_model(ctx: Context, cfg: dict, seed: int, label: str = ""):
+    """A Cascade (paper Table 3): each SRDNet stage trained alone on its own task, assembled into one
+    net. Returns (net, list of the stages' training runs)."""
+    net, stage_runs = cascade_net(cfg), []
+    for stage, task_name in CASCADE_STAGES[cfg.get("stage_order", "sr_dn")]:
+        stage_model, run = trained_model(ctx, cfg, get_task(task_name), seed, f"{label} [{stage} stage]",
+                                         stage=stage)
+        load_stage(net, stage, stage_model.state_dict())
+        stage_runs.append(run)
+    return net, stage_runs
+
+
+def archive_training(ctx: Context, run: runs.Run) -> runs.Run:
+    """Keep a finished training in `ctx.runs_archive`: its record, curves and the weights evaluation
+    loads (EMA, else raw), without the optimizer state a finished run never resumes from, nor the
+    per-step curve, which curve.csv holds (a third of the file at 1000 steps)."""
+    def slim_checkpoint(directory: Path) -> None:
+        if not (run.dir / CHECKPOINT).exists():  # a range test that diverged before its first checkpoint
+            return
+        state = torch.load(run.dir / CHECKPOINT, map_location="cpu", weights_only=False)
+        weights = {"ema": state["ema"], "model": None} if state.get("ema") else {"model": state["model"], "ema": None}
+        kept = {key: state.get(key) for key in ("step", "val_curve", "elapsed_s")}
+        torch.save({**weights, **kept}, directory / CHECKPOINT)  # what load_weights and adopt read
+
+    if ctx.runs_archive is not None:
+        runs.archive(run, ctx.runs_archive, ("curve.csv", "val_curve.csv"), write=slim_checkpoint)
+    return run
