@@ -35,7 +35,9 @@ def write_dataset(root):
 
 
 def srd_bench(*args):
-    env = dict(os.environ, PYTHONPATH=str(REPO))
+    # one thread here and in the fixture's evaluator: the same summation order, so scores agree to 1e-6
+    # (other test files leave torch at one thread; predict in a fresh process would take two)
+    env = dict(os.environ, PYTHONPATH=str(REPO), OMP_NUM_THREADS="1")
     return subprocess.run([sys.executable, "-m", "bench.predict", *map(str, args)], cwd=REPO, capture_output=True,
                           text=True, timeout=120, env=env)
 
@@ -57,6 +59,7 @@ def scored(tmp_path_factory):
     model, meta = load_exported(weights)
     task = get_task("srd")
     torch.manual_seed(0)
+    torch.set_num_threads(1)
     per_image, metrics = evaluate(model, SequenceDataset(data, "val", task.buffers(with_mid=False)), task,
                                   hdr=meta["hdr"], out_dir=root / "eval")
     (root / "eval" / runs.RECORD).write_text(json.dumps({"kind": "eval", "status": "complete", "metrics": metrics}))
