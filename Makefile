@@ -20,8 +20,10 @@ $(STAMP): pyproject.toml
 run: setup
 	$(PY) -m bench +experiment=smoke
 
+# two processes, each test file whole on one (module fixtures run once; files that share a path do not
+# overlap in time); pytest alone runs them on one
 test: setup
-	$(PY) -m pytest -q
+	$(PY) -m pytest -q -n 2 --dist loadfile
 
 test-slow: setup
 	$(PY) -m pytest -q -m slow
