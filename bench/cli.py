@@ -1,4 +1,5 @@
-"""Command line: `python -m bench +experiment=NAME [preset=smoke|cpu|gpu|paper] [key=value ...]`.
+"""Command line: `python -m bench +experiment=NAME [preset=smoke|cpu|gpu|paper] [key=value ...]`; a study
+(conf/study/, docs/studies.md) instead of an experiment: `python -m bench +study=NAME ...`.
 
 The only module that reads the Hydra config: it turns it into a plain `Context` and the experiment's
 parameters, calls the experiment, and prints user errors as one line instead of a traceback.
@@ -56,6 +57,29 @@ OmegaConf.register_new_resolver("min", lambda *values: min(values), replace=True
 
 def available_experiments() -> list[str]:
     return sorted(p.stem for p in (Path(CONF_DIR) / "experiment").glob("*.yaml"))
+
+
+def available_studies() -> list[str]:
+    return sorted(p.stem for p in (Path(CONF_DIR) / "study").glob("*.yaml"))
+
+
+def choice_problem(args: list[str]) -> str | None:
+    """What is wrong with the command line's `+experiment=`/`+study=` choices, before Hydra composes them (its
+    own message is a traceback-like block): a name that does not exist, or an experiment and a study together."""
+    available = {"experiment": available_experiments(), "study": available_studies()}
+    chosen = set()
+    for arg in args:
+        match = re.fullmatch(r"\+{0,2}(experiment|study)=([\w,]+)", arg)  # names, or a sweep's a,b,c
+        if not match:
+            continue
+        group, names = match.groups()
+        chosen.add(group)
+        for name in names.split(","):
+            if name not in available[group]:
+                return f"+{group}={name}: no conf/{group}/{name}.yaml; available: {', '.join(available[group])}"
+    if len(chosen) == 2:
+        return "choose an experiment or a study, not both: +experiment=NAME or +study=NAME"
+    return None
 
 
 _TRAIN_POSITIVE_INTS = ("steps", "batch_size", "seq_len", "crop", "checkpoint_every")
@@ -315,7 +339,8 @@ def _sweep_job_results(cfg: DictConfig) -> None:
 
 def apply_pin(cfg: DictConfig) -> None:
     """Merge the experiment's pin for this preset (`experiment.pin.<preset>`, conf/pin/studies.yaml) over
-    `train`, in place and before anything resolves, so that the rows' `${train.steps}` see it too."""
+    `train`, in place and before anything resolves, so that the rows' `${train.steps}` see it too. Taken by
+    `+experiment=lr_range` and `+study=dark_bias`, which keep the recipe they were measured at."""
     pin = OmegaConf.select(cfg, f"experiment.pin.{cfg.preset.name}", default=None)
     if pin is not None:
         cfg.train = OmegaConf.merge(cfg.train, pin)
@@ -324,7 +349,8 @@ def apply_pin(cfg: DictConfig) -> None:
 def run_experiment(cfg: DictConfig) -> None:
     if "experiment" not in cfg:
         raise UserError("choose an experiment: python -m bench +experiment=NAME; available: "
-                        + ", ".join(available_experiments()))
+                        + ", ".join(available_experiments()) + "; or a study, +study=NAME: "
+                        + ", ".join(available_studies()))
     apply_pin(cfg)
     exp = OmegaConf.to_container(cfg.experiment, resolve=True)
     exp.pop("pin", None)
@@ -415,8 +441,13 @@ def renamed_overrides(args: list[str]) -> list[str]:
 
 
 def entry() -> None:
-    """`python -m bench`: old override names still work (with a message), then Hydra parses the rest."""
+    """`python -m bench`: old override names still work (with a message), an unknown experiment or study is
+    one line, then Hydra parses the rest."""
     sys.argv[1:] = renamed_overrides(sys.argv[1:])
+    problem = choice_problem(sys.argv[1:])
+    if problem:
+        print(f"error: {problem}", file=sys.stderr)
+        sys.exit(2)
     main()
 
 

@@ -15,7 +15,10 @@ import torch
 from hydra import compose, initialize_config_dir
 from omegaconf import OmegaConf
 
-from bench.cli import CONF_DIR, apply_pin, available_experiments, make_context
+from bench.cli import (CONF_DIR, apply_pin, available_experiments, available_studies, choice_problem, entry,
+                       make_context)
+from bench.experiments import KINDS
+from bench.experiments.results_page import CONTROLS, PAPER_TABLES
 
 REPO = Path(__file__).resolve().parent.parent
 PRESETS = sorted(p.stem for p in (Path(CONF_DIR) / "preset").glob("*.yaml"))
@@ -27,24 +30,59 @@ def bench(*args, cwd=REPO, timeout=600):
                           text=True, timeout=timeout, env=env)
 
 
-def compose_experiment(name, *overrides):
+def compose_experiment(name, *overrides, group="experiment"):
     with initialize_config_dir(config_dir=CONF_DIR, version_base=None):
-        return compose("config", overrides=[f"+experiment={name}", *overrides])
+        return compose("config", overrides=[f"+{group}={name}", *overrides])
+
+
+def compose_study(name, *overrides):
+    return compose_experiment(name, *overrides, group="study")
 
 
 def test_a_study_is_pinned_to_the_recipe_it_was_measured_at_only_on_the_preset_that_moved_on():
-    """headroom was measured at the cpu preset's 1000-step recipe without the SSIM term; at cpu it keeps
-    that recipe (its 3x rows 3000 steps), at gpu it follows the gpu preset; other tables are not pinned."""
-    def recipe(name, preset):
-        cfg = compose_experiment(name, f"preset={preset}")
+    """dark_bias was measured at the cpu preset's 1000-step recipe without the SSIM term; at cpu it keeps
+    that recipe (pinned before anything resolves: what reads ${train.steps} sees the pin), at gpu it follows
+    the gpu preset; the paper's tables and lr_range_ssim are not pinned."""
+    def recipe(compose, name, preset):
+        cfg = compose(name, f"preset={preset}", "++experiment.seen=${train.steps}")
         apply_pin(cfg)
-        rows = OmegaConf.to_container(cfg.experiment, resolve=True).get("rows", [])
-        three_x = [r["train"]["steps"] for r in rows if r["label"] == "Ours, 3x steps"]
-        return cfg.train.steps, cfg.train.loss.final.get("ssim"), three_x
-    assert recipe("headroom", "cpu") == (1000, None, [3000])
-    assert recipe("sota", "cpu") == (2000, 8, [])
+        return cfg.train.steps, cfg.train.loss.final.get("ssim"), cfg.experiment.seen
+    assert recipe(compose_study, "dark_bias", "cpu") == (1000, None, 1000)
+    assert recipe(compose_experiment, "sota", "cpu") == (2000, 8, 2000)
+    assert recipe(compose_study, "lr_range_ssim", "cpu") == (2000, 8, 2000)
     gpu = compose_experiment("sota", "preset=gpu").train
-    assert recipe("headroom", "gpu") == (gpu.steps, gpu.loss.final.get("ssim"), [3 * gpu.steps])
+    assert recipe(compose_study, "dark_bias", "gpu") == (gpu.steps, gpu.loss.final.get("ssim"), gpu.steps)
+
+
+def test_conf_experiment_holds_the_paper_tables_their_controls_and_the_tools_only():
+    """Studies are a group of their own (conf/study/, `+study=NAME`); `flops` is the MAC audit's old name."""
+    tools = {"smoke", "train", "all", "claims", "data", "macs", "time", "speed", "stability", "lr_range", "adopt"}
+    tables = {name for name, _ in PAPER_TABLES + CONTROLS}
+    assert set(available_experiments()) - {"flops"} == tables | tools
+
+
+@pytest.mark.parametrize("name", available_studies())
+@pytest.mark.parametrize("preset", PRESETS)
+def test_every_study_is_documented_writes_under_studies_and_passes_the_config_check(name, preset):
+    docs = (REPO / "docs" / "studies.md").read_text() + (REPO / "docs" / "experiments.md").read_text()
+    assert f"`{name}`" in docs or f"### {name}" in docs, f"conf/study/{name}.yaml is in no docs page"
+    cfg = compose_study(name, f"preset={preset}")
+    apply_pin(cfg)
+    assert cfg.experiment.name == f"studies/{name}" and cfg.experiment.kind in KINDS
+    ctx = make_context(cfg)                       # the config check every command passes before it runs
+    assert ctx.data_spec and ctx.train.steps > 0
+
+
+@pytest.mark.parametrize("args,problem", [
+    (["+study=dark_bias", "preset=smoke"], None),
+    (["+experiment=sota,ipt", "seeds=[0,1]"], None),                     # a sweep's names
+    (["+study=no_such_study"], "+study=no_such_study: no conf/study/no_such_study.yaml; available: dark_bias,"),
+    (["-m", "+experiment=sota,nope"], "+experiment=nope: no conf/experiment/nope.yaml; available: adopt,"),
+    (["+experiment=sota", "+study=dark_bias"], "choose an experiment or a study, not both"),
+])
+def test_choices_are_checked_before_hydra_composes_them(args, problem):
+    found = choice_problem(args)
+    assert (found is None) if problem is None else found.startswith(problem), found
 
 
 @pytest.mark.parametrize("name", available_experiments())
@@ -361,16 +399,21 @@ def test_recorded_models_score_another_dataset_without_retraining(smoke_dirs):
     assert set(before["runs"]).isdisjoint(after["runs"])
 
 
-def test_unknown_experiment_is_a_clear_message():
-    out = bench("+experiment=no_such_table")
-    assert out.returncode != 0
-    assert "no_such_table" in out.stderr and "Traceback" not in out.stderr
+def test_an_unknown_study_is_one_line_listing_the_studies(monkeypatch, capsys):
+    """`python -m bench +study=no_such_study` (bench.cli.entry, in this process: it stops before Hydra)."""
+    monkeypatch.setattr(sys, "argv", ["bench", "+study=no_such_study", "preset=smoke"])
+    with pytest.raises(SystemExit) as stop:
+        entry()
+    assert stop.value.code == 2
+    assert capsys.readouterr().err.strip().splitlines() == [
+        f"error: +study=no_such_study: no conf/study/no_such_study.yaml; available: {', '.join(available_studies())}"]
 
 
 def test_missing_experiment_lists_the_available_ones():
     out = bench()
     assert out.returncode == 2
     assert "+experiment=NAME" in out.stderr and "smoke" in out.stderr and "Traceback" not in out.stderr
+    assert "+study=NAME" in out.stderr and "dark_bias" in out.stderr
 
 
 def test_unknown_model_is_a_clear_message(tmp_path):

@@ -20,8 +20,9 @@ from bench.models.srd import SRDNet, SRDStage, load_stage
 from bench.paper import paper_values
 from conftest import smoke_context, smoke_overrides
 
+# a table's folder under results_dir; studies/NAME is `+study=NAME`
 TABLES = ["sr_denoise", "dilation", "dilation_crop", "stage_order", "deform", "sota", "ipt", "deform_num",
-          "perceptual", "generalization", "ssim_term"]
+          "perceptual", "generalization", "studies/dark_bias"]
 PAPER_TABLES = {"sr_denoise", "dilation", "stage_order", "deform", "sota", "ipt", "deform_num"}
 
 
@@ -42,8 +43,10 @@ def tables(dirs):
 
 
 def compose_experiment(name, overrides):
+    """`name`'s config: an experiment, or `studies/NAME` for a study."""
+    choice = f"+study={name.removeprefix('studies/')}" if name.startswith("studies/") else f"+experiment={name}"
     with initialize_config_dir(config_dir=CONF_DIR, version_base=None):
-        return compose("config", overrides=[f"+experiment={name}", *overrides])
+        return compose("config", overrides=[choice, *overrides])
 
 
 def expected_labels(name, overrides):

@@ -9,7 +9,8 @@ suggested peak rate for the cosine schedule is the divergence rate / 10. The tex
 rate / 10) is not used: at the cpu preset one batch's loss varies 2-4x with its crops, so over a few
 hundred steps the lowest point of the smoothed loss is mostly noise, while the divergence is sharp.
 The runs are ordinary training runs, so a rerun reuses them. Writes `table.{csv,md,tex}` and
-`lr_range.png` to `<results_dir>/lr_range/`; `conf/preset/<preset>.yaml`'s `model_lr` takes the suggestions.
+`lr_range.png` to `<results_dir>/lr_range/`; `conf/preset/<preset>.yaml`'s `model_lr` takes the suggestions
+(at cpu, those of `+study=lr_range_ssim`: this test with the SSIM term, not pinned).
 """
 from __future__ import annotations
 

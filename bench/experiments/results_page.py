@@ -6,7 +6,9 @@ numbers, and per claim the verdict, difference, 95% interval and p-value of `cla
 number on the page is copied from a table, and the table's file is named beside it. No run store, no
 config, no clock: the same tables give the same page, so a test regenerates the committed page and
 compares. `+experiment=claims` and `+experiment=all` rewrite it at their end;
-`python -m bench.experiments.results_page results/<preset>` rewrites it by hand.
+`python -m bench.experiments.results_page results/<preset>` rewrites it by hand. Studies
+(`+study=NAME`, conf/study/) and the retired ones (docs/studies.md) keep their tables in
+`<results_dir>/studies/<name>/`.
 """
 from __future__ import annotations
 
@@ -36,11 +38,18 @@ PAPER_TABLES = [
 CONTROLS = [
     ("dilation_crop", "A control for Table 2: its denoising rows at rates 1 and 5, trained on twice the crop."),
 ]
-STUDIES = [
+STUDIES = "studies"   # the folder of the studies' tables: <results_dir>/studies/<name>/
+# the studies of conf/study/ (`+study=NAME`)
+KEPT_STUDIES = [
+    ("dark_bias", "A dark scene's colour: a linear bilinear base, a relative-MSE term, permuted colour channels."),
+    ("lr_range_ssim", "The learning-rate range test with the SSIM term in the loss; its suggestions are the "
+                      "cpu preset's `model_lr`."),
+]
+# studies whose conclusion is now the preset: their configs are in git history (docs/studies.md)
+RETIRED_STUDIES = [
     ("recipe", "What each change of the training recipe buys (the proposed model, one seed)."),
     ("headroom", "The proposed model with more steps or a larger crop, against OIDN at LR then bilinear."),
     ("ssim_term", "An SSIM term in the loss, at two weights, at 3x the steps, and on linear radiance."),
-    ("dark_bias", "A dark scene's colour: a linear bilinear base, a relative-MSE term, permuted colour channels."),
     ("baseline_lr", "EDSR and CFM at the learning rates of the range test without and with the SSIM term."),
 ]
 METRICS = [("PSNR", 2), ("SSIM", 3), ("relMSE", 4)]   # (column, decimals), the verdict's metric first
@@ -270,11 +279,11 @@ def data_section(results_dir: Path) -> list[str]:
                                     "HR ref error max"], rows)
 
 
-def lr_range_section(results_dir: Path, name: str) -> list[str]:
+def lr_range_section(results_dir: Path, name: str, what: str = "") -> list[str]:
     table = pd.read_csv(results_dir / name / "table.csv")
-    lines = [f"### {name}", "", "The learning-rate range test per model: the suggested peak rate is a tenth of "
-             "the rate where the smoothed loss blows up (the test's top rate / 10 when it never does). "
-             f"Numbers: {_link(results_dir, f'{name}/table.csv')}.", ""]
+    lines = [f"### {name}", "", *([what, ""] if what else []), "The learning-rate range test per model: the "
+             "suggested peak rate is a tenth of the rate where the smoothed loss blows up (the test's top rate / "
+             f"10 when it never does). Numbers: {_link(results_dir, f'{name}/table.csv')}.", ""]
     rows = [[r["model"], f"{float(r['suggested lr']):.2g}", str(bool(r["diverged"])).lower()]
             for _, r in table.iterrows()]
     return lines + _markdown_table(["model", "suggested lr", "diverged"], rows)
@@ -323,8 +332,7 @@ def page(results_dir: str | Path, preset: str, shown_as: str | None = None) -> s
              "the table file named beside it; a test regenerates this page from the committed tables, so it "
              "cannot drift from them. Do not edit it. Why the preset is what it is: "
              "[`docs/decisions.md`](../../docs/decisions.md).", ""]
-    known = {n for n, _ in PAPER_TABLES + CONTROLS + STUDIES} | set(TOOLS) | {"claims", "speed", "lr_range",
-                                                                          "lr_range_ssim", "runs"}
+    known = {n for n, _ in PAPER_TABLES + CONTROLS} | set(TOOLS) | {"claims", "speed", "lr_range", STUDIES, "runs"}
     present = lambda n: _is_metrics_table(results_dir / n / "table.csv")   # noqa: E731
     paper = [(n, w) for n, w in PAPER_TABLES if present(n)]
     if claims is None and not paper:
@@ -332,18 +340,13 @@ def page(results_dir: str | Path, preset: str, shown_as: str | None = None) -> s
                   "below are all this folder holds.", ""]
     if claims is not None or paper:
         lines += claims_section(results_dir, claims)
-    groups = [("The paper's tables", paper), ("Controls", [(n, w) for n, w in CONTROLS if present(n)]),
-              ("Studies", [(n, w) for n, w in STUDIES if present(n)]),
-              ("Other tables", [(p.parent.name, _caption(p.parent / "table.md").split(". ")[0] + ".")
-                                for p in sorted(results_dir.glob("*/table.csv"))
-                                if p.parent.name not in known and present(p.parent.name)])]
-    for title, tables in groups:
-        if tables:
-            lines += [f"## {title}", ""]
-            for name, what in tables:
-                lines += metrics_section(results_dir, name, what, claims)
-    tools = [name for name in ("macs", "time", "stability", "speed", "data", "lr_range", "lr_range_ssim",
-                               "all", "adopt")
+    others = [(p.parent.name, _caption(p.parent / "table.md").split(". ")[0] + ".")
+              for p in sorted(results_dir.glob("*/table.csv")) if p.parent.name not in known and present(p.parent.name)]
+    lines += group_section(results_dir, "The paper's tables", paper, claims)
+    lines += group_section(results_dir, "Controls", [(n, w) for n, w in CONTROLS if present(n)], claims)
+    lines += studies_section(results_dir, claims)
+    lines += group_section(results_dir, "Other tables", others, claims)
+    tools = [name for name in ("macs", "time", "stability", "speed", "data", "lr_range", "all", "adopt")
              if (results_dir / name).is_dir() and (name == "speed" or (results_dir / name / "table.csv").exists()
                                                      or (results_dir / name / "speedup.csv").exists())]
     if tools:
@@ -351,7 +354,7 @@ def page(results_dir: str | Path, preset: str, shown_as: str | None = None) -> s
         for name in tools:
             if name == "speed":
                 lines += speed_section(results_dir)
-            elif name.startswith("lr_range"):
+            elif name == "lr_range":
                 lines += lr_range_section(results_dir, name)
             else:
                 lines += TOOLS[name](results_dir)
@@ -361,6 +364,34 @@ def page(results_dir: str | Path, preset: str, shown_as: str | None = None) -> s
                   ", ".join(f"`{n}`" for n in missing) + f": no table in `{results_dir.as_posix()}/` "
                   f"(`python -m bench +experiment=NAME preset={preset}` records one).", ""]
     return "\n".join(lines).rstrip("\n") + "\n"
+
+
+def group_section(results_dir: Path, title: str, tables: list[tuple[str, str]],
+                  claims: pd.DataFrame | None) -> list[str]:
+    """A titled group of metrics tables, (folder, what it compares) each; nothing when there is none."""
+    lines = [f"## {title}", ""] if tables else []
+    for name, what in tables:
+        lines += metrics_section(results_dir, name, what, claims)
+    return lines
+
+
+def studies_section(results_dir: Path, claims: pd.DataFrame | None) -> list[str]:
+    """The studies' tables under `<results_dir>/studies/`: those of conf/study/, then the retired ones."""
+    lines = []
+    for title, intro, studies in [
+            ("Studies", "Beside the paper: `python -m bench +study=NAME` (conf/study/, "
+                        "[`docs/studies.md`](../../docs/studies.md)).", KEPT_STUDIES),
+            ("Retired studies", "Their conclusion is now the preset; their configs are in git history "
+                                "([`docs/studies.md`](../../docs/studies.md)).", RETIRED_STUDIES)]:
+        recorded = [(f"{STUDIES}/{n}", w) for n, w in studies if (results_dir / STUDIES / n / "table.csv").exists()]
+        if not recorded:
+            continue
+        lines += [f"## {title}", "", intro, ""]
+        for name, what in recorded:
+            metrics = _is_metrics_table(results_dir / name / "table.csv")   # else a range test's table
+            lines += (metrics_section(results_dir, name, what, claims) if metrics
+                      else lr_range_section(results_dir, name, what))
+    return lines
 
 
 def write(results_dir: str | Path, preset: str, repository: str | Path = ROOT) -> Path:

@@ -168,7 +168,8 @@ class SRDNet(nn.Module):
     the paper (which does not say); without it the network needs far more steps than the smoke and cpu
     scales give to catch up with bilinear. Set false for the paper's plain output. linear_base: the
     network domain's bench.hdr mode (e.g. "pu") to interpolate that base as linear radiance
-    (bench.nn.upsampled_input); None interpolates the network-domain values.
+    (bench.nn.upsampled_input); None interpolates the network-domain values. Only the dark_bias study
+    sets it (conf/study/dark_bias.yaml, docs/studies.md).
     """
 
     recurrent = True
