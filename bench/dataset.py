@@ -16,7 +16,8 @@ Colour permutation (training, `permute_colours`): one random order of the RGB ch
 to every radiance buffer and to the albedo alike. An RGB renderer transports each channel on its own, so
 the result is the render of the same scene with its lights' and materials' channels permuted (its mean
 exactly; its noise up to the path sampler's colour-dependent choices): the model sees light colours the
-scenes never had, and cannot learn a colour prior from a few sequences of a scene family.
+scenes never had, and cannot learn a colour prior from a few sequences of a scene family. Only the
+dark_bias study trains with it (conf/study/dark_bias.yaml, `train.colour_permute`).
 
 gBuffer channels: albedo RGB, normal XYZ, roughness (7); ``gbuffer_channels`` keeps a prefix. A scene
 whose roughness pass was left out (all-diffuse: bench.scenes.scene_features) gets the constant 1.
@@ -97,35 +98,19 @@ def permute_colours(item, order):
     return out
 
 
-def _family_balanced(sequences, n):
-    """Names of `n` sequences taken in turn from each scene family (the record's `family`, else the
-    whole name), so a smaller training set keeps every kind of room."""
-    by_family = {}
-    for name, frames in sequences.items():
-        by_family.setdefault(frames[0].get("family", name), []).append(name)
-    queues = [list(names) for _, names in sorted(by_family.items())]
-    chosen = []
-    while len(chosen) < n and any(queues):
-        for queue in queues:
-            if queue and len(chosen) < n:
-                chosen.append(queue.pop(0))
-    return sorted(chosen)
-
-
 class SequenceDataset(Dataset):
     """Sequences of frames of one split of a dataset directory.
 
     root: dataset directory with manifest.json. split: 'train' / 'val' / 'generalization' / ....
     buffers: keys to load. seq_len: frames per item (None: whole sequences; shorter: every window of
     seq_len consecutive frames is an item). crop: LR crop size (None: full frames). augment: random
-    flips / quarter turns. max_sequences: keep only that many sequences, taken in turn from each scene
-    family (None: all). permute_colours: with augment, also a random order of the RGB channels (module
+    flips / quarter turns. permute_colours: with augment, also a random order of the RGB channels (module
     doc). Random crops and augmentations draw from a generator seeded by (seed, index, number of items
     drawn so far by this object), so a run is reproducible for a fixed access order.
     """
 
     def __init__(self, root, split, buffers, seq_len=None, crop=None, augment=False, seed=0,
-                 gbuffer_channels=7, cache_bytes=CACHE_BYTES, max_sequences=None, permute_colours=False):
+                 gbuffer_channels=7, cache_bytes=CACHE_BYTES, permute_colours=False):
         self.root = os.fspath(root)
         with open(os.path.join(self.root, "manifest.json")) as f:
             manifest = json.load(f)
@@ -145,8 +130,6 @@ class SequenceDataset(Dataset):
             splits = sorted({r["split"] for r in manifest["frames"]})
             raise ValueError(f"{self.root}: no frames in split {split!r} (has {splits})")
         self.sequences = {k: sorted(v, key=lambda r: r["frame"]) for k, v in sorted(sequences.items())}
-        if max_sequences is not None:
-            self.sequences = {k: self.sequences[k] for k in _family_balanced(self.sequences, int(max_sequences))}
         self.items = []
         for name, frames in self.sequences.items():
             n = len(frames) if seq_len is None else int(seq_len)

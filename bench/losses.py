@@ -1,7 +1,8 @@
 """Training losses of the paper (Sec. 3.5): spatial L1, HFEN edge loss, temporal L1, perceptual loss;
-and two the paper does not use, off unless a recipe names them: an SSIM term (1 - SSIM), `ssim` in the
-network domain, `ssim_linear` on linear radiance clamped to [0, 1], the images the SSIM metric scores;
-and `relmse`, relative MSE on linear radiance (the relMSE metric), an L2 term that learns the mean.
+and two the paper does not use, off unless a recipe names them: `ssim`, an SSIM term (1 - SSIM) in the
+network domain (the cpu preset's, evidence: docs/studies.md), and `relmse`, relative MSE on linear
+radiance (the relMSE metric), an L2 term that learns the mean (only the dark_bias study uses it:
+conf/study/dark_bias.yaml).
 
 Pure functions on tensors shaped (B, T, C, H, W) or (N, C, H, W). This module imports no network:
 the perceptual loss takes the feature extractor as a `features` callable (e.g. bench.nn.VGG16Features).
@@ -10,7 +11,7 @@ Weights. The paper gives ratios g:t:s:p = 1:1:8:0 (intermediate head) and 1:1:8:
 They become absolute weights by dividing every ratio by g + t + s, so 1:1:8 is exactly Chaitanya et
 al.'s 0.1 / 0.1 / 0.8 and the perceptual weight is measured on that scale (10 -> 1.0). The SSIM
 ratio is on the same scale: 42 next to 1:1:8 puts 1 - SSIM at 0.84 / 0.16 times the L1 weight, the
-L1 : MS-SSIM mix that OIDN trains with (Zhao et al. 2017); `ssim_linear` takes the same scale.
+L1 : MS-SSIM mix that OIDN trains with (Zhao et al. 2017).
 """
 import torch
 import torch.nn.functional as F
@@ -155,12 +156,12 @@ def perceptual(pred, target, features):
 
 
 def absolute_weights(weights):
-    """Ratios {edge, temporal, spatial, perceptual[, ssim, ssim_linear, relmse]} -> absolute weights, normalized by
+    """Ratios {edge, temporal, spatial, perceptual[, ssim, relmse]} -> absolute weights, normalized by
     edge+temporal+spatial."""
     norm = weights.get("edge", 0) + weights.get("temporal", 0) + weights.get("spatial", 0)
     if norm <= 0:
         raise ValueError(f"edge + temporal + spatial ratios must be positive, got {weights}")
-    unknown = set(weights) - {"edge", "temporal", "spatial", "perceptual", "ssim", "ssim_linear", "relmse"}
+    unknown = set(weights) - {"edge", "temporal", "spatial", "perceptual", "ssim", "relmse"}
     if unknown:
         raise ValueError(f"unknown loss terms {sorted(unknown)}")
     return {name: ratio / norm for name, ratio in weights.items()}
@@ -172,19 +173,15 @@ def weighted_loss(pred, target, weights, features=None, to_linear=None):
     Returns (total, parts): parts maps each term with a nonzero weight to its UNweighted value, so
     total = sum(absolute_weight[name] * parts[name]). Terms with weight 0 are not computed.
     The temporal term needs (B, T, ...) input with T >= 2; on (N, C, H, W) input it is skipped.
-    `to_linear` maps the network domain back to linear radiance, for `relmse` and `ssim_linear`: the SSIM metric
-    scores linear radiance clamped to [0, 1], where noise in dark regions (below SSIM's constants)
-    costs little and bright regions weigh more than in PU21, which expands darks and compresses brights.
+    `to_linear` maps the network domain back to linear radiance, for `relmse`.
     """
     terms = {"spatial": spatial_l1, "edge": hfen, "temporal": temporal_l1, "ssim": ssim_loss,
              "perceptual": lambda p, t: perceptual(p, t, features),
-             "ssim_linear": lambda p, t: ssim_loss(to_linear(p).clamp(0, 1), to_linear(t).clamp(0, 1)),
              "relmse": lambda p, t: relmse_loss(to_linear(p), to_linear(t))}
     if weights.get("perceptual", 0) and features is None:
         raise ValueError("a nonzero perceptual weight needs a `features` callable")
-    for name in ("ssim_linear", "relmse"):
-        if weights.get(name, 0) and to_linear is None:
-            raise ValueError(f"a nonzero {name} weight needs a `to_linear` callable")
+    if weights.get("relmse", 0) and to_linear is None:
+        raise ValueError("a nonzero relmse weight needs a `to_linear` callable")
     total, parts = pred.new_zeros(()), {}
     for name, weight in absolute_weights(weights).items():
         if weight == 0 or (name == "temporal" and pred.dim() != 5):

@@ -108,7 +108,6 @@ class Recipe:
     clip_grad_norm: float | None = 1.0   # None: no clipping
     ema: float | None = 0.999         # EMA decay of the weights used for evaluation; None: the raw weights
     hdr: str = "log1p"                # network domain (bench.hdr)
-    train_sequences: int | None = None   # train on this many sequences of the split, family-balanced (None: all)
     colour_permute: bool = False      # augmentation: a random order of the RGB channels per item (bench.dataset)
     precision: str = "fp32"           # fp32 | bf16: forward and loss under bfloat16 autocast (weights, Adam and
                                       # EMA stay float32); for GPUs and AVX512-BF16 CPUs, emulated on AVX2

@@ -169,10 +169,3 @@ def test_decoded_frames_are_cached_and_items_do_not_alias_the_cache(tmp_path):
     uncached = SequenceDataset(tmp_path, "train", ALL, seq_len=2, crop=4, cache_bytes=0)
     with pytest.raises(Exception):
         uncached.item(0, 5)                                   # without the cache the broken files are read
-
-
-def test_max_sequences_takes_every_family_in_turn():
-    from bench.dataset import _family_balanced
-    sequences = {f"{fam}-{i}": [{"family": fam}] for fam in ("a", "b", "c") for i in range(3)}
-    assert _family_balanced(sequences, 4) == ["a-0", "a-1", "b-0", "c-0"]
-    assert _family_balanced(sequences, 100) == sorted(sequences)

@@ -188,8 +188,7 @@ def dataset(ctx: Context, split: str, task: Task, training: bool, seed: int = 0)
         raise UserError(f"train.seq_len={recipe.seq_len} but the dataset's sequences have {frames} frames")
     check_training_frames(ctx, split, manifest)
     return SequenceDataset(ctx.data_dir, split, buffers, seq_len=recipe.seq_len, crop=recipe.crop,
-                           augment=True, seed=seed, max_sequences=recipe.train_sequences,
-                           permute_colours=recipe.colour_permute)
+                           augment=True, seed=seed, permute_colours=recipe.colour_permute)
 
 
 def check_training_frames(ctx: Context, split: str = "train", manifest: dict | None = None) -> None:
