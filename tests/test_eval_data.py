@@ -1,6 +1,6 @@
 """eval.data_dir: recorded (archived) models scored on frames you bring, with real processes and files.
 Nothing is rendered, nothing is trained and the training data is not read: a training's identity takes
-its data fingerprint from the data spec, planned without rendering, and that must equal the rendered
+its data fingerprint from the data spec then, planned without rendering, and that must equal the rendered
 manifest's (here at the smoke preset, and the cpu preset's committed trainings)."""
 import json
 import os
@@ -65,8 +65,8 @@ def context(*overrides):
         return make_context(compose("config", overrides=list(overrides)))
 
 
-def test_the_training_fingerprint_planned_from_the_spec_is_the_rendered_manifests(trained):
-    ctx = context(*SMOKE, f"data_dir={trained / 'data'}")
+def test_the_training_fingerprint_planned_from_the_spec_is_the_rendered_manifests(trained, tmp_path):
+    ctx = context(*SMOKE, f"data_dir={trained / 'data'}", f"eval.data_dir={tmp_path}")  # planned: nothing read
     assert training_fingerprint(ctx) == data_fingerprint(ctx, "train")
     records = [json.loads(p.read_text()) for p in (trained / "runs" / "train").glob("*/run.json")]
     assert [r["identity"]["data"] for r in records] == [training_fingerprint(ctx)]
@@ -74,7 +74,7 @@ def test_the_training_fingerprint_planned_from_the_spec_is_the_rendered_manifest
 
 def test_the_cpu_presets_committed_trainings_are_found_from_its_spec_alone(tmp_path):
     """No cpu data here: every archived cpu training was trained on the data the cpu spec plans."""
-    ctx = context("preset=cpu", f"data_dir={tmp_path / 'nowhere'}")
+    ctx = context("preset=cpu", f"data_dir={tmp_path / 'nowhere'}", f"eval.data_dir={tmp_path / 'mine'}")
     recorded = {json.loads(p.read_text())["identity"]["data"]
                 for p in (REPO / "results" / "cpu" / "runs" / "train").glob("*/run.json")}
     assert recorded == {training_fingerprint(ctx)}

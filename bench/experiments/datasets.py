@@ -66,14 +66,15 @@ def _planned_fingerprint(spec_json: str, split: str) -> str:
 
 
 def training_fingerprint(ctx: Context) -> str:
-    """The data fingerprint of the training split, as training identities hold it. Rendered data
-    (render_data=true) is planned from the data spec, without reading or rendering anything: its spec
-    and settings determine the manifest datagen writes, so this equals `data_fingerprint(ctx, "train")`
-    of the rendered data (tests/test_eval_data.py), and a recorded training is found before its data
-    exists (eval.data_dir scores it on other frames). Your own data: from its files (`data_fingerprint`)."""
-    if not ctx.render_data:
-        return data_fingerprint(ctx, "train")
-    return _planned_fingerprint(_canonical(ctx.data_spec), "train")
+    """The data fingerprint of the training split, as training identities hold it: the manifest's on
+    disk (`data_fingerprint`), which records what a training saw. Scoring recorded models on other
+    frames (`eval.data_dir`: nothing is trained) needs no training data: rendered data's fingerprint is
+    then planned from the data spec, without reading or rendering anything. Its spec and settings
+    determine the manifest datagen writes, so the two are equal (tests/test_eval_data.py) and a
+    training is found before its data exists. Your own data (render_data=false) is read from its files."""
+    if ctx.render_data and ctx.eval.data_dir:
+        return _planned_fingerprint(_canonical(ctx.data_spec), "train")
+    return data_fingerprint(ctx, "train")
 
 
 def data_fingerprint(ctx: Context, split: str | None = None) -> str:
