@@ -100,6 +100,14 @@ def _settings_hash(settings):
     return hashlib.sha1(json.dumps(settings, sort_keys=True).encode()).hexdigest()[:12]
 
 
+def planned_settings(spec):
+    """(sequence plan, settings hash) of every sequence `spec` plans: the `settings_hash` each of its
+    frame records holds once rendered, known without rendering (the scene is built, not loaded)."""
+    for job in plan_sequences(spec):
+        features = scenes.scene_features(scenes.make_scene(job["family"], job["scene_seed"]))
+        yield job, _settings_hash(_render_settings(spec, features, job["split"]))
+
+
 def frame_paths(root, split, sequence, frame):
     base = os.path.join(root, split, sequence, f"{frame:04d}")
     return base + "_lr.exr", base + "_hr.exr", base + ".json"
@@ -529,9 +537,7 @@ def rebuild_manifest(root, spec):
     complete), rendering nothing: for a manifest that was damaged. Returns the manifest, or None when a
     frame of `spec` has no record rendered with its settings (building the dataset renders it)."""
     records = []
-    for job in plan_sequences(spec):
-        features = scenes.scene_features(scenes.make_scene(job["family"], job["scene_seed"]))
-        digest = _settings_hash(_render_settings(spec, features, job["split"]))
+    for job, digest in planned_settings(spec):
         for frame in range(int(spec["seq_len"])):
             record = _load_record(frame_paths(root, job["split"], job["sequence"], frame)[2], digest)
             if record is None:

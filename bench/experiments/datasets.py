@@ -15,7 +15,7 @@ from pathlib import Path
 
 from bench import runs
 from bench.datagen import (build_dataset, damaged_frames, frame_paths, load_manifest, manifest_problems,
-                           rebuild_manifest)
+                           planned_settings, rebuild_manifest)
 from bench.dataset import SequenceDataset
 from bench.errors import UserError
 from bench.experiments.context import Context
@@ -28,23 +28,53 @@ def _canonical(value) -> str:
     return json.dumps(value, sort_keys=True, default=str)
 
 
+def _identity_hash(spec: dict | None, frames: list, split: str | None, files: str | None = None) -> str:
+    """The data fingerprint of a spec and its frames' (split, sequence, frame, settings hash): with
+    `split`, only that split's part of the spec counts."""
+    spec = copy.deepcopy(spec or {})  # your own renders may have none
+    if split is not None and isinstance(spec.get("splits"), dict):
+        spec["splits"] = {split: spec["splits"].get(split)}
+    identity = {"spec": spec, "frames": sorted(frames)}
+    if files is not None:
+        identity["files"] = files
+    return runs.config_hash(identity)
+
+
 @functools.lru_cache(maxsize=32)
 def _fingerprint(manifest_path: str, mtime_ns: int, split: str | None, files: str | None = None) -> str:
     manifest = load_manifest(Path(manifest_path).parent)
-    spec = copy.deepcopy(manifest.get("spec") or {})  # your own renders may have none
-    if split is not None and isinstance(spec.get("splits"), dict):
-        spec["splits"] = {split: spec["splits"].get(split)}
-    frames = sorted((f["split"], f["sequence"], f["frame"], f.get("settings_hash")) for f in manifest["frames"]
-                    if split is None or f["split"] == split)
+    frames = [(f["split"], f["sequence"], f["frame"], f.get("settings_hash")) for f in manifest["frames"]
+              if split is None or f["split"] == split]
     if not frames and split is not None:
         splits = sorted({f["split"] for f in manifest["frames"]})
         raise UserError(f"{Path(manifest_path).parent}: no frames in split {split!r} (it has {splits}); tables "
                         f"score the split eval.split (e.g. eval.split={([s for s in splits if s != 'train'] or ['NAME'])[0]}), "
                         "trainings read 'train'")
-    identity = {"spec": spec, "frames": frames}
-    if files is not None:
-        identity["files"] = files
-    return runs.config_hash(identity)
+    return _identity_hash(manifest.get("spec"), frames, split, files)
+
+
+@functools.lru_cache(maxsize=8)
+def _planned_fingerprint(spec_json: str, split: str) -> str:
+    spec = json.loads(spec_json)
+    if not (spec.get("splits") or {}).get(split):
+        raise UserError(f"data: the data spec {spec.get('name', '')!r} has no {split!r} split "
+                        f"(it has {sorted(spec.get('splits') or {})}); trainings read 'train'")
+    part = {**spec, "splits": {split: spec["splits"][split]}}  # a split's plan does not depend on the others
+    frames = [(split, job["sequence"], frame, digest) for job, digest in planned_settings(part)
+              for frame in range(int(spec["seq_len"]))]
+    return _identity_hash(spec, frames, split)
+
+
+def training_fingerprint(ctx: Context) -> str:
+    """The data fingerprint of the training split, as training identities hold it: the manifest's on
+    disk (`data_fingerprint`), which records what a training saw. Scoring recorded models on other
+    frames (`eval.data_dir`: nothing is trained) needs no training data: rendered data's fingerprint is
+    then planned from the data spec, without reading or rendering anything. Its spec and settings
+    determine the manifest datagen writes, so the two are equal (tests/test_eval_data.py) and a
+    training is found before its data exists. Your own data (render_data=false) is read from its files."""
+    if ctx.render_data and ctx.eval.data_dir:
+        return _planned_fingerprint(_canonical(ctx.data_spec), "train")
+    return data_fingerprint(ctx, "train")
 
 
 def data_fingerprint(ctx: Context, split: str | None = None) -> str:
@@ -170,8 +200,9 @@ def _listed(problems: list, shown: int = 3) -> str:
 
 def evaluation_data(ctx: Context) -> Context:
     """The context evaluations read their frames from: `eval.data_dir` when set (another dataset, e.g.
-    your own renders, used as it is), else `data_dir`. Trainings always read `data_dir`, so evaluating
-    recorded models on other data retrains nothing."""
+    your own renders, used as it is), else `data_dir`. With `eval.data_dir` the recorded trainings of
+    `data_dir` are scored and none is trained (`training.trained_model`); rendered training data is
+    then neither rendered nor read (`training_fingerprint`)."""
     other = ctx.eval.data_dir
     return dataclasses.replace(ctx, data_dir=Path(other), render_data=False) if other else ctx
 

@@ -27,11 +27,12 @@ import pandas as pd
 
 from bench import runs
 from bench.datagen import load_manifest
-from bench.experiments.context import Context, model_config
+from bench.experiments.context import Context, model_config, with_training
 from bench.experiments.datasets import ensure_data, evaluation_data
 from bench.experiments.figure import crop_figure, curve_figure
 from bench.experiments.macs import frame_inputs
 from bench.experiments.row import row
+from bench.experiments.training import scoring_only_error, untrained
 from bench.macs import count_macs, on_meta
 from bench.metrics import HIGHER_IS_BETTER, LOWER_IS_BETTER, RELMSE_FORMULA
 from bench.models.factory import build_model, is_learned
@@ -233,10 +234,17 @@ def run(ctx: Context, name: str, rows: list[dict], caption: str = "", task: str 
     for r in rows:  # fail on a bad model or task name before any rendering or training
         model_config(ctx, r["model"], r.get("overrides"))
         get_task(r["task"])
-    ensure_data(ctx, passes_for(rows, task))
     frames = evaluation_data(ctx)
-    if frames is not ctx:  # evaluations on another dataset: checked before anything trains
+    if frames is ctx:
+        ensure_data(ctx, passes_for(rows, task))
+    else:  # recorded models scored on another dataset: it is checked; the training data is not needed
         ensure_data(frames, set())
+        unscored = [f"{r['label']} seed {seed}: {why}" for r in rows for seed in ctx.seeds
+                    for why in untrained(with_training(ctx, r.get("train"), r["model"]),
+                                         model_config(ctx, r["model"], r.get("overrides")), get_task(r["task"]),
+                                         seed, r.get("cascade", False))]
+        if unscored:  # before anything is scored, every training that would be missing
+            raise scoring_only_error(unscored)
     if ctx.shard:  # compute this shard's runs only; a run without a shard assembles the table from them
         index, count = ctx.shard
         # a unit's lock is this table under this whole configuration, whichever process runs it
@@ -297,4 +305,7 @@ def run(ctx: Context, name: str, rows: list[dict], caption: str = "", task: str 
         curve_figure(ctx.runs_dir, curves, out_dir / "curves.png")
     reused = int(table["reused"].sum())
     log.info("%s: %d of %d rows reused from the run store; table in %s", name, reused, len(table), out_dir)
+    if frames is not ctx:
+        log.info("%s: %d rows scored on %s with recorded trainings: nothing was rendered or trained", name,
+                 len(table), frames.data_dir)
     return table

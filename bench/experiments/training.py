@@ -16,7 +16,7 @@ from bench import distributed, runs
 from bench.errors import UserError
 from bench.evaluate import evaluate
 from bench.experiments.context import TRAINING_CODE, Context, code_of
-from bench.experiments.datasets import check_training_frames, data_fingerprint, dataset, render_digest
+from bench.experiments.datasets import check_training_frames, dataset, render_digest, training_fingerprint
 from bench.models.factory import build_model, is_learned
 from bench.models.srd import SRDNet, SRDStage, load_stage
 from bench.tasks import CASCADE_STAGES, Task, get_task
@@ -78,7 +78,7 @@ def _file_sha256(path: str) -> str:
 def _train_identity(ctx: Context, cfg: dict, task: Task, seed: int, vgg_id: dict | None,
                     stage: str | None = None) -> dict:
     identity = {"model": cfg, "task": task.name, "train": ctx.train.identity(),
-                "data": data_fingerprint(ctx, "train"), "seed": seed, "vgg": vgg_id}
+                "data": training_fingerprint(ctx), "seed": seed, "vgg": vgg_id}
     if stage is not None:
         identity["stage"] = stage
     return identity
@@ -93,6 +93,49 @@ def recorded_training(ctx: Context, cfg: dict, task: Task, seed: int) -> runs.Ru
     return runs.lookup(ctx.runs_dir, "train", _train_identity(ctx, cfg, task, seed, vgg_id, None), ctx.runs_archive)
 
 
+def untrained(ctx: Context, cfg: dict, task: Task, seed: int, cascade: bool = False) -> list[str]:
+    """Why each training that scoring (cfg, task, seed) loads is not recorded with weights this code
+    reuses ("[sr stage] ..." for a Cascade's stages); empty when every one is, or the model learns nothing.
+    Reads records and restores archived runs; never renders, trains or records a run."""
+    stages = CASCADE_STAGES[cfg.get("stage_order", "sr_dn")] if cascade else [(None, task.name)]
+    out = []
+    for stage, task_name in stages:
+        stage_task = get_task(task_name)
+        if not is_learned(_initial_model(cfg, stage_task, seed, stage)):
+            continue
+        identity = _train_identity(ctx, cfg, stage_task, seed, _loss_features(ctx)[1], stage)
+        why = _why_not_recorded(ctx, identity, code_of(cfg, *TRAINING_CODE), load=True)
+        if why:
+            out.append(f"[{stage} stage] {why}" if stage else why)
+    return out
+
+
+def _why_not_recorded(ctx: Context, identity: dict, code: dict, load: bool) -> str | None:
+    """Why the training of `identity` would have to run (no complete record in the store or
+    `ctx.runs_archive`, recorded with other code, or, when its weights are to be `load`ed, without
+    them), or None when it is reused as recorded: what `runs.begin` would decide."""
+    run = runs.lookup(ctx.runs_dir, "train", identity, ctx.runs_archive)
+    if run is None:
+        return f"no complete training recorded in {ctx.runs_dir}" + (f" or {ctx.runs_archive}" if ctx.runs_archive else "")
+    stale = runs.code_changes(run.record, code) and not ctx.reuse_stale
+    archived = runs.lookup(ctx.runs_archive, "train", identity) if stale and ctx.runs_archive else None
+    if archived is not None and not runs.code_changes(archived.record, code):
+        run, stale = archived, False  # begin restores the archive's run of this code over the store's
+    if stale:
+        return f"its training {run.hash} was recorded with other code (reuse_stale=true loads it anyway)"
+    if load and runs.read_or_none(run.dir / CHECKPOINT) is None:
+        return (f"its training {run.hash} is recorded without weights (an archive leaves files over "
+                f"{runs.ARCHIVED_FILE_MAX_BYTES / 2**20:.0f} MiB out)")
+    return None
+
+
+def scoring_only_error(unscored: list[str]) -> UserError:
+    """What eval.data_dir says instead of training: which trainings it lacks, and what to do."""
+    return UserError("eval.data_dir scores recorded trainings only (it renders and trains nothing); not recorded "
+                     "with weights: " + "; ".join(unscored) + ". Train them first (the same command without "
+                     "eval.data_dir renders data_dir and trains what is missing), then score your frames again")
+
+
 def trained_model(ctx: Context, cfg: dict, task: Task, seed: int, label: str = "", load: bool = True,
                   stage: str | None = None, divergence_ends: bool = False):
     """The model of `cfg` trained on `task`, from the run store when recorded. Returns (model, run or None).
@@ -103,20 +146,26 @@ def trained_model(ctx: Context, cfg: dict, task: Task, seed: int, label: str = "
     into the store only: the archive keeps the record its evaluations scored.
     With `stage` ("sr" or "dn") only that stage of an SRDNet (built at the SRD scale, 2) is trained on
     `task`, through SRDStage. With `divergence_ends` (a learning-rate range test) a diverging training is
-    recorded complete with the step it diverged at, instead of failing."""
+    recorded complete with the step it diverged at, instead of failing.
+    With `eval.data_dir` set nothing is trained (nor forced): a training not recorded with what is
+    needed is a UserError saying which (`untrained` lists them all before a table runs)."""
     model = _initial_model(cfg, task, seed, stage)
     if not is_learned(model):
         return model, None
     features, vgg_id = _loss_features(ctx)
     identity = _train_identity(ctx, cfg, task, seed, vgg_id, stage)
+    code = code_of(cfg, *TRAINING_CODE)
+    scoring_only = bool(ctx.eval.data_dir)  # recorded models scored on other frames: never a training
+    if scoring_only and (why := _why_not_recorded(ctx, identity, code, load)):
+        raise scoring_only_error([f"{label or cfg['_target_']} seed {seed}: {why}"])
     if not ctx.render_data:  # your own data: a frame the trainer cannot crop is named before a run is recorded
         check_training_frames(ctx)
-    code = code_of(cfg, *TRAINING_CODE)
+    force = ctx.force and not scoring_only  # force=true recomputes the evaluations on your frames only
     run = runs.begin(ctx.runs_dir, "train", identity, seed=seed, device=ctx.device, label=label,
-                     force=ctx.force, code=code, reuse_stale=ctx.reuse_stale, archive=ctx.runs_archive,
+                     force=force, code=code, reuse_stale=ctx.reuse_stale, archive=ctx.runs_archive,
                      needs=(CHECKPOINT,) if load else ())
     # a run trained again for the weights its archive left out: the archive keeps the run it scored
-    weights_only = None if ctx.force else archived_without_weights(ctx, run, code)
+    weights_only = None if force else archived_without_weights(ctx, run, code)
     if run.reused:
         log.info("train %s: reusing run %s", label or cfg["_target_"], run.hash)
         if not weights_only:

@@ -1,0 +1,117 @@
+"""eval.data_dir: recorded (archived) models scored on frames you bring, with real processes and files.
+Nothing is rendered, nothing is trained and the training data is not read: a training's identity takes
+its data fingerprint from the data spec then, planned without rendering, and that must equal the rendered
+manifest's (here at the smoke preset, and the cpu preset's committed trainings)."""
+import json
+import os
+import shutil
+import subprocess
+import sys
+from pathlib import Path
+
+import pandas as pd
+import pytest
+from hydra import compose, initialize_config_dir
+
+from bench.cli import CONF_DIR, make_context
+from bench.datagen import frame_paths, load_manifest
+from bench.experiments.datasets import data_fingerprint, training_fingerprint
+
+REPO = Path(__file__).resolve().parent.parent
+# The smoke table (input bilinear, Ours) at the smoke preset, on frames small enough for seconds.
+SMOKE = ["+experiment=smoke", "preset=smoke", "data.lr_width=8", "data.lr_height=6", "data.spp=1", "data.ref_spp=4",
+         "data.seq_len=2", "data.max_depth=4", "data.splits.train.sequences=1", "data.splits.val.sequences=1",
+         "~data.splits.generalization", "train.steps=2", "train.checkpoint_every=2", "train.crop=4",
+         "train.seq_len=2", "train.batch_size=1", "train.val_sequences=1", "workers=1", "progress=false"]
+SCORES = ["method", "relMSE", "PSNR", "SSIM"]
+
+
+def bench(*args):
+    env = dict(os.environ, HYDRA_FULL_ERROR="0", PYTHONUNBUFFERED="1")
+    return subprocess.run([sys.executable, "-m", "bench", *SMOKE, *args], cwd=REPO, capture_output=True, text=True,
+                          timeout=300, env=env)
+
+
+def store(root, archive, data_dir, *more):
+    return [f"runs_dir={root / 'runs'}", f"runs_archive={archive}", f"results_dir={root / 'results'}",
+            f"data_dir={data_dir}", *more]
+
+
+@pytest.fixture(scope="module")
+def trained(tmp_path_factory):
+    """The smoke table computed once, its runs archived (runs_archive, as the cpu preset keeps them)."""
+    root = tmp_path_factory.mktemp("trained")
+    out = bench(*store(root, root / "archive", root / "data"))
+    assert out.returncode == 0, out.stderr[-3000:]
+    return root
+
+
+def copy_of_split(data_dir: Path, split: str, dest: Path) -> Path:
+    """A dataset of your own: one split's frames with only the documented files (each frame's _lr.exr,
+    _hr.exr and record, and a manifest of those frames), copied without their mtimes."""
+    manifest = load_manifest(data_dir)
+    manifest["frames"] = [f for f in manifest["frames"] if f["split"] == split]
+    for frame in manifest["frames"]:
+        for source in frame_paths(data_dir, split, frame["sequence"], frame["frame"]):
+            target = dest / Path(source).relative_to(data_dir)
+            target.parent.mkdir(parents=True, exist_ok=True)
+            shutil.copy(source, target)
+    (dest / "manifest.json").write_text(json.dumps(manifest))
+    return dest
+
+
+def context(*overrides):
+    with initialize_config_dir(config_dir=CONF_DIR, version_base=None):
+        return make_context(compose("config", overrides=list(overrides)))
+
+
+def test_the_training_fingerprint_planned_from_the_spec_is_the_rendered_manifests(trained, tmp_path):
+    ctx = context(*SMOKE, f"data_dir={trained / 'data'}", f"eval.data_dir={tmp_path}")  # planned: nothing read
+    assert training_fingerprint(ctx) == data_fingerprint(ctx, "train")
+    records = [json.loads(p.read_text()) for p in (trained / "runs" / "train").glob("*/run.json")]
+    assert [r["identity"]["data"] for r in records] == [training_fingerprint(ctx)]
+
+
+def test_the_cpu_presets_committed_trainings_are_found_from_its_spec_alone(tmp_path):
+    """No cpu data here: every archived cpu training was trained on the data the cpu spec plans."""
+    ctx = context("preset=cpu", f"data_dir={tmp_path / 'nowhere'}", f"eval.data_dir={tmp_path / 'mine'}")
+    recorded = {json.loads(p.read_text())["identity"]["data"]
+                for p in (REPO / "results" / "cpu" / "runs" / "train").glob("*/run.json")}
+    assert recorded == {training_fingerprint(ctx)}
+    assert not (tmp_path / "nowhere").exists()
+
+
+def test_recorded_models_score_your_frames_on_a_fresh_clone_rendering_and_training_nothing(trained, tmp_path):
+    """A fresh clone: no run store, no data_dir, only the archive; eval.data_dir is a copy of the val split.
+    Every row is scored from the archived weights: no render job, no training, the same scores as the
+    table that trained them (same frames)."""
+    mine = copy_of_split(trained / "data", "val", tmp_path / "mine")
+    out = bench(*store(tmp_path, trained / "archive", tmp_path / "nowhere"), f"eval.data_dir={mine}")
+    assert out.returncode == 0, out.stderr[-3000:]
+    log = out.stdout + out.stderr
+    assert "smoke: 2 rows scored on" in log and "nothing was rendered or trained" in log
+    assert "trained in" not in log and "rendering" not in log
+    assert not (tmp_path / "nowhere").exists() and not (tmp_path / "runs" / "data").exists()
+    restored = list((tmp_path / "runs" / "train").glob("*/run.json"))
+    assert restored and all(p.read_bytes() == (trained / "archive" / "train" / p.parent.name / "run.json").read_bytes()
+                            for p in restored)  # each training as archived, none recorded here
+    scored = pd.read_csv(tmp_path / "results" / "smoke" / "table.csv")
+    pd.testing.assert_frame_equal(scored[SCORES], pd.read_csv(trained / "results" / "smoke" / "table.csv")[SCORES],
+                                  rtol=1e-6)
+
+
+def test_a_training_without_recorded_weights_is_one_line_before_anything_is_scored(trained, tmp_path):
+    """An archive that left a training's weights out (RAE's at the cpu preset): eval.data_dir names the row
+    and seed and what to do, exit 2, instead of rendering the training data and training it again."""
+    archive = tmp_path / "archive"
+    shutil.copytree(trained / "archive", archive)
+    for checkpoint in archive.glob("train/*/checkpoint.pt"):
+        checkpoint.unlink()
+    mine = copy_of_split(trained / "data", "val", tmp_path / "mine")
+    out = bench(*store(tmp_path, archive, tmp_path / "nowhere"), f"eval.data_dir={mine}")
+    assert out.returncode == 2 and "Traceback" not in out.stderr, out.stderr[-3000:]
+    message = [line for line in out.stderr.splitlines() if "eval.data_dir" in line]
+    assert len(message) == 1 and "Ours seed 0: its training" in message[0] and "without weights" in message[0]
+    assert "without eval.data_dir" in message[0]
+    assert not (tmp_path / "nowhere").exists() and not (tmp_path / "runs" / "eval").exists()
+    assert all(json.loads(p.read_text())["status"] == "complete" for p in (tmp_path / "runs").glob("*/*/run.json"))
