@@ -18,6 +18,7 @@ from bench import render  # noqa: E402  (after the skip: it needs mitsuba at cal
 # Tiny frames: the causes of differing renders (light order, vertex normals) show at any size.
 WIDTH, HEIGHT, SPP, SEED = 16, 12, 2, 11
 SCENE_SEED = 3
+REPO = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))  # the child imports this bench
 
 DIGESTS = """
 import hashlib, json, sys
@@ -45,7 +46,7 @@ def _digest(family):
 
 def test_every_family_renders_the_same_bits_in_this_process_and_in_another():
     child = subprocess.Popen([sys.executable, "-c", DIGESTS], stdout=subprocess.PIPE, text=True,
-                             env={**os.environ, "PYTHONPATH": os.getcwd()})
+                             env={**os.environ, "PYTHONPATH": REPO})
     first = {family: _digest(family) for family in scenes.FAMILIES}
     second = {family: _digest(family) for family in scenes.FAMILIES}
     stdout, _ = child.communicate(timeout=600)
