@@ -184,19 +184,28 @@ def _make_integrator_class():
             diffuse = bsdf.eval_diffuse_reflectance(si, has_diffuse)
             # Importance mode: no 1/eta^2 radiance scaling on refraction, so clear glass has albedo 1.
             ctx = mi.BSDFContext(mi.TransportMode.Importance)
-            _, weight = bsdf.sample(ctx, si, sampler.next_1d(hit), sampler.next_2d(hit), hit & ~has_diffuse)
+            # select, not `hit & ~has_diffuse`: in scalar_rgb the masks are Python bools, and ~True is -2
+            specular = dr.select(has_diffuse, False, hit)
+            _, weight = bsdf.sample(ctx, si, sampler.next_1d(hit), sampler.next_2d(hit), specular)
             value = dr.select(has_diffuse, mi.Color3f(diffuse), mi.Color3f(weight))
             value = dr.select(hit, value, 0.0)
             return [value[0], value[1], value[2]]
 
         def _roughness(self, si, bsdf, flags, hit):
-            alpha = bsdf.eval_attribute_1("alpha", si, hit)
-            perceptual = bsdf.eval_attribute_1("roughness", si, hit)
+            alpha, perceptual = (self._attribute(bsdf, name, si, hit) for name in ("alpha", "roughness"))
             glossy = mi.has_flag(flags, mi.BSDFFlags.Glossy)
             delta = mi.has_flag(flags, mi.BSDFFlags.Delta)
             rough = dr.select(alpha > 0, dr.sqrt(alpha), dr.select(perceptual > 0, perceptual, 0.5))
             rough = dr.select(glossy, dr.clip(rough, 0.0, 1.0), dr.select(delta, 0.0, 1.0))
             return dr.select(hit, rough, 0.0)
+
+        @staticmethod
+        def _attribute(bsdf, name, si, hit):
+            """A BSDF attribute, 0 where the BSDF has none (as vectorized variants give; scalar_rgb's
+            single BSDF raises instead)."""
+            if isinstance(bsdf, mi.BSDF) and not bsdf.has_attribute(name):
+                return 0.0
+            return bsdf.eval_attribute_1(name, si, hit)
 
         def to_string(self):
             return f"GBufferPathIntegrator[max_depth={self.max_depth}, passes={self.passes}]"
@@ -301,13 +310,28 @@ def to_mitsuba_dict(value):
 
 
 def load_scene(scene, variant=None):
-    """A mi.Scene from a plain scene dict (bench.scenes), a Mitsuba XML path, or an existing mi.Scene."""
+    """A mi.Scene from a plain scene dict (bench.scenes), a Mitsuba XML path, or an existing mi.Scene.
+
+    Loaded so that every load of one scene renders the same bits (docs/data.md, "Reproducibility"):
+    - without Mitsuba's mesh merging (``optimize=False``): the ``merge`` shape groups meshes in a hash
+      map keyed by memory addresses, so with two or more area lights each load ordered the lights
+      differently, and light sampling drew other noise (unmerged, the lights keep the scene's order;
+      the scene's bounds, which sky and sun emitters sample from, now hold every shape);
+    - on one Dr.Jit thread: a mesh's vertex normals are sums scattered with atomics, whose order (and
+      last bit) varies between loads on several threads. Rendering keeps every thread.
+    """
     mi = _ensure_variant(variant)
-    if isinstance(scene, (str, os.PathLike)):
-        return mi.load_file(os.fspath(scene))
-    if isinstance(scene, dict):
-        return mi.load_dict(to_mitsuba_dict(scene))
-    return scene
+    if not isinstance(scene, (str, os.PathLike, dict)):
+        return scene
+    import drjit as dr
+    threads = dr.thread_count()
+    dr.set_thread_count(1)
+    try:
+        if isinstance(scene, dict):
+            return mi.load_dict(to_mitsuba_dict(scene), optimize=False)
+        return mi.load_file(os.fspath(scene), optimize=False)
+    finally:
+        dr.set_thread_count(threads)
 
 
 # ----------------------------------------------------------------------------------------------------------
