@@ -1,42 +1,52 @@
 #!/usr/bin/env bash
-# The GPU work as one resumable job for a lent GPU machine (README, "On a GPU"; prepared here by
-# scripts/gpu_prepare.sh). Run from the repository root there:
-#     bash scripts/gpu_job.sh [tests] [speed] [sota]        (no argument: all three, in that order)
-#     bash scripts/gpu_job.sh install                       (only install the carried wheels)
-# Each step ends within STEP_S seconds (default 540) and is skipped when its result is already in the
-# working tree, so the next call, carrying what the last one brought back, goes on where it stopped:
-#   tests  tests/test_cuda.py and tests/test_fused_gpu.py with the fused kernels on
-#          -> results/gpu/cuda_tests/<device>.txt
-#   speed  +experiment=speed preset=gpu device=cuda, with the fused kernels on only if `tests` passed
-#          -> results/gpu/speed/<device>/
-#   sota   +experiment=sota preset=gpu device=cuda $SOTA_ARGS (rendering included: needs mitsuba there),
-#          interrupted at STEP_S and resumed from its checkpoints by the next call (carry `runs`)
-#          -> results/gpu/sota/, runs/{train,eval}
+# The GPU work as ONE call per machine start (the machine goes back about 30 s after a call, less than a
+# reply takes to read; docs/gpu.md, "The GPU job"; prepared here by scripts/gpu_prepare.sh). Run from the
+# repository root there, carrying .whl (and runs, from an earlier call):
+#     bash scripts/gpu_job.sh [tests] [speed] [profile] [sota]     (no argument: tests speed sota)
+# It installs the carried wheels, then runs the steps in order within JOB_S seconds in all (default 560,
+# for a run timeout_s of 600), each within STEP_S (default 540) and what is left; a step whose result is
+# already in the working tree is skipped, so the next call, carrying what the last one brought back,
+# goes on where it stopped:
+#   tests    tests/test_cuda.py and tests/test_fused_gpu.py with the fused kernels on
+#            -> results/gpu/cuda_tests/<device>.txt
+#   speed    +experiment=speed preset=gpu device=cuda, with the fused kernels on only if `tests` passed
+#            -> results/gpu/speed/<device>/
+#   profile  (optional) Ours' training step under torch.profiler, eager and compiled
+#            (scripts/gpu_profile_step.py) -> results/gpu/profile/<device>.md
+#   sota     +experiment=sota preset=gpu device=cuda $SOTA_ARGS (rendering: needs the mitsuba wheel),
+#            interrupted at its limit and resumed from its checkpoints by the next call (carry `runs`)
+#            -> results/gpu/sota/, runs/{train,eval}
 # Everything comes back in $OUT as at most 8 files: log.txt, results.tar.gz (results/gpu), and
 # runs.tar.gz.part-* (the run store without rendered data, 15 MiB parts). Unpack them here with
-# scripts/gpu_unpack.sh. Environment: PYTHON (python3), DEVICE (cuda), PRESET (gpu), STEP_S, SOTA_ARGS.
+# scripts/gpu_unpack.sh. Environment: PYTHON (python3), DEVICE (cuda), PRESET (gpu), JOB_S, STEP_S,
+# SOTA_ARGS. A dry run on a CPU: DEVICE=cpu PRESET=smoke OUT=/tmp/x bash scripts/gpu_job.sh speed profile
 set -uo pipefail
 OUT=${OUT:-/tmp/gpu_job_out}
 PYTHON=${PYTHON:-python3}
 DEVICE=${DEVICE:-cuda}
 PRESET=${PRESET:-gpu}
+JOB_S=${JOB_S:-560}
 STEP_S=${STEP_S:-540}
 SOTA_ARGS=${SOTA_ARGS:-}
 STEPS=${*:-tests speed sota}
+PACK_S=20   # kept back for packing what comes back
 mkdir -p "$OUT"
 exec > >(tee -a "$OUT/log.txt") 2>&1
 export PYTHONUNBUFFERED=1 SRD_TRACKING=none
 
-# Wheels carried in .whl/ (and .whl-render/: mitsuba, drjit) install into /tmp/site, which a warm
-# machine keeps between calls: two calls can bring more than one call's 64 MiB.
-for dir in .whl .whl-render; do
-    if compgen -G "$dir/*.whl" > /dev/null; then
-        "$PYTHON" -m pip install -q --no-index --no-deps --no-compile --no-cache-dir --upgrade --target /tmp/site "$dir"/*.whl \
-            || { echo "gpu_job: installing $dir failed"; exit 1; }
-    fi
-done
+# seconds the next step may run: STEP_S, or what is left of JOB_S after packing
+step_limit() {
+    local left=$((JOB_S - SECONDS - PACK_S))
+    echo $((left < STEP_S ? left : STEP_S))
+}
+
+# the carried wheels (scripts/gpu_prepare.sh: hydra, omegaconf, antlr4, OpenEXR, drjit, trimmed mitsuba)
+if compgen -G ".whl/*.whl" > /dev/null; then
+    "$PYTHON" -m pip install -q --no-index --no-deps --no-compile --no-cache-dir --upgrade --target /tmp/site .whl/*.whl \
+        || { echo "gpu_job: installing .whl failed"; exit 1; }
+    echo "gpu_job: wheels installed in ${SECONDS} s"
+fi
 export PYTHONPATH=/tmp/site:$PWD${PYTHONPATH:+:$PYTHONPATH}
-if [ "$STEPS" = install ]; then ls /tmp/site; exit 0; fi
 
 tag=$("$PYTHON" -c "from bench.experiments.speed import device_tag; print(device_tag('$DEVICE'))") \
     || { echo "gpu_job: bench does not import (missing packages? carry them as wheels)"; exit 1; }
@@ -50,7 +60,7 @@ step_tests() {
     if tests_passed; then echo "gpu_job: tests already passed with these kernels ($tests_record)"; return; fi
     mkdir -p "$(dirname "$tests_record")"
     local log=/tmp/cuda_tests.log
-    SRD_BENCH_FUSED_GPU=1 timeout "$STEP_S" "$PYTHON" -m pytest -q -p no:cacheprovider tests/test_cuda.py \
+    SRD_BENCH_FUSED_GPU=1 timeout "$(step_limit)" "$PYTHON" -m pytest -q -p no:cacheprovider tests/test_cuda.py \
         tests/test_fused_gpu.py > "$log" 2>&1
     local rc=$?
     local gpu
@@ -70,26 +80,39 @@ step_speed() {
     local fused=0
     tests_passed && fused=1
     echo "gpu_job: speed with SRD_BENCH_FUSED_GPU=$fused"
-    SRD_BENCH_FUSED_GPU=$fused timeout "$STEP_S" "$PYTHON" -m bench +experiment=speed preset="$PRESET" device="$DEVICE" \
+    SRD_BENCH_FUSED_GPU=$fused timeout "$(step_limit)" "$PYTHON" -m bench +experiment=speed preset="$PRESET" device="$DEVICE" \
         experiment.oidn=false
 }
 
 step_sota() {
     if [ -f "results/gpu/sota/table.md" ]; then echo "gpu_job: sota table already there"; return; fi
-    "$PYTHON" -c "import mitsuba" 2>/dev/null || { echo "gpu_job: no mitsuba here (carry .whl-render): sota skipped"; return; }
+    "$PYTHON" -c "import mitsuba" 2>/dev/null || { echo "gpu_job: no mitsuba here (carry .whl): sota skipped"; return; }
     local fused=0
     tests_passed && fused=1
     # SIGTERM at the limit: the trainer checkpoints and stops; the next call resumes it
-    SRD_BENCH_FUSED_GPU=$fused timeout "$STEP_S" "$PYTHON" -m bench +experiment=sota preset="$PRESET" \
+    SRD_BENCH_FUSED_GPU=$fused timeout "$(step_limit)" "$PYTHON" -m bench +experiment=sota preset="$PRESET" \
         device="$DEVICE" $SOTA_ARGS
     echo "gpu_job: sota exit $?"
 }
 
+step_profile() {
+    local record=results/gpu/profile/$tag.md
+    if [ -f "$record" ]; then echo "gpu_job: profile already there ($record)"; return; fi
+    mkdir -p "$(dirname "$record")"
+    local fused=0
+    tests_passed && fused=1
+    SRD_BENCH_FUSED_GPU=$fused timeout "$(step_limit)" "$PYTHON" scripts/gpu_profile_step.py --device "$DEVICE" \
+        --out "$record"
+    echo "gpu_job: profile exit $?"
+}
+
 for step in $STEPS; do
     case $step in
-        tests|speed|sota) "step_$step" ;;
-        *) echo "gpu_job: unknown step $step (tests, speed, sota)"; exit 2 ;;
+        tests|speed|profile|sota) ;;
+        *) echo "gpu_job: unknown step $step (tests, speed, profile, sota)"; exit 2 ;;
     esac
+    if [ "$(step_limit)" -lt 30 ]; then echo "gpu_job: no time left for $step (JOB_S=$JOB_S)"; break; fi
+    "step_$step"
 done
 
 # what comes back: results/gpu and the run store without rendered data, in parts under 16 MiB

@@ -1,11 +1,13 @@
 #!/usr/bin/env bash
-# Prepares THIS checkout for scripts/gpu_job.sh on a lent GPU machine (README, "On a GPU"):
-#  1. wheels for the machine's Python 3.12 that its image lacks: .whl/ (hydra-core, omegaconf,
-#     antlr4, OpenEXR: 2.2 MB) and .whl-render/ (mitsuba without its spectral, mono and polarized
-#     variants and headers, and drjit: about 57 MB, for the sota step's rendering);
-#  2. the run archive results/cpu/runs (127 MiB, over the 64 MiB a call may carry) taken out of the
-#     index and ignored, so the working tree travels; `scripts/gpu_prepare.sh --undo` puts it back.
-#     Commit nothing between the two (git status shows the archive as deleted while prepared).
+# Prepares THIS checkout for scripts/gpu_job.sh on a lent GPU machine (docs/gpu.md, "The GPU job"): the
+# whole job travels in ONE call (the machine goes back ~30 s after a call), tree and wheels within 64 MiB.
+#  1. .whl/: wheels for the machine's Python 3.12 that its image lacks: hydra-core, omegaconf, antlr4,
+#     OpenEXR, drjit and mitsuba, the last trimmed to the variants and plugins the suite loads and both
+#     recompressed with LZMA (scripts/trim_mitsuba_wheel.py; about 24 MiB in all);
+#  2. the run archive results/cpu/runs taken out of the index and ignored, so the working tree travels;
+#     `scripts/gpu_prepare.sh --undo` puts it back. Commit nothing between the two (git status shows
+#     the archive as deleted while prepared).
+# It prints the sizes and fails when tree and wheels would not fit 64 MiB.
 set -euo pipefail
 cd "$(dirname "$0")/.."
 exclude=.git/info/exclude
@@ -17,28 +19,21 @@ fi
 platforms=(--platform manylinux_2_28_x86_64 --platform manylinux_2_27_x86_64 --platform manylinux_2_17_x86_64)
 download() { python3 -m pip download -q --no-deps --only-binary=:all: --python-version 3.12 --implementation cp \
     "${platforms[@]}" -d "$1" "${@:2}"; }
-mkdir -p .whl .whl-render
-download .whl hydra-core==1.3.8 omegaconf==2.3.1 OpenEXR==3.5.3
+mkdir -p .whl
+download .whl hydra-core==1.3.8 omegaconf==2.3.1 OpenEXR==3.5.3 drjit==1.5.0 mitsuba==3.9.1
 python3 -m pip wheel -q --no-deps -w .whl antlr4-python3-runtime==4.9.3   # an sdist only: a pure-Python wheel
-download .whl-render drjit==1.5.0 mitsuba==3.9.1
-python3 - <<'PY'
-"""Drop the mitsuba variants the suite never selects (it renders with scalar_rgb, llvm_ad_rgb or cuda_ad_rgb)."""
-import glob, os, re, zipfile
-path = glob.glob(".whl-render/mitsuba-*.whl")[0]
-drop = re.compile(r"mitsuba/(include/|(scalar|llvm_ad|cuda_ad)_(spectral|mono)[a-z_]*\.cpython)")
-with zipfile.ZipFile(path) as src, zipfile.ZipFile(path + ".tmp", "w", zipfile.ZIP_DEFLATED) as dst:
-    for item in src.infolist():
-        if drop.match(item.filename):
-            continue
-        data = src.read(item)
-        if item.filename.endswith("RECORD"):
-            data = "".join(line for line in data.decode().splitlines(True) if not drop.match(line)).encode()
-        dst.writestr(item, data)
-os.replace(path + ".tmp", path)
-PY
+# LZMA takes minutes here; a wheel already trimmed (its RECORD lists no headers) is left as it is
+mitsuba=$(ls .whl/mitsuba-*.whl)
+if unzip -l "$mitsuba" | grep -q 'mitsuba/include/'; then
+    python3 scripts/trim_mitsuba_wheel.py "$mitsuba" .whl/drjit-*.whl
+fi
 grep -qx '/results/cpu/runs/' "$exclude" || echo '/results/cpu/runs/' >> "$exclude"
 git rm -r -q --cached results/cpu/runs 2>/dev/null || true
 tree=$(git ls-files -z | xargs -0 du -cb | tail -1 | cut -f1)
-echo "gpu_prepare: tracked tree $((tree / 1048576)) MiB; .whl $(du -sm .whl | cut -f1) MiB; .whl-render $(du -sm .whl-render | cut -f1) MiB"
-echo "gpu_prepare: run with carry [.whl-render] 'bash scripts/gpu_job.sh install', then at once (the machine stays warm 30 s)"
-echo "             carry [.whl] (and runs, from an earlier call) 'bash scripts/gpu_job.sh tests speed sota'"
+untracked=$(git ls-files -z --others --exclude-standard | xargs -0 -r du -cb | tail -1 | cut -f1)
+wheels=$(du -cb .whl/*.whl | tail -1 | cut -f1)
+total=$(( (tree + ${untracked:-0} + wheels) / 1048576 ))
+echo "gpu_prepare: tracked tree $((tree / 1048576)) MiB, untracked $((${untracked:-0} / 1048576)) MiB, .whl $((wheels / 1048576)) MiB: $total MiB of 64"
+[ "$total" -lt 64 ] || { echo "gpu_prepare: over the 64 MiB a call carries"; exit 1; }
+echo "gpu_prepare: one call, timeout_s 600, carry [.whl] (and runs, from an earlier call):"
+echo "             bash scripts/gpu_job.sh tests speed profile sota"

@@ -13,7 +13,7 @@ import pytest
 import torch
 import torch.nn.functional as F
 
-from bench.nn import CFM, DeformConv2d, deform_conv2d, fused, inference_sampler
+from bench.nn import CFM, DeformConv2d, deform_conv2d, fused, inference_sampler, triton_kernels
 from bench.nn.triton_kernels import cfm_fused, deform_conv_fused, deform_conv_fused_backward
 from test_layers import brute_force_deform
 
@@ -193,7 +193,9 @@ def test_fused_cfm_matches_the_module_forward_and_gradients(channels, cond_chann
     module = CFM(channels, cond_channels).to(DEVICE)
     for p in module.parameters():
         torch.nn.init.normal_(p, std=0.3)
-    x, cond = torch.randn(2, channels, 5, 7, device=DEVICE), torch.randn(2, cond_channels, 5, 7, device=DEVICE)
+    # channels-last: the layout the fused CFM takes (bench.nn.cfm)
+    x, cond = (torch.randn(2, c, 5, 7, device=DEVICE).to(memory_format=torch.channels_last)
+               for c in (channels, cond_channels))
     grad_out = torch.randn(2, channels, 5, 7, dtype=torch.float64, device=DEVICE)
 
     def run(m, dtype, force):
@@ -208,6 +210,22 @@ def test_fused_cfm_matches_the_module_forward_and_gradients(channels, cond_chann
     got = run(module, torch.float32, True)
     for name, g, w in zip(["out", "x", "cond", "gamma.w", "gamma.b", "beta.w", "beta.b"], got, want):
         assert _relative(g, w) < 1e-5, name
+
+
+def test_fused_cfm_takes_channels_last_features_only(monkeypatch):
+    """NCHW features run eager (the layout copies cost more than the kernel saves); channels-last x and
+    cond take the kernel."""
+    calls = []
+    monkeypatch.setattr(triton_kernels, "cfm_fused", lambda *args: calls.append(args) or cfm_fused(*args))
+    module = CFM(4, 3).to(DEVICE)
+    x, cond = torch.randn(1, 4, 3, 5, device=DEVICE), torch.randn(1, 3, 3, 5, device=DEVICE)
+    last = torch.channels_last
+    for xs, cs, taken in ((x, cond, False), (x.to(memory_format=last), cond, False),
+                          (x.to(memory_format=last), cond.to(memory_format=last), True)):
+        calls.clear()
+        with fused.forced():
+            module(xs, cs, relu=True)
+        assert bool(calls) == taken
 
 
 _COMPILE_FOR_HOPPER = '''

@@ -36,7 +36,7 @@ class CFM(nn.Module):
 
     def forward(self, x, cond, relu=False):
         """CFM(x, cond), then ReLU when relu (every CFM here but a ResBlock's second one is followed by ReLU)."""
-        if fused.applies(x, max(x.shape[1], cond.shape[1])):
+        if _triton_cfm_applies(x, cond):
             return _triton_cfm(x, cond, self.gamma, self.beta, relu)
         if _fused_kernel_applies(x, cond, self.gamma.weight):
             return _fused_cfm(x, cond, self.gamma, self.beta, relu)
@@ -47,6 +47,15 @@ class CFM(nn.Module):
         gamma, beta = gamma_beta.chunk(2, dim=1)
         y = torch.addcmul(x + beta, x, gamma)
         return F.relu(y, inplace=True) if relu else y
+
+
+def _triton_cfm_applies(x, cond):
+    """The fused Triton CFM takes channels-last x and cond only: on NCHW features the layout copies cost
+    more than the kernel saves (H100, CFM baseline frame fp32: fused 58.0 ms against eager 47.1 in NCHW;
+    30.3 against 36.8 channels-last)."""
+    return (fused.applies(x, max(x.shape[1], cond.shape[1]))
+            and x.is_contiguous(memory_format=torch.channels_last)
+            and cond.is_contiguous(memory_format=torch.channels_last))
 
 
 def _fused_kernel_applies(x, cond, weight):
