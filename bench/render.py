@@ -313,10 +313,11 @@ def load_scene(scene, variant=None):
     """A mi.Scene from a plain scene dict (bench.scenes), a Mitsuba XML path, or an existing mi.Scene.
 
     Loaded so that every load of one scene renders the same bits (docs/data.md, "Reproducibility"):
-    - without Mitsuba's mesh merging (``optimize=False``): the ``merge`` shape groups meshes in a hash
-      map keyed by memory addresses, so with two or more area lights each load ordered the lights
-      differently, and light sampling drew other noise (unmerged, the lights keep the scene's order;
-      the scene's bounds, which sky and sun emitters sample from, now hold every shape);
+    - Mitsuba's mesh merging (``optimize``) only for a scene with at most one area light: the ``merge``
+      shape groups meshes in a hash map keyed by memory addresses, so with two or more area lights each
+      load ordered the lights differently, and light sampling drew other noise. Unmerged, the lights keep
+      the scene's order. Scenes with fewer lights keep merging, so they render the bits they always did
+      (merging also shapes the bounds that sky and sun emitters sample from). An XML scene is not merged;
     - on one Dr.Jit thread: a mesh's vertex normals are sums scattered with atomics, whose order (and
       last bit) varies between loads on several threads. Rendering keeps every thread.
     """
@@ -328,10 +329,17 @@ def load_scene(scene, variant=None):
     dr.set_thread_count(1)
     try:
         if isinstance(scene, dict):
-            return mi.load_dict(to_mitsuba_dict(scene), optimize=False)
+            mitsuba_dict = to_mitsuba_dict(scene)
+            return mi.load_dict(mitsuba_dict, optimize=_area_lights(mitsuba_dict) < 2)
         return mi.load_file(os.fspath(scene), optimize=False)
     finally:
         dr.set_thread_count(threads)
+
+
+def _area_lights(mitsuba_dict) -> int:
+    """Shapes of a Mitsuba scene dict that carry an area emitter."""
+    return sum(isinstance(v, dict) and isinstance(v.get("emitter"), dict) and v["emitter"].get("type") == "area"
+               for v in mitsuba_dict.values())
 
 
 # ----------------------------------------------------------------------------------------------------------
