@@ -118,7 +118,7 @@ def model_problems(model: dict, where: str) -> list[str]:
 def row_problems(plain: dict, data: dict | None) -> list[str]:
     """Bad values inside a table experiment's rows (or the one row of `+experiment=train`): their model
     arguments and training overrides."""
-    from bench.experiments.context import deep_merge, recipe_from
+    from bench.experiments.context import deep_merge
     from bench.experiments.one_model import one_row
     from bench.experiments.table import expand_rows
     experiment = plain.get("experiment") or {}
@@ -144,18 +144,26 @@ def row_problems(plain: dict, data: dict | None) -> list[str]:
         train = deep_merge(plain["train"], r.get("train"))
         own = train_problems(train, data, f"{where}.train.")
         problems += [p for p in own if "train." + p.removeprefix(f"{where}.train.") not in shared]
-        try:
-            recipe_from(train)  # unknown keys, a bad schedule or domain
-        except UserError as err:
-            problems.append(f"{where}.{err}")
+        own_recipe = recipe_problems(train)
+        problems += [f"{where}.{p}" for p in own_recipe if p not in recipe_problems(plain["train"])]
     return problems
+
+
+def recipe_problems(train: dict) -> list[str]:
+    """A `train:` dict's unknown or missing keys, or a bad schedule, domain or precision: [] or one line."""
+    from bench.experiments.context import recipe_from
+    try:
+        recipe_from(train)
+    except UserError as err:
+        return [str(err)]
+    return []
 
 
 def config_problems(plain: dict) -> list[str]:
     """What is wrong with a resolved config, one line per bad value: the key, the value, what is allowed."""
     from bench.infer import parse_path
     data = plain.get("data") if plain.get("render_data", True) else None  # your own frames: checked at start
-    problems = train_problems(plain["train"], data)
+    problems = train_problems(plain["train"], data) + recipe_problems(plain["train"])
     if not (_is_int(plain.get("workers")) and plain["workers"] > 0):
         problems.append(f"workers={plain.get('workers')!r}: expected a positive integer")
     for name, model in (plain.get("models") or {}).items():
@@ -183,10 +191,6 @@ def config_problems(plain: dict) -> list[str]:
 def make_context(cfg: DictConfig):
     from bench.experiments.context import Context, EvalSpec, VggSpec, recipe_from
     plain = OmegaConf.to_container(cfg, resolve=True)
-    if plain["eval"].get("path") is not None:  # the old name, next to file paths in the same docs
-        log.warning("eval.path is deprecated: use eval.fast_path=%s", plain["eval"]["path"])
-        plain["eval"]["fast_path"] = plain["eval"].pop("path")
-    plain["eval"].pop("path", None)
     problems = config_problems(plain)
     if problems:  # one bad value: one line
         listed = problems[0] if len(problems) == 1 else "\n  " + "\n  ".join(problems)
@@ -329,10 +333,6 @@ def run_experiment(cfg: DictConfig) -> None:
     exp = OmegaConf.to_container(cfg.experiment, resolve=True)
     exp.pop("pin", None)
     kind = exp.pop("kind", "table")
-    old_name = exp.pop("deprecated_name", None)
-    if old_name:
-        log.warning("+experiment=%s is deprecated: use +experiment=%s (same experiment; results in %s/%s)",
-                    old_name, exp.get("name", kind), cfg.results_dir, exp.get("name", kind))
     if kind == "all":
         from hydra.core.hydra_config import HydraConfig
         overrides = [o for o in HydraConfig.get().overrides.task if not o.lstrip("+").startswith("experiment")]
@@ -393,31 +393,6 @@ def mirror_runs(tracking: str, runs_dir: Path, uri: str | None, results_dir: Pat
     except Exception as err:  # noqa: BLE001 - the run store holds the results; MLflow is only their view
         log.warning("tracking: mirroring runs to MLflow failed (%s: %s); the run store is unaffected",
                     type(err).__name__, err)
-
-
-# Override names users have typed that were renamed: the size preset was `scale`, a name the upsampling
-# factor also has (issue #21). Kept working, with a deprecation message.
-RENAMED_GROUPS = {"scale": "preset"}
-
-
-def renamed_overrides(args: list[str]) -> list[str]:
-    """Command-line arguments with each renamed config name (`scale=cpu`, `scale.budget_gmac=...`,
-    `~scale`) replaced by its new one, and a deprecation line on stderr for each."""
-    out = []
-    for arg in args:
-        match = re.match(r"^([~+]*)(\w+)(?=[.=@]|$)", arg)
-        if match and match.group(2) in RENAMED_GROUPS:
-            new = match.group(1) + RENAMED_GROUPS[match.group(2)] + arg[match.end():]
-            print(f"warning: {arg} is deprecated: use {new}", file=sys.stderr)
-            arg = new
-        out.append(arg)
-    return out
-
-
-def entry() -> None:
-    """`python -m bench`: old override names still work (with a message), then Hydra parses the rest."""
-    sys.argv[1:] = renamed_overrides(sys.argv[1:])
-    main()
 
 
 class Terminated(KeyboardInterrupt):

@@ -47,6 +47,7 @@ from bench.experiments.context import EVALUATION_CODE, TRAINING_CODE, Context, c
 from bench.experiments.datasets import data_fingerprint, dataset, evaluation_data, render_digest
 from bench.experiments.evaluation import archive_evaluation
 from bench.experiments.training import archive_training, cascade_net, perceptual_features
+from bench.infer import REFERENCE
 from bench.models.factory import build_model
 from bench.models.srd import SRDStage
 from bench.table_writer import write_table
@@ -178,8 +179,13 @@ def scored_here(ctx: Context, evaluation: runs.Run) -> bool:
     (its render digest, where it recorded one: the noise differs in the last bits and beyond)."""
     identity, frames = evaluation.record["identity"], evaluation_data(ctx)
     recorded = evaluation.record.get("metrics", {}).get("render")
-    return ("path" not in identity and identity.get("data") == data_fingerprint(frames, identity["split"])
+    return (ran_the_default_way(identity) and identity.get("data") == data_fingerprint(frames, identity["split"])
             and recorded in (None, render_digest(frames, identity["split"])))
+
+
+def ran_the_default_way(identity: dict) -> bool:
+    """Whether an evaluation ran the model the reference way (fp32, whole frames), as adopt's check does."""
+    return identity["fast_path"] == REFERENCE and not identity["tile"]
 
 
 def other_render(ctx: Context, training: runs.Run) -> str | None:
@@ -243,7 +249,7 @@ def run(ctx: Context, name: str, steps: int, rtol: float, rtol_later_steps: floa
         identity, trained = evaluation.record["identity"], evaluation.record["metrics"]["train_run"]
         model_cfg = runs.read_record(ctx.runs_dir / "train" / trained.split("+")[0] / runs.RECORD)["identity"]["model"]
         code = code_of(model_cfg, *EVALUATION_CODE, *TRAINING_CODE)
-        if "path" not in identity and runs.code_changes(evaluation.record, code):
+        if ran_the_default_way(identity) and runs.code_changes(evaluation.record, code):
             restamp(evaluation, code, {"trainings": trained, "rtol": rtol})
             archive_evaluation(ctx, evaluation)
     checked = time.strftime("%Y-%m-%dT%H:%M:%S%z")
