@@ -26,6 +26,8 @@ and evaluations run another way (a fast path, tiles), which stay stale.
 Stopped trainings (interrupted, failed, or killed: a "running" record no process holds) with a checkpoint are adopted with their group, so they
 resume instead of starting again; a group of only such runs has no evaluation to check.
 
+Runs recorded under an older identity version are not looked at: `+experiment=migrate` re-keys them first.
+
 Writes `<results_dir>/adopt/table.{csv,md,tex}`: one row per group with the verdict and the differences.
 """
 from __future__ import annotations
@@ -150,7 +152,8 @@ def stale_groups(ctx: Context) -> dict[str, list[runs.Run]]:
         abandoned = record.get("status") == "running" and not runs.computing(path.parent)  # killed mid-run
         weightless = not (path.parent / CHECKPOINT).exists()
         if (record.get("status") not in RESUMABLE and not abandoned) or identity.get("data") != data \
-                or (weightless and record.get("status") != "complete") or "model" not in identity:
+                or (weightless and record.get("status") != "complete") or "model" not in identity \
+                or identity.get("version") != runs.IDENTITY_VERSION:  # an older identity: +experiment=migrate first
             continue
         code = code_of(identity["model"], *TRAINING_CODE)
         if not runs.code_changes(record, code):
@@ -167,7 +170,8 @@ def evaluations_of(runs_dir: Path, train_hashes: set[str]) -> list[runs.Run]:
     for path in sorted((runs_dir / "eval").glob(f"*/{runs.RECORD}")):
         record = runs.read_record(path) or {}
         trained = record.get("metrics", {}).get("train_run") or ""
-        if record.get("status") == "complete" and trained and set(trained.split("+")) <= train_hashes:
+        if record.get("status") == "complete" and trained and set(trained.split("+")) <= train_hashes \
+                and record["identity"].get("version") == runs.IDENTITY_VERSION:
             out.append(runs.Run("eval", record["hash"], path.parent, record))
     return out
 
