@@ -162,7 +162,7 @@ def recipe_problems(train: dict) -> list[str]:
 def config_problems(plain: dict) -> list[str]:
     """What is wrong with a resolved config, one line per bad value: the key, the value, what is allowed."""
     from bench.infer import parse_path
-    data = plain.get("data") if plain.get("render_data", True) else None  # your own frames: checked at start
+    data = plain["data"] if plain["render_data"] else None  # your own frames: checked at start
     problems = train_problems(plain["train"], data) + recipe_problems(plain["train"])
     if not (_is_int(plain.get("workers")) and plain["workers"] > 0):
         problems.append(f"workers={plain.get('workers')!r}: expected a positive integer")
@@ -180,8 +180,8 @@ def config_problems(plain: dict) -> list[str]:
             parse_path(_lookup(plain, "eval.fast_path"))
     except (ValueError, AttributeError) as err:
         problems.append(f"eval.fast_path={_lookup(plain, 'eval.fast_path')!r}: {err}")
-    if plain.get("tracking", "none") not in ("mlflow", "none"):
-        problems.append(f"tracking={plain.get('tracking')!r}: expected mlflow or none")
+    if plain["tracking"] not in ("mlflow", "none"):
+        problems.append(f"tracking={plain['tracking']!r}: expected mlflow or none")
     tile = _lookup(plain, "eval.tile")
     if tile is not None and not (_is_int(tile) and tile > 0):
         problems.append(f"eval.tile={tile!r}: expected null (whole frames) or a positive integer")
@@ -360,7 +360,7 @@ def run_experiment(cfg: DictConfig) -> None:
         raise
     finally:  # what completed before a failure is worth browsing too
         if not interrupted:
-            mirror_runs(cfg.get("tracking", "none"), ctx.runs_dir, cfg.get("tracking_uri"), ctx.results_dir)
+            mirror_runs(cfg.tracking, ctx.runs_dir, cfg.tracking_uri, ctx.results_dir)
     log.info("%s done in %.1f s", exp.get("name", kind), time.perf_counter() - t0)
 
 
@@ -408,7 +408,7 @@ def _terminate(signum, frame):
 
 @hydra.main(config_path=CONF_DIR, config_name="config", version_base=None)
 def main(cfg: DictConfig) -> None:
-    if cfg.get("keep_freed_memory", True):
+    if cfg.keep_freed_memory:
         keep_freed_memory()
     if threading.current_thread() is threading.main_thread():  # (a launcher may run jobs in threads)
         signal.signal(signal.SIGTERM, _terminate)
