@@ -455,7 +455,7 @@ def test_shard_parses_i_over_n_and_rejects_the_rest():
     ("+model_lr.srd=-1", "model_lr.srd=-1: expected a positive number"),
     ("eval.fast_path=turbo", "eval.fast_path='turbo': unknown fast path switch 'turbo'"),
     ("+eval.path=fp32", "eval or vgg: EvalSpec.__init__() got an unexpected keyword argument 'path'"),
-    ("~eval.tile", "eval or vgg: EvalSpec.__init__() missing 1 required positional argument: 'tile'"),
+    ("~eval.save_exr", "eval or vgg: EvalSpec.__init__() missing 1 required positional argument: 'save_exr'"),
     ("+train.lrr=1", "train: unknown train.* keys ['lrr']"),
     ("~train.precision", "train: missing train.* keys ['precision']"),
     ("eval.tile=0", "eval.tile=0: expected null (whole frames) or a positive integer"),
@@ -502,7 +502,7 @@ def test_adopt_restamps_a_run_its_archive_kept_without_weights_beside_a_witness_
     import torch
     from bench import runs
     from bench.experiments import adopt
-    ident = {"model": {"_target_": "x"}, "data": "d", "seed": 0}
+    ident = {"version": runs.IDENTITY_VERSION, "model": {"_target_": "x"}, "data": "d", "seed": 0}
     made = {}
     for seed, weights in ((0, False), (1, True)):
         run = runs.complete(runs.begin(tmp_path / "runs", "train", {**ident, "seed": seed}, seed=seed,
