@@ -142,7 +142,7 @@ def model_problems(model: dict, where: str) -> list[str]:
 def row_problems(plain: dict, data: dict | None) -> list[str]:
     """Bad values inside a table experiment's rows (or the one row of `+experiment=train`): their model
     arguments and training overrides."""
-    from bench.experiments.context import deep_merge, recipe_from
+    from bench.experiments.context import deep_merge
     from bench.experiments.one_model import one_row
     from bench.experiments.table import expand_rows
     experiment = plain.get("experiment") or {}
@@ -168,18 +168,26 @@ def row_problems(plain: dict, data: dict | None) -> list[str]:
         train = deep_merge(plain["train"], r.get("train"))
         own = train_problems(train, data, f"{where}.train.")
         problems += [p for p in own if "train." + p.removeprefix(f"{where}.train.") not in shared]
-        try:
-            recipe_from(train)  # unknown keys, a bad schedule or domain
-        except UserError as err:
-            problems.append(f"{where}.{err}")
+        own_recipe = recipe_problems(train)
+        problems += [f"{where}.{p}" for p in own_recipe if p not in recipe_problems(plain["train"])]
     return problems
+
+
+def recipe_problems(train: dict) -> list[str]:
+    """A `train:` dict's unknown or missing keys, or a bad schedule, domain or precision: [] or one line."""
+    from bench.experiments.context import recipe_from
+    try:
+        recipe_from(train)
+    except UserError as err:
+        return [str(err)]
+    return []
 
 
 def config_problems(plain: dict) -> list[str]:
     """What is wrong with a resolved config, one line per bad value: the key, the value, what is allowed."""
     from bench.infer import parse_path
-    data = plain.get("data") if plain.get("render_data", True) else None  # your own frames: checked at start
-    problems = train_problems(plain["train"], data)
+    data = plain["data"] if plain["render_data"] else None  # your own frames: checked at start
+    problems = train_problems(plain["train"], data) + recipe_problems(plain["train"])
     if not (_is_int(plain.get("workers")) and plain["workers"] > 0):
         problems.append(f"workers={plain.get('workers')!r}: expected a positive integer")
     for name, model in (plain.get("models") or {}).items():
@@ -196,8 +204,8 @@ def config_problems(plain: dict) -> list[str]:
             parse_path(_lookup(plain, "eval.fast_path"))
     except (ValueError, AttributeError) as err:
         problems.append(f"eval.fast_path={_lookup(plain, 'eval.fast_path')!r}: {err}")
-    if plain.get("tracking", "none") not in ("mlflow", "none"):
-        problems.append(f"tracking={plain.get('tracking')!r}: expected mlflow or none")
+    if plain["tracking"] not in ("mlflow", "none"):
+        problems.append(f"tracking={plain['tracking']!r}: expected mlflow or none")
     tile = _lookup(plain, "eval.tile")
     if tile is not None and not (_is_int(tile) and tile > 0):
         problems.append(f"eval.tile={tile!r}: expected null (whole frames) or a positive integer")
@@ -207,10 +215,6 @@ def config_problems(plain: dict) -> list[str]:
 def make_context(cfg: DictConfig):
     from bench.experiments.context import Context, EvalSpec, VggSpec, recipe_from
     plain = OmegaConf.to_container(cfg, resolve=True)
-    if plain["eval"].get("path") is not None:  # the old name, next to file paths in the same docs
-        log.warning("eval.path is deprecated: use eval.fast_path=%s", plain["eval"]["path"])
-        plain["eval"]["fast_path"] = plain["eval"].pop("path")
-    plain["eval"].pop("path", None)
     problems = config_problems(plain)
     if problems:  # one bad value: one line
         listed = problems[0] if len(problems) == 1 else "\n  " + "\n  ".join(problems)
@@ -355,10 +359,6 @@ def run_experiment(cfg: DictConfig) -> None:
     exp = OmegaConf.to_container(cfg.experiment, resolve=True)
     exp.pop("pin", None)
     kind = exp.pop("kind", "table")
-    old_name = exp.pop("deprecated_name", None)
-    if old_name:
-        log.warning("+experiment=%s is deprecated: use +experiment=%s (same experiment; results in %s/%s)",
-                    old_name, exp.get("name", kind), cfg.results_dir, exp.get("name", kind))
     if kind == "all":
         from hydra.core.hydra_config import HydraConfig
         overrides = [o for o in HydraConfig.get().overrides.task if not o.lstrip("+").startswith("experiment")]
@@ -386,7 +386,7 @@ def run_experiment(cfg: DictConfig) -> None:
         raise
     finally:  # what completed before a failure is worth browsing too
         if not interrupted:
-            mirror_runs(cfg.get("tracking", "none"), ctx.runs_dir, cfg.get("tracking_uri"), ctx.results_dir)
+            mirror_runs(cfg.tracking, ctx.runs_dir, cfg.tracking_uri, ctx.results_dir)
     log.info("%s done in %.1f s", exp.get("name", kind), time.perf_counter() - t0)
 
 
@@ -421,29 +421,8 @@ def mirror_runs(tracking: str, runs_dir: Path, uri: str | None, results_dir: Pat
                     type(err).__name__, err)
 
 
-# Override names users have typed that were renamed: the size preset was `scale`, a name the upsampling
-# factor also has (issue #21). Kept working, with a deprecation message.
-RENAMED_GROUPS = {"scale": "preset"}
-
-
-def renamed_overrides(args: list[str]) -> list[str]:
-    """Command-line arguments with each renamed config name (`scale=cpu`, `scale.budget_gmac=...`,
-    `~scale`) replaced by its new one, and a deprecation line on stderr for each."""
-    out = []
-    for arg in args:
-        match = re.match(r"^([~+]*)(\w+)(?=[.=@]|$)", arg)
-        if match and match.group(2) in RENAMED_GROUPS:
-            new = match.group(1) + RENAMED_GROUPS[match.group(2)] + arg[match.end():]
-            print(f"warning: {arg} is deprecated: use {new}", file=sys.stderr)
-            arg = new
-        out.append(arg)
-    return out
-
-
 def entry() -> None:
-    """`python -m bench`: old override names still work (with a message), an unknown experiment or study is
-    one line, then Hydra parses the rest."""
-    sys.argv[1:] = renamed_overrides(sys.argv[1:])
+    """`python -m bench`: an unknown experiment or study is one line, then Hydra parses the rest."""
     problem = choice_problem(sys.argv[1:])
     if problem:
         print(f"error: {problem}", file=sys.stderr)
@@ -464,7 +443,7 @@ def _terminate(signum, frame):
 
 @hydra.main(config_path=CONF_DIR, config_name="config", version_base=None)
 def main(cfg: DictConfig) -> None:
-    if cfg.get("keep_freed_memory", True):
+    if cfg.keep_freed_memory:
         keep_freed_memory()
     if threading.current_thread() is threading.main_thread():  # (a launcher may run jobs in threads)
         signal.signal(signal.SIGTERM, _terminate)

@@ -45,6 +45,9 @@ import pandas as pd
 log = logging.getLogger("bench")
 
 RECORD = "run.json"
+# In every training and evaluation identity: a change to what identities name (not to the code, which the
+# fingerprint covers) bumps it, with a migration that re-keys the recorded runs (`rekey`, +experiment=migrate).
+IDENTITY_VERSION = 2
 COMMAND_STARTED_S = time.time()  # force=true recomputes what was recorded before this; a run computed since is reused
 _LIBRARIES = ("torch", "mitsuba", "drjit", "numpy", "OpenEXR", "pyoidn", "scikit-image", "hydra-core")
 

@@ -90,7 +90,8 @@ class TrainingDiverged(RuntimeError):
 
 @dataclass(frozen=True)
 class Recipe:
-    """How a model is trained (conf/config.yaml `train:`; presets override the sizes).
+    """How a model is trained: conf/config.yaml `train:` sets every field (presets override the sizes)
+    and says what each one is; nothing here has a default, so the config is the one source of truth.
 
     Everything here but `checkpoint_every` and the validation settings determines the trained weights,
     so it is the training part of a run's identity (`identity()`)."""
@@ -98,29 +99,24 @@ class Recipe:
     batch_size: int
     seq_len: int
     crop: int
-    loss: dict
-    lr: float = 6e-4
-    betas: tuple = (0.9, 0.99)
-    schedule: str = "cosine"          # cosine: linear warm-up, then cosine to 0 | halve (paper) | constant
-                                      # | range: lr * 1e-4 rising geometrically to lr (a learning-rate range test)
-    warmup: float = 0.05              # fraction of steps of linear warm-up (cosine)
-    halve_every: float = 0.25         # fraction of steps between halvings (halve)
-    clip_grad_norm: float | None = 1.0   # None: no clipping
-    ema: float | None = 0.999         # EMA decay of the weights used for evaluation; None: the raw weights
-    hdr: str = "log1p"                # network domain (bench.hdr)
-    colour_permute: bool = False      # augmentation: a random order of the RGB channels per item (bench.dataset)
-    precision: str = "fp32"           # fp32 | bf16: forward and loss under bfloat16 autocast (weights, Adam and
-                                      # EMA stay float32); for GPUs and AVX512-BF16 CPUs, emulated on AVX2
-    channels_last: bool = False       # the model and every frame in channels-last memory format
-    checkpoint_every: int = 100
-    checkpoint_every_s: float = 120.0  # also checkpoint when this much wall time passed since the last
-    val_every: int = 0                # score the validation subset every this many steps (0: only at the end)
-    val_sequences: int = 4            # validation sequences scored for the learning curve (0: no curve)
+    loss: dict                        # head -> {term: weight} (bench.losses)
+    lr: float
+    betas: tuple
+    schedule: str                     # one of SCHEDULES
+    warmup: float
+    halve_every: float
+    clip_grad_norm: float | None
+    ema: float | None
+    hdr: str                          # network domain, one of bench.hdr.MODES
+    colour_permute: bool
+    precision: str                    # one of PRECISIONS
+    channels_last: bool
+    checkpoint_every: int
+    checkpoint_every_s: float
+    val_every: int
+    val_sequences: int
 
     NOT_IDENTITY = ("checkpoint_every", "checkpoint_every_s", "val_every", "val_sequences")
-    # options added after runs were recorded: in the identity only when set otherwise than their
-    # default, so that the runs recorded before them keep their hashes
-    ADDED_LATER = ("colour_permute", "precision", "channels_last")
 
     def __post_init__(self):
         if self.schedule not in SCHEDULES:
@@ -132,24 +128,26 @@ class Recipe:
 
     @classmethod
     def from_config(cls, config: dict) -> "Recipe":
-        """The recipe of a `train:` config dict; keys that are not recipe fields are an error."""
+        """The recipe of a `train:` config dict, which names every field: a missing or unknown key is an error."""
         known = {f.name for f in fields(cls)}
-        unknown = set(config) - known
+        unknown, missing = set(config) - known, known - set(config)
         if unknown:
             raise ValueError(f"unknown train.* keys {sorted(unknown)}; known: {sorted(known)}")
-        values = dict(config)
-        values["betas"] = tuple(values.get("betas", cls.betas))
-        # a loss term set to null is absent: how a study pinned to an earlier recipe takes out a term
-        # that the preset has since added (conf/pin/studies.yaml), keeping its runs' identities
-        if isinstance(values.get("loss"), dict):
-            values["loss"] = {head: {name: w for name, w in terms.items() if w is not None}
-                              if isinstance(terms, dict) else terms for head, terms in values["loss"].items()}
-        return cls(**values)
+        if missing:
+            raise ValueError(f"missing train.* keys {sorted(missing)} (conf/config.yaml sets every one)")
+        return cls(**{**config, "betas": tuple(config["betas"])})
 
     def identity(self) -> dict:
-        defaults = {f.name: f.default for f in fields(self)}
-        return {k: v for k, v in asdict(self).items()
-                if k not in self.NOT_IDENTITY and not (k in self.ADDED_LATER and v == defaults[k])}
+        """Every option that determines the weights; a loss term of weight 0 is left out, as it adds nothing
+        (a recipe that sets a term to 0 is the recipe without it)."""
+        values = {k: v for k, v in asdict(self).items() if k not in self.NOT_IDENTITY}
+        values["loss"] = without_zero_terms(values["loss"])
+        return values
+
+
+def without_zero_terms(loss: dict) -> dict:
+    """The loss weights {head: {term: weight}} without the terms of weight 0."""
+    return {head: {term: w for term, w in terms.items() if w != 0} for head, terms in loss.items()}
 
 
 def lr_at(step: int, recipe: Recipe) -> float:

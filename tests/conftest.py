@@ -37,6 +37,16 @@ def smoke_context(**fields):
     return dataclasses.replace(ctx, **fields)
 
 
+def config_recipe(**fields):
+    """A training Recipe from conf/config.yaml's `train:` (which sets every field) with `fields` replaced:
+    tests never restate the config's values."""
+    from pathlib import Path
+    from omegaconf import OmegaConf
+    from bench.train import Recipe
+    config = OmegaConf.to_container(OmegaConf.load(Path(__file__).parents[1] / "conf/config.yaml").train)
+    return dataclasses.replace(Recipe.from_config(config), **fields)
+
+
 # Small instances of every learned baseline, (constructor, arguments), and their inputs: shared by the
 # files that check models on every device.
 SMALL = {

@@ -110,3 +110,34 @@ def test_one_factory_builds_models():
 def test_the_floor_table_is_read():
     assert FLOORS["bench/runs.py"] == 1 and FLOORS["bench/experiments/"] == 3 and FLOORS["bench/cli.py"] == 4
     assert FLOORS["bench/models/"] == 2 and FLOORS["bench/weights.py"] == 2 and FLOORS["bench/predict.py"] == 3
+
+
+def test_only_the_cli_and_the_model_factory_import_hydra():
+    importers = [p for p in SOURCES if re.search(r"^\s*(import hydra|from hydra\b)", (ROOT / p).read_text(), re.M)]
+    assert importers == ["bench/cli.py", "bench/models/factory.py"]
+
+
+def test_the_typed_settings_have_no_defaults_and_the_config_sets_exactly_their_fields():
+    """Recipe, EvalSpec and VggSpec take every value from conf/config.yaml (`train:`, `eval:`, `vgg:`):
+    one source of truth, no second default in code."""
+    import dataclasses
+    from omegaconf import OmegaConf
+    from bench.experiments.context import EvalSpec, VggSpec
+    from bench.train import Recipe
+    config = OmegaConf.load(ROOT / "conf/config.yaml")
+    for spec, section in ((Recipe, "train"), (EvalSpec, "eval"), (VggSpec, "vgg")):
+        fields = dataclasses.fields(spec)
+        assert [f.name for f in fields if f.default is not dataclasses.MISSING
+                or f.default_factory is not dataclasses.MISSING] == [], spec.__name__
+        assert set(config[section]) == {f.name for f in fields}, section
+
+
+def test_the_models_that_apply_the_hdr_transform_are_the_ones_architecture_names():
+    """ARCHITECTURE.md: the trainer and evaluator apply the HDR transform; only the models it names
+    (those that take `linear_base`) import bench/hdr.py."""
+    text = (ROOT / "ARCHITECTURE.md").read_text()
+    paragraph = text[text.index("One exception,\ninside the models"):text.index("no other\nmodel imports it")]
+    named = set(re.findall(r"`((?:bench/models|baselines)/[\w/]+\.py)`", paragraph))
+    importers = {p for p in SOURCES if p.startswith(("bench/models/", "baselines/"))
+                 and "bench/hdr.py" in project_imports(p)}
+    assert named and importers == named

@@ -47,7 +47,7 @@ def test_a_study_is_pinned_to_the_recipe_it_was_measured_at_only_on_the_preset_t
         cfg = compose(name, f"preset={preset}", "++experiment.seen=${train.steps}")
         apply_pin(cfg)
         return cfg.train.steps, cfg.train.loss.final.get("ssim"), cfg.experiment.seen
-    assert recipe(compose_study, "dark_bias", "cpu") == (1000, None, 1000)
+    assert recipe(compose_study, "dark_bias", "cpu") == (1000, 0, 1000)   # weight 0: out of the identity
     assert recipe(compose_experiment, "sota", "cpu") == (2000, 8, 2000)
     assert recipe(compose_study, "lr_range_ssim", "cpu") == (2000, 8, 2000)
     gpu = compose_experiment("sota", "preset=gpu").train
@@ -90,7 +90,7 @@ def test_choices_are_checked_before_hydra_composes_them(args, problem):
 def test_every_experiment_composes_at_every_preset(name, preset):
     cfg = compose_experiment(name, f"preset={preset}")
     assert cfg.preset.name == preset
-    assert cfg.experiment.name == name or cfg.experiment.get("deprecated_name") == name
+    assert cfg.experiment.name == name
     ctx = make_context(cfg)                       # every key the experiments read is there
     assert ctx.data_spec and ctx.train.steps > 0 and ctx.budget_gmac > 0
 
@@ -364,7 +364,7 @@ def test_fast_path_auto_is_measured_and_recorded_as_the_path_it_chose(smoke_dirs
     fp32 = pd.read_csv(root / "results" / "smoke" / "table.csv").set_index("method")
     auto = pd.read_csv(root / "results_auto" / "smoke" / "table.csv").set_index("method")
     record = json.loads((root / "runs" / "eval" / auto.loc["Ours", "runs"] / "run.json").read_text())
-    assert record["identity"].get("path", "fp32") == entry["path"]
+    assert record["identity"]["fast_path"] == entry["path"]
     assert abs(auto.loc["Ours", "PSNR"] - fp32.loc["Ours", "PSNR"]) < 0.05
 
 
@@ -497,7 +497,10 @@ def test_shard_parses_i_over_n_and_rejects_the_rest():
     ("seeds=[a]", "seeds=['a']: expected a non-empty list of integers"),
     ("+model_lr.srd=-1", "model_lr.srd=-1: expected a positive number"),
     ("eval.fast_path=turbo", "eval.fast_path='turbo': unknown fast path switch 'turbo'"),
-    ("eval.path=turbo", "eval.fast_path='turbo': unknown fast path switch 'turbo'"),   # the old name
+    ("+eval.path=fp32", "eval or vgg: EvalSpec.__init__() got an unexpected keyword argument 'path'"),
+    ("~eval.save_exr", "eval or vgg: EvalSpec.__init__() missing 1 required positional argument: 'save_exr'"),
+    ("+train.lrr=1", "train: unknown train.* keys ['lrr']"),
+    ("~train.precision", "train: missing train.* keys ['precision']"),
     ("eval.tile=0", "eval.tile=0: expected null (whole frames) or a positive integer"),
 ])
 def test_every_bad_value_is_one_line_naming_key_value_and_rule(tmp_path, override, message):
@@ -525,27 +528,13 @@ def test_sweep_jobs_write_distinct_tables_with_the_joblib_launcher(tmp_path):
     assert tables == ["seeds=_0_", "seeds=_1_"]
 
 
-def test_old_names_flops_and_scale_still_run_the_mac_audit_with_deprecation_messages(tmp_path):
-    out = bench("+experiment=flops", "scale=smoke", f"results_dir={tmp_path}", f"runs_dir={tmp_path}/runs")
-    assert out.returncode == 0, out.stderr[-2000:]
-    assert "+experiment=flops is deprecated: use +experiment=macs" in out.stderr + out.stdout
-    assert "scale=smoke is deprecated: use preset=smoke" in out.stderr
-    assert (tmp_path / "macs" / "table.csv").exists()
-
-
-@pytest.mark.parametrize("arg,expected", [
-    ("scale=cpu", "preset=cpu"),
-    ("scale.budget_gmac=100", "preset.budget_gmac=100"),
-    ("~scale", "~preset"),
-    ("scale=smoke,cpu", "preset=smoke,cpu"),
-    ("models.srd.scale=2", "models.srd.scale=2"),       # a model's upsampling factor is not the preset
-    ("+experiment=sota", "+experiment=sota"),
-    ("scaled=1", "scaled=1"),
-])
-def test_renamed_overrides_map_the_old_preset_name_and_nothing_else(arg, expected, capsys):
-    from bench.cli import renamed_overrides
-    assert renamed_overrides([arg]) == [expected]
-    assert ("deprecated" in capsys.readouterr().err) == (arg != expected)
+def test_the_old_names_flops_scale_and_eval_path_are_gone():
+    """Renamed names are not kept working beside the new ones: one name for each thing."""
+    assert "flops" not in available_experiments()
+    with pytest.raises(Exception, match="scale"):
+        compose_experiment("macs", "scale=smoke")
+    with pytest.raises(Exception, match="eval.path"):
+        compose_experiment("macs", "eval.path=fp32")
 
 
 def test_adopt_restamps_a_run_its_archive_kept_without_weights_beside_a_witness_that_has_them(monkeypatch,
@@ -556,7 +545,7 @@ def test_adopt_restamps_a_run_its_archive_kept_without_weights_beside_a_witness_
     import torch
     from bench import runs
     from bench.experiments import adopt
-    ident = {"model": {"_target_": "x"}, "data": "d", "seed": 0}
+    ident = {"version": runs.IDENTITY_VERSION, "model": {"_target_": "x"}, "data": "d", "seed": 0}
     made = {}
     for seed, weights in ((0, False), (1, True)):
         run = runs.complete(runs.begin(tmp_path / "runs", "train", {**ident, "seed": seed}, seed=seed,

@@ -13,7 +13,8 @@ import torch.multiprocessing as mp
 
 from bench.models.srd import SRDNet
 from bench.tasks import get_task
-from bench.train import CHECKPOINT, Recipe, TrainingInterrupted, train
+from bench.train import CHECKPOINT, TrainingInterrupted, train
+from conftest import config_recipe
 from test_train import WEIGHTS, SyntheticSequences
 
 MODELS = {"srd": dict(channels=4, sr_blocks=1, dn_levels=2, dn_deform_blocks=1, cond_channels=4)}
@@ -33,7 +34,7 @@ class StopsOneRank(SyntheticSequences):
 
 
 def _recipe():
-    return Recipe(steps=6, batch_size=4, seq_len=2, crop=8, loss=WEIGHTS, checkpoint_every=100, warmup=0.2)
+    return config_recipe(steps=6, batch_size=4, seq_len=2, crop=8, loss=WEIGHTS, checkpoint_every=100, warmup=0.2)
 
 
 def _model():

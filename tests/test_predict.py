@@ -12,7 +12,8 @@ from bench.evaluate import predict as predict_batch
 from bench.predict import apply, fast_path_cache, main, read_frame
 from bench.weights import export, load_exported
 from bench.tasks import get_task
-from bench.train import Recipe, train
+from bench.train import train
+from conftest import config_recipe
 from test_train import WEIGHTS, SyntheticSequences
 
 CFG = {"_target_": "baselines.edsr.EDSR", "channels": 8, "blocks": 2}
@@ -23,7 +24,7 @@ def recorded(tmp_path_factory):
     """A complete training run of a tiny EDSR in a fresh run store: (runs_dir, hash)."""
     from bench.models.factory import build_model
     root = tmp_path_factory.mktemp("predict")
-    recipe = Recipe(steps=4, batch_size=2, seq_len=2, crop=8, loss=WEIGHTS, hdr="pu", checkpoint_every=2)
+    recipe = config_recipe(steps=4, batch_size=2, seq_len=2, crop=8, loss=WEIGHTS, hdr="pu", checkpoint_every=2)
     identity = {"model": CFG, "task": "srd", "train": recipe.identity(), "data": "synthetic", "seed": 0}
     run = runs.begin(root / "runs", "train", identity)
     torch.manual_seed(0)

@@ -8,11 +8,10 @@ import pytest
 import torch
 
 from baselines.edsr import EDSR
-from bench.experiments.context import recipe_from
 from bench.experiments.training import _train_identity
 from bench.tasks import get_task
 from bench.train import CHECKPOINT, Recipe, TrainingDiverged, load_weights, lr_at, train
-from conftest import smoke_context
+from conftest import config_recipe, smoke_context
 
 TASK = get_task("srd")
 WEIGHTS = {"final": {"edge": 1, "temporal": 1, "spatial": 8, "perceptual": 0},
@@ -47,8 +46,8 @@ def _model():
 
 
 def _recipe(steps=6, **changes):
-    return Recipe(steps=steps, batch_size=2, seq_len=2, crop=8, loss=WEIGHTS,
-                  **{"checkpoint_every": 3, "warmup": 0.2, "val_every": 2, **changes})
+    return config_recipe(**{"steps": steps, "batch_size": 2, "seq_len": 2, "crop": 8, "loss": WEIGHTS,
+                     "checkpoint_every": 3, "warmup": 0.2, "val_every": 2, **changes})
 
 
 def _train(data, out_dir, steps=6, model=None, **changes):
@@ -56,13 +55,13 @@ def _train(data, out_dir, steps=6, model=None, **changes):
 
 
 def test_paper_schedule_halves_every_quarter():
-    recipe = Recipe(steps=400, batch_size=1, seq_len=1, crop=8, loss=WEIGHTS, schedule="halve")
+    recipe = config_recipe(steps=400, lr=6e-4, schedule="halve", halve_every=0.25)
     assert [lr_at(s, recipe) for s in (0, 99, 100, 200, 300, 399)] == \
         pytest.approx([6e-4, 6e-4, 3e-4, 1.5e-4, 7.5e-5, 7.5e-5])
 
 
 def test_cosine_schedule_warms_up_linearly_then_decays_to_zero():
-    recipe = Recipe(steps=100, batch_size=1, seq_len=1, crop=8, loss=WEIGHTS, lr=1e-3, warmup=0.1)
+    recipe = config_recipe(steps=100, lr=1e-3, schedule="cosine", warmup=0.1)
     lrs = [lr_at(s, recipe) for s in range(100)]
     assert lrs[:10] == pytest.approx([1e-4 * (s + 1) for s in range(10)])          # linear warm-up
     assert lrs[10] == pytest.approx(1e-3)                                            # the peak
@@ -70,30 +69,26 @@ def test_cosine_schedule_warms_up_linearly_then_decays_to_zero():
     assert all(a >= b for a, b in zip(lrs[10:], lrs[11:])) and lrs[-1] < 1e-6       # monotone to ~0
 
 
-def test_recipe_options_added_later_enter_the_identity_only_when_set():
-    recipe = Recipe(steps=1, batch_size=1, seq_len=1, crop=8, loss=WEIGHTS)
-    assert "colour_permute" not in recipe.identity()   # runs recorded before the option keep their hashes
-    assert Recipe(steps=1, batch_size=1, seq_len=1, crop=8, loss=WEIGHTS, colour_permute=True).identity()[
-        "colour_permute"] is True
-    assert set(recipe.identity()) == {f for f in Recipe.__dataclass_fields__} - set(Recipe.NOT_IDENTITY) - set(
-        Recipe.ADDED_LATER)
-
-
-def test_a_loss_term_set_to_null_is_absent_from_the_recipe_and_its_identity():
-    base = {"steps": 1, "batch_size": 1, "seq_len": 1, "crop": 8}
+def test_the_identity_names_every_option_but_loss_terms_of_weight_zero():
+    base = config_recipe(loss=WEIGHTS)
+    assert set(base.identity()) == {f for f in Recipe.__dataclass_fields__} - set(Recipe.NOT_IDENTITY)
+    assert base.identity()["colour_permute"] is False and config_recipe(colour_permute=True).identity()["colour_permute"]
+    assert "perceptual" not in base.identity()["loss"]["final"]
+    # a term set to 0 (conf/pin/studies.yaml takes out a term the preset has since added) is the recipe without it
     with_term = {head: {**terms, "ssim": 8} for head, terms in WEIGHTS.items()}
-    nulled = {head: {**terms, "ssim": None} for head, terms in with_term.items()}
-    assert Recipe.from_config({**base, "loss": nulled}).identity() == Recipe.from_config(
-        {**base, "loss": WEIGHTS}).identity()
-    assert Recipe.from_config({**base, "loss": with_term}).identity() != Recipe.from_config(
-        {**base, "loss": WEIGHTS}).identity()
+    zeroed = {head: {**terms, "ssim": 0} for head, terms in WEIGHTS.items()}
+    assert config_recipe(loss=zeroed).identity() == base.identity() != config_recipe(loss=with_term).identity()
 
 
-def test_recipe_rejects_unknown_keys_and_values():
+def test_recipe_from_config_needs_every_key_and_rejects_unknown_keys_and_values():
+    config = dataclasses.asdict(config_recipe())
     with pytest.raises(ValueError, match="unknown train"):
-        Recipe.from_config({"steps": 1, "batch_size": 1, "seq_len": 1, "crop": 8, "loss": WEIGHTS, "lrr": 1})
+        Recipe.from_config({**config, "lrr": 1})
+    with pytest.raises(ValueError, match=r"missing train.* keys \['lr'\]"):
+        Recipe.from_config({k: v for k, v in config.items() if k != "lr"})
+    assert Recipe.from_config(config) == config_recipe()
     with pytest.raises(ValueError, match="schedule"):
-        Recipe(steps=1, batch_size=1, seq_len=1, crop=8, loss=WEIGHTS, schedule="step")
+        config_recipe(schedule="step")
 
 
 def test_channels_last_training_is_the_same_training_and_bf16_stays_near_it(tmp_path):
@@ -113,7 +108,7 @@ def test_channels_last_training_is_the_same_training_and_bf16_stays_near_it(tmp_
     for summary in (fp32, nhwc, bf16):
         assert summary["samples_per_s"] > 0 and 0 < summary["data_share"] < 1
     with pytest.raises(ValueError, match="precision"):
-        Recipe(steps=1, batch_size=1, seq_len=1, crop=8, loss=WEIGHTS, precision="fp16")
+        config_recipe(precision="fp16")
 
 
 def test_ema_is_the_average_of_the_weights_and_what_the_run_keeps(tmp_path):
@@ -205,10 +200,10 @@ def ctx(tmp_path):
         {"spec": {"spp": 8}, "passes": ["lr_noisy"], "frames": [
             {"split": "train", "sequence": "a", "frame": 0, "settings_hash": "x"},
             {"split": "val", "sequence": "b", "frame": 0, "settings_hash": "v"}]}))
-    train_cfg = {"steps": 10, "batch_size": 2, "seq_len": 2, "crop": 8, "lr": 6e-4, "betas": [0.9, 0.99],
-                 "halve_every": 0.25, "hdr": "clamp", "checkpoint_every": 5, "loss": WEIGHTS, "val_every": 5}
+    train = config_recipe(steps=10, batch_size=2, seq_len=2, crop=8, hdr="clamp", checkpoint_every=5, loss=WEIGHTS,
+                   val_every=5)
     return smoke_context(runs_dir=tmp_path / "runs", results_dir=tmp_path / "results", data_dir=tmp_path / "data",
-                         data_spec={"spp": 8}, train=recipe_from(train_cfg),
+                         data_spec={"spp": 8}, train=train,
                          models={"edsr": {"_target_": "baselines.edsr.EDSR", "channels": 8}})
 
 

@@ -26,6 +26,8 @@ and evaluations run another way (a fast path, tiles), which stay stale.
 Stopped trainings (interrupted, failed, or killed: a "running" record no process holds) with a checkpoint are adopted with their group, so they
 resume instead of starting again; a group of only such runs has no evaluation to check.
 
+Runs recorded under an older identity version are not looked at: `+experiment=migrate` re-keys them first.
+
 Writes `<results_dir>/adopt/table.{csv,md,tex}`: one row per group with the verdict and the differences.
 """
 from __future__ import annotations
@@ -47,6 +49,7 @@ from bench.experiments.context import EVALUATION_CODE, TRAINING_CODE, Context, c
 from bench.experiments.datasets import data_fingerprint, dataset, evaluation_data, render_digest
 from bench.experiments.evaluation import archive_evaluation
 from bench.experiments.training import archive_training, cascade_net, perceptual_features
+from bench.infer import REFERENCE
 from bench.models.factory import build_model
 from bench.models.srd import SRDStage
 from bench.table_writer import write_table
@@ -149,7 +152,8 @@ def stale_groups(ctx: Context) -> dict[str, list[runs.Run]]:
         abandoned = record.get("status") == "running" and not runs.computing(path.parent)  # killed mid-run
         weightless = not (path.parent / CHECKPOINT).exists()
         if (record.get("status") not in RESUMABLE and not abandoned) or identity.get("data") != data \
-                or (weightless and record.get("status") != "complete") or "model" not in identity:
+                or (weightless and record.get("status") != "complete") or "model" not in identity \
+                or identity.get("version") != runs.IDENTITY_VERSION:  # an older identity: +experiment=migrate first
             continue
         code = code_of(identity["model"], *TRAINING_CODE)
         if not runs.code_changes(record, code):
@@ -166,7 +170,8 @@ def evaluations_of(runs_dir: Path, train_hashes: set[str]) -> list[runs.Run]:
     for path in sorted((runs_dir / "eval").glob(f"*/{runs.RECORD}")):
         record = runs.read_record(path) or {}
         trained = record.get("metrics", {}).get("train_run") or ""
-        if record.get("status") == "complete" and trained and set(trained.split("+")) <= train_hashes:
+        if record.get("status") == "complete" and trained and set(trained.split("+")) <= train_hashes \
+                and record["identity"].get("version") == runs.IDENTITY_VERSION:
             out.append(runs.Run("eval", record["hash"], path.parent, record))
     return out
 
@@ -178,8 +183,13 @@ def scored_here(ctx: Context, evaluation: runs.Run) -> bool:
     (its render digest, where it recorded one: the noise differs in the last bits and beyond)."""
     identity, frames = evaluation.record["identity"], evaluation_data(ctx)
     recorded = evaluation.record.get("metrics", {}).get("render")
-    return ("path" not in identity and identity.get("data") == data_fingerprint(frames, identity["split"])
+    return (ran_the_default_way(identity) and identity.get("data") == data_fingerprint(frames, identity["split"])
             and recorded in (None, render_digest(frames, identity["split"])))
+
+
+def ran_the_default_way(identity: dict) -> bool:
+    """Whether an evaluation ran the model the reference way (fp32, whole frames), as adopt's check does."""
+    return identity["fast_path"] == REFERENCE and not identity["tile"]
 
 
 def other_render(ctx: Context, training: runs.Run) -> str | None:
@@ -243,7 +253,7 @@ def run(ctx: Context, name: str, steps: int, rtol: float, rtol_later_steps: floa
         identity, trained = evaluation.record["identity"], evaluation.record["metrics"]["train_run"]
         model_cfg = runs.read_record(ctx.runs_dir / "train" / trained.split("+")[0] / runs.RECORD)["identity"]["model"]
         code = code_of(model_cfg, *EVALUATION_CODE, *TRAINING_CODE)
-        if "path" not in identity and runs.code_changes(evaluation.record, code):
+        if ran_the_default_way(identity) and runs.code_changes(evaluation.record, code):
             restamp(evaluation, code, {"trainings": trained, "rtol": rtol})
             archive_evaluation(ctx, evaluation)
     checked = time.strftime("%Y-%m-%dT%H:%M:%S%z")

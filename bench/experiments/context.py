@@ -62,7 +62,7 @@ class Context:
     model_lr: dict                                  # model name -> peak learning rate (else train.lr)
     shard: tuple[int, int] | None                   # (i, n): a table computes its (row, seed) runs i, i+n, ... first
     reuse_stale: bool                               # reuse runs whose code changed since they were recorded
-    runs_archive: Path | None = None                # finished trainings and evaluations kept with the results
+    runs_archive: Path | None                       # finished trainings and evaluations kept with the results
 
 
 def model_config(ctx: Context, name: str, overrides: dict | None = None) -> dict:

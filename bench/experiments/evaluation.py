@@ -12,7 +12,6 @@ from bench.experiments.context import EVALUATION_CODE, TRAINING_CODE, Context, c
 from bench.experiments.datasets import data_fingerprint, dataset, evaluation_data, render_digest
 from bench.experiments.training import cascade_model, trained_model
 from bench.exrio import write_exr
-from bench.infer import REFERENCE
 from bench.macs import count_params
 from bench.measure import AUTO, choose_fast_path
 from bench.models.factory import build_model
@@ -32,14 +31,11 @@ def evaluated(ctx: Context, cfg: dict, task: Task, seed: int, split: str, label:
         trained = train_run.hash if train_run else {"model": cfg, "task": task.name}
     hdr = ctx.train.hdr
     frames = evaluation_data(ctx)
-    identity = {"trained": trained, "split": split, "data": data_fingerprint(frames, split), "hdr": hdr}
-    if ctx.eval.save_exr:
-        identity["frames"] = True  # output frames are an artifact of their own run
-    fast_path, tile = ctx.eval.fast_path, ctx.eval.tile
+    fast_path = ctx.eval.fast_path
     if fast_path == AUTO:
         fast_path = measured_fast_path(ctx, cfg, task, split, label)
-    if fast_path != REFERENCE or tile:  # only a non-default way of running changes the identity
-        identity.update(path=fast_path, tile=tile)  # ("path": the identity key from before the rename)
+    identity = evaluation_identity(trained, split, data_fingerprint(frames, split), hdr, fast_path, ctx.eval.tile,
+                                   ctx.eval.save_exr)
     # a learned row's numbers also depend on the trainer: retraining it makes its evaluation stale too
     code = code_of(cfg, *EVALUATION_CODE, *(TRAINING_CODE if train_run is not None or cascade else ()))
     run = runs.begin(ctx.runs_dir, "eval", identity, seed=seed, device=ctx.device, label=label,
@@ -57,7 +53,7 @@ def evaluated(ctx: Context, cfg: dict, task: Task, seed: int, split: str, label:
     try:
         _, metrics = evaluate(model, dataset(frames, split, task, training=False), task, hdr=hdr,
                               device=ctx.device, out_dir=run.dir, save_exr=ctx.eval.save_exr,
-                              write_exr=write_exr, path=fast_path, tile=tile)
+                              write_exr=write_exr, path=fast_path, tile=ctx.eval.tile)
     except BaseException as err:  # the record says so, never "running" forever
         runs.fail(run, f"{type(err).__name__}: {err}")
         raise
@@ -66,6 +62,18 @@ def evaluated(ctx: Context, cfg: dict, task: Task, seed: int, split: str, label:
     metrics["vgg"] = (train_run.record["identity"].get("vgg") if train_run else None)
     metrics["render"] = render_digest(frames, split)
     return archive_evaluation(ctx, runs.complete(run, metrics))
+
+
+def evaluation_identity(trained, split: str, data: str, hdr: str, fast_path: str, tile: int | None,
+                        frames: bool) -> dict:
+    """What an evaluation's numbers depend on: the training (its run hash, Cascade stages' joined by "+",
+    or the config of a model that is not trained), the frames scored, the network domain and the way the
+    model runs (the fast path, tiles); `frames`: the output frames are saved, an artifact of their own run."""
+    identity = {"version": runs.IDENTITY_VERSION, "trained": trained, "split": split, "data": data, "hdr": hdr,
+                "fast_path": fast_path, "tile": tile}
+    if frames:
+        identity["frames"] = True
+    return identity
 
 
 def archive_evaluation(ctx: Context, run: runs.Run) -> runs.Run:

@@ -77,7 +77,7 @@ def _file_sha256(path: str) -> str:
 
 def _train_identity(ctx: Context, cfg: dict, task: Task, seed: int, vgg_id: dict | None,
                     stage: str | None = None) -> dict:
-    identity = {"model": cfg, "task": task.name, "train": ctx.train.identity(),
+    identity = {"version": runs.IDENTITY_VERSION, "model": cfg, "task": task.name, "train": ctx.train.identity(),
                 "data": training_fingerprint(ctx), "seed": seed, "vgg": vgg_id}
     if stage is not None:
         identity["stage"] = stage
