@@ -78,7 +78,7 @@ def decode(saved: dict, device: str = "cpu") -> dict:
         raise ValueError(f"not archived weights ({FORMAT})")
     planes = torch.frombuffer(bytearray(lzma.decompress(saved["float16_planes_lzma"].numpy().tobytes())),
                               dtype=torch.uint8)
-    flat = planes.view(2, -1).t().contiguous().view(torch.float16)
+    flat = planes.view(2, -1).t().reshape(-1).view(torch.float16)
     out, offset = {}, 0
     for name, shape, dtype in zip(saved["names"], saved["shapes"], saved["dtypes"]):
         if name in saved["exact"]:

@@ -48,6 +48,8 @@ def test_weights_round_trip_to_float16_keeping_what_it_cannot_hold():
     assert torch.equal(back["conv.bias"], state["conv.bias"].half().float())
     assert torch.equal(back["norm.num_batches_tracked"], torch.tensor(7))
     assert torch.equal(back["scale"], state["scale"])                 # 1e6 overflows float16: kept exact
+    one = {"w": torch.tensor([0.5])}                                  # a single float16 value
+    assert torch.equal(archived.decode(archived.encode(one))["w"], one["w"])
     with pytest.raises(ValueError, match="not archived weights"):
         archived.decode({"ema": state})
 

@@ -210,8 +210,8 @@ def test_adopt_archives_what_it_restamps_over_the_stale_copy(monkeypatch, tmp_pa
     ctx = types.SimpleNamespace(runs_dir=tmp_path / "runs", runs_archive=archive, results_dir=tmp_path / "results")
     table = adopt.run(ctx, "adopt", 10, 1e-5, 1e-3, 1e-3, dry_run=False)
     assert list(table["verdict"]) == ["adopted"]
-    archived = runs.read_record(archive / "train" / witness.hash / runs.RECORD)
-    assert archived["code"] == {"bench/x.py": "new"} and "code_adopted" in archived
+    record = runs.read_record(archive / "train" / witness.hash / runs.RECORD)
+    assert record["code"] == {"bench/x.py": "new"} and "code_adopted" in record
     assert torch.equal(archived.state_dict(archive / "train" / witness.hash)["w"], torch.zeros(1))  # compact form
     other = runs.Run("train", "1" * 16, tmp_path / "runs" / "train" / ("1" * 16),
                      {"identity": {"model": {"_target_": "y"}}, "label": "next", "status": "interrupted"})
