@@ -7,7 +7,7 @@ keeps what the tables, claims, `adopt`, predict and export read again, small:
 - `weights.fp16.pt`: the weights evaluation loads (the EMA, else the raw ones) rounded to float16,
   concatenated into one buffer, its two byte planes apart (the high bytes, sign and exponent, compress
   well) and lzma-compressed; names, shapes and dtypes beside it. Tensors float16 cannot hold (integer
-  buffers, values beyond its range) are kept as they are. 3.3x smaller than float32 on the cpu archive;
+  buffers, values beyond its range) are kept as they are. 2.5x smaller than float32 on the cpu archive;
   what the rounding moves in the scores is measured by `scripts/fp16_weights_accuracy.py`
   (docs/runs.md) and allowed for by adopt (`rtol_rounded_weights`).
 - `curve.csv.gz`: the per-step curve's steps 1-100 whole (adopt replays the first steps), then every
