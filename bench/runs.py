@@ -234,9 +234,9 @@ def begin(runs_dir: str | Path, kind: str, identity: dict, config: dict | None =
     record). `code` is the run's code fingerprint (`code_fingerprint`); a recorded run computed with
     other code is recomputed from scratch, its checkpoints included, unless `reuse_stale`. `archive`: a
     run the store lacks is restored from there first (`restore`), and then reused like any recorded run.
-    `needs`: files the caller reads from the run's directory; a complete run without one of them, or
-    with one damaged (`read_or_none`), is computed again from scratch, under its lock, so only one
-    process does.
+    `needs`: files the caller reads from the run's directory (a tuple of names: any one of them, e.g. a
+    full checkpoint or the archive's weights); a complete run without one of them, or with one damaged
+    (`read_or_none`), is computed again from scratch, under its lock, so only one process does.
     """
     if not force:
         done = _reusable(runs_dir, kind, identity, code, reuse_stale, label, quiet=True, needs=needs)
@@ -317,7 +317,9 @@ def _reusable(runs_dir, kind: str, identity: dict, code: dict | None, reuse_stal
     done = lookup(runs_dir, kind, identity)
     if done is None:
         return None
-    missing = [name for name in needs if read_or_none(done.dir / name) is None]
+    alternatives = [(need,) if isinstance(need, str) else tuple(need) for need in needs]
+    missing = [" or ".join(names) for names in alternatives
+               if all(read_or_none(done.dir / name) is None for name in names)]
     if missing:
         if not quiet:
             log.info("%s %s: computing run %s again: it has no %s that reads (damaged, or left out by an archive, "
@@ -343,7 +345,8 @@ def _reusable(runs_dir, kind: str, identity: dict, code: dict | None, reuse_stal
 # The run store lives on one disk and may be lost (a fresh clone, a new machine); finished runs are
 # worth keeping with the tables they make. The archive is a second store of the same layout that holds
 # only complete runs, each with the small files a table reads again (its record, curves, per-frame
-# scores, slimmed weights): it can be committed, and a store that lacks a run restores it from there.
+# scores, weights; a training in the compact form of bench.archived): it can be committed, and a store
+# that lacks a run restores it from there.
 
 
 PARTIAL = ".partial"  # copies being written and the archive's locks: never a run, never committed

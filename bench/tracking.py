@@ -8,7 +8,8 @@ older version), so runs computed by other processes (shards, sweep jobs) appear 
 - the MLflow experiment `srd-bench/<kind>` (train, eval, data, timing, ...), run name = label + seed;
 - params: the run's identity, flattened (`model.channels`, `train.lr`, ...);
 - metrics: the final metrics (`val.PSNR` for a training), and for a training its curves by step
-  (`train.loss`, `train.lr`, ... from curve.csv; `val.PSNR`, ... from val_curve.csv);
+  (`train.loss`, `train.lr`, ... from curve.csv, or an archived run's curve.csv.gz; `val.PSNR`, ... from
+  val_curve.csv);
 - tags: `srd.hash`, `srd.kind`, `srd.status`, the git commit (`mlflow.source.git.commit`) and dirty flag,
   host, device, and the code fingerprint (its digest; the per-file hashes are in the run.json artifact);
 - artifacts: run.json, a training's weights (`weights.pt`, as `srd-bench export` writes them) and curves,
@@ -33,7 +34,7 @@ from pathlib import Path
 
 import pandas as pd
 
-from bench import runs
+from bench import archived, runs
 
 log = logging.getLogger("bench")
 
@@ -203,14 +204,13 @@ def _purge(client, run_ids: list[str], uri: str) -> None:
 
 
 def _curve_metrics(run_dir: Path, start_ms: int) -> list:
-    """A training's curves by step: curve.csv as `train.<column>`, val_curve.csv as `val.<column>`."""
+    """A training's curves by step: its per-step curve (bench.archived) as `train.<column>`,
+    val_curve.csv as `val.<column>`."""
     from mlflow.entities import Metric
     out = []
-    for file, prefix in (("curve.csv", "train."), ("val_curve.csv", "val.")):
-        path = run_dir / file
-        if not path.exists():
+    for curve, prefix in ((archived.read_curve(run_dir), "train."), (runs.read_or_none(run_dir / archived.VAL_CURVE), "val.")):
+        if curve is None:
             continue
-        curve = pd.read_csv(path)
         for row in curve.to_dict("records"):
             step = int(row.pop("step"))
             at = start_ms + int(1000 * (row.get("train_s") or 0))
@@ -221,7 +221,7 @@ def _curve_metrics(run_dir: Path, start_ms: int) -> list:
 
 def _log_artifacts(client, run_id: str, record: dict, run_dir: Path) -> None:
     client.log_artifact(run_id, str(run_dir / runs.RECORD))
-    for file in ("curve.csv", "val_curve.csv", "per_image.csv"):
+    for file in (archived.CURVE, archived.COMPACT_CURVE, archived.VAL_CURVE, "per_image.csv"):
         if (run_dir / file).exists():
             client.log_artifact(run_id, str(run_dir / file))
     if record["kind"] == "train" and record["status"] == "complete" and not record["identity"].get("stage"):

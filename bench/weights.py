@@ -15,11 +15,10 @@ from pathlib import Path
 
 import torch
 
-from bench import runs
+from bench import archived, runs
 from bench.errors import UserError
 from bench.models.factory import build_model
 from bench.tasks import get_task
-from bench.train import CHECKPOINT, load_weights
 
 FORMAT = "srd-bench-weights/1"
 
@@ -46,16 +45,17 @@ def export(run_hash: str, out: str | Path, runs_dir: str | Path = "runs") -> Pat
     cfg, task = identity["model"], get_task(identity["task"])
     if identity.get("stage"):
         raise UserError(f"run {run_hash} trained one stage of a Cascade; export a whole model's run")
-    if not (path.parent / CHECKPOINT).exists():
+    if not archived.has_weights(path.parent):
         seed = identity.get("seed", record.get("seed"))
         raise UserError(f"training run {run_hash} has no weights in {path.parent}: the archive keeps files over "
                         f"{runs.ARCHIVED_FILE_MAX_BYTES / 2**20:.1f} MiB out of git. The run store of the machine "
                         f"that trained it has them. Elsewhere, run the table whose row it is with seeds=[{seed}] "
                         f"results_dir=<a scratch folder>: its crops.png loads that seed's weights, which trains "
                         f"the run again into {runs_dir}; then export")
-    model = load_weights(build_model(cfg, task.scale), path.parent)
+    model = archived.load_weights(build_model(cfg, task.scale), path.parent)
     meta = {"format": FORMAT, "model": cfg, "task": task.name, "scale": task.scale,
             "hdr": identity["train"]["hdr"], "run": run_hash, "identity": identity,
+            "weights_rounded_to_float16": archived.rounded(path.parent),
             "metrics": record.get("metrics", {}), "code": record.get("code"),
             "git_commit": record.get("git_commit"), "git_dirty": record.get("git_dirty")}
     out = Path(out)
@@ -127,10 +127,14 @@ def from_run(run_hash: str, runs_dir: str | Path = "runs"):
     path = training_record(run_hash, runs_dir)
     identity = json.loads(path.read_text())["identity"]
     task = get_task(identity["task"])
-    checkpoint = path.parent / CHECKPOINT
-    if not checkpoint.exists():
+    checkpoint = archived.weights_file(path.parent)
+    if checkpoint is None:
         raise UserError(f"training run {run_hash} has no weights in {path.parent}")
-    state = _torch_load(checkpoint, "the run's checkpoint")
-    model = _model_with(identity["model"], task.scale, state.get("ema") or state["model"], checkpoint)
+    try:
+        state = archived.state_dict(path.parent)
+    except Exception as err:
+        raise UserError(f"{checkpoint}: the run's weights do not load (truncated or damaged: {_one_line(err)}); "
+                        "train the run again") from err
+    model = _model_with(identity["model"], task.scale, state, checkpoint)
     return model.eval(), {"model": identity["model"], "task": task.name, "scale": task.scale,
                           "hdr": identity["train"]["hdr"], "run": run_hash}

@@ -223,7 +223,7 @@ def test_adopt_stops_on_ctrl_c_or_sigterm_during_a_replay(monkeypatch, tmp_path)
         raise TrainingInterrupted("SIGTERM at step 3 of 10", 15)
     monkeypatch.setattr(adopt, "check_training", interrupted)
     with pytest.raises(TrainingInterrupted):
-        adopt.run(None, "adopt", 10, 1e-5, 1e-3, dry_run=True)
+        adopt.run(None, "adopt", 10, 1e-5, 1e-3, 1e-3, dry_run=True)
 
 
 def test_adopt_archives_what_it_restamps_over_the_stale_copy(monkeypatch, tmp_path):
@@ -231,7 +231,7 @@ def test_adopt_archives_what_it_restamps_over_the_stale_copy(monkeypatch, tmp_pa
     archive, and the stale copy there would be trained again."""
     import types
     import torch
-    from bench import runs
+    from bench import archived, runs
     from bench.experiments import adopt
     run_dir = tmp_path / "runs" / "train" / ("0" * 16)
     run_dir.mkdir(parents=True)
@@ -246,15 +246,15 @@ def test_adopt_archives_what_it_restamps_over_the_stale_copy(monkeypatch, tmp_pa
     monkeypatch.setattr(adopt, "evaluations_of", lambda *a: [])
     monkeypatch.setattr(adopt, "check_training", lambda *a: {"step 1 loss": 0.0, "later loss": 0.0})
     ctx = types.SimpleNamespace(runs_dir=tmp_path / "runs", runs_archive=archive, results_dir=tmp_path / "results")
-    table = adopt.run(ctx, "adopt", 10, 1e-5, 1e-3, dry_run=False)
+    table = adopt.run(ctx, "adopt", 10, 1e-5, 1e-3, 1e-3, dry_run=False)
     assert list(table["verdict"]) == ["adopted"]
-    archived = runs.read_record(archive / "train" / witness.hash / runs.RECORD)
-    assert archived["code"] == {"bench/x.py": "new"} and "code_adopted" in archived
-    assert set(torch.load(archive / "train" / witness.hash / "checkpoint.pt", weights_only=False)) >= {"model", "step"}
+    record = runs.read_record(archive / "train" / witness.hash / runs.RECORD)
+    assert record["code"] == {"bench/x.py": "new"} and "code_adopted" in record
+    assert torch.equal(archived.state_dict(archive / "train" / witness.hash)["w"], torch.zeros(1))  # compact form
     other = runs.Run("train", "1" * 16, tmp_path / "runs" / "train" / ("1" * 16),
                      {"identity": {"model": {"_target_": "y"}}, "label": "next", "status": "interrupted"})
     monkeypatch.setattr(adopt, "stale_groups", lambda ctx: {"h": [other]})       # a later call, another group
-    adopt.run(ctx, "adopt", 10, 1e-5, 5e-3, dry_run=True)
+    adopt.run(ctx, "adopt", 10, 1e-5, 5e-3, 1e-3, dry_run=True)
     table = pd.read_csv(tmp_path / "results" / "adopt" / "table.csv")
     assert list(table["label"]) == ["row", "next"] and list(table["rtol later steps"]) == [1e-3, 5e-3]
 
@@ -562,7 +562,7 @@ def test_adopt_restamps_a_run_its_archive_kept_without_weights_beside_a_witness_
     monkeypatch.setattr(adopt, "evaluations_of", lambda *a: [])
     monkeypatch.setattr(adopt, "check_training", lambda *a: {"step 1 loss": 0.0, "later loss": 0.0})
     ctx = types.SimpleNamespace(runs_dir=tmp_path / "runs", runs_archive=None, results_dir=tmp_path / "results")
-    table = adopt.run(ctx, "adopt", 10, 1e-5, 1e-3, dry_run=False).set_index("witness")["verdict"]
+    table = adopt.run(ctx, "adopt", 10, 1e-5, 1e-3, 1e-3, dry_run=False).set_index("witness")["verdict"]
     assert table[made[True].hash] == "adopted" and "has its weights" in table[lone.hash]
     assert runs.read_record(made[False].dir / runs.RECORD)["code"] == {"bench/x.py": "new"}
     assert runs.read_record(lone.dir / runs.RECORD)["code"] == {"bench/x.py": "old"}

@@ -11,7 +11,7 @@ import torch
 from hydra import compose, initialize_config_dir
 from omegaconf import OmegaConf
 
-from bench import runs
+from bench import archived, runs
 from bench.cli import CONF_DIR, run_experiment
 from bench.errors import UserError
 from bench.experiments.table import (compute_shard, expand_rows, paper_agreement, reference_check, shard_units,
@@ -105,10 +105,9 @@ def test_a_lost_run_store_is_rebuilt_from_the_archive_without_training(dirs, tmp
     run_experiment(compose_experiment("ipt", mine + [f"runs_dir={tmp_path / 'lost'}"]))
     first = pd.read_csv(tmp_path / "results" / "ipt" / "table.csv")
     n = len(first)  # every row learned
-    weights = sorted((tmp_path / "archive" / "train").glob("*/checkpoint.pt"))
+    weights = sorted((tmp_path / "archive" / "train").glob(f"*/{archived.WEIGHTS}"))
     assert len(weights) == n and len(list((tmp_path / "archive" / "eval").glob("*/per_image.csv"))) == n
-    slim = torch.load(weights[0], weights_only=False)
-    assert "optimizer" not in slim and "curve" not in slim and slim["ema"]  # what evaluation reads (adopt: curve.csv)
+    assert {p.name for p in weights[0].parent.iterdir()} == set(archived.FILES)  # compact: float16 EMA, thinned curve
     (tmp_path / "results" / "ipt" / "crops.png").unlink()
     with caplog.at_level("INFO", logger="bench"):
         run_experiment(compose_experiment("ipt", mine + [f"runs_dir={tmp_path / 'fresh'}"]))
@@ -131,11 +130,11 @@ def test_weights_the_archive_left_out_are_trained_again_only_where_they_are_run(
     mine += [f"results_dir={tmp_path / 'results'}", f"runs_archive={tmp_path / 'archive'}", "seeds=[0,1]",
              "experiment.rows.0.sweep.dilation=[1]"]                          # one row, two seeds
     name, archive = "dilation_crop", tmp_path / "archive"
-    monkeypatch.setattr(runs, "ARCHIVED_FILE_MAX_BYTES", 100_000)  # smoke weights: about 0.2 MB and more
+    monkeypatch.setattr(runs, "ARCHIVED_FILE_MAX_BYTES", 20_000)  # smoke weights in float16: about 0.08 MB and more
     run_experiment(compose_experiment(name, mine + [f"runs_dir={tmp_path / 'lost'}"]))
     first = pd.read_csv(tmp_path / "results" / name / "table.csv")
     n = len(first)  # every row learned
-    assert not list(archive.glob("train/*/checkpoint.pt"))                    # left out: over the limit
+    assert not [p for p in archive.glob("train/*/*.pt")]                     # left out: over the limit
     assert len(list(archive.glob("train/*/val_curve.csv"))) == 2 * n          # the small files are kept
     records = {p: p.read_bytes() for p in archive.glob("train/*/run.json")}
 
@@ -148,7 +147,7 @@ def test_weights_the_archive_left_out_are_trained_again_only_where_they_are_run(
     log = rerun("++experiment.figure=false")
     assert f"{n} of {n} rows reused" in log and "trained in" not in log      # scores only: nothing to train
     log = rerun()                                                              # crops.png runs seed 0
-    assert log.count("has no checkpoint.pt") == n and log.count("trained in") == n
+    assert log.count(f"has no checkpoint.pt or {archived.WEIGHTS}") == n and log.count("trained in") == n
     fresh = {runs.read_record(p)["seed"]: p.parent for p in (tmp_path / "fresh" / "train").glob("*/run.json")}
     assert (fresh[0] / "checkpoint.pt").exists() and not (fresh[1] / "checkpoint.pt").exists()
     assert {p: p.read_bytes() for p in archive.glob("train/*/run.json")} == records  # what was scored
@@ -157,7 +156,7 @@ def test_weights_the_archive_left_out_are_trained_again_only_where_they_are_run(
     seed1 = next(p.parent for p in (tmp_path / "fresh" / "eval").glob("*/run.json") if runs.read_record(p)["seed"] == 1)
     shutil.rmtree(seed1), shutil.rmtree(archive / "eval" / seed1.name)        # an evaluation neither has
     log = rerun("++experiment.figure=false")
-    assert log.count("has no checkpoint.pt") == 1 and log.count("trained in") == 1
+    assert log.count(f"has no checkpoint.pt or {archived.WEIGHTS}") == 1 and log.count("trained in") == 1
     assert (tmp_path / "fresh" / "eval" / seed1.name / "per_image.csv").exists()
 
 

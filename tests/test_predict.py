@@ -123,8 +123,8 @@ def test_committed_weights_load_into_todays_models(path):
 
 
 def test_a_run_kept_only_in_an_archive_exports_the_same_weights(recorded, tmp_path, monkeypatch):
-    """A fresh clone has no run store: export finds the run in the tables' committed archive, whose
-    checkpoint holds the EMA weights without the optimizer state."""
+    """A fresh clone has no run store: export finds the run in the tables' committed archive, which holds
+    the EMA weights rounded to float16 (bench.archived), and says so."""
     from bench.experiments.training import archive_training
     from conftest import smoke_context
     runs_dir, run_hash = recorded
@@ -132,10 +132,11 @@ def test_a_run_kept_only_in_an_archive_exports_the_same_weights(recorded, tmp_pa
     monkeypatch.chdir(tmp_path)
     archive_training(smoke_context(runs_archive=Path("results/cpu/runs")), run)
     from_store = load_exported(export(run_hash, tmp_path / "store.pt", runs_dir))[0].state_dict()
-    from_archive = load_exported(export(run_hash, tmp_path / "archive.pt", tmp_path / "no_store"))[0].state_dict()
-    assert from_store.keys() == from_archive.keys()
+    from_archive, meta = load_exported(export(run_hash, tmp_path / "archive.pt", tmp_path / "no_store"))
+    assert meta["weights_rounded_to_float16"] and from_store.keys() == from_archive.state_dict().keys()
     for name, tensor in from_store.items():
-        torch.testing.assert_close(tensor, from_archive[name], rtol=0, atol=0)
+        rounded = tensor.half().to(tensor.dtype) if tensor.is_floating_point() else tensor
+        torch.testing.assert_close(rounded, from_archive.state_dict()[name], rtol=0, atol=0)
 
 
 def test_a_run_archived_without_its_weights_says_where_they_are(recorded, tmp_path, monkeypatch):

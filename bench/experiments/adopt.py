@@ -14,7 +14,8 @@ reproduces the group's witness run (its lowest seed):
   and the current schedule gives the recorded learning rate at every step of the run;
 - inference: the recorded weights, run by the current evaluator on the first sequence of an evaluation
   of the run on today's frames, give its recorded per-frame relMSE, PSNR and SSIM (a group whose
-  evaluations all scored frames rendered again since has none to check: it is checked by training);
+  evaluations all scored frames rendered again since has none to check: it is checked by training), to
+  `rtol_rounded_weights` when the weights are the archive's float16-rounded ones (bench.archived);
 
 each to a relative tolerance `rtol` unless said otherwise. A group that passes has its runs (every seed) and
 their evaluations re-stamped with the current code fingerprint, the old one and the check kept in the record
@@ -42,7 +43,7 @@ import numpy as np
 import pandas as pd
 import torch
 
-from bench import runs
+from bench import archived, runs
 from bench.errors import UserError
 from bench.evaluate import evaluate
 from bench.experiments.context import EVALUATION_CODE, TRAINING_CODE, Context, code_of, recipe_from
@@ -54,7 +55,7 @@ from bench.models.factory import build_model
 from bench.models.srd import SRDStage
 from bench.table_writer import write_table
 from bench.tasks import get_task
-from bench.train import CHECKPOINT, TrainingInterrupted, load_weights, lr_at, train
+from bench.train import CHECKPOINT, TrainingInterrupted, lr_at, train
 
 log = logging.getLogger("bench")
 
@@ -98,9 +99,11 @@ def check_training(ctx: Context, record: dict, run_dir: Path, steps: int) -> dic
     cfg, task, seed, stage = identity["model"], get_task(identity["task"]), identity["seed"], identity.get("stage")
     recipe = recipe_from({**dataclasses.asdict(ctx.train), **identity["train"], "checkpoint_every": 1,
                           "checkpoint_every_s": 1e9})
-    recorded = pd.read_csv(run_dir / "curve.csv")  # the trainer's curve; an archived checkpoint has none
+    recorded = archived.read_curve(run_dir)  # the trainer's curve (an archive's keeps the first steps whole)
+    if recorded is None:
+        raise UserError(f"{run_dir} has no per-step curve that reads")
     out = {"lr": relative_difference([lr_at(int(s) - 1, recipe) for s in recorded["step"]], recorded["lr"])}
-    load_weights(_model(cfg, task, stage), run_dir)  # the recorded weights fit the model built now: names, shapes
+    archived.load_weights(_model(cfg, task, stage), run_dir)  # the recorded weights fit the model built now: names, shapes
     torch.manual_seed(seed)  # as trained_model builds it: the initial weights come from this seed
     model = _model(cfg, task, stage)
     features = perceptual_features(ctx)[0] if identity.get("vgg") else None
@@ -125,7 +128,7 @@ def check_inference(ctx: Context, train_record: dict, train_dir: Path, evaluatio
     {metric: relative difference to its recorded per-frame values}."""
     identity = train_record["identity"]
     task = get_task(identity["task"])
-    model = load_weights(build_model(identity["model"], task.scale), train_dir)
+    model = archived.load_weights(build_model(identity["model"], task.scale), train_dir)
     frames = dataset(evaluation_data(ctx), evaluation.record["identity"]["split"], task, training=False)
     first = frames[0]
     per_image, _ = evaluate(model, [first], task, hdr=evaluation.record["identity"]["hdr"])
@@ -150,7 +153,7 @@ def stale_groups(ctx: Context) -> dict[str, list[runs.Run]]:
         record = runs.read_record(path) or {}  # a damaged record is missing
         identity = record.get("identity") or {}
         abandoned = record.get("status") == "running" and not runs.computing(path.parent)  # killed mid-run
-        weightless = not (path.parent / CHECKPOINT).exists()
+        weightless = not archived.has_weights(path.parent)
         if (record.get("status") not in RESUMABLE and not abandoned) or identity.get("data") != data \
                 or (weightless and record.get("status") != "complete") or "model" not in identity \
                 or identity.get("version") != runs.IDENTITY_VERSION:  # an older identity: +experiment=migrate first
@@ -160,7 +163,7 @@ def stale_groups(ctx: Context) -> dict[str, list[runs.Run]]:
             continue
         key = runs.config_hash({k: v for k, v in identity.items() if k != "seed"})
         groups.setdefault(key, []).append(runs.Run("train", record["hash"], path.parent, record))
-    return {k: sorted(v, key=lambda r: (not (r.dir / CHECKPOINT).exists(), r.record["seed"] or 0,
+    return {k: sorted(v, key=lambda r: (not archived.has_weights(r.dir), r.record["seed"] or 0,
                                         r.record["status"] != "complete")) for k, v in groups.items()}
 
 
@@ -209,7 +212,8 @@ def restamp(run: runs.Run, code: dict, check: dict) -> None:
     run.save()
 
 
-def run(ctx: Context, name: str, steps: int, rtol: float, rtol_later_steps: float, dry_run: bool) -> pd.DataFrame:
+def run(ctx: Context, name: str, steps: int, rtol: float, rtol_later_steps: float, rtol_rounded_weights: float,
+        dry_run: bool) -> pd.DataFrame:
     """conf/experiment/adopt.yaml says what each argument is."""
     groups = stale_groups(ctx)
     log.info("adopt: %d groups of stale training runs (%d runs)", len(groups), sum(map(len, groups.values())))
@@ -221,17 +225,21 @@ def run(ctx: Context, name: str, steps: int, rtol: float, rtol_later_steps: floa
         row = {"label": witness.record.get("label"), "runs": len(group), "witness": witness.hash,
                "changed": ", ".join(runs.code_changes(witness.record, code))}
         try:
-            if not (witness.dir / CHECKPOINT).exists():
+            if not archived.has_weights(witness.dir):
                 raise UserError("no run of the group has its weights (its archive left them out)")
             row |= {f"train {k}": v for k, v in check_training(ctx, witness.record, witness.dir, steps).items()}
             evals = [e for e in evaluations_of(ctx.runs_dir, {witness.hash}) if scored_here(ctx, e)]
             if evals:
                 row |= {f"eval {k}": v for k, v in check_inference(ctx, witness.record, witness.dir, evals[0]).items()}
-            exact = {k: v for k, v in row.items() if k.startswith(("train step 1", "train lr", "eval ")) and k != "eval frames"}
-            worst = max(exact.values())
+            eval_rtol = rtol_rounded_weights if archived.rounded(witness.dir) else rtol
+            limits = {k: eval_rtol if k.startswith("eval ") else rtol for k in row
+                      if k.startswith(("train step 1", "train lr", "eval ")) and k != "eval frames"}
+            over = {k: row[k] for k, limit in limits.items() if row[k] > limit}
             later = row["train later loss"]
-            row["verdict"] = ("adopted" if worst <= rtol and later <= rtol_later_steps else
-                              f"differs ({max(exact, key=exact.get)} {worst:.2g} > {rtol:g})" if worst > rtol else
+            row["eval rtol"] = eval_rtol
+            worst = max(over, key=lambda k: row[k] / limits[k]) if over else None
+            row["verdict"] = ("adopted" if not over and later <= rtol_later_steps else
+                              f"differs ({worst} {row[worst]:.2g} > {limits[worst]:g})" if over else
                               f"differs (later loss {later:.2g} > {rtol_later_steps:g})")
             moved = row["verdict"] != "adopted" and other_render(ctx, witness)  # the data moved, not the code
             if moved:
@@ -265,7 +273,8 @@ def run(ctx: Context, name: str, steps: int, rtol: float, rtol_later_steps: floa
         f"table row, every seed), the witness run's first {steps} training steps replayed, its whole "
         f"learning-rate schedule, and its weights through the evaluator on one sequence, as relative "
         f"differences to the recorded values; adopted when the first step (loss, gradient norm: the same "
-        f"initial weights, batch, forward and backward), the schedule and the evaluation are within rtol "
+        f"initial weights, batch, forward and backward) and the schedule are within rtol, the evaluation "
+        f"within eval rtol (rtol, or {rtol_rounded_weights:g} for the archive's float16-rounded weights), "
         f"and the later steps' loss within rtol later steps (summation order makes two runs of the same "
         f"code drift apart slowly from the second step on). One row per witness, its latest check: groups "
         f"that earlier calls adopted are no longer stale and keep their row."))

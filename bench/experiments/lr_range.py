@@ -19,6 +19,8 @@ import logging
 import numpy as np
 import pandas as pd
 
+from bench import archived
+from bench.errors import UserError
 from bench.experiments.context import Context, model_config, with_training
 from bench.experiments.datasets import ensure_data
 from bench.experiments.training import trained_model
@@ -56,7 +58,9 @@ def run(ctx: Context, name: str = "lr_range", models: list[str] | None = None, s
     for model in models or []:
         _, run_ = trained_model(test_ctx, model_config(ctx, model), t, ctx.seeds[0], f"{model} (lr range)",
                                 load=False, divergence_ends=True)
-        curve = pd.read_csv(run_.dir / "curve.csv")
+        curve = archived.read_curve(run_.dir)  # a range test's is archived whole
+        if curve is None:
+            raise UserError(f"{run_.dir} has no per-step curve that reads: train it again with force=true")
         found = analyse(curve["lr"].to_numpy(float), curve["loss"].to_numpy(float), smoothing)
         found["diverged"] = found["diverged"] or "diverged_at_step" in run_.metrics  # a non-finite step ended it
         plt.plot(curve["lr"], found.pop("smoothed"), label=model)

@@ -40,7 +40,7 @@ import numpy as np
 import pandas as pd
 import torch
 
-from bench import render, runs
+from bench import archived, render, runs
 from bench.datagen import derive_seed, frame_view
 from bench.dataset import SequenceDataset
 from bench.errors import UserError
@@ -53,7 +53,6 @@ from bench.metrics import HIGHER_IS_BETTER, LOWER_IS_BETTER, METRICS, RELMSE_FOR
 from bench.models.factory import build_model, is_learned
 from bench.table_writer import write_table
 from bench.tasks import GBUF_LAYERS, get_task
-from bench.train import CHECKPOINT
 
 log = logging.getLogger("bench")
 
@@ -276,7 +275,7 @@ def resolve_method(ctx: Context, method: dict, train_missing: bool):
     if not is_learned(build_model(cfg, task.scale)):
         return build_model(cfg, task.scale)
     recorded = recorded_training(ctx, cfg, task, seed)
-    if not train_missing and (recorded is None or not (recorded.dir / CHECKPOINT).exists()):
+    if not train_missing and (recorded is None or not archived.has_weights(recorded.dir)):
         log.warning("time: %s skipped: no recorded %s-task training run at preset %s%s (train it with its "
                     "table, e.g. sota or sr_denoise, or set experiment.train_missing=true)", method["label"],
                     task.name, ctx.preset, "" if recorded is None else " with its weights (its archive left them out)")

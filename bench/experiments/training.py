@@ -12,7 +12,7 @@ from pathlib import Path
 
 import torch
 
-from bench import distributed, runs
+from bench import archived, distributed, runs
 from bench.errors import UserError
 from bench.evaluate import evaluate
 from bench.experiments.context import TRAINING_CODE, Context, code_of
@@ -20,7 +20,7 @@ from bench.experiments.datasets import check_training_frames, dataset, render_di
 from bench.models.factory import build_model, is_learned
 from bench.models.srd import SRDNet, SRDStage, load_stage
 from bench.tasks import CASCADE_STAGES, Task, get_task
-from bench.train import CHECKPOINT, TrainingDiverged, TrainingInterrupted, load_weights, train
+from bench.train import CHECKPOINT, TrainingDiverged, TrainingInterrupted, train
 
 log = logging.getLogger("bench")
 
@@ -118,12 +118,12 @@ def _why_not_recorded(ctx: Context, identity: dict, code: dict, load: bool) -> s
     if run is None:
         return f"no complete training recorded in {ctx.runs_dir}" + (f" or {ctx.runs_archive}" if ctx.runs_archive else "")
     stale = runs.code_changes(run.record, code) and not ctx.reuse_stale
-    archived = runs.lookup(ctx.runs_archive, "train", identity) if stale and ctx.runs_archive else None
-    if archived is not None and not runs.code_changes(archived.record, code):
-        run, stale = archived, False  # begin restores the archive's run of this code over the store's
+    kept = runs.lookup(ctx.runs_archive, "train", identity) if stale and ctx.runs_archive else None
+    if kept is not None and not runs.code_changes(kept.record, code):
+        run, stale = kept, False  # begin restores the archive's run of this code over the store's
     if stale:
         return f"its training {run.hash} was recorded with other code (reuse_stale=true loads it anyway)"
-    if load and runs.read_or_none(run.dir / CHECKPOINT) is None:
+    if load and not archived.has_weights(run.dir):
         return (f"its training {run.hash} is recorded without weights (an archive leaves files over "
                 f"{runs.ARCHIVED_FILE_MAX_BYTES / 2**20:.0f} MiB out)")
     return None
@@ -163,14 +163,14 @@ def trained_model(ctx: Context, cfg: dict, task: Task, seed: int, label: str = "
     force = ctx.force and not scoring_only  # force=true recomputes the evaluations on your frames only
     run = runs.begin(ctx.runs_dir, "train", identity, seed=seed, device=ctx.device, label=label,
                      force=force, code=code, reuse_stale=ctx.reuse_stale, archive=ctx.runs_archive,
-                     needs=(CHECKPOINT,) if load else ())
+                     needs=((CHECKPOINT, archived.WEIGHTS),) if load else ())
     # a run trained again for the weights its archive left out: the archive keeps the run it scored
     weights_only = None if force else archived_without_weights(ctx, run, code)
     if run.reused:
         log.info("train %s: reusing run %s", label or cfg["_target_"], run.hash)
         if not weights_only:
             archive_training(ctx, run)
-        return (load_weights(model, run.dir, ctx.device) if load else None), run
+        return (archived.load_weights(model, run.dir, ctx.device) if load else None), run
     recipe = ctx.train
     _drop_damaged_checkpoint(run.dir / CHECKPOINT)
     if distributed.rank_and_size()[1] > 1:  # the other torchrun ranks (serve_trainings) join this training
@@ -218,10 +218,10 @@ def _drop_damaged_checkpoint(path: Path) -> None:
 def archived_without_weights(ctx: Context, run: runs.Run, code: dict) -> dict | None:
     """The record `ctx.runs_archive` holds of this training, complete, of this code and without its
     weights (over the archive's file limit), else None."""
-    archived = ctx.runs_archive / "train" / run.hash if ctx.runs_archive is not None else None
-    if archived is None or (archived / CHECKPOINT).exists():
+    kept = ctx.runs_archive / "train" / run.hash if ctx.runs_archive is not None else None
+    if kept is None or archived.has_weights(kept):
         return None
-    record = runs.read_record(archived / runs.RECORD) or {}
+    record = runs.read_record(kept / runs.RECORD) or {}
     return record if record.get("status") == "complete" and not runs.code_changes(record, code) else None
 
 
@@ -277,17 +277,8 @@ def cascade_model(ctx: Context, cfg: dict, seed: int, label: str = ""):
 
 
 def archive_training(ctx: Context, run: runs.Run) -> runs.Run:
-    """Keep a finished training in `ctx.runs_archive`: its record, curves and the weights evaluation
-    loads (EMA, else raw), without the optimizer state a finished run never resumes from, nor the
-    per-step curve, which curve.csv holds (a third of the file at 1000 steps)."""
-    def slim_checkpoint(directory: Path) -> None:
-        if not (run.dir / CHECKPOINT).exists():  # a range test that diverged before its first checkpoint
-            return
-        state = torch.load(run.dir / CHECKPOINT, map_location="cpu", weights_only=False)
-        weights = {"ema": state["ema"], "model": None} if state.get("ema") else {"model": state["model"], "ema": None}
-        kept = {key: state.get(key) for key in ("step", "val_curve", "elapsed_s")}
-        torch.save({**weights, **kept}, directory / CHECKPOINT)  # what load_weights and adopt read
-
+    """Keep a finished training in `ctx.runs_archive`, in the archive's compact form (bench.archived):
+    its record, the weights evaluation loads in float16, its curves."""
     if ctx.runs_archive is not None:
-        runs.archive(run, ctx.runs_archive, ("curve.csv", "val_curve.csv"), write=slim_checkpoint)
+        runs.archive(run, ctx.runs_archive, write=lambda directory: archived.write(run.dir, directory, run.record))
     return run

@@ -1,0 +1,242 @@
+"""The compact form of an archived training, and the one place that writes and reads it.
+
+The run store keeps a training's full checkpoint (weights, EMA, optimizer, per-step curve) and its
+per-step `curve.csv`: what resuming needs. The archive (`runs_archive`, committed with the tables)
+keeps what the tables, claims, `adopt`, predict and export read again, small:
+
+- `weights.fp16.pt`: the weights evaluation loads (the EMA, else the raw ones) rounded to float16,
+  concatenated into one buffer, its two byte planes apart (the high bytes, sign and exponent, compress
+  well) and lzma-compressed; names, shapes and dtypes beside it. Tensors float16 cannot hold (integer
+  buffers, values beyond its range) are kept as they are. 2.5x smaller than float32 on the cpu archive;
+  what the rounding moves in the scores is measured by `scripts/fp16_weights_accuracy.py`
+  (docs/runs.md) and allowed for by adopt (`rtol_rounded_weights`).
+- `curve.csv.gz`: the per-step curve's steps 1-100 whole (adopt replays the first steps), then every
+  `CURVE_EVERY`th step and the last; a learning-rate range test's (schedule `range`, analysed step by
+  step) whole. Rows are kept as the trainer wrote them.
+- `val_curve.csv` and `run.json` as they are.
+
+A restored run (the store filled from the archive) holds the compact form too; the readers here take
+either form, the full one first. `python -m bench.archived DIR` converts an archive written before in
+place (idempotent).
+"""
+from __future__ import annotations
+
+import argparse
+import gzip
+import io
+import logging
+import lzma
+import sys
+import time
+import zlib
+from pathlib import Path
+
+import pandas as pd
+import torch
+
+from bench import runs
+from bench.train import CHECKPOINT
+
+log = logging.getLogger("bench")
+
+WEIGHTS = "weights.fp16.pt"
+CURVE = "curve.csv"          # the trainer's per-step curve, in the run store
+COMPACT_CURVE = "curve.csv.gz"
+VAL_CURVE = "val_curve.csv"
+FILES = (runs.RECORD, WEIGHTS, COMPACT_CURVE, VAL_CURVE)  # what an archived training may hold
+FORMAT = "srd-bench-archived-weights/1"
+CURVE_WHOLE_STEPS = 100
+CURVE_EVERY = 10
+FLOAT16_MAX = float(torch.finfo(torch.float16).max)
+
+
+# ---------------------------------------------------------------- weights
+
+def encode(state_dict: dict) -> dict:
+    """The compact form of a state dict (see the module docstring), for torch.save."""
+    names, shapes, dtypes, halves, exact = [], [], [], [], {}
+    for name, tensor in state_dict.items():
+        tensor = tensor.detach().cpu()
+        names.append(name)
+        shapes.append(list(tensor.shape))
+        dtypes.append(str(tensor.dtype).removeprefix("torch."))
+        fits = tensor.is_floating_point() and (tensor.numel() == 0 or tensor.abs().max().item() <= FLOAT16_MAX)
+        if fits:
+            halves.append(tensor.flatten().to(torch.float16))
+        else:
+            exact[name] = tensor.clone()
+    flat = torch.cat(halves) if halves else torch.zeros(0, dtype=torch.float16)
+    planes = flat.view(torch.uint8).view(-1, 2).t().contiguous()  # low bytes, then high bytes
+    packed = lzma.compress(planes.numpy().tobytes())
+    return {"format": FORMAT, "names": names, "shapes": shapes, "dtypes": dtypes, "exact": exact,
+            "float16_planes_lzma": torch.frombuffer(bytearray(packed), dtype=torch.uint8)}
+
+
+def decode(saved: dict, device: str = "cpu") -> dict:
+    """The state dict `encode` stored, in its original dtypes (float16-rounded values)."""
+    if not isinstance(saved, dict) or saved.get("format") != FORMAT:
+        raise ValueError(f"not archived weights ({FORMAT})")
+    planes = torch.frombuffer(bytearray(lzma.decompress(saved["float16_planes_lzma"].numpy().tobytes())),
+                              dtype=torch.uint8)
+    flat = planes.view(2, -1).t().reshape(-1).view(torch.float16)
+    out, offset = {}, 0
+    for name, shape, dtype in zip(saved["names"], saved["shapes"], saved["dtypes"]):
+        if name in saved["exact"]:
+            out[name] = saved["exact"][name].to(device)
+            continue
+        n = int(torch.Size(shape).numel())
+        out[name] = flat[offset:offset + n].view(shape).to(device=device, dtype=getattr(torch, dtype))
+        offset += n
+    return out
+
+
+def write_weights(state_dict: dict, path: Path) -> None:
+    buffer = io.BytesIO()  # torch.save names the zip's folder after a file: through a buffer, same bytes always
+    torch.save(encode(state_dict), buffer)
+    runs.write_atomic(path, lambda tmp: tmp.write_bytes(buffer.getvalue()))
+
+
+def _checkpoint_weights(path: Path, device: str = "cpu") -> dict:
+    """The weights evaluation uses from a trainer's checkpoint: the EMA when the run kept one."""
+    state = torch.load(path, map_location=device, weights_only=False)
+    return state.get("ema") or state["model"]
+
+
+def weights_file(run_dir: Path) -> Path | None:
+    """The file holding a training's weights: its full checkpoint, else the archived form; None for none."""
+    for name in (CHECKPOINT, WEIGHTS):
+        if (Path(run_dir) / name).exists():
+            return Path(run_dir) / name
+    return None
+
+
+def has_weights(run_dir: Path) -> bool:
+    return weights_file(run_dir) is not None
+
+
+def rounded(run_dir: Path) -> bool:
+    """Whether the run's weights are the archive's float16-rounded ones (no full checkpoint beside them)."""
+    path = weights_file(run_dir)
+    return path is not None and path.name == WEIGHTS
+
+
+def state_dict(run_dir: Path, device: str = "cpu") -> dict:
+    """The weights evaluation uses of a training run (full or archived form); FileNotFoundError without."""
+    path = weights_file(run_dir)
+    if path is None:
+        raise FileNotFoundError(f"no {CHECKPOINT} or {WEIGHTS} in {run_dir}")
+    if path.name == CHECKPOINT:
+        return _checkpoint_weights(path, device)
+    return decode(torch.load(path, map_location="cpu", weights_only=True), device)
+
+
+def load_weights(model, run_dir: Path, device: str = "cpu"):
+    """`model` (in place) with the run's weights loaded (`state_dict`)."""
+    model.load_state_dict(state_dict(run_dir, device))
+    return model
+
+
+# ---------------------------------------------------------------- the per-step curve
+
+def whole_curve(record: dict) -> bool:
+    """A learning-rate range test's curve is its result, analysed step by step: kept whole."""
+    return (record.get("identity") or {}).get("train", {}).get("schedule") == "range"
+
+
+def compact_curve(text: str, whole: bool = False) -> str:
+    """The rows of a per-step curve the archive keeps, as written: steps up to CURVE_WHOLE_STEPS, every
+    CURVE_EVERYth step and the last (all with `whole`)."""
+    header, *rows = text.splitlines(keepends=True)
+    if whole:
+        return text
+    kept = [row for i, row in enumerate(rows) if i == len(rows) - 1 or _kept_step(int(row.split(",", 1)[0]))]
+    return header + "".join(kept)
+
+
+def _kept_step(step: int) -> bool:
+    return step <= CURVE_WHOLE_STEPS or step % CURVE_EVERY == 0
+
+
+def write_curve(text: str, path: Path, whole: bool = False) -> None:
+    data = gzip.compress(compact_curve(text, whole).encode(), compresslevel=9, mtime=0)  # mtime 0: same bytes
+    runs.write_atomic(path, lambda tmp: tmp.write_bytes(data))
+
+
+def _read_gzip_csv(path: Path) -> pd.DataFrame:
+    try:
+        return pd.read_csv(io.BytesIO(gzip.decompress(Path(path).read_bytes())))
+    except (gzip.BadGzipFile, zlib.error) as err:  # damaged: runs.read_or_none treats it as missing
+        raise ValueError(str(err)) from err
+
+
+def read_curve(run_dir: Path) -> pd.DataFrame | None:
+    """A training's per-step curve (the store's full one, else the archive's compact one); None when it
+    has none or it is damaged (the log names it)."""
+    run_dir = Path(run_dir)
+    if (run_dir / CURVE).exists():
+        return runs.read_or_none(run_dir / CURVE)
+    return runs.read_or_none(run_dir / COMPACT_CURVE, _read_gzip_csv)
+
+
+# ---------------------------------------------------------------- writing and converting
+
+def write(run_dir: Path, dest: Path, record: dict) -> None:
+    """Write the compact form of the training in `run_dir` (full or already compact) into `dest`: its
+    weights, its per-step curve and its validation curve (the record is the archive's to write)."""
+    run_dir, dest = Path(run_dir), Path(dest)
+    if (run_dir / CHECKPOINT).exists():
+        write_weights(_checkpoint_weights(run_dir / CHECKPOINT), dest / WEIGHTS)
+    elif (run_dir / WEIGHTS).exists() and run_dir != dest:
+        runs.write_atomic(dest / WEIGHTS, lambda tmp: tmp.write_bytes((run_dir / WEIGHTS).read_bytes()))
+    if (run_dir / CURVE).exists():
+        write_curve((run_dir / CURVE).read_text(), dest / COMPACT_CURVE, whole_curve(record))
+    elif (run_dir / COMPACT_CURVE).exists() and run_dir != dest:
+        runs.write_atomic(dest / COMPACT_CURVE, lambda tmp: tmp.write_bytes((run_dir / COMPACT_CURVE).read_bytes()))
+    if (run_dir / VAL_CURVE).exists() and run_dir != dest:
+        runs.write_atomic(dest / VAL_CURVE, lambda tmp: tmp.write_bytes((run_dir / VAL_CURVE).read_bytes()))
+
+
+def convert(run_dir: Path) -> bool:
+    """Convert one archived training in place to the compact form; False when it already is one. The
+    compact files are written before the full ones go, so an interrupted conversion loses nothing."""
+    run_dir = Path(run_dir)
+    if not ((run_dir / CHECKPOINT).exists() or (run_dir / CURVE).exists()):
+        return False
+    record = runs.read_record(run_dir / runs.RECORD)
+    if record is None:
+        raise ValueError(f"{run_dir / runs.RECORD} is missing or damaged: not converted")
+    write(run_dir, run_dir, record)
+    (run_dir / CHECKPOINT).unlink(missing_ok=True)
+    (run_dir / CURVE).unlink(missing_ok=True)
+    return True
+
+
+def convert_archive(archive_dir: Path) -> int:
+    """Convert every training of an archive (`<archive_dir>/train/<hash>/`) in place; the number converted."""
+    trainings = sorted(p.parent for p in Path(archive_dir).glob(f"train/*/{runs.RECORD}")
+                       if not p.parent.name.startswith("."))
+    return sum(convert(run_dir) for run_dir in trainings)
+
+
+def _size(path: Path) -> int:
+    return sum(p.stat().st_size for p in Path(path).rglob("*") if p.is_file())
+
+
+def main(argv=None) -> int:
+    parser = argparse.ArgumentParser(prog="python -m bench.archived",
+                                     description="Convert a run archive's trainings in place to the compact form.")
+    parser.add_argument("archive", type=Path, help="an archive directory, e.g. results/cpu/runs")
+    args = parser.parse_args(argv)
+    if not (args.archive / "train").is_dir():
+        print(f"error: {args.archive} holds no train/ directory: not a run archive", file=sys.stderr)
+        return 2
+    before, t0 = _size(args.archive), time.perf_counter()
+    converted = convert_archive(args.archive)
+    after = _size(args.archive)
+    print(f"{args.archive}: {converted} trainings converted in {time.perf_counter() - t0:.1f} s; "
+          f"{before} -> {after} bytes ({before / 2**20:.1f} -> {after / 2**20:.1f} MiB)")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
