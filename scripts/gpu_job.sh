@@ -19,7 +19,9 @@
 # Everything comes back in $OUT as at most 8 files: log.txt, results.tar.gz (results/gpu), and
 # runs.tar.gz.part-* (the run store without rendered data, 15 MiB parts). Unpack them here with
 # scripts/gpu_unpack.sh. Environment: PYTHON (python3), DEVICE (cuda), PRESET (gpu), JOB_S, STEP_S,
-# SOTA_ARGS. A dry run on a CPU: DEVICE=cpu PRESET=smoke OUT=/tmp/x bash scripts/gpu_job.sh speed profile
+# SOTA_ARGS, PROFILE_ARGS. A dry run on a CPU (its records land in results/gpu: delete them after):
+#     DEVICE=cpu PROFILE_ARGS="--batch 1 --frames 2 --crop 16 --channels 8 --no-compile" OUT=/tmp/x \
+#         bash scripts/gpu_job.sh tests profile
 set -uo pipefail
 OUT=${OUT:-/tmp/gpu_job_out}
 PYTHON=${PYTHON:-python3}
@@ -28,6 +30,7 @@ PRESET=${PRESET:-gpu}
 JOB_S=${JOB_S:-560}
 STEP_S=${STEP_S:-540}
 SOTA_ARGS=${SOTA_ARGS:-}
+PROFILE_ARGS=${PROFILE_ARGS:-}
 STEPS=${*:-tests speed sota}
 PACK_S=20   # kept back for packing what comes back
 mkdir -p "$OUT"
@@ -102,7 +105,7 @@ step_profile() {
     local fused=0
     tests_passed && fused=1
     SRD_BENCH_FUSED_GPU=$fused timeout "$(step_limit)" "$PYTHON" scripts/gpu_profile_step.py --device "$DEVICE" \
-        --out "$record"
+        --out "$record" $PROFILE_ARGS
     echo "gpu_job: profile exit $?"
 }
 
