@@ -193,13 +193,14 @@ def test_adopt_holds_the_code_only_to_evaluations_of_todays_frames(monkeypatch):
     monkeypatch.setattr(adopt, "render_digest", lambda ctx, split: f"host-a-{split}")
 
     def evaluation(render=None, **identity):
-        return runs.Run("eval", "0" * 16, Path("."), {"identity": {"split": "val", **identity},
+        identity = {"split": "val", "fast_path": "fp32", "tile": None, **identity}
+        return runs.Run("eval", "0" * 16, Path("."), {"identity": identity,
                                                       "metrics": {"render": render}})
     assert adopt.scored_here(None, evaluation(data="today-val"))
     assert adopt.scored_here(None, evaluation(data="today-val", render="host-a-val"))
     assert not adopt.scored_here(None, evaluation(data="today-val", render="host-b-val"))
     assert not adopt.scored_here(None, evaluation(data="before-val"))
-    assert not adopt.scored_here(None, evaluation(data="today-val", path="bf16"))
+    assert not adopt.scored_here(None, evaluation(data="today-val", fast_path="bf16"))
 
     def training(render):
         return runs.Run("train", "0" * 16, Path("."), {"metrics": {"render": render}})
