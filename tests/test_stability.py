@@ -1,14 +1,17 @@
 """`+experiment=stability` at the smoke preset: every case gives finite output or a clear error, for the
 proposed model, a baseline and the non-learned rows; the cases that need sanitation are caught by it."""
 import math
+from pathlib import Path
 
 import pandas as pd
 import pytest
 from hydra import compose, initialize_config_dir
 
 from bench.cli import CONF_DIR, run_experiment
-from bench.experiments.stability import INPUT_CASES, metric_rows
+from bench.experiments.stability import INPUT_CASES, caption, metric_rows, output_ceiling, write_tables
 from conftest import smoke_overrides
+
+ROOT = Path(__file__).resolve().parents[1]
 
 
 @pytest.fixture(scope="module")
@@ -60,3 +63,24 @@ def test_metric_edge_cases():
     assert all(r["finite"] for r in rows.values())
     assert rows["PSNR, identical images (inf)"]["max |output|"] == math.inf
     assert math.isfinite(rows["relMSE, reference all zero (uses eps)"]["max |output|"])
+
+
+def test_the_caption_states_the_network_domains_ceiling_from_the_rows():
+    rows = pd.DataFrame([
+        {"model": "srd", "case": "firefly 1e3", "max |output|": 80.0, "train step": "ok"},
+        {"model": "srd", "case": "firefly 1e6", "max |output|": 85.5, "train step": "ok"},
+        {"model": "oidn_lr", "case": "firefly 1e6", "max |output|": 5.7e4, "train step": None}])
+    text = caption(rows, "cpu", "cpu", "pu")
+    assert "PU21" in text and "saturates at radiance 100:" in text and "'firefly 1e6'" in text  # the brightest case
+    assert "learned models give srd 85.5;" in text and "linear radiance give oidn_lr 5.7e+04." in text
+    assert "no ceiling" in caption(rows, "cpu", "cpu", "log1p")
+    assert output_ceiling("clamp") == 1.0 and output_ceiling("pu") == pytest.approx(100.0)
+
+
+def test_the_committed_caption_is_the_one_its_rows_give(tmp_path):
+    """`python -m bench +experiment=stability preset=cpu experiment.from_csv=true` rewrites it (cpu: train.hdr=pu)."""
+    folder = ROOT / "results" / "cpu" / "stability"
+    write_tables(pd.read_csv(folder / "table.csv"), tmp_path, "cpu", "cpu", "pu")
+    committed = (folder / "table.md").read_text()
+    assert (tmp_path / "table.md").read_text() == committed
+    assert "saturates at radiance 100:" in committed and "clipped by construction" in committed

@@ -28,7 +28,7 @@ from bench.evaluate import predict
 from bench.experiments.context import Context, model_config, with_training
 from bench.experiments.datasets import dataset, ensure_data
 from bench.experiments.training import trained_model
-from bench.hdr import to_network
+from bench.hdr import from_network, to_network
 from bench.measure import time_call
 from bench.metrics import psnr, relmse, ssim
 from bench.models.factory import is_learned
@@ -246,8 +246,68 @@ def status(row) -> str:
     return "ok" + (f" {value:.3g}" if isinstance(value, float) and not math.isnan(value) else "")
 
 
+def output_ceiling(hdr: str) -> float:
+    """The largest linear radiance a learned model can output through the network domain `hdr`: what the
+    inverse transform gives for the brightest input (inf where nothing saturates)."""
+    top = float(from_network(to_network(torch.tensor([1e30], dtype=torch.float64), hdr), hdr)[0])
+    return top if top < 1e29 else math.inf
+
+
+DOMAIN_NAMES = {"pu": "PU21"}  # train.hdr's value -> the transform's name in prose
+
+
+def _firefly_level(case: str) -> float:
+    return float(case.split()[-1])
+
+
+def range_note(table: pd.DataFrame, hdr: str) -> str:
+    """What the network domain's ceiling clips, told from the table's rows: each learned model's output on the
+    brightest firefly case (learned: the models with a training-step row) against the methods that work on
+    linear radiance."""
+    ceiling, domain = output_ceiling(hdr), f"{DOMAIN_NAMES.get(hdr, hdr)} network domain (train.hdr={hdr}"
+    if math.isinf(ceiling):
+        return f"Learned models work in the {domain}), which has no ceiling."
+    fireflies = [c for c in table["case"].unique() if str(c).startswith("firefly ")]
+    head = (f"Learned models work in the {domain}, bench/hdr.py), whose inverse saturates "
+            f"at radiance {ceiling:.3g}: their outputs are capped there, so any pixel brighter than {ceiling:.3g} is "
+            f"clipped by construction (a scene brighter than that cannot be reproduced).")
+    if not fireflies:
+        return head
+    case = max(fireflies, key=_firefly_level)
+    rows = table[table["case"] == case].set_index("model")["max |output|"].astype(float)
+    learned = set(table.loc[table["train step"].notna(), "model"])
+    shown = lambda models: ", ".join(f"{m} {rows[m]:.3g}" for m in rows.index if (m in learned) == models)
+    return (f"{head} On '{case}' (pixels set to radiance {_firefly_level(case):g}) the learned models give "
+            f"{shown(True)}; the methods on linear radiance give {shown(False)}.")
+
+
+def caption(table: pd.DataFrame, preset: str, device: str, hdr: str) -> str:
+    return (f"Stability at preset {preset} on {device}: each case through each model (trained at this "
+            f"preset), inputs sanitized (bench.sanitize). 'ok' + max |output| (linear radiance); 'error "
+            f"(clear)': the model refused with a message; FAIL: non-finite output, gradients or weights. "
+            f"{range_note(table, hdr)} Per-row details (relMSE vs reference and vs the clean case, time, the "
+            f"same case without sanitation, training step) in table.csv.")
+
+
+def write_tables(table: pd.DataFrame, out_dir, preset: str, device: str, hdr: str) -> None:
+    """table.md/.tex (case x model) and table.csv (the long form, one row per case and model)."""
+    pivot = table.pivot_table(index="case", columns="model", values="status", aggfunc="first", sort=False).fillna("")
+    write_table(pivot.reset_index(), out_dir, caption=caption(table, preset, device, hdr))
+    table.to_csv(out_dir / "table.csv", index=False)
+
+
 def run(ctx: Context, name: str = "stability", models: list[str] = (), frames: int = 3,
-        long_frames: int = 100) -> pd.DataFrame:
+        long_frames: int = 100, from_csv: bool = False) -> pd.DataFrame:
+    """conf/experiment/stability.yaml says what each argument is. from_csv: rewrite table.md/.tex from the
+    recorded table.csv (its rows unchanged, no case run): a caption change without retraining."""
+    out_dir = ctx.results_dir / name
+    if from_csv:
+        recorded = (out_dir / "table.csv").read_text()
+        table = pd.read_csv(out_dir / "table.csv")
+        write_tables(table, out_dir, ctx.preset, ctx.device, ctx.train.hdr)
+        (out_dir / "table.csv").write_text(recorded)  # the long form byte for byte as recorded
+        log.info("stability: table.md/.tex rewritten from the recorded %s", out_dir / "table.csv")
+        return table
     ensure_data(ctx, set(get_task("srd").buffers(with_mid=True)))
     rows = []
     for model_name in models:
@@ -255,16 +315,8 @@ def run(ctx: Context, name: str = "stability", models: list[str] = (), frames: i
         rows += model_rows(ctx, model_name, ctx.seeds[0], frames, long_frames)
     rows += metric_rows()
     table = pd.DataFrame(rows)
-    out_dir = ctx.results_dir / name
     table["status"] = [status(r) for r in table.to_dict("records")]
-    pivot = table.pivot_table(index="case", columns="model", values="status", aggfunc="first", sort=False).fillna("")
-    caption = (f"Stability at preset {ctx.preset} on {ctx.device}: each case through each model (trained at this "
-               f"preset), inputs sanitized (bench.sanitize). 'ok' + max |output| (linear radiance); 'error "
-               f"(clear)': the model refused with a message; FAIL: non-finite output, gradients or weights. "
-               f"Per-row details (relMSE vs reference and vs the clean case, time, the same case without "
-               f"sanitation, training step) in table.csv.")
-    write_table(pivot.reset_index(), out_dir, caption=caption)
-    table.to_csv(out_dir / "table.csv", index=False)  # the long form, one row per case and model
+    write_tables(table, out_dir, ctx.preset, ctx.device, ctx.train.hdr)
     failures = table[table["status"].str.startswith("FAIL")]
     for r in failures.to_dict("records"):
         log.warning("stability: %s on %s failed: %s", r["case"], r["model"], r.get("train step") or r.get("error"))
