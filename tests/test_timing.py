@@ -8,8 +8,10 @@ import pytest
 from hydra import compose, initialize_config_dir
 
 from bench.cli import CONF_DIR, run_experiment
-from bench.experiments.timing import (BRUTE_FORCE, brute_force_spp, equal_time_table, fit_curve, loglog_slope,
-                                      pareto_front, reference_noise_slope, rising_steps, slope_ok, speedup_table)
+from bench.experiments.speed import device_tag
+from bench.experiments.timing import (BRUTE_FORCE, brute_force_spp, equal_time_table, fit_curve, hr_lr_ratio,
+                                      loglog_slope, paper_axis, paper_equal_time, pareto_front, reference_noise_slope,
+                                      render_table, rising_steps, slope_ok, speed_ms, speedup_table)
 
 
 # ---------------------------------------------------------------- pure functions
@@ -89,6 +91,39 @@ def test_equal_time_table_reads_each_hr_denoiser_at_the_srd_methods_time():
     assert row["extrapolated"] == "relMSE, PSNR"                                       # below its 2 s
 
 
+def test_the_paper_axis_replaces_seconds_only_and_flags_verdicts_that_change_sign():
+    cpu = _synthetic_table()
+    renders = render_table([{"input": res, "size": size, "spp": k, "wall_s": wall, "cpu_s": 2 * wall,
+                             "render_threads": 2, "load_1min": 3.0}
+                            for res, size, ks, per_spp in (("LR", "4x2", (8,), 0.01), ("HR", "8x4", (1, 2, 4, 8), 1.0))
+                            for k in ks for wall in (per_spp * k, per_spp * k * 3)])   # median: 2 x the first
+    assert renders.set_index(["input", "spp"]).loc[("HR", 2), "render s"] == pytest.approx(4.0)  # CPU s / threads
+    assert hr_lr_ratio(renders, 8, "CPU s") == pytest.approx(100.0)
+    networks = {"SRD": (10.0, "speed table"), "HR denoiser": (0.5, "measured here")}
+    axis = paper_axis(cpu, renders, networks)
+    assert set(axis["method"]) == {"SRD", "HR denoiser"}                                # path tracing is left out
+    srd = axis[axis["method"] == "SRD"].iloc[0]
+    assert srd["total s"] == pytest.approx(0.16 + 10.0) and srd["PSNR"] == 28.0         # quality as it was
+    (row,) = paper_equal_time(axis, cpu, 8).to_dict("records")
+    # cpu-size axis: SRD (0.5 s) ahead of the denoiser read at 0.5 s; here the SRD network is slow (10.16 s)
+    assert row["PSNR difference, cpu-size axis (dB)"] > 0 > row["PSNR difference (dB)"]
+    assert row["sign differs from cpu-size axis"] == "yes"
+    assert math.isfinite(row["PSNR difference, wall axis (dB)"])
+
+
+def test_network_times_come_from_the_speed_table_at_these_sizes_only():
+    speed = pd.DataFrame([
+        {"section": "inference", "method": "Ours", "fast path": "fp32", "size": "960x540 -> 1920x1080", "per": "frame", "ms": 2000.0},
+        {"section": "inference", "method": "Ours", "fast path": "channels_last", "size": "960x540 -> 1920x1080", "per": "frame", "ms": 1500.0},
+        {"section": "reference", "method": "OIDN (albedo + normal)", "fast path": "its own (fp32)", "size": "1920x1080", "per": "frame", "ms": 3000.0}])
+    sizes = ((960, 540), (1920, 1080))
+    assert speed_ms(speed, {"model": "srd", "task": "srd"}, *sizes) == 2000.0            # the fp32 row, as timed here
+    assert speed_ms(speed, {"model": "oidn_hr", "task": "denoise"}, *sizes) == 3000.0
+    assert speed_ms(speed, {"model": "rae", "task": "denoise"}, *sizes) is None          # not in it: measured
+    assert speed_ms(speed, {"model": "srd", "task": "srd"}, (96, 64), (192, 128)) is None
+    assert speed_ms(None, {"model": "srd", "task": "srd"}, *sizes) is None
+
+
 def test_pareto_front():
     times, errors = [1, 2, 3, 4, 2], [1.0, 0.5, 0.6, 0.1, 0.5]
     assert pareto_front(times, errors).tolist() == [True, True, False, True, True]
@@ -105,6 +140,8 @@ def tiny(tmp_path_factory):
         "data.ref_spp=16", "data.splits.train.sequences=2", "data.splits.val.sequences=1",
         "data.splits.generalization.sequences=0", "experiment.views=1", "experiment.max_spp=4",
         "experiment.lr_spp=[1,4]", "experiment.hr_spp=[1,4]", "experiment.operating_spp=4", "experiment.repeats=2",
+        "experiment.paper_resolution.lr_size=[16,8]", "experiment.paper_resolution.hr_size=[32,16]",
+        "experiment.paper_resolution.frames=1", "experiment.paper_resolution.repeats=1",
         "experiment.methods=[{label:Ours,model:srd},{label:Bilinear,model:bilinear},"
         "{label:OIDN HR,model:oidn_hr,task:denoise}]"]
     return overrides, root
@@ -147,6 +184,38 @@ def test_time_end_to_end_then_reuses_its_renders(tiny, caplog):
     assert "log-log slope" in (out / "table.md").read_text() and "not checked (one view)" in (out / "table.md").read_text()
     assert {"relMSE se", "PSNR se", "speed-up (PSNR)"} <= set(table.columns)
     assert (out / "equal_time.csv").exists()
+    for name in ("render_16p", "axis_16p", "equal_time_16p"):
+        for ext in ("csv", "md", "tex"):
+            assert (out / f"{name}.{ext}").stat().st_size > 0
+
+
+def test_paper_resolution_alone_reuses_its_renders_and_the_speed_table(tiny, caplog):
+    overrides, root = tiny
+    out = root / "results" / "time"
+    before = (out / "table.csv").read_text()
+    speed_dir = root / "results" / "speed" / device_tag("cpu")
+    speed_dir.mkdir(parents=True)
+    pd.DataFrame([{"section": "inference", "method": "Ours", "fast path": "fp32", "size": "16x8 -> 32x16",
+                   "per": "frame", "ms": 250.0}]).to_csv(speed_dir / "table.csv", index=False)
+    with caplog.at_level("INFO", logger="bench"):
+        run_time(overrides + ["experiment.paper_resolution.only=true"])
+    assert "3 renders at 16x8 (LR) and 32x16 (HR)" in caplog.text             # said before rendering
+    assert "3 of 3 paper-resolution renders reused" in caplog.text           # 1 frame x (LR 4 spp, HR 1 and 4)
+    assert (out / "table.csv").read_text() == before                          # the cpu-size table left as recorded
+    renders = pd.read_csv(out / "render_16p.csv")
+    assert renders[["input", "spp"]].values.tolist() == [["LR", 4], ["HR", 1], ["HR", 4]]
+    assert (renders["CPU s"] > 0).all() and (renders["wall s"] > 0).all()
+    axis = pd.read_csv(out / "axis_16p.csv").set_index("method")
+    assert axis.loc["Ours", "network s"] == pytest.approx(0.25)
+    assert axis.loc["Ours", "network from"].startswith("speed table")
+    assert axis.loc["Bilinear", "network from"].startswith("measured here")
+    quality = pd.read_csv(out / "table.csv").set_index(["method", "spp"])
+    assert axis.loc["Ours", "PSNR"] == pytest.approx(quality.loc[("Ours", 4), "PSNR"])
+    equal = pd.read_csv(out / "equal_time_16p.csv")
+    assert set(equal["SRD method"]) == {"Ours", "Bilinear"} and set(equal["HR denoiser"]) == {"OIDN HR"}
+    caption = (out / "equal_time_16p.md").read_text()
+    assert "quality axis" in caption and "still the cpu preset's" in caption and "CPU time" in caption
+    assert "HR/LR render time at 4 spp" in (out / "render_16p.md").read_text()
 
 
 def test_renders_recorded_under_the_old_run_kind_are_adopted(tmp_path):

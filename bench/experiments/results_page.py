@@ -223,7 +223,25 @@ def time_section(results_dir: Path) -> list[str]:
                  _num(r["PSNR difference (dB)"], 2), str(r.get("extrapolated", "-"))] for _, r in equal.iterrows()]
         lines += _markdown_table(["SRD method", "HR denoiser", "SRD PSNR", "denoiser PSNR", "difference (dB)",
                                   "extrapolated"], rows)
+    for path in sorted(folder.glob("equal_time_*.csv")):
+        lines += paper_axis_lines(results_dir, path)
     return lines
+
+
+def paper_axis_lines(results_dir: Path, path: Path) -> list[str]:
+    """The equal-time table on the paper resolution's time axis, its verdicts beside the cpu-size axis's."""
+    tag = path.stem.removeprefix("equal_time_")
+    renders = path.with_name(f"render_{tag}.csv")
+    lines = ["", f"Equal time on the {tag} time axis ({_link(results_dir, f'time/{path.name}')}; render seconds: "
+             f"{_link(results_dir, f'time/{renders.name}')}, CPU time / render threads): the same head-to-head with "
+             f"the renders at the paper's resolution; its quality axis is still the cpu preset's.", ""]
+    equal = pd.read_csv(path)
+    rows = [[r["SRD method"], r["HR denoiser"], _num(r["total s"], 2), _num(r["PSNR difference (dB)"], 2),
+             _num(r["PSNR difference, wall axis (dB)"], 2), _num(r["PSNR difference, cpu-size axis (dB)"], 2),
+             str(r["sign differs from cpu-size axis"]) if isinstance(r["sign differs from cpu-size axis"], str) else "",
+             str(r.get("extrapolated", "-"))] for _, r in equal.iterrows()]
+    return lines + _markdown_table(["SRD method", "HR denoiser", "s per frame", f"difference (dB), {tag}",
+                                    "same, wall time", "cpu-size axis", "sign differs", "extrapolated"], rows)
 
 
 def stability_section(results_dir: Path) -> list[str]:

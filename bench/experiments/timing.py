@@ -22,6 +22,22 @@ LR 8 spp against the denoisers of HR renders at equal time (equal_time.*). Every
 standard error over views; path tracing's curve is checked for slope (about 1/spp) and for rising with
 more samples beyond noise (paired over views).
 
+The paper-resolution step (`paper_resolution`, on by default) gives the equal-time table again on render
+times at 960x540 / 1920x1080 and the networks' 1080p times (issue 43, item 7: at the cpu preset's sizes fixed
+costs decide it). Only the seconds change: the quality axis stays the cpu preset's, read from the time table
+(`table.csv`) the cpu-size part wrote, or the committed one with `only=true`.
+
+Renders: the last `frames` frames of the time table's views (the first `views` val sequences in the
+loader's order, planned from the data spec, so no dataset is read), at LR `operating_spp` and at each HR
+spp of the table, radiance and gBuffer in one pass, JIT warmed first. Each is a run of kind `time` that
+records wall seconds, the process CPU seconds of the render (every render thread) and the 1-minute load
+average; no image is kept. The axis takes CPU seconds / render threads as a render's seconds (other work on
+a shared host stretches wall time, not CPU time); a second verdict column uses wall seconds.
+
+Network seconds per frame come from the speed table (`<results_dir>/speed/<machine>/table.csv`, fp32 rows
+at these sizes) where it has the method; the others are measured here on random inputs (median of
+`repeats` warm calls, untrained weights: time does not depend on them).
+
 Renders are runs of kind `time`, keyed by view, size, spp, passes, seed, Mitsuba variant and host, so
 a rerun re-renders nothing and a time measured on another machine is never reused. force=true re-renders
 and re-times them; it never retrains networks here (run the tables with force=true for that). Network
@@ -34,21 +50,24 @@ import logging
 import math
 import os
 import socket
+import time
 from dataclasses import dataclass
+from pathlib import Path
 
 import numpy as np
 import pandas as pd
 import torch
 
-from bench import archived, render, runs
-from bench.datagen import derive_seed, frame_view
+from bench import archived, render, runs, scenes
+from bench.datagen import _render_settings, derive_seed, frame_view, plan_sequences
 from bench.dataset import SequenceDataset
 from bench.errors import UserError
 from bench.evaluate import predict, sync
 from bench.experiments.context import Context, model_config, with_training
 from bench.experiments.datasets import ensure_data
+from bench.experiments.speed import LABELS, cpu_model, device_tag
 from bench.experiments.training import recorded_training, trained_model
-from bench.measure import time_call
+from bench.measure import cpu_isa, time_call
 from bench.metrics import HIGHER_IS_BETTER, LOWER_IS_BETTER, METRICS, RELMSE_FORMULA, mse
 from bench.models.factory import build_model, is_learned
 from bench.table_writer import write_table
@@ -193,13 +212,16 @@ class Renderer:
         self.view, self.variant = view, variant
         self._scene, self._warm = None, set()
 
-    def __call__(self, camera, width: int, height: int, spp: int, seed: int, passes: list) -> dict:
+    def warm_up(self, camera, width: int, height: int, passes: list) -> None:
         if self._scene is None:
             self._scene = render.load_scene(self.view.scene, self.variant)
         key = (width, height, tuple(passes))
         if key not in self._warm:
-            render.render_view(self._scene, camera, width, height, 1, seed, passes, max_depth=self.view.max_depth)
+            render.render_view(self._scene, camera, width, height, 1, 0, passes, max_depth=self.view.max_depth)
             self._warm.add(key)
+
+    def __call__(self, camera, width: int, height: int, spp: int, seed: int, passes: list) -> dict:
+        self.warm_up(camera, width, height, passes)
         return render.render_view(self._scene, camera, width, height, spp, seed, passes,
                                   max_depth=self.view.max_depth)
 
@@ -527,10 +549,31 @@ def _caption(ctx, caption, views, variant, train_spp) -> str:
 
 
 def run(ctx: Context, name: str, caption: str, views: int, lr_spp: list, hr_spp: list, max_spp: int | None,
-        operating_spp: int, repeats: int, train_missing: bool, methods: list[dict]) -> pd.DataFrame:
-    """conf/experiment/time.yaml says what each argument is, and its default."""
+        operating_spp: int, repeats: int, train_missing: bool, methods: list[dict],
+        paper_resolution: dict) -> pd.DataFrame:
+    """conf/experiment/time.yaml says what each argument is, and its default. Returns the cpu-size table (the
+    recorded one with paper_resolution.only=true)."""
     _adopt_legacy_runs(ctx.runs_dir)
     methods = _methods(ctx, methods)
+    paper = PaperResolution(**paper_resolution)
+    if paper.only:
+        table = pd.read_csv(ctx.results_dir / name / "table.csv") if (ctx.results_dir / name / "table.csv").exists() \
+            else None
+        log.info("time: paper_resolution.only=true: the cpu-size tables are left as recorded")
+    else:
+        table = cpu_size_tables(ctx, name, caption, views, lr_spp, hr_spp, max_spp, operating_spp, repeats,
+                                train_missing, methods)
+    if paper.enabled or paper.only:
+        run_paper_resolution(ctx, name, views, methods, hr_spp, operating_spp, paper)
+    else:
+        log.info("time: the paper-resolution time axis is off (experiment.paper_resolution.enabled=false)")
+    return table
+
+
+def cpu_size_tables(ctx: Context, name: str, caption: str, views: int, lr_spp: list, hr_spp: list,
+                    max_spp: int | None, operating_spp: int, repeats: int, train_missing: bool,
+                    methods: list[dict]) -> pd.DataFrame:
+    """Render, score and time at the preset's sizes; write table.*, speedup.*, equal_time.* and the figure."""
     ensure_data(ctx, _data_passes(methods, train_missing))
     chosen = pick_views(ctx, int(views))
     ref_spp = int(chosen[0].frames[-1]["ref_spp"])
@@ -600,3 +643,270 @@ def _monotone_note(rising: list, views: int) -> str:
                 f"difference ({views} views).")
     return (f"PT's relMSE RISES with more samples beyond 2 standard errors at spp {rising}: the reference or the "
             f"renders are suspect there.")
+
+
+# ---------------------------------------------------------------- the paper's resolution (issue 43, item 7)
+
+
+PAPER_RENDER_S = {"LR": 4.45, "HR": 19.33}  # the paper's render seconds per frame at 540p and 1080p, 8 spp
+QUALITY_NOTE = ("Its quality axis (relMSE, PSNR, SSIM) is still the cpu preset's, from table.csv at the preset's "
+                "image size: only the seconds are the paper resolution's.")
+
+
+@dataclass
+class PlannedView:
+    """A val sequence as the data spec plans it: what `Renderer` needs, and the cameras of its frames."""
+    sequence: str
+    scene: dict
+    cameras: list
+    gbuf_layers: list
+    max_depth: int
+
+
+def planned_views(spec: dict, count: int, split: str = "val") -> list[PlannedView]:
+    """The first `count` sequences of `split` in the loader's order (sorted names), as the time table's views."""
+    plan = sorted((p for p in plan_sequences(spec) if p["split"] == split), key=lambda p: p["sequence"])[:count]
+    views = []
+    for p in plan:
+        scene = scenes.make_scene(p["family"], p["scene_seed"])
+        features = scenes.scene_features(scene)
+        settings = _render_settings(spec, features, split)  # the dataset's own max_depth and left-out layers
+        layers = [name for name in ("albedo", "normal", "roughness") if name not in features["left_out"]]
+        cameras = scenes.camera_path(p["scene_seed"], p["view"], int(spec["seq_len"]))
+        views.append(PlannedView(p["sequence"], scene, cameras, layers, int(settings["max_depth"])))
+    return views
+
+
+def render_threads() -> int:
+    """Threads Mitsuba's LLVM backend renders with (Dr.Jit's pool)."""
+    import drjit
+    return int(drjit.thread_count())
+
+
+def timed_render(ctx: Context, view: PlannedView, renderer: Renderer, frame: int, size, spp: int,
+                 threads: int, stats: dict) -> dict:
+    """Wall and CPU seconds of one render at `size` (width, height), from the run store when recorded."""
+    width, height = size
+    seed = derive_seed(ctx.data_spec["seed"], "timing-paper-size", view.sequence, frame, width, height, spp)
+    identity = {"sequence": view.sequence, "frame": frame, "camera": view.cameras[frame], "size": [width, height],
+                "spp": spp, "seed": seed, "passes": view.gbuf_layers, "max_depth": view.max_depth,
+                "variant": renderer.variant, "host": socket.gethostname(), "image": "not kept (times only)"}
+    run = runs.begin(ctx.runs_dir, RUN_KIND, identity, seed=seed, device="cpu", force=ctx.force,
+                     label=f"time render {view.sequence}/{frame} {width}x{height} {spp} spp",
+                     code=runs.code_fingerprint(["bench.render"]), reuse_stale=ctx.reuse_stale)
+    stats["renders"] += 1
+    if run.reused:
+        stats["reused"] += 1
+        return run.metrics
+    camera = view.cameras[frame]
+    renderer.warm_up(camera, width, height, view.gbuf_layers)
+    load = os.getloadavg()[0]
+    cpu_start = time.process_time()
+    out = renderer(camera, width, height, spp, seed, view.gbuf_layers)
+    metrics = {"wall_s": out["wall_time_s"], "cpu_s": time.process_time() - cpu_start, "load_1min": load,
+               "render_threads": threads}
+    runs.complete(run, metrics)
+    return metrics
+
+
+def render_table(rows: list[dict]) -> pd.DataFrame:
+    """Medians over frames per (input, size, spp): wall s, CPU s, CPU s / threads (the axis's render s)."""
+    df = pd.DataFrame(rows)
+    df["render s"] = df["cpu_s"] / df["render_threads"]
+    groups = df.groupby(["input", "size", "spp"], sort=False)
+    return pd.DataFrame({"frames": groups.size(), "wall s": groups["wall_s"].median(),
+                         "CPU s": groups["cpu_s"].median(), "render s": groups["render s"].median(),
+                         "CPU / wall": groups["cpu_s"].median() / groups["wall_s"].median(),
+                         "load (1 min)": groups["load_1min"].median()}).reset_index()
+
+
+def hr_lr_ratio(renders: pd.DataFrame, spp: int, column: str) -> float:
+    """HR render seconds over LR render seconds at `spp`."""
+    at = renders[renders["spp"] == spp].set_index("input")[column]
+    return float(at["HR"] / at["LR"])
+
+
+# ---------------------------------------------------------------- networks
+
+def speed_ms(speed: pd.DataFrame | None, method: dict, lr_size, hr_size) -> float | None:
+    """The speed table's median ms per frame for the method's network at these sizes, or None."""
+    if speed is None:
+        return None
+    lr, hr = "x".join(map(str, lr_size)), "x".join(map(str, hr_size))
+    if method["model"] == "oidn_hr":  # OIDN on the HR frame (after a bilinear upsampling for task srd)
+        rows = speed[(speed["section"] == "reference") & speed["method"].str.startswith("OIDN") & (speed["size"] == hr)]
+    elif method["task"] == "srd" and method["model"] in LABELS:
+        rows = speed[(speed["section"] == "inference") & (speed["method"] == LABELS[method["model"]])
+                     & (speed["fast path"] == "fp32") & (speed["size"] == f"{lr} -> {hr}") & (speed["per"] == "frame")]
+    else:
+        return None
+    return float(rows["ms"].iloc[0]) if len(rows) else None
+
+
+def random_inputs(width: int, height: int) -> tuple[torch.Tensor, torch.Tensor]:
+    """One frame of radiance in [0, 1) and a plausible gBuffer (unit normals), shaped (1, 1, C, h, w)."""
+    gen = torch.Generator().manual_seed(0)
+    x = torch.rand(1, 1, 3, height, width, generator=gen)
+    normal = torch.nn.functional.normalize(torch.randn(1, 1, 3, height, width, generator=gen), dim=2)
+    g = torch.cat([torch.rand(1, 1, 3, height, width, generator=gen), normal,
+                   torch.rand(1, 1, 1, height, width, generator=gen)], 2)
+    return x, g
+
+
+@torch.no_grad()
+def cpu_seconds_per_frame(model, x, g, hdr: str, repeats: int) -> float:
+    """Process CPU seconds of one CPU call on one frame, the mean of `repeats` after an untimed one (first-call
+    allocation is not inference time): like the renders' CPU time, robust to other work on the host."""
+    predict(model, x, g, hdr)
+    start = time.process_time()
+    for _ in range(max(1, repeats)):
+        predict(model, x, g, hdr)
+    return (time.process_time() - start) / max(1, repeats)
+
+
+def network_seconds(ctx: Context, methods: list[dict], speed: pd.DataFrame | None, speed_path: Path, lr_size,
+                    hr_size, repeats: int) -> dict[str, tuple[float, str]]:
+    """label -> (seconds per frame at the paper's sizes, where the figure comes from)."""
+    out = {}
+    for method in methods:
+        ms = speed_ms(speed, method, lr_size, hr_size)
+        if ms is not None:
+            out[method["label"]] = (ms / 1000, f"speed table ({speed_path.parent.name})")
+            continue
+        task = get_task(method["task"])
+        width, height = lr_size if INPUT_RES[method["task"]] == "lr" else hr_size
+        net = build_model(model_config(ctx, method["model"], method.get("overrides")), task.scale).eval()
+        log.info("time: measuring %s at %dx%d input (not in the speed table)", method["label"], width, height)
+        threads = torch.get_num_threads()
+        out[method["label"]] = (cpu_seconds_per_frame(net, *random_inputs(width, height), ctx.train.hdr, repeats)
+                                / threads, f"measured here: CPU s / {threads} threads, mean of {repeats}")
+    return out
+
+
+# ---------------------------------------------------------------- the axis and its verdicts
+
+def paper_axis(cpu_table: pd.DataFrame, renders: pd.DataFrame, networks: dict) -> pd.DataFrame:
+    """The cpu table's rows that were rendered at the paper's sizes, their seconds replaced: render s (CPU
+    based) and render wall s from `renders`, network s from `networks`; quality columns unchanged."""
+    seconds = renders.set_index(["input", "spp"])
+    rows = []
+    for _, r in cpu_table.iterrows():
+        key = (r["input"], int(r["spp"]))
+        if r["method"] == BRUTE_FORCE or r["method"] not in networks or key not in seconds.index:
+            continue
+        network_s, source = networks[r["method"]]
+        render_s, wall_s = seconds.loc[key, "render s"], seconds.loc[key, "wall s"]
+        rows.append({"method": r["method"], "input": r["input"], "spp": int(r["spp"]), "render s": render_s,
+                     "network s": network_s, "total s": render_s + network_s, "total s (wall)": wall_s + network_s,
+                     "network from": source, "cpu-size total s": r["total s"],
+                     "relMSE": r["relMSE"], "PSNR": r["PSNR"], "SSIM": r["SSIM"]})
+    return pd.DataFrame(rows)
+
+
+def paper_equal_time(axis: pd.DataFrame, cpu_table: pd.DataFrame, operating_spp: int) -> pd.DataFrame:
+    """The equal-time table on the paper's axis, with the verdict (PSNR difference) on the wall-time axis and
+    on the cpu-size axis beside it, and whether its sign differs from the cpu-size one."""
+    table = equal_time_table(axis, operating_spp)
+    keys = ["SRD method", "HR denoiser"]
+    wall = equal_time_table(axis.assign(**{"total s": axis["total s (wall)"]}), operating_spp)
+    cpu_size = equal_time_table(cpu_table, operating_spp)
+    table = table.merge(wall[keys + ["PSNR difference (dB)"]].rename(
+        columns={"PSNR difference (dB)": "PSNR difference, wall axis (dB)"}), on=keys, how="left")
+    table = table.merge(cpu_size[keys + ["PSNR difference (dB)"]].rename(
+        columns={"PSNR difference (dB)": "PSNR difference, cpu-size axis (dB)"}), on=keys, how="left")
+    flipped = np.sign(table["PSNR difference (dB)"]) != np.sign(table["PSNR difference, cpu-size axis (dB)"])
+    table["sign differs from cpu-size axis"] = flipped.map({True: "yes", False: ""})
+    return table
+
+
+# ---------------------------------------------------------------- the step of the experiment
+
+@dataclass
+class PaperResolution:
+    """experiment.paper_resolution (conf/experiment/time.yaml)."""
+    enabled: bool
+    only: bool
+    views: int | None
+    lr_size: list
+    hr_size: list
+    frames: int
+    repeats: int
+
+
+def run_paper_resolution(ctx: Context, name: str, views: int, methods: list[dict], hr_spp: list, operating_spp: int,
+                         paper: PaperResolution) -> pd.DataFrame:
+    """Render, time, and write render_/axis_/equal_time_<H>p.* beside the cpu-size tables in
+    <results_dir>/<name>; returns the equal-time table."""
+    out = ctx.results_dir / name
+    cpu_table_path = out / "table.csv"
+    if not cpu_table_path.exists():
+        raise UserError(f"time: the paper-resolution axis takes its quality from {cpu_table_path}, which does not "
+                                f"exist: run +experiment=time with experiment.paper_resolution.only=false first")
+    cpu_table = pd.read_csv(cpu_table_path)
+    lr_size, hr_size, frames, repeats = tuple(paper.lr_size), tuple(paper.hr_size), int(paper.frames), int(paper.repeats)
+    chosen = planned_views(ctx.data_spec, int(views if paper.views is None else min(paper.views, views)))
+    spp_of = {"LR": [int(operating_spp)], "HR": [int(k) for k in hr_spp]}
+    sizes = {"LR": tuple(lr_size), "HR": tuple(hr_size)}
+    count = len(chosen) * int(frames) * sum(len(v) for v in spp_of.values())
+    log.warning("time: %d renders at %s (LR) and %s (HR) for the paper-resolution time axis (minutes on a CPU; "
+                "recorded ones are reused; experiment.paper_resolution.enabled=false skips them)", count,
+                "x".join(map(str, lr_size)), "x".join(map(str, hr_size)))
+    variant = render.use_variant(None)
+    threads, stats, rows = render_threads(), {"renders": 0, "reused": 0}, []
+    for view in chosen:
+        renderer = Renderer(view, variant)
+        for frame in range(len(view.cameras) - int(frames), len(view.cameras)):
+            for res, spp_list in spp_of.items():
+                for spp in spp_list:
+                    timed = timed_render(ctx, view, renderer, frame, sizes[res], spp, threads, stats)
+                    rows.append({"view": view.sequence, "frame": frame, "input": res,
+                                 "size": "x".join(map(str, sizes[res])), "spp": spp, **timed})
+    log.info("time: %d of %d paper-resolution renders reused from the run store", stats["reused"], stats["renders"])
+    renders = render_table(rows)
+    speed_path = ctx.results_dir / "speed" / device_tag(ctx.device) / "table.csv"
+    speed = pd.read_csv(speed_path) if speed_path.exists() else None
+    listed = [m for m in methods if m["label"] in set(cpu_table["method"])]
+    networks = network_seconds(ctx, listed, speed, speed_path, lr_size, hr_size, repeats)
+    axis = paper_axis(cpu_table, renders, networks)
+    equal = paper_equal_time(axis, cpu_table, operating_spp)
+    write_paper_tables(out, renders, axis, equal, chosen, frames, variant, threads, cpu_table, operating_spp, hr_size)
+    return equal
+
+
+def write_paper_tables(out: Path, renders, axis, equal, views, frames, variant, threads, cpu_table, operating_spp,
+                       hr_size) -> None:
+    tag = f"{hr_size[1]}p"
+    where = (f"host {socket.gethostname()} ({cpu_model().strip()}, {cpu_isa()}, {os.cpu_count()} CPUs, shared), "
+             f"Mitsuba {variant} on {threads} render threads")
+    cpu_rows = cpu_table[cpu_table["spp"] == operating_spp].drop_duplicates("input").set_index("input")["render s"]
+    ratio = (f"HR/LR render time at {operating_spp} spp: {hr_lr_ratio(renders, operating_spp, 'CPU s'):.2f} in CPU "
+             f"time, {hr_lr_ratio(renders, operating_spp, 'wall s'):.2f} in wall time (the cpu preset's sizes: "
+             f"{cpu_rows['HR'] / cpu_rows['LR']:.2f}; the paper's {PAPER_RENDER_S['HR']} s / {PAPER_RENDER_S['LR']} s "
+             f"= {PAPER_RENDER_S['HR'] / PAPER_RENDER_S['LR']:.2f}).")
+    load = renders["load (1 min)"]
+    views_text = (f"the last {frames} frame(s) of each of {len(views)} val view(s) "
+                  f"({', '.join(v.sequence for v in views)})")
+    write_table(renders, out, name=f"render_{tag}", caption=(
+        f"Render times per frame at the paper's resolution, {views_text}; radiance + gBuffer in one pass, scene "
+        f"loaded and JIT warm; {where}. Medians over frames: wall s; CPU s, the process CPU time of the render "
+        f"(every render thread); render s = CPU s / render threads, the seconds the {tag} time axis uses (other "
+        f"work on the shared host stretches wall time, not CPU time); CPU / wall: the threads' share of the "
+        f"machine the render got. Load average (1 min) at the renders: {load.min():.1f} to {load.max():.1f}. "
+        f"{ratio}"), lower_is_better=(), higher_is_better=())
+    write_table(axis, out, name=f"axis_{tag}", caption=(
+        f"The time axis at the paper's resolution: each method's seconds per frame with its input rendered at "
+        f"the LR or HR size of render_{tag}.csv: render s = the renders' CPU time / render threads; network s at "
+        f"the {tag} output (network from): the speed table's wall-clock median (fp32, untrained weights) where it "
+        f"has the method, else measured here as CPU time / torch threads; total s = render s + network s; total "
+        f"s (wall): with the renders' wall seconds; cpu-size total s: the same row in table.csv. {QUALITY_NOTE}"),
+        lower_is_better=(), higher_is_better=())
+    flips = equal[equal["sign differs from cpu-size axis"] == "yes"]
+    flipped = ("; ".join(f"{r['SRD method']} vs {r['HR denoiser']}" for _, r in flips.iterrows()) or "none")
+    write_table(equal, out, name=f"equal_time_{tag}", caption=(
+        f"Equal time at the paper's resolution: each SRD method at LR {operating_spp} spp against each denoiser "
+        f"of HR renders given the same seconds per frame on the {tag} time axis (axis_{tag}.csv, render seconds "
+        f"from CPU time; {where}): the denoiser's relMSE and PSNR read off its own curve (lines through its HR "
+        f"spp points) at the SRD method's total time; extrapolated: outside the denoiser's measured times. "
+        f"PSNR difference on the wall-time axis and on the cpu-size axis (equal_time.csv) beside it. Verdicts "
+        f"whose sign differs from the cpu-size axis: {flipped}. {QUALITY_NOTE}"),
+        lower_is_better=(), higher_is_better=("PSNR difference (dB)",))
