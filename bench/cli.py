@@ -215,6 +215,7 @@ def config_problems(plain: dict) -> list[str]:
 def make_context(cfg: DictConfig):
     from bench.experiments.context import Context, EvalSpec, VggSpec, recipe_from
     plain = OmegaConf.to_container(cfg, resolve=True)
+    plain["eval"]["split"] = plain["eval"]["split"] or reported_split(cfg)  # apply_split's, when it ran
     problems = config_problems(plain)
     if problems:  # one bad value: one line
         listed = problems[0] if len(problems) == 1 else "\n  " + "\n  ".join(problems)
@@ -341,6 +342,35 @@ def _sweep_job_results(cfg: DictConfig) -> None:
     log.info("sweep job %s: tables go to %s", job.num, cfg.results_dir)
 
 
+def reported_split(cfg: DictConfig) -> str:
+    """The split an experiment reports, its results_dir's own: the data's frozen test split where it has
+    one (else val), or val for an experiment that tunes (`experiment.tunes`: it chooses on what it scores)."""
+    from bench.experiments.context import FROZEN_SPLIT, TUNING_SPLIT
+    tunes = bool(OmegaConf.select(cfg, "experiment.tunes", default=False))
+    splits = OmegaConf.select(cfg, "data.splits", default=None) or {}
+    return TUNING_SPLIT if tunes or FROZEN_SPLIT not in splits else FROZEN_SPLIT
+
+
+def apply_split(cfg: DictConfig) -> None:
+    """Resolve `eval.split` in place (null: `reported_split`); an experiment that tunes may not read the
+    frozen test split. Tables of the preset's data on another split than the one the experiment reports
+    go to `<results_dir>/<split>/`, beside its own (e.g. results/cpu/val/sota); your frames'
+    (`eval.data_dir`) go to results_dir as given."""
+    from bench.experiments.context import FROZEN_SPLIT, TUNING_SPLIT
+    reported = reported_split(cfg)
+    split = cfg.eval.split or reported
+    if split == FROZEN_SPLIT and OmegaConf.select(cfg, "experiment.tunes", default=False):
+        raise UserError(f"eval.split={FROZEN_SPLIT}: this experiment tunes (chooses settings on what it scores), "
+                        f"and the {FROZEN_SPLIT} split is frozen: nothing may be chosen on it; use "
+                        f"eval.split={TUNING_SPLIT}")
+    cfg.eval.split = split
+    if split != reported and not cfg.eval.data_dir:
+        cfg.runs_archive = OmegaConf.select(cfg, "runs_archive")  # resolved: the archive stays where it is
+        cfg.results_dir = str(Path(cfg.results_dir) / split)
+        log.info("eval.split=%s: tables go to %s (the %s split's are in the folder above)", split,
+                 cfg.results_dir, reported)
+
+
 def apply_pin(cfg: DictConfig) -> None:
     """Merge the experiment's pin for this preset (`experiment.pin.<preset>`, conf/pin/studies.yaml) over
     `train`, in place and before anything resolves, so that the rows' `${train.steps}` see it too. Taken by
@@ -356,8 +386,10 @@ def run_experiment(cfg: DictConfig) -> None:
                         + ", ".join(available_experiments()) + "; or a study, +study=NAME: "
                         + ", ".join(available_studies()))
     apply_pin(cfg)
+    apply_split(cfg)
     exp = OmegaConf.to_container(cfg.experiment, resolve=True)
     exp.pop("pin", None)
+    exp.pop("tunes", None)
     kind = exp.pop("kind", "table")
     if kind == "all":
         from hydra.core.hydra_config import HydraConfig

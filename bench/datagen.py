@@ -466,10 +466,12 @@ def _worker(args):
     return render_sequence(root, job, spec, passes, variant)
 
 
-def build_dataset(root, spec, passes=BUFFERS, workers=1, progress=True, variant=None):
+def build_dataset(root, spec, passes=BUFFERS, workers=1, progress=True, variant=None, splits=None):
     """Render the dataset described by ``spec`` (a conf/data/<scale>.yaml dict) into ``root``.
 
     passes: buffers to produce (subset of BUFFERS); buffers rendered by earlier builds are kept.
+    splits: the splits to render (None: all); the manifest also lists the other splits whose every
+    frame is already there (`complete_splits`), so it only ever holds whole splits.
     workers: processes rendering sequences in parallel (each sets its own Mitsuba variant and a share of
     the cores; 'spawn' start, so no JIT state is forked). variant: Mitsuba variant (None: pick_variant).
     Returns the manifest as a DataFrame with one row per frame (column 'resumed': it was already complete).
@@ -485,7 +487,7 @@ def build_dataset(root, spec, passes=BUFFERS, workers=1, progress=True, variant=
         log.info("render: one process (this process's start method %r cannot spawn render workers)",
                  multiprocessing.get_start_method())
         workers = 1
-    plan = plan_sequences(spec)
+    plan = [job for job in plan_sequences(spec) if splits is None or job["split"] in splits]
     start = time.perf_counter()
     threads = max(1, (os.cpu_count() or 1) // workers) if workers > 1 else 0
     jobs = [(os.fspath(root), job, spec, passes, variant, threads) for job in plan]
@@ -524,6 +526,8 @@ def build_dataset(root, spec, passes=BUFFERS, workers=1, progress=True, variant=
             raise
         pool.shutdown()
     bar.close()
+    if splits is not None:
+        records += complete_splits(root, spec, [s for s in spec["splits"] if s not in splits])
     records.sort(key=lambda r: (r["split"], r["sequence"], r["frame"]))
     present = sorted(set().union(*(r.get("buffers", []) for r in records)))
     manifest = {"spec": spec, "passes": present, "variant": records[0]["variant"] if records else variant,
@@ -532,17 +536,26 @@ def build_dataset(root, spec, passes=BUFFERS, workers=1, progress=True, variant=
     return manifest_frame(records)
 
 
-def rebuild_manifest(root, spec):
-    """Write `root`'s manifest again from the frame records beside it (each written when its frame was
-    complete), rendering nothing: for a manifest that was damaged. Returns the manifest, or None when a
-    frame of `spec` has no record rendered with its settings (building the dataset renders it)."""
+def complete_splits(root, spec, splits):
+    """The frame records beside `root` of those of `splits` whose every planned frame has a record
+    rendered with the spec's settings (each written when its frame was complete); reads no image."""
     records = []
-    for job, digest in planned_settings(spec):
-        for frame in range(int(spec["seq_len"])):
-            record = _load_record(frame_paths(root, job["split"], job["sequence"], frame)[2], digest)
-            if record is None:
-                return None
-            records.append(record)
+    for split in splits:
+        part = {**spec, "splits": {split: spec["splits"][split]}}
+        found = [_load_record(frame_paths(root, split, job["sequence"], frame)[2], digest)
+                 for job, digest in planned_settings(part) for frame in range(int(spec["seq_len"]))]
+        if all(found):
+            records += found
+    return records
+
+
+def rebuild_manifest(root, spec):
+    """Write `root`'s manifest again from the frame records beside it, rendering nothing: for a manifest
+    that was damaged. It lists the splits whose every frame has its record (`complete_splits`). Returns
+    the manifest, or None when no split is complete (building the dataset renders what is missing)."""
+    records = complete_splits(root, spec, list(spec["splits"]))
+    if not records:
+        return None
     manifest = {"spec": spec, "passes": sorted(set().union(*(r.get("buffers", []) for r in records))),
                 "variant": records[0]["variant"] if records else None, "frames": records}
     _write_json(os.path.join(root, "manifest.json"), manifest)

@@ -1,7 +1,7 @@
 """Score a method's outputs, computed anywhere, with the suite's metrics, beside a table's recorded rows.
 
     srd-bench score --outputs out/ --data data/cpu --split val --label "My method" \
-                    [--table results/cpu/sota/table.csv] [--out-dir DIR] [--against results/cpu/runs/eval/HASH]
+                    [--table results/cpu/val/sota/table.csv] [--out-dir DIR] [--against results/cpu/runs/eval/HASH]
 
 `--outputs` holds one EXR per frame of the split, `<sequence>/<frame:04d>_hr.exr` (the tree
 `srd-bench predict --output-dir out/ data/cpu/val` writes), holding linear HDR radiance at the reference's

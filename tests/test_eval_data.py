@@ -120,3 +120,18 @@ def test_a_training_without_recorded_weights_is_one_line_before_anything_is_scor
     assert "without eval.data_dir" in message[0]
     assert not (tmp_path / "nowhere").exists() and not (tmp_path / "runs" / "eval").exists()
     assert all(json.loads(p.read_text())["status"] == "complete" for p in (tmp_path / "runs").glob("*/*/run.json"))
+
+
+def test_a_fresh_clone_scores_the_frozen_test_split_rendering_only_it(trained, tmp_path):
+    """The archive holds every training of the table, so a table on a new (frozen) test split renders that
+    split alone, not the training data, and reports it as the split nothing was chosen on."""
+    test_split = "+data.splits.test={families:[bathroom],sequences:1}"
+    out = bench(*store(tmp_path, trained / "archive", tmp_path / "data"), test_split)
+    assert out.returncode == 0, out.stderr[-3000:]
+    assert sorted(p.name for p in (tmp_path / "data").iterdir() if p.is_dir()) == ["test"]
+    assert {f["split"] for f in load_manifest(tmp_path / "data")["frames"]} == {"test"}
+    assert "trained in" not in out.stdout + out.stderr
+    caption = (tmp_path / "results" / "smoke" / "table.md").read_text().split("\n\n")[0]
+    assert "split test" in caption and "frozen" in caption
+    evaluations = [json.loads(p.read_text()) for p in (tmp_path / "runs" / "eval").glob("*/run.json")]
+    assert evaluations and {e["identity"]["split"] for e in evaluations} == {"test"}

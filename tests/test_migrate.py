@@ -158,7 +158,7 @@ def test_the_sota_ours_row_migrated_is_what_the_current_config_computes(tmp_path
     """The committed table's Ours row (seed 0), read from the committed archive (a copy of its records is
     migrated when the archive is still at version 1): the current config, through the code that keys
     trainings and evaluations, gives its migrated identities, so nothing retrains."""
-    sota = pd.read_csv(ROOT / "results/cpu/sota/table.csv").set_index("method")
+    sota = pd.read_csv(ROOT / "results/cpu/val/sota/table.csv").set_index("method")
     eval_hash = sota.loc["Ours", "runs"].split()[0]
     recorded_eval = _record(ARCHIVE, "eval", eval_hash)
     recorded_train = _record(ARCHIVE, "train", recorded_eval["identity"]["trained"])
@@ -171,7 +171,7 @@ def test_the_sota_ours_row_migrated_is_what_the_current_config_computes(tmp_path
         recorded_train = _record(store, "train", _new_hash(table, "train", recorded_train["hash"]))
         recorded_eval = _record(store, "eval", _new_hash(table, "eval", eval_hash))
     with initialize_config_dir(config_dir=CONF_DIR, version_base=None):
-        ctx = make_context(compose("config", overrides=["preset=cpu", "+experiment=sota"]))
+        ctx = make_context(compose("config", overrides=["preset=cpu", "+experiment=sota", "eval.split=val"]))
     train, evaluation = _sota_ours_identities(ctx, recorded_train, recorded_eval)
     assert json.loads(json.dumps(train)) == recorded_train["identity"]
     assert runs.config_hash(train) == recorded_train["hash"]

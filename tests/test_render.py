@@ -311,3 +311,23 @@ def test_rendering_without_a_terminal_logs_progress_lines(tmp_path, monkeypatch,
     lines = [r.getMessage() for r in caplog.records if r.getMessage().startswith("render: ")]
     assert lines and "frames/s" in lines[-1] and "min left" in lines[-1]
     assert lines[-1].startswith("render: 4/4 frames")
+
+
+def test_a_build_of_some_splits_renders_only_them_and_its_manifest_holds_whole_splits(tmp_path, monkeypatch):
+    """A table whose trainings are all recorded renders only the split it scores (the frozen test split on
+    a fresh clone): the manifest lists the splits whose every frame is there, and nothing else."""
+    spec = {**TINY_SPEC, "splits": {"train": {"families": ["living_room"], "sequences": 1},
+                                    "test": {"families": ["gallery"], "sequences": 1}}}
+    calls = []
+    real = datagen.render_resolution
+    monkeypatch.setattr(datagen, "render_resolution", lambda *a, **k: (calls.append(a[7]), real(*a, **k))[1])
+    df = datagen.build_dataset(tmp_path, spec, progress=False, splits=["test"])
+    assert set(df["split"]) == {"test"} and not (tmp_path / "train").exists() and len(calls) == 4
+    assert {f["split"] for f in datagen.load_manifest(tmp_path)["frames"]} == {"test"}
+    df = datagen.build_dataset(tmp_path, spec, progress=False, splits=["train"])
+    assert len(calls) == 8                                          # train's two frames; test not again
+    assert [f["split"] for f in datagen.load_manifest(tmp_path)["frames"]] == ["test", "test", "train", "train"]
+    test_frame = tmp_path / "test" / datagen.plan_sequences(spec)[1]["sequence"] / "0001.json"
+    test_frame.unlink()                                             # a split missing a frame's record ...
+    (tmp_path / "manifest.json").write_text("{")                    # ... is left out of a rebuilt manifest
+    assert [f["split"] for f in datagen.rebuild_manifest(tmp_path, spec)["frames"]] == ["train", "train"]

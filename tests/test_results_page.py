@@ -11,12 +11,30 @@ from bench.experiments import results_page
 ROOT = Path(__file__).resolve().parents[1]
 
 
-@pytest.mark.parametrize("preset", ["cpu", "gpu"])
-def test_the_committed_results_page_is_the_one_its_tables_give(preset):
-    folder = ROOT / "results" / preset
-    expected = results_page.page(folder, preset, shown_as=f"results/{preset}")
-    assert (folder / results_page.PAGE).read_text() == expected, (
-        f"results/{preset}/README.md is stale: python -m bench.experiments.results_page results/{preset}")
+@pytest.mark.parametrize("folder", ["cpu", "cpu/val", "gpu"])
+def test_the_committed_results_page_is_the_one_its_tables_give(folder):
+    shown = f"results/{folder}"
+    expected = results_page.page(ROOT / shown, results_page.preset_of(shown), shown_as=shown)
+    assert (ROOT / shown / results_page.PAGE).read_text() == expected, (
+        f"{shown}/README.md is stale: python -m bench.experiments.results_page {shown}")
+
+
+def test_a_split_beside_the_presets_own_is_named_and_the_two_pages_link_each_other(tmp_path):
+    caption = "Table 5. Preset cpu, split {}, 2000 training steps.\n\n| method |\n"
+    table = pd.DataFrame({"method": ["Ours"], "PSNR": [36.5], "SSIM": [0.91], "relMSE": [0.016], "runs": ["a"]})
+    for folder, split in ((tmp_path / "cpu", "test"), (tmp_path / "cpu" / "val", "val")):
+        (folder / "sota").mkdir(parents=True)
+        table.to_csv(folder / "sota" / "table.csv", index=False)
+        (folder / "sota" / "table.md").write_text(caption.format(split))
+    results_page.write(tmp_path / "cpu" / "val", "cpu", repository=tmp_path)
+    results_page.write(tmp_path / "cpu", "cpu", repository=tmp_path)
+    assert "(val/README.md)" in (tmp_path / "cpu" / results_page.PAGE).read_text()
+    test = results_page.page(tmp_path / "cpu", "cpu", shown_as="results/cpu")
+    assert test.startswith("# Results at preset `cpu`, split `test`") and "(val/README.md)" in test
+    val = results_page.page(tmp_path / "cpu" / "val", "cpu", shown_as="results/cpu/val")
+    assert val.startswith("# Results at preset `cpu`, split `val`") and "(../README.md)" in val
+    assert "](../../../docs/decisions.md)" in val and "](../../docs/decisions.md)" in test
+    assert results_page.preset_of("results/cpu/val") == "cpu" == results_page.preset_of("results/cpu")
 
 
 def test_the_page_copies_its_numbers_from_the_tables_and_names_them(tmp_path):

@@ -33,7 +33,7 @@ import pandas as pd
 from bench import runs, stats
 from bench.errors import UserError
 from bench.experiments import results_page
-from bench.experiments.context import Context
+from bench.experiments.context import Context, split_note
 from bench.table_writer import write_table
 
 log = logging.getLogger("bench")
@@ -103,6 +103,10 @@ def _per_sequence_means(ctx: Context, eval_hash: str, cache: dict) -> pd.DataFra
     if eval_hash not in cache:
         if ctx.runs_archive is not None:  # a fresh clone: the committed archive has the tables' evaluations
             runs.restore(ctx.runs_dir, ctx.runs_archive, "eval", eval_hash)
+        scored = (_record(ctx, "eval", eval_hash) or {}).get("identity", {}).get("split")
+        if scored not in (None, ctx.eval.split):  # never a verdict from two splits' rows
+            raise UserError(f"claims: evaluation run {eval_hash} scored split {scored!r}, these claims "
+                            f"eval.split={ctx.eval.split!r}; rerun its table with eval.split={ctx.eval.split}")
         path = ctx.runs_dir / "eval" / eval_hash / "per_image.csv"
         if not path.exists():
             raise UserError(f"claims: evaluation run {eval_hash} has no per_image.csv in {ctx.runs_dir}; "
@@ -252,7 +256,8 @@ def judge_pair(ctx: Context, better: pd.Series, worse: pd.Series, metric: str,
 
 def _caption(ctx: Context, metric: str, tables: list[str] | None) -> str:
     return (
-        f"The paper's claims at preset {ctx.preset}, from the recorded tables and their evaluation runs. "
+        f"The paper's claims at preset {ctx.preset}, split {ctx.eval.split}, from the recorded tables and their "
+        f"evaluation runs.{split_note(ctx, ctx.eval.split)} "
         f"Method (bench/stats.py, docs/claims_statistics.md): per pair, d[seed, sequence] = the better row "
         f"minus the worse one as the paper orders them, signed so that > 0 supports the claim (relMSE: worse "
         f"minus better), seeds paired by index, sequences by name, a deterministic row (one evaluation) "

@@ -20,6 +20,30 @@ from bench.errors import UserError
 from bench.train import Recipe
 
 
+FROZEN_SPLIT = "test"   # scored by the paper's tables and the claims; nothing is chosen on it
+TUNING_SPLIT = "val"    # what the recipes, learning rates and studies were chosen on, and learning curves read
+
+
+def working_split(ctx: "Context") -> str:
+    """The split looked at while working (learning curves, the stability table's sample frame): the scored
+    split, unless that is the frozen test split; then val, since what is looked at may steer a choice."""
+    return TUNING_SPLIT if ctx.eval.split == FROZEN_SPLIT else ctx.eval.split
+
+
+def split_note(ctx: "Context", split: str) -> str:
+    """A caption's sentence on what the scored `split` is for."""
+    if split == FROZEN_SPLIT:
+        return (f" Split {FROZEN_SPLIT} is frozen: rendered apart (its own seeds), scored only; nothing was "
+                f"chosen on it (the recipes, learning rates and studies read {TUNING_SPLIT}; a tuning "
+                f"experiment refuses {FROZEN_SPLIT}).")
+    if split == TUNING_SPLIT and FROZEN_SPLIT in ctx.data_spec.get("splits", {}):
+        return (f" Split {TUNING_SPLIT} is the one the recipe and learning rates were chosen on; the frozen "
+                f"{FROZEN_SPLIT} split's table is the one to quote.")
+    if split == TUNING_SPLIT:
+        return f" This preset's data has no {FROZEN_SPLIT} split: its tables report {TUNING_SPLIT}, the split the recipe was chosen on."
+    return ""
+
+
 @dataclass(frozen=True)
 class EvalSpec:
     """How tables evaluate (conf/config.yaml `eval:`, where the defaults and their meaning are)."""

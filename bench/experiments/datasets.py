@@ -66,13 +66,12 @@ def _planned_fingerprint(spec_json: str, split: str) -> str:
 
 
 def training_fingerprint(ctx: Context) -> str:
-    """The data fingerprint of the training split, as training identities hold it: the manifest's on
-    disk (`data_fingerprint`), which records what a training saw. Scoring recorded models on other
-    frames (`eval.data_dir`: nothing is trained) needs no training data: rendered data's fingerprint is
-    then planned from the data spec, without reading or rendering anything. Its spec and settings
-    determine the manifest datagen writes, so the two are equal (tests/test_eval_data.py) and a
-    training is found before its data exists. Your own data (render_data=false) is read from its files."""
-    if ctx.render_data and ctx.eval.data_dir:
+    """The data fingerprint of the training split, as training identities hold it. Rendered data's is
+    planned from the data spec, without reading or rendering anything: its spec and settings determine
+    the manifest datagen writes, so it equals the rendered manifest's (tests/test_eval_data.py), and a
+    recorded training is found before its data exists (a table whose trainings are all recorded renders
+    only the splits it scores). Your own data (render_data=false) is read from its files."""
+    if ctx.render_data:
         return _planned_fingerprint(_canonical(ctx.data_spec), "train")
     return data_fingerprint(ctx, "train")
 
@@ -124,9 +123,10 @@ def render_digest(ctx: Context, split: str) -> str | None:
     return runs.config_hash({"render": sorted(crcs)})[:8]
 
 
-def ensure_data(ctx: Context, passes: set[str]) -> str:
-    """Make sure `data_dir` holds the preset's dataset with at least `passes`, rendering only what is
-    missing; returns the data fingerprint. With render_data=false the directory is used as it is."""
+def ensure_data(ctx: Context, passes: set[str], splits: set[str] | None = None) -> str:
+    """Make sure `data_dir` holds the preset's dataset (its `splits`; None: all) with at least `passes`,
+    rendering only what is missing; returns the data fingerprint. With render_data=false the directory is
+    used as it is."""
     if not ctx.render_data:
         problems = manifest_problems(ctx.data_dir)
         if problems:  # one problem (a damaged manifest) on one line
@@ -145,28 +145,35 @@ def ensure_data(ctx: Context, passes: set[str]) -> str:
     # one process checks and renders a dataset at a time: two tables needing other buffers would
     # otherwise render the same frames at once, and each take the other's files for damaged ones
     with contextlib.closing(runs.acquire(ctx.data_dir / ".render.lock", f"rendering {ctx.data_dir}")):
-        return _render_missing(ctx, passes)
+        return _render_missing(ctx, passes, sorted(splits or ctx.data_spec["splits"]))
 
 
-def _render_missing(ctx: Context, passes: set[str]) -> str:
+def _render_missing(ctx: Context, passes: set[str], splits: list[str]) -> str:
+    unknown = sorted(set(splits) - set(ctx.data_spec["splits"]))
+    if unknown:
+        raise UserError(f"data: the data spec {ctx.data_spec.get('name', '')!r} has no split {unknown[0]!r} "
+                        f"(it has {sorted(ctx.data_spec['splits'])})")
     manifest = _manifest_or_rebuilt(ctx)
     if manifest is not None:
         if _canonical(manifest.get("spec")) == _canonical(ctx.data_spec):
+            frames = [f for f in manifest["frames"] if f["split"] in splits]
             # per frame: a split re-rendered for another table (new settings) may hold fewer buffers
-            lacking = [f for f in manifest["frames"] if not passes <= set(f.get("buffers", []))]
-            damaged = damaged_frames(ctx.data_dir, manifest["frames"], manifest["passes"])
-            if not damaged and not lacking:
-                log.info("data: %s already holds %s", ctx.data_dir, ", ".join(sorted(passes)))
+            lacking = [f for f in frames if not passes <= set(f.get("buffers", []))]
+            absent = {s for s in splits if not any(f["split"] == s for f in frames)}  # a manifest holds whole splits
+            damaged = damaged_frames(ctx.data_dir, frames, manifest["passes"])
+            if not damaged and not lacking and not absent:
+                log.info("data: %s already holds %s of %s", ctx.data_dir, ", ".join(sorted(passes)), ", ".join(splits))
                 return data_fingerprint(ctx)
             if damaged:
                 log.warning("data: %d damaged frame files (%s); rendering them again", len(damaged), _listed(damaged))
-    identity = {"spec": ctx.data_spec, "passes": sorted(passes)}
+    identity = {"spec": ctx.data_spec, "passes": sorted(passes), "splits": splits}
     run = runs.begin(ctx.runs_dir, "data", identity, seed=ctx.data_spec.get("seed"), device=ctx.device,
                      label=f"data {ctx.preset}", force=True, every_call=True)  # a data run records one render job
     try:
         log.info("data: making sure %s holds %s (rendering what is missing)", ctx.data_dir, ", ".join(sorted(passes)))
         manifest = build_dataset(ctx.data_dir, ctx.data_spec, sorted(passes), workers=ctx.workers,
-                                 progress=ctx.progress, variant="cuda_ad_rgb" if ctx.device == "cuda" else None)
+                                 progress=ctx.progress, variant="cuda_ad_rgb" if ctx.device == "cuda" else None,
+                                 splits=splits)
     except BaseException as err:  # the record says so, never "running" forever; rendered frames are kept
         runs.fail(run, f"{type(err).__name__}: {err}")
         raise

@@ -6,7 +6,7 @@ from __future__ import annotations
 
 import logging
 
-from bench import runs
+from bench import archived, runs
 from bench.evaluate import SCORES, evaluate
 from bench.experiments.context import EVALUATION_CODE, TRAINING_CODE, Context, code_of
 from bench.experiments.datasets import data_fingerprint, dataset, evaluation_data, render_digest
@@ -61,6 +61,8 @@ def evaluated(ctx: Context, cfg: dict, task: Task, seed: int, split: str, label:
     metrics["train_run"] = trained if isinstance(trained, str) else None
     metrics["vgg"] = (train_run.record["identity"].get("vgg") if train_run else None)
     metrics["render"] = render_digest(frames, split)
+    trainings = stage_runs if cascade else [train_run] if train_run is not None else []
+    metrics["rounded_weights"] = any(archived.rounded(r.dir) for r in trainings)  # the archive's float16 copy
     return archive_evaluation(ctx, runs.complete(run, metrics))
 
 

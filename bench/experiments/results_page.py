@@ -340,17 +340,51 @@ def page(results_dir: str | Path, preset: str, shown_as: str | None = None) -> s
     """The results page of `results_dir`, from its tables only; `shown_as`: the folder's name on the page
     (e.g. results/cpu; default: results_dir as given)."""
     results_dir = Path(results_dir)
-    if shown_as is not None and shown_as != results_dir.as_posix():
-        return page(results_dir, preset).replace(results_dir.as_posix(), shown_as)
+    shown = shown_as or results_dir.as_posix()
+    text = _page(results_dir, preset).replace(results_dir.as_posix(), shown)
+    # links to docs/ are relative to the page: results/<preset>/ or results/<preset>/<split>/
+    return text.replace("](../../docs/", f"]({'../' * len(Path(shown).parts)}docs/")
+
+
+def scored_split(results_dir: Path) -> str | None:
+    """The split the folder's tables and claims scored, as their captions state it ("..., split NAME"),
+    when they agree on one."""
+    splits = set()
+    for name in [n for n, _ in PAPER_TABLES + CONTROLS if n != "generalization"] + ["claims"]:
+        match = re.search(r"[Pp]reset \w+, split (\w+)", _caption(results_dir / name / "table.md"))
+        if match:
+            splits.add(match.group(1))
+    return splits.pop() if len(splits) == 1 else None
+
+
+def split_lines(results_dir: Path) -> list[str]:
+    """What the scored split is for, and a link to the page of the other split's tables, where there is one."""
+    split = scored_split(results_dir)
+    if split == "test":
+        lines = ["Scored on the frozen `test` split: rendered apart (its own seeds) and only scored; nothing "
+                 "was chosen on it."]
+        if (results_dir / "val" / PAGE).exists():
+            lines[0] += (" The same tables on `val`, the split the recipe and learning rates were chosen on: "
+                         f"[`{results_dir.as_posix()}/val/{PAGE}`](val/{PAGE}).")
+        return lines + [""]
+    if split == "val" and results_dir.name == "val" and (results_dir.parent / PAGE).exists():
+        return [f"Scored on `val`, the split the recipe and learning rates were chosen on. The frozen `test` "
+                f"split's page, the one to quote, is one folder up: [`../{PAGE}`](../{PAGE}).", ""]
+    return [f"Scored on `{split}`.", ""] if split else []
+
+
+def _page(results_dir: Path, preset: str) -> str:
     claims = _claims(results_dir)
-    lines = [f"# Results at preset `{preset}`", "",
+    split = scored_split(results_dir)
+    lines = [f"# Results at preset `{preset}`" + (f", split `{split}`" if split else ""), "",
              f"Written by `bench/experiments/results_page.py` from the tables in `{results_dir.as_posix()}/` "
              f"(`+experiment=claims` and `+experiment=all` rewrite it; by hand: `python -m "
              f"bench.experiments.results_page {results_dir.as_posix()}`). Every number below is copied from "
              "the table file named beside it; a test regenerates this page from the committed tables, so it "
              "cannot drift from them. Do not edit it. Why the preset is what it is: "
-             "[`docs/decisions.md`](../../docs/decisions.md).", ""]
-    known = {n for n, _ in PAPER_TABLES + CONTROLS} | set(TOOLS) | {"claims", "speed", "lr_range", STUDIES, "runs"}
+             "[`docs/decisions.md`](../../docs/decisions.md).", ""] + split_lines(results_dir)
+    known = {n for n, _ in PAPER_TABLES + CONTROLS} | set(TOOLS) | {"claims", "speed", "lr_range", STUDIES, "runs",
+                                                                   "val"}
     present = lambda n: _is_metrics_table(results_dir / n / "table.csv")   # noqa: E731
     paper = [(n, w) for n, w in PAPER_TABLES if present(n)]
     if claims is None and not paper:
@@ -424,6 +458,13 @@ def write(results_dir: str | Path, preset: str, repository: str | Path = ROOT) -
     return path
 
 
+def preset_of(folder: str | Path) -> str:
+    """The preset a results folder holds: results/<preset>, or results/<preset>/<split> for a split's tables
+    beside the preset's own."""
+    folder = Path(folder)
+    return folder.parent.name if folder.name in ("val", "test") else folder.name
+
+
 if __name__ == "__main__":
-    for folder in sys.argv[1:] or ["results/cpu"]:
-        print(write(folder, Path(folder).name))
+    for folder in sys.argv[1:] or ["results/cpu", "results/cpu/val"]:
+        print(write(folder, preset_of(folder)))

@@ -9,7 +9,7 @@ import numpy as np
 
 from bench import runs
 from bench.evaluate import SCORES
-from bench.experiments.context import Context, model_config, with_training
+from bench.experiments.context import TRAINING_CODE, Context, code_of, model_config, with_training
 from bench.experiments.evaluation import evaluated
 from bench.tasks import get_task
 
@@ -71,6 +71,11 @@ def row(ctx: Context, label: str, model: str, overrides: dict | None = None, tas
     vgg = results[0].metrics.get("vgg")
     out["vgg"] = f"VGG16 {vgg['layer']} from {vgg['weights']}" if vgg else None
     out["renders"] = [r.metrics.get("render") for r in results]  # None: recorded before digests
+    out["rounded"] = sum(bool(r.metrics.get("rounded_weights")) for r in results)
+    trainings = [runs.read_record(ctx.runs_dir / "train" / h / runs.RECORD) for r in results
+                 for h in (r.metrics.get("train_run") or "").split("+")[:1] if h]  # a Cascade's stages: one recipe
+    code = code_of(cfg, *TRAINING_CODE)
+    out["stale"] = sum(bool(record and runs.code_changes(record, code)) for record in trainings)
     out["runs"] = " ".join(r.hash for r in results)
     out["train runs"] = " ".join(t for r in results if r.metrics.get("train_run")
                                  for t in r.metrics["train_run"].split("+"))

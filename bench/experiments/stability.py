@@ -25,7 +25,7 @@ import torch
 import torch.nn.functional as F
 
 from bench.evaluate import predict
-from bench.experiments.context import Context, model_config, with_training
+from bench.experiments.context import Context, model_config, with_training, working_split
 from bench.experiments.datasets import dataset, ensure_data
 from bench.experiments.training import trained_model
 from bench.hdr import from_network, to_network
@@ -187,7 +187,7 @@ def model_rows(ctx: Context, name: str, seed: int, frames: int, long_frames: int
     model, _ = trained_model(ctx, cfg, task, seed, f"{name} (stability)")
     model.eval()
     hdr = ctx.train.hdr
-    item = dataset(ctx, ctx.eval.split, task, training=False)[0]
+    item = dataset(ctx, working_split(ctx), task, training=False)[0]
     x0, g0, ref = (item[k][None, :frames] for k in (task.x, task.g, task.y))
     clean = predict(model, x0, g0, hdr)
     rows = []

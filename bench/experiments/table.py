@@ -26,8 +26,9 @@ from pathlib import Path
 import pandas as pd
 
 from bench import runs
+from bench.errors import UserError
 from bench.datagen import load_manifest
-from bench.experiments.context import Context, model_config, with_training
+from bench.experiments.context import Context, model_config, split_note, with_training
 from bench.experiments.datasets import ensure_data, evaluation_data
 from bench.experiments.figure import crop_figure, curve_figure
 from bench.experiments.macs import frame_inputs
@@ -67,6 +68,22 @@ def expand_rows(rows: list[dict], default_task: str = "srd") -> list[dict]:
                 new["paper"] = str(r["paper"]).format(**fmt)
             out.append(new)
     return out
+
+
+def _weights_note(labels, rounded, stale, seeds: int) -> str:
+    """Caption sentences naming the rows scored with the archive's float16-rounded weights and the rows
+    whose trainings ran older code than this (reused with reuse_stale=true, not yet adopted)."""
+    def named(counts) -> str:
+        return ", ".join(f"{label}" + (f" ({n} of {seeds} seeds)" if n < seeds else "")
+                         for label, n in zip(labels, counts) if n)
+    notes = ""
+    if any(rounded):
+        notes += (f" Scored with the run archive's float16-rounded weights (bench/archived.py; "
+                  f"scripts/fp16_weights_accuracy.py measures how far their metrics move): {named(rounded)}.")
+    if any(stale):
+        notes += (f" Trained by older code than this and reused as recorded (reuse_stale=true; "
+                  f"+experiment=adopt checks and re-stamps them): {named(stale)}.")
+    return notes
 
 
 def _renders_note(renders) -> str:
@@ -229,20 +246,29 @@ def _reference_note(ctx: Context, frames: Context, table: pd.DataFrame, rows: li
 
 def run(ctx: Context, name: str, rows: list[dict], caption: str = "", task: str = "srd",
         split: str | None = None, paper: str | None = "auto", gmac_column: bool = False,
-        figure: bool = True) -> pd.DataFrame:
+        figure: bool = True, leave_out: list[str] | None = None) -> pd.DataFrame:
+    """`leave_out`: labels of rows this call does not compute, named in the caption (e.g. rows whose
+    trainings cannot be loaded or run here); the table has the others."""
     rows = expand_rows(rows, task)
+    unknown = sorted(set(leave_out or []) - {r["label"] for r in rows})
+    if unknown:
+        raise UserError(f"experiment.leave_out: no row {unknown[0]!r} in this table "
+                        f"(its rows: {', '.join(r['label'] for r in rows)})")
+    rows = [r for r in rows if r["label"] not in (leave_out or [])]
     for r in rows:  # fail on a bad model or task name before any rendering or training
         model_config(ctx, r["model"], r.get("overrides"))
         get_task(r["task"])
     frames = evaluation_data(ctx)
-    if frames is ctx:
-        ensure_data(ctx, passes_for(rows, task))
+    unscored = [] if ctx.force else [
+        f"{r['label']} seed {seed}: {why}" for r in rows for seed in ctx.seeds
+        for why in untrained(with_training(ctx, r.get("train"), r["model"]),
+                             model_config(ctx, r["model"], r.get("overrides")), get_task(r["task"]),
+                             seed, r.get("cascade", False))]
+    if frames is ctx:  # every training recorded with its weights: only the scored splits are rendered
+        scored = {r.get("split", split) or ctx.eval.split for r in rows}
+        ensure_data(ctx, passes_for(rows, task), None if ctx.force or unscored else scored)
     else:  # recorded models scored on another dataset: it is checked; the training data is not needed
         ensure_data(frames, set())
-        unscored = [f"{r['label']} seed {seed}: {why}" for r in rows for seed in ctx.seeds
-                    for why in untrained(with_training(ctx, r.get("train"), r["model"]),
-                                         model_config(ctx, r["model"], r.get("overrides")), get_task(r["task"]),
-                                         seed, r.get("cascade", False))]
         if unscored:  # before anything is scored, every training that would be missing
             raise scoring_only_error(unscored)
     if ctx.shard:  # compute this shard's runs only; a run without a shard assembles the table from them
@@ -279,6 +305,9 @@ def run(ctx: Context, name: str, rows: list[dict], caption: str = "", task: str 
              f"{loss['edge']}:{loss['temporal']}:{loss['spatial']}:{loss['perceptual']}{extra} (unless a row says "
              f"otherwise), seeds {list(ctx.seeds)} (mean +- std over seeds when several); time_ms: "
              f"inference per frame on {ctx.device}.")
+    notes += split_note(ctx, split or ctx.eval.split)
+    if leave_out:
+        notes += f" Left out of this call (experiment.leave_out): {', '.join(leave_out)}."
     if gmac_column:
         notes += f" GMac: multiply-accumulates per 960x540 input frame at this preset's widths (budget {ctx.budget_gmac:g})."
     if paper_table:
@@ -289,6 +318,7 @@ def run(ctx: Context, name: str, rows: list[dict], caption: str = "", task: str 
                 f"{m} {a}/{n}" for m, (a, n) in agreement.items()) + "."
     notes += _reference_note(ctx, frames, table, rows, split)
     notes += _renders_note(table.pop("renders"))
+    notes += _weights_note(table["method"], table.pop("rounded"), table.pop("stale"), len(ctx.seeds))
     vgg = sorted({v for v in table.pop("vgg") if isinstance(v, str)})
     if vgg:
         notes += f" Perceptual loss features: {'; '.join(vgg)}."

@@ -15,7 +15,7 @@ import torch
 from bench import archived, distributed, runs
 from bench.errors import UserError
 from bench.evaluate import evaluate
-from bench.experiments.context import TRAINING_CODE, Context, code_of
+from bench.experiments.context import TRAINING_CODE, Context, code_of, working_split
 from bench.experiments.datasets import check_training_frames, dataset, render_digest, training_fingerprint
 from bench.models.factory import build_model, is_learned
 from bench.models.srd import SRDNet, SRDStage, load_stage
@@ -31,7 +31,7 @@ def validation(ctx: Context, task: Task, sequences: int):
     `sequences` validation sequences spread over the split (None when there are none to score)."""
     if sequences <= 0:
         return None
-    split = ctx.eval.split
+    split = working_split(ctx)
     try:
         full = dataset(ctx, split, task, training=False)
     except ValueError:  # no such split in this dataset: no curve, the final table still scores it

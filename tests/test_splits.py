@@ -1,0 +1,92 @@
+"""The frozen test split: the paper's tables and the claims report it where the preset's data has one
+(cpu), tuning experiments read val and refuse test, and a split's tables never land on another's."""
+import json
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import pandas as pd
+import pytest
+from hydra import compose, initialize_config_dir
+
+from bench import runs
+from bench.cli import CONF_DIR, apply_pin, apply_split, make_context
+from bench.errors import UserError
+from bench.experiments import claims
+from bench.experiments.context import split_note, working_split
+from conftest import smoke_context
+
+REPO = Path(__file__).resolve().parent.parent
+
+
+def composed(*overrides, group="experiment", name="sota"):
+    with initialize_config_dir(config_dir=CONF_DIR, version_base=None):
+        cfg = compose("config", overrides=[f"+{group}={name}", *overrides])
+    apply_pin(cfg)
+    apply_split(cfg)
+    return cfg
+
+
+def test_the_cpu_tables_report_test_and_val_goes_beside_them_with_the_archive_where_it_was():
+    cfg = composed("preset=cpu")
+    assert cfg.eval.split == "test" and cfg.results_dir == "results/cpu"
+    val = composed("preset=cpu", "eval.split=val")
+    assert val.eval.split == "val" and val.results_dir == "results/cpu/val" and val.runs_archive == "results/cpu/runs"
+    assert make_context(val).eval.split == "val"
+
+
+@pytest.mark.parametrize("preset", ["smoke", "gpu"])
+def test_a_preset_without_a_test_split_reports_val(preset):
+    cfg = composed(f"preset={preset}")
+    assert cfg.eval.split == "val" and cfg.results_dir == f"results/{preset}"
+
+
+@pytest.mark.parametrize("group, name", [("experiment", "lr_range"), ("study", "dark_bias"), ("study", "lr_range_ssim")])
+def test_what_tunes_reads_val_at_cpu_and_refuses_test(group, name):
+    cfg = composed("preset=cpu", group=group, name=name)
+    assert cfg.eval.split == "val" and not cfg.results_dir.endswith("/val")   # val is its own split
+    with pytest.raises(UserError, match="frozen"):
+        composed("preset=cpu", "eval.split=test", group=group, name=name)
+
+
+def test_a_tuning_command_on_test_is_one_line_and_exit_2_before_anything_runs(tmp_path):
+    env = dict(os.environ, HYDRA_FULL_ERROR="0")
+    out = subprocess.run([sys.executable, "-m", "bench", "+experiment=lr_range", "preset=cpu", "eval.split=test",
+                          f"runs_dir={tmp_path / 'runs'}", f"data_dir={tmp_path / 'data'}"],
+                         cwd=REPO, capture_output=True, text=True, timeout=120, env=env)
+    assert out.returncode == 2 and "frozen" in out.stderr and "Traceback" not in out.stderr
+    assert len(out.stderr.strip().splitlines()) == 1 and not (tmp_path / "data").exists()
+
+
+def test_learning_curves_and_captions_never_lean_on_test():
+    ctx = smoke_context()
+    test = ctx.__class__(**{**ctx.__dict__, "eval": ctx.eval.__class__(**{**ctx.eval.__dict__, "split": "test"}),
+                            "data_spec": {**ctx.data_spec, "splits": {**ctx.data_spec["splits"], "test": {}}}})
+    assert working_split(test) == "val" and working_split(ctx) == "val"
+    assert "frozen" in split_note(test, "test") and "the one to quote" in split_note(test, "val")
+    assert "no test split" in split_note(ctx, "val")
+
+
+def test_claims_never_mix_the_rows_of_two_splits(tmp_path):
+    """A claims table at eval.split=test refuses an evaluation that scored val (a table left from before)."""
+    ctx = smoke_context(runs_dir=tmp_path / "runs", runs_archive=None)
+    ctx = ctx.__class__(**{**ctx.__dict__, "eval": ctx.eval.__class__(**{**ctx.eval.__dict__, "split": "test"})})
+    run = tmp_path / "runs" / "eval" / "abc"
+    run.mkdir(parents=True)
+    (run / runs.RECORD).write_text(json.dumps({"hash": "abc", "kind": "eval", "status": "complete",
+                                               "identity": {"split": "val"}, "metrics": {}}))
+    pd.DataFrame({"sequence": ["a"], "frame": [0], "PSNR": [30.0], "SSIM": [0.9], "relMSE": [0.01]}).to_csv(
+        run / "per_image.csv", index=False)
+    with pytest.raises(UserError, match="scored split 'val'"):
+        claims._per_sequence_means(ctx, "abc", {})
+
+
+def test_a_tables_caption_names_rows_left_out_scored_with_rounded_weights_or_trained_by_older_code():
+    from bench.experiments import table
+    note = table._weights_note(["Ours", "EDSR", "Input bilinear"], [3, 1, 0], [3, 0, 0], seeds=3)
+    assert "float16-rounded weights" in note and ": Ours, EDSR (1 of 3 seeds)." in note
+    assert "reuse_stale=true" in note and "re-stamps them): Ours." in note
+    assert table._weights_note(["Input bilinear"], [0], [0], seeds=3) == ""
+    with pytest.raises(UserError, match="experiment.leave_out: no row 'RAE'"):
+        table.run(smoke_context(), "t", rows=[{"label": "Input bilinear", "model": "bilinear"}], leave_out=["RAE"])
