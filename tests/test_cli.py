@@ -317,6 +317,7 @@ def test_smoke_end_to_end_then_reuse(smoke_dirs):
                                   again[["method", "relMSE", "PSNR", "SSIM"]])
 
 
+@pytest.mark.slow  # two torchrun processes and a one-process run of the smoke table (~1-2 min on 2 cores); make test-slow
 def test_torchrun_two_processes_train_as_one_and_only_rank_0_records(smoke_dirs, tmp_path):
     """`torchrun --nproc_per_node 2 -m bench` (gloo, no GPU): one run recorded, by rank 0, whose training
     curve is the one-process run's with the same global batch, and the table written once."""
@@ -519,6 +520,7 @@ def test_a_bad_value_on_the_command_line_ends_in_one_message_before_any_run(tmp_
     assert not list((tmp_path / "runs").glob("train/*"))
 
 
+@pytest.mark.slow  # a joblib sweep of two processes; the launcher path also runs in test_tracking's shards; make test-slow
 def test_sweep_jobs_write_distinct_tables_with_the_joblib_launcher(tmp_path):
     """The MAC audit needs no data or training: a cheap sweep of two jobs run in parallel by joblib."""
     out = bench("-m", "hydra/launcher=joblib", "+experiment=macs", "preset=smoke", "seeds=[0],[1]",

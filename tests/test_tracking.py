@@ -110,6 +110,7 @@ def test_a_tracking_failure_is_a_warning_not_an_error(store, monkeypatch, caplog
     assert "tracking: mirroring runs to MLflow failed" in caplog.text
 
 
+@pytest.mark.slow  # submitit's local executor starts two jobs; make test-slow
 def test_submitit_local_launcher_runs_a_sweep(tmp_path):
     """submitit's local executor (the Slurm launcher's stand-in without a cluster): two jobs, two tables."""
     out = bench("-m", "hydra/launcher=submitit_local", "+experiment=macs", "preset=smoke", "seeds=[0],[1]",
