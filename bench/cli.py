@@ -353,8 +353,8 @@ def reported_split(cfg: DictConfig) -> str:
 
 def apply_split(cfg: DictConfig) -> None:
     """Resolve `eval.split` in place (null: `reported_split`); an experiment that tunes may not read the
-    frozen test split. Tables of the preset's data on another split than the one the experiment reports
-    go to `<results_dir>/<split>/`, beside its own (e.g. results/cpu/val/sota); your frames'
+    frozen test split. Where the experiment reports the test split, tables of the preset's data on another
+    split go to `<results_dir>/<split>/`, beside its own (e.g. results/cpu/val/sota); your frames'
     (`eval.data_dir`) go to results_dir as given."""
     from bench.experiments.context import FROZEN_SPLIT, TUNING_SPLIT
     reported = reported_split(cfg)
@@ -364,7 +364,7 @@ def apply_split(cfg: DictConfig) -> None:
                         f"and the {FROZEN_SPLIT} split is frozen: nothing may be chosen on it; use "
                         f"eval.split={TUNING_SPLIT}")
     cfg.eval.split = split
-    if split != reported and not cfg.eval.data_dir:
+    if reported == FROZEN_SPLIT and split != reported and not cfg.eval.data_dir:
         cfg.runs_archive = OmegaConf.select(cfg, "runs_archive")  # resolved: the archive stays where it is
         cfg.results_dir = str(Path(cfg.results_dir) / split)
         log.info("eval.split=%s: tables go to %s (the %s split's are in the folder above)", split,

@@ -203,7 +203,7 @@ def ctx(tmp_path):
     train = config_recipe(steps=10, batch_size=2, seq_len=2, crop=8, hdr="clamp", checkpoint_every=5, loss=WEIGHTS,
                    val_every=5)
     return smoke_context(runs_dir=tmp_path / "runs", results_dir=tmp_path / "results", data_dir=tmp_path / "data",
-                         data_spec={"spp": 8}, train=train,
+                         data_spec={"spp": 8}, train=train, render_data=False,  # the frames as they are on disk
                          models={"edsr": {"_target_": "baselines.edsr.EDSR", "channels": 8}})
 
 

@@ -265,7 +265,7 @@ def _caption(ctx: Context, metric: str, tables: list[str] | None) -> str:
         f"from a seed x sequence random-effects decomposition of d (SE^2 = sequence var / sequences + seed "
         f"var / seeds + residual var / cells, from ANOVA mean squares, components truncated at 0; "
         f"Satterthwaite df capped at the largest term's). Calibrated on synthetic data with this design "
-        f"(tests/test_stats.py: 3 seeds x 10 sequences, a null difference called at most 5% of the time). "
+        f"(tests/test_stats.py: 3 seeds x 20 sequences as on test, x 10 as on val; a null difference called at most 5% of the time). "
         f"{metric} verdict (a pair): p Holm-adjusted over the table's distinct comparisons (p Holm) below "
         f"{ALPHA:g}: holds or reversed by the sign of diff, else within noise. verdict (the claim, on {metric}): "
         f"holds when every pair holds, reversed when any is reversed, else within noise; {NOT_RUN}: a row is "
