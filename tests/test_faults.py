@@ -173,7 +173,9 @@ def test_verify_lists_nan_in_your_own_data_and_changes_nothing(rendered):
 # test_cli, test_distributed, test_dataset, test_evaluate, test_experiments; the pytest process's SIGINT
 # disposition, ignore and block masks stay default throughout); cause not pinned down (see build_dataset's
 # except path), so it is non-strict xfail until it is; the SIGTERM case goes the same way and stays strict.
-SIGINT_SLOW = pytest.mark.xfail(strict=False, reason="slow exit seen in three full-suite runs, cause open")
+# It took 185 s again in a clean-clone run on 2026-11-27, so it runs in `make test-slow`, not in CI's 15 minutes.
+SIGINT_SLOW = [pytest.mark.xfail(strict=False, reason="slow exit seen in three full-suite runs, cause open"),
+               pytest.mark.slow]
 
 
 @pytest.mark.parametrize("signum,exit_code", [pytest.param(2, 130, marks=SIGINT_SLOW), (15, 143)])

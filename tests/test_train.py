@@ -253,6 +253,7 @@ def test_your_own_data_is_fingerprinted_by_its_files_size_and_mtime(ctx):
         (ctx.data_dir / split / seq).mkdir(parents=True)
         for res in ("lr", "hr"):
             (ctx.data_dir / split / seq / f"0000_{res}.exr").write_bytes(b"exr" * 10)
+    ctx.render_data = True
     rendered = data_fingerprint(ctx, "train")
     ctx.render_data = False
     before = data_fingerprint(ctx, "train")
