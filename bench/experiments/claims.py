@@ -33,7 +33,7 @@ import pandas as pd
 from bench import runs, stats
 from bench.errors import UserError
 from bench.experiments import results_page
-from bench.experiments.context import Context, split_note
+from bench.experiments.context import SCORED_ON, Context, split_note
 from bench.table_writer import write_table
 
 log = logging.getLogger("bench")
@@ -256,7 +256,7 @@ def judge_pair(ctx: Context, better: pd.Series, worse: pd.Series, metric: str,
 
 def _caption(ctx: Context, metric: str, tables: list[str] | None) -> str:
     return (
-        f"The paper's claims at preset {ctx.preset}, split {ctx.eval.split}, from the recorded tables and their "
+        f"The paper's claims at {SCORED_ON.format(preset=ctx.preset, split=ctx.eval.split)}, from the recorded tables and their "
         f"evaluation runs.{split_note(ctx, ctx.eval.split)} "
         f"Method (bench/stats.py, docs/claims_statistics.md): per pair, d[seed, sequence] = the better row "
         f"minus the worse one as the paper orders them, signed so that > 0 supports the claim (relMSE: worse "

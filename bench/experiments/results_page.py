@@ -19,6 +19,8 @@ from pathlib import Path
 
 import pandas as pd
 
+from bench.experiments.context import SCORED_ON_PATTERN
+
 PAGE = "README.md"
 ROOT = Path(__file__).resolve().parents[2]   # the repository
 
@@ -347,13 +349,13 @@ def page(results_dir: str | Path, preset: str, shown_as: str | None = None) -> s
 
 
 def scored_split(results_dir: Path) -> str | None:
-    """The split the folder's tables and claims scored, as their captions state it ("..., split NAME"),
+    """The split the folder's tables and claims scored, as their captions state it (context.SCORED_ON),
     when they agree on one."""
     splits = set()
     for name in [n for n, _ in PAPER_TABLES + CONTROLS if n != "generalization"] + ["claims"]:
-        match = re.search(r"[Pp]reset \w+, split (\w+)", _caption(results_dir / name / "table.md"))
+        match = re.search(SCORED_ON_PATTERN, _caption(results_dir / name / "table.md"))
         if match:
-            splits.add(match.group(1))
+            splits.add(match.group(2))
     return splits.pop() if len(splits) == 1 else None
 
 

@@ -28,7 +28,7 @@ import pandas as pd
 from bench import runs
 from bench.errors import UserError
 from bench.datagen import load_manifest
-from bench.experiments.context import Context, model_config, split_note, with_training
+from bench.experiments.context import SCORED_ON, Context, model_config, split_note, with_training
 from bench.experiments.datasets import ensure_data, evaluation_data
 from bench.experiments.figure import crop_figure, curve_figure
 from bench.experiments.macs import frame_inputs
@@ -298,10 +298,11 @@ def run(ctx: Context, name: str, rows: list[dict], caption: str = "", task: str 
     paper_terms = ("edge", "temporal", "spatial", "perceptual")
     extra = "".join(f" + {term} {w:g}" for term, w in loss.items() if term not in paper_terms and w)
     tasks = ", ".join(dict.fromkeys(r["task"] for r in rows))
+    scored_on = SCORED_ON.format(preset=ctx.preset, split=split or ctx.eval.split)
     notes = (f"Task {tasks}. {RELMSE_FORMULA}; robust relMSE leaves out the 0.1% of pixels with the highest "
              f"error; temporal relMSE scores the frame-to-frame change against the reference's; PSNR/SSIM on "
-             f"images clamped to [0, 1]; (se ...): standard error over the split's sequences. Preset {ctx.preset}, split "
-             f"{split or ctx.eval.split}, {ctx.train.steps} training steps, loss g:t:s:p = "
+             f"images clamped to [0, 1]; (se ...): standard error over the split's sequences. "
+             f"{scored_on[0].upper()}{scored_on[1:]}, {ctx.train.steps} training steps, loss g:t:s:p = "
              f"{loss['edge']}:{loss['temporal']}:{loss['spatial']}:{loss['perceptual']}{extra} (unless a row says "
              f"otherwise), seeds {list(ctx.seeds)} (mean +- std over seeds when several); time_ms: "
              f"inference per frame on {ctx.device}.")
