@@ -135,3 +135,14 @@ def test_a_fresh_clone_scores_the_frozen_test_split_rendering_only_it(trained, t
     assert "split test" in caption and "frozen" in caption
     evaluations = [json.loads(p.read_text()) for p in (tmp_path / "runs" / "eval").glob("*/run.json")]
     assert evaluations and {e["identity"]["split"] for e in evaluations} == {"test"}
+
+
+def test_a_table_that_must_train_renders_the_training_and_working_splits_not_the_others(tmp_path):
+    """A training to run needs the train split and the split its learning curve reads (val), besides the
+    scored one; a split no one reads (here an extra one, as generalization is to the sota table) stays
+    unrendered."""
+    extra = "+data.splits.extra={families:[bathroom],sequences:1}"
+    out = bench(*store(tmp_path, tmp_path / "archive", tmp_path / "data"), extra)
+    assert out.returncode == 0, out.stderr[-3000:]
+    assert sorted(p.name for p in (tmp_path / "data").iterdir() if p.is_dir()) == ["train", "val"]
+    assert "trained in" in out.stdout + out.stderr

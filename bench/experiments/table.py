@@ -28,7 +28,7 @@ import pandas as pd
 from bench import runs
 from bench.errors import UserError
 from bench.datagen import load_manifest
-from bench.experiments.context import SCORED_ON, Context, model_config, split_note, with_training
+from bench.experiments.context import SCORED_ON, Context, model_config, split_note, with_training, working_split
 from bench.experiments.datasets import ensure_data, evaluation_data
 from bench.experiments.figure import crop_figure, curve_figure
 from bench.experiments.macs import frame_inputs
@@ -264,9 +264,11 @@ def run(ctx: Context, name: str, rows: list[dict], caption: str = "", task: str 
         for why in untrained(with_training(ctx, r.get("train"), r["model"]),
                              model_config(ctx, r["model"], r.get("overrides")), get_task(r["task"]),
                              seed, r.get("cascade", False))]
-    if frames is ctx:  # every training recorded with its weights: only the scored splits are rendered
-        scored = {r.get("split", split) or ctx.eval.split for r in rows}
-        ensure_data(ctx, passes_for(rows, task), None if ctx.force or unscored else scored)
+    if frames is ctx:  # the scored splits, and what a training reads when one is to run (not the others)
+        needed = {r.get("split", split) or ctx.eval.split for r in rows}
+        if ctx.force or unscored:
+            needed |= {"train", working_split(ctx)} & set(ctx.data_spec["splits"])
+        ensure_data(ctx, passes_for(rows, task), needed)
     else:  # recorded models scored on another dataset: it is checked; the training data is not needed
         ensure_data(frames, set())
         if unscored:  # before anything is scored, every training that would be missing
