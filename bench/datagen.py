@@ -39,6 +39,7 @@ import torch
 from tqdm import tqdm
 
 from bench import exrio, metrics, render, runs, scenes
+from bench.errors import UserError
 from bench.tasks import BUFFERS, GBUF_LAYERS
 
 log = logging.getLogger("bench")
@@ -72,16 +73,21 @@ def plan_sequences(spec):
             view = k % per_scene
             plan.append({"split": split, "family": family, "scene_seed": scene_seed, "view": view,
                          "sequence": f"{family}-{scene_seed}-v{view}"})
+        unknown = sorted(set(part.get("sequence_ref_spp") or {}) - {p["sequence"] for p in plan if p["split"] == split})
+        if unknown:
+            raise UserError(f"data.splits.{split}.sequence_ref_spp: {unknown[0]!r} is no sequence of split {split!r}")
     return plan
 
 
-def _render_settings(spec, features, split=None):
+def render_settings(spec, features, split=None, sequence=None):
     """Everything that determines a frame's pixels (hashed into the record so stale frames re-render).
 
     The buffer list is not part of it: every buffer has its own seed, so buffers added by a later build
     (another table needing another task) are rendered alone and merged into the existing EXRs.
     A split with its own `ref_spp` (the scored ones: converged references) renders its references as
-    two independent halves (`ref_halves`), whose difference estimates each reference's error.
+    two independent halves (`ref_halves`), whose difference estimates each reference's error; its
+    `sequence_ref_spp` gives sequences whose references need more samples their own count
+    (`+experiment=references` proposes them).
     """
     max_depth = features["max_depth"]
     if spec.get("max_depth"):
@@ -90,9 +96,10 @@ def _render_settings(spec, features, split=None):
                 "scale": int(spec.get("scale", 2)), "spp": int(spec["spp"]), "ref_spp": int(spec["ref_spp"]),
                 "seed": int(spec["seed"]), "max_depth": int(max_depth),
                 "half_gbuffer": bool(spec.get("half_gbuffer", False)), "left_out": sorted(features["left_out"])}
-    split_ref_spp = (spec["splits"].get(split) or {}).get("ref_spp") if split else None
-    if split_ref_spp:  # only then: the settings (and hashes) of other splits' frames stay as they were
-        settings.update(ref_spp=int(split_ref_spp), ref_halves=True)
+    part = (spec["splits"].get(split) or {}) if split else {}
+    if part.get("ref_spp"):  # only then: the settings (and hashes) of other splits' frames stay as they were
+        ref_spp = (part.get("sequence_ref_spp") or {}).get(sequence, part["ref_spp"])
+        settings.update(ref_spp=int(ref_spp), ref_halves=True)
     return settings
 
 
@@ -105,7 +112,7 @@ def planned_settings(spec):
     frame records holds once rendered, known without rendering (the scene is built, not loaded)."""
     for job in plan_sequences(spec):
         features = scenes.scene_features(scenes.make_scene(job["family"], job["scene_seed"]))
-        yield job, _settings_hash(_render_settings(spec, features, job["split"]))
+        yield job, _settings_hash(render_settings(spec, features, job["split"], job["sequence"]))
 
 
 def frame_paths(root, split, sequence, frame):
@@ -375,7 +382,7 @@ def render_sequence(root, job, spec, passes, variant=None):
     variant = render.use_variant(variant)
     scene_dict = scenes.make_scene(job["family"], job["scene_seed"])
     features = scenes.scene_features(scene_dict)
-    settings = _render_settings(spec, features, job["split"])
+    settings = render_settings(spec, features, job["split"], job["sequence"])
     digest = _settings_hash(settings)
     gbuf_layers = [g for g in GBUF_LAYERS if g not in features["left_out"]]
     cameras = scenes.camera_path(job["scene_seed"], job["view"], int(spec["seq_len"]))

@@ -4,4 +4,5 @@ An experiment is a YAML file in conf/experiment/ whose `experiment.kind` names a
 `run(ctx, **params)` function; the other keys of `experiment` are its params.
 """
 # modules in this package
-KINDS = ("table", "one_model", "data", "macs", "stability", "timing", "speed", "lr_range", "claims", "adopt", "migrate")
+KINDS = ("table", "one_model", "data", "references", "macs", "stability", "timing", "speed", "lr_range", "claims", "adopt",
+         "migrate")

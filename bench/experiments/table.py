@@ -207,11 +207,25 @@ def paper_agreement(table: pd.DataFrame) -> dict[str, tuple[int, int]]:
     return out
 
 
+REFERENCE_SHARE = 0.1  # a reference passes when its estimated error is below this share of the best row's
+
+
+def reference_shortfall(frames: list[dict], per_image: pd.DataFrame, res: str = "hr") -> pd.Series:
+    """Per scored frame ((sequence, frame) index): its estimated reference relMSE (two half-sample renders,
+    bench.metrics.reference_error; `res`: the resolution of the task's target) over REFERENCE_SHARE of the
+    best row's relMSE on that frame (`per_image`: that row's per-frame values, averaged over seeds); below 1
+    the frame passes (issue #17's criterion). `frames`: the manifest records of the scored split; frames
+    without an estimate are left out."""
+    errors = {(str(f["sequence"]), f["frame"]): f["ref_error"][res] for f in frames
+              if res in (f.get("ref_error") or {})}
+    per_frame = per_image.assign(sequence=per_image["sequence"].astype(str)).groupby(["sequence", "frame"])["relMSE"].mean()
+    return pd.Series({key: errors[key] / (REFERENCE_SHARE * rel) for key, rel in per_frame.items() if key in errors},
+                     dtype=float)
+
+
 def reference_check(frames: list[dict], per_image: pd.DataFrame, best: str, res: str = "hr") -> str:
-    """How converged the references of the scored frames are (issue #17's criterion): each frame's
-    estimated reference relMSE (two half-sample renders, bench.metrics.reference_error; `res`: the
-    resolution of the task's target) against a tenth of the best row's relMSE on that frame (its
-    per-frame values averaged over seeds). `frames`: the manifest records of the scored split."""
+    """How converged the references of the scored frames are: `reference_shortfall` below 1 on how many
+    of them."""
     spp = sorted({int(f["ref_spp"]) for f in frames if "ref_spp" in f})
     spp_text = "/".join(map(str, spp)) or "?"
     errors = {(str(f["sequence"]), f["frame"]): f["ref_error"][res] for f in frames
@@ -219,13 +233,11 @@ def reference_check(frames: list[dict], per_image: pd.DataFrame, best: str, res:
     if not errors:
         return (f" References: one render of {spp_text} spp per frame; their error is not estimated (frames "
                 "rendered with their split's own ref_spp, as two halves, have it).")
-    per_frame = per_image.assign(sequence=per_image["sequence"].astype(str)).groupby(["sequence", "frame"])["relMSE"].mean()
-    scored = [(errors[key], rel) for key, rel in per_frame.items() if key in errors]
-    met = sum(err < rel / 10 for err, rel in scored)
-    values = pd.Series([err for err, _ in scored] or list(errors.values()))
+    shortfall = reference_shortfall(frames, per_image, res)
+    values = pd.Series([errors[key] for key in shortfall.index] or list(errors.values()))
     return (f" References ({spp_text} spp as two independent halves): estimated relMSE median {values.median():.2g}, "
-            f"max {values.max():.2g}; below a tenth of the best row's ({best}) relMSE on {met} of {len(scored)} "
-            "scored frames.")
+            f"max {values.max():.2g}; below a tenth of the best row's ({best}) relMSE on {int((shortfall < 1).sum())} "
+            f"of {len(shortfall)} scored frames.")
 
 
 def _reference_note(ctx: Context, frames: Context, table: pd.DataFrame, rows: list[dict], split: str | None) -> str:

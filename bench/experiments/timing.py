@@ -59,7 +59,7 @@ import pandas as pd
 import torch
 
 from bench import archived, render, runs, scenes
-from bench.datagen import _render_settings, derive_seed, frame_view, plan_sequences
+from bench.datagen import derive_seed, frame_view, plan_sequences, render_settings
 from bench.dataset import SequenceDataset
 from bench.errors import UserError
 from bench.evaluate import predict, sync
@@ -670,7 +670,7 @@ def planned_views(spec: dict, count: int, split: str = "val") -> list[PlannedVie
     for p in plan:
         scene = scenes.make_scene(p["family"], p["scene_seed"])
         features = scenes.scene_features(scene)
-        settings = _render_settings(spec, features, split)  # the dataset's own max_depth and left-out layers
+        settings = render_settings(spec, features, split, p["sequence"])  # the dataset's own max_depth and left-out layers
         layers = [name for name in ("albedo", "normal", "roughness") if name not in features["left_out"]]
         cameras = scenes.camera_path(p["scene_seed"], p["view"], int(spec["seq_len"]))
         views.append(PlannedView(p["sequence"], scene, cameras, layers, int(settings["max_depth"])))

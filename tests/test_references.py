@@ -1,0 +1,94 @@
+"""References with more samples where they fall short (issue #43 item 4): a sequence's own ref_spp in the
+data spec re-renders that sequence alone, and `+experiment=references` proposes it from the recorded tables."""
+import copy
+import json
+from pathlib import Path
+from types import SimpleNamespace
+
+import pandas as pd
+import pytest
+import yaml
+
+from bench import datagen
+from bench.errors import UserError
+from bench.experiments import references
+from bench.experiments.table import reference_shortfall
+
+REPO = Path(__file__).resolve().parent.parent
+
+
+def test_proposed_spp_doubles_until_the_shortfall_is_below_the_margin():
+    assert references.proposed_spp(1024, 0.5, 0.8, 8192) == 1024      # passes with room: unchanged
+    assert references.proposed_spp(1024, 0.9, 0.8, 8192) == 2048      # passes, but within the margin
+    assert references.proposed_spp(1024, 1.7, 0.8, 8192) == 4096      # 1.7 / 0.8 = 2.1: two doublings
+    assert references.proposed_spp(1024, 40.0, 0.8, 8192) == 8192     # capped
+
+
+def _planned(spec, split):
+    return {job["sequence"]: digest for job, digest in
+            datagen.planned_settings({**spec, "splits": {split: spec["splits"][split]}})}
+
+
+def test_a_sequences_own_ref_spp_changes_only_that_sequences_frames():
+    spec = yaml.safe_load((REPO / "conf" / "data" / "cpu.yaml").read_text())
+    before = _planned(spec, "test")
+    boosted = copy.deepcopy(spec)
+    one = sorted(before)[3]
+    boosted["splits"]["test"]["sequence_ref_spp"] = {one: 4096}
+    after = _planned(boosted, "test")
+    assert [s for s in before if before[s] != after[s]] == [one]
+    job = next(j for j in datagen.plan_sequences(boosted) if j["sequence"] == one)
+    features = {"max_depth": 8, "left_out": {}}
+    assert datagen.render_settings(boosted, features, "test", one)["ref_spp"] == 4096
+    assert datagen.render_settings(boosted, features, "test", sorted(before)[0])["ref_spp"] == 1024
+    assert job["split"] == "test"
+    boosted["splits"]["test"]["sequence_ref_spp"] = {"no-such-sequence": 2048}
+    with pytest.raises(UserError, match="no-such-sequence"):
+        datagen.plan_sequences(boosted)
+
+
+def _frames(split="test"):
+    """Two sequences of two frames: references of error 1e-4 (s0) and 1e-3 (s1)."""
+    return [{"split": split, "sequence": seq, "frame": frame, "ref_spp": 1024, "ref_error": {"hr": err},
+             "time_s": {"hr_ref_s": 10.0, "lr_ref_s": 2.5}}
+            for seq, err in (("s0", 1e-4), ("s1", 1e-3)) for frame in (0, 1)]
+
+
+def _recorded_table(root: Path, name: str, best_relmse: float, other_relmse: float = 1.0):
+    """A table whose best row scored relMSE `best_relmse` on every frame of _frames()."""
+    runs_dir = root / "runs"
+    for h, rel in (("best", best_relmse), ("other", other_relmse)):
+        run = runs_dir / "eval" / f"{name}-{h}"
+        run.mkdir(parents=True)
+        (run / "run.json").write_text(json.dumps({"status": "complete", "metrics": {}}))
+        pd.DataFrame([{"sequence": s, "frame": f, "relMSE": rel} for s in ("s0", "s1") for f in (0, 1)]).to_csv(
+            run / "per_image.csv", index=False)
+    out = root / "results" / name
+    out.mkdir(parents=True)
+    pd.DataFrame([{"method": "A", "relMSE": best_relmse, "runs": f"{name}-best"},
+                  {"method": "B", "relMSE": other_relmse, "runs": f"{name}-other"}]).to_csv(out / "table.csv", index=False)
+    (out / "table.md").write_text("Table. Task srd. Preset cpu, split test, 2000 steps. References (1024 spp as two "
+                                  "independent halves): ...\n\n| method |\n")
+
+
+def test_the_references_tool_proposes_more_samples_for_the_sequences_that_fall_short(tmp_path):
+    (tmp_path / "data").mkdir()
+    (tmp_path / "data" / "manifest.json").write_text(json.dumps({"frames": _frames()}))
+    _recorded_table(tmp_path, "loose", best_relmse=0.1)    # a tenth: 1e-2, both sequences pass
+    _recorded_table(tmp_path, "strict", best_relmse=4e-3)  # a tenth: 4e-4: s1 falls short 2.5x, s0 passes (0.25)
+    ctx = SimpleNamespace(results_dir=tmp_path / "results", runs_dir=tmp_path / "runs", runs_archive=None,
+                          data_dir=tmp_path / "data", preset="cpu")
+    table = references.run(ctx, margin=0.8, max_ref_spp=8192).set_index("sequence")
+    assert table.loc["s1", "worst shortfall"] == pytest.approx(2.5)
+    assert table.loc["s1", "worst in"] == "strict (A)"
+    assert table.loc["s1", "proposed ref spp"] == 4096      # 2.5 / 0.8 = 3.1: two doublings
+    assert table.loc["s0", "proposed ref spp"] == 1024
+    assert table.loc["s1", "ref render s at proposed"] == pytest.approx(4 * 25.0)
+    proposal = yaml.safe_load((tmp_path / "results" / "references" / "sequence_ref_spp.yaml").read_text())
+    assert proposal == {"test": {"sequence_ref_spp": {"s1": 4096}}}
+    assert "test 2 of 4 frames" in (tmp_path / "results" / "references" / "table.md").read_text()
+
+
+def test_reference_shortfall_is_the_error_over_a_tenth_of_the_best_rows_relmse_averaged_over_seeds():
+    per_image = pd.DataFrame([{"sequence": "s1", "frame": 0, "relMSE": r} for r in (2e-3, 6e-3)])  # two seeds
+    assert reference_shortfall(_frames(), per_image)[("s1", 0)] == pytest.approx(1e-3 / 4e-4)
