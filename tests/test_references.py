@@ -54,13 +54,14 @@ def _frames(split="test"):
             for seq, err in (("s0", 1e-4), ("s1", 1e-3)) for frame in (0, 1)]
 
 
-def _recorded_table(root: Path, name: str, best_relmse: float, other_relmse: float = 1.0):
-    """A table whose best row scored relMSE `best_relmse` on every frame of _frames()."""
+def _recorded_table(root: Path, name: str, best_relmse: float, other_relmse: float = 1.0, render=None):
+    """A table whose best row scored relMSE `best_relmse` on every frame of _frames() (`render`: the digest
+    its evaluations record; None, as frames without file stamps give)."""
     runs_dir = root / "runs"
     for h, rel in (("best", best_relmse), ("other", other_relmse)):
         run = runs_dir / "eval" / f"{name}-{h}"
         run.mkdir(parents=True)
-        (run / "run.json").write_text(json.dumps({"status": "complete", "metrics": {}}))
+        (run / "run.json").write_text(json.dumps({"status": "complete", "metrics": {"render": render}}))
         pd.DataFrame([{"sequence": s, "frame": f, "relMSE": rel} for s in ("s0", "s1") for f in (0, 1)]).to_csv(
             run / "per_image.csv", index=False)
     out = root / "results" / name
@@ -76,6 +77,7 @@ def test_the_references_tool_proposes_more_samples_for_the_sequences_that_fall_s
     (tmp_path / "data" / "manifest.json").write_text(json.dumps({"frames": _frames()}))
     _recorded_table(tmp_path, "loose", best_relmse=0.1)    # a tenth: 1e-2, both sequences pass
     _recorded_table(tmp_path, "strict", best_relmse=4e-3)  # a tenth: 4e-4: s1 falls short 2.5x, s0 passes (0.25)
+    _recorded_table(tmp_path, "elsewhere", best_relmse=1e-5, render="0ther")  # another render's: left out
     ctx = SimpleNamespace(results_dir=tmp_path / "results", runs_dir=tmp_path / "runs", runs_archive=None,
                           data_dir=tmp_path / "data", preset="cpu")
     table = references.run(ctx, margin=0.8, max_ref_spp=8192).set_index("sequence")

@@ -11,7 +11,8 @@ frames; every table of the split is then scored again (evaluations only).
 
 Writes `<results_dir>/references/table.{csv,md,tex}` (per sequence: frames, worst shortfall, the table it
 comes from, spp now and proposed, the recorded reference render seconds and the estimate at the proposed
-spp) and `sequence_ref_spp.yaml`, the lines for conf/data/<preset>.yaml. It renders and trains nothing.
+spp) and `sequence_ref_spp.yaml`, the lines for conf/data/<preset>.yaml. It renders and trains nothing. A
+table whose evaluations scored another render of the split than `data_dir` holds is left out (the log says so).
 """
 from __future__ import annotations
 
@@ -26,6 +27,7 @@ from bench import runs
 from bench.datagen import load_manifest
 from bench.errors import UserError
 from bench.experiments.context import SCORED_ON_PATTERN, Context
+from bench.experiments.datasets import render_digest
 from bench.experiments.table import reference_shortfall
 from bench.table_writer import write_table
 from bench.tasks import get_task
@@ -51,14 +53,18 @@ def table_shortfalls(ctx: Context, frames: list[dict]) -> pd.DataFrame:
         split = match.group(2)
         best = table.loc[table["relMSE"].idxmin()]
         task = best["task"] if "task" in table else re.search(r"Task (\w+)", caption).group(1)
-        per_image = []
+        per_image, scored = [], set()
         for h in str(best["runs"]).split():
-            record_path = runs.find_record("eval", h, ctx.runs_dir, archives)[0]
+            record_path, record = runs.find_record("eval", h, ctx.runs_dir, archives)
             per_image_csv = record_path.parent / "per_image.csv" if record_path else None
             if per_image_csv is None or not per_image_csv.exists():
                 raise UserError(f"references: {path}: evaluation {h} of its best row ({best['method']}) is in "
                                 "neither the run store nor the archive; regenerate the table first")
             per_image.append(pd.read_csv(per_image_csv, dtype={"sequence": str}))
+            scored.add(record.get("metrics", {}).get("render"))
+        if scored != {render_digest(ctx, split)}:  # the estimates describe this render's references, not those
+            log.info("references: %s left out: it scored another render of split %s", path, split)
+            continue
         shortfall = reference_shortfall([f for f in frames if f["split"] == split], pd.concat(per_image),
                                         get_task(task).y[:2])
         name = path.parent.relative_to(ctx.results_dir).as_posix()
