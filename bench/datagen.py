@@ -74,6 +74,8 @@ def plan_sequences(spec):
             plan.append({"split": split, "family": family, "scene_seed": scene_seed, "view": view,
                          "sequence": f"{family}-{scene_seed}-v{view}"})
         unknown = sorted(set(part.get("sequence_ref_spp") or {}) - {p["sequence"] for p in plan if p["split"] == split})
+        if part.get("sequence_ref_spp") and not part.get("ref_spp"):
+            raise UserError(f"data.splits.{split}.sequence_ref_spp needs the split's own ref_spp (two-half references)")
         if unknown:
             raise UserError(f"data.splits.{split}.sequence_ref_spp: {unknown[0]!r} is no sequence of split {split!r}")
     return plan

@@ -18,6 +18,20 @@ from bench.runs import write_atomic
 
 DOWN, UP = "\u2193", "\u2191"
 
+# How a caption says what it scored (the tables' and the claims'); the results page and the references
+# tool read the split back with SCORED_ON_PATTERN.
+SCORED_ON = "preset {preset}, split {split}"
+SCORED_ON_PATTERN = r"[Pp]reset (\w+), split (\w+)"
+
+
+def read_caption(path: Path) -> str:
+    """The caption of a table.md that write_table wrote (the paragraph before its table), or ''."""
+    path = Path(path)
+    if not path.exists():
+        return ""
+    first = path.read_text().split("\n\n", 1)[0]
+    return "" if first.startswith("|") else first.strip()
+
 
 def _fmt(value, digits: int) -> str:
     if isinstance(value, str):

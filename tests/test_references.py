@@ -2,6 +2,7 @@
 data spec re-renders that sequence alone, and `+experiment=references` proposes it from the recorded tables."""
 import copy
 import json
+import re
 from pathlib import Path
 from types import SimpleNamespace
 
@@ -13,15 +14,35 @@ from bench import datagen
 from bench.errors import UserError
 from bench.experiments import references
 from bench.experiments.table import reference_shortfall
+from bench.table_writer import SCORED_ON, SCORED_ON_PATTERN
 
 REPO = Path(__file__).resolve().parent.parent
 
 
-def test_proposed_spp_doubles_until_the_shortfall_is_below_the_margin():
+def _after(shortfall: float, k: float) -> float:
+    """The shortfall after k times the samples: the reference's error e falls to e/k, and the row's relMSE,
+    which holds e, from R to R - e + e/k."""
+    rel = 1.0
+    e = shortfall * 0.1 * rel
+    return (e / k) / (0.1 * (rel - e + e / k))
+
+
+@pytest.mark.parametrize("shortfall", [0.85, 1.0, 1.7, 2.5, 4.8, 7.0])
+def test_proposed_spp_is_the_fewest_doublings_that_bring_the_shortfall_below_the_margin(shortfall):
+    k = references.proposed_spp(1024, shortfall, 0.8, 10 ** 9) / 1024
+    assert _after(shortfall, k) <= 0.8 < _after(shortfall, k / 2)
+
+
+def test_proposed_spp_keeps_what_passes_caps_more_and_never_lowers():
     assert references.proposed_spp(1024, 0.5, 0.8, 8192) == 1024      # passes with room: unchanged
-    assert references.proposed_spp(1024, 0.9, 0.8, 8192) == 2048      # passes, but within the margin
-    assert references.proposed_spp(1024, 1.7, 0.8, 8192) == 4096      # 1.7 / 0.8 = 2.1: two doublings
-    assert references.proposed_spp(1024, 40.0, 0.8, 8192) == 8192     # capped
+    assert references.proposed_spp(1024, 4.8, 0.8, 8192) == 8192      # 16x wanted: capped
+    assert references.proposed_spp(1024, 40.0, 0.8, 8192) == 8192     # no count is enough: the cap
+    assert references.proposed_spp(16384, 2.0, 0.8, 8192) == 16384    # already above the cap: kept
+
+
+def test_the_caption_phrase_is_read_back_by_its_pattern():
+    match = re.search(SCORED_ON_PATTERN, "Table 5. " + SCORED_ON.format(preset="cpu", split="test").capitalize())
+    assert match.groups() == ("cpu", "test")
 
 
 def _planned(spec, split):
@@ -44,6 +65,9 @@ def test_a_sequences_own_ref_spp_changes_only_that_sequences_frames():
     assert job["split"] == "test"
     boosted["splits"]["test"]["sequence_ref_spp"] = {"no-such-sequence": 2048}
     with pytest.raises(UserError, match="no-such-sequence"):
+        datagen.plan_sequences(boosted)
+    boosted["splits"]["train"]["sequence_ref_spp"] = {sorted(_planned(spec, "train"))[0]: 2048}
+    with pytest.raises(UserError, match="needs the split's own ref_spp"):
         datagen.plan_sequences(boosted)
 
 
@@ -78,19 +102,26 @@ def test_the_references_tool_proposes_more_samples_for_the_sequences_that_fall_s
     _recorded_table(tmp_path, "loose", best_relmse=0.1)    # a tenth: 1e-2, both sequences pass
     _recorded_table(tmp_path, "strict", best_relmse=4e-3)  # a tenth: 4e-4: s1 falls short 2.5x, s0 passes (0.25)
     _recorded_table(tmp_path, "elsewhere", best_relmse=1e-5, render="0ther")  # another render's: left out
+    # s9 was given more samples before and is not scored by these tables: its count stays in the proposal
+    spec = {"splits": {"test": {"ref_spp": 1024, "sequence_ref_spp": {"s9": 2048}}}}
     ctx = SimpleNamespace(results_dir=tmp_path / "results", runs_dir=tmp_path / "runs", runs_archive=None,
-                          data_dir=tmp_path / "data", preset="cpu")
+                          data_dir=tmp_path / "data", preset="cpu", data_spec=spec)
     table = references.run(ctx, margin=0.8, max_ref_spp=8192).set_index("sequence")
     assert table.loc["s1", "worst shortfall"] == pytest.approx(2.5)
     assert table.loc["s1", "worst in"] == "strict (A)"
-    assert table.loc["s1", "proposed ref spp"] == 4096      # 2.5 / 0.8 = 3.1: two doublings
+    assert table.loc["s1", "proposed ref spp"] == 4096      # 3.8x wanted (see _after): two doublings
     assert table.loc["s0", "proposed ref spp"] == 1024
     assert table.loc["s1", "ref render s at proposed"] == pytest.approx(4 * 25.0)
     proposal = yaml.safe_load((tmp_path / "results" / "references" / "sequence_ref_spp.yaml").read_text())
-    assert proposal == {"test": {"sequence_ref_spp": {"s1": 4096}}}
+    assert proposal == {"test": {"sequence_ref_spp": {"s1": 4096, "s9": 2048}}}
     assert "test 2 of 4 frames" in (tmp_path / "results" / "references" / "table.md").read_text()
 
 
 def test_reference_shortfall_is_the_error_over_a_tenth_of_the_best_rows_relmse_averaged_over_seeds():
     per_image = pd.DataFrame([{"sequence": "s1", "frame": 0, "relMSE": r} for r in (2e-3, 6e-3)])  # two seeds
     assert reference_shortfall(_frames(), per_image)[("s1", 0)] == pytest.approx(1e-3 / 4e-4)
+
+
+def test_a_frame_the_best_row_reproduces_exactly_falls_short_without_end():
+    per_image = pd.DataFrame([{"sequence": "s0", "frame": 0, "relMSE": 0.0}])
+    assert reference_shortfall(_frames(), per_image)[("s0", 0)] == float("inf")

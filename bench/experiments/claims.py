@@ -33,8 +33,8 @@ import pandas as pd
 from bench import runs, stats
 from bench.errors import UserError
 from bench.experiments import results_page
-from bench.experiments.context import SCORED_ON, Context, split_note
-from bench.table_writer import write_table
+from bench.experiments.context import Context, split_note
+from bench.table_writer import SCORED_ON, write_table
 
 log = logging.getLogger("bench")
 

@@ -24,11 +24,6 @@ FROZEN_SPLIT = "test"   # scored by the paper's tables and the claims; nothing i
 TUNING_SPLIT = "val"    # what the recipes, learning rates and studies were chosen on, and learning curves read
 
 
-# How a caption says what it scored; the results page reads the split back with SCORED_ON_PATTERN.
-SCORED_ON = "preset {preset}, split {split}"
-SCORED_ON_PATTERN = r"[Pp]reset (\w+), split (\w+)"
-
-
 def working_split(ctx: "Context") -> str:
     """The split looked at while working (learning curves, the stability table's sample frame): the scored
     split, unless that is the frozen test split; then val, since what is looked at may steer a choice."""

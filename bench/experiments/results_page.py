@@ -19,7 +19,7 @@ from pathlib import Path
 
 import pandas as pd
 
-from bench.experiments.context import SCORED_ON_PATTERN
+from bench.table_writer import SCORED_ON_PATTERN, read_caption
 
 PAGE = "README.md"
 ROOT = Path(__file__).resolve().parents[2]   # the repository
@@ -89,14 +89,6 @@ def _markdown_table(header: list[str], rows: list[list[str]]) -> list[str]:
             + ["| " + " | ".join(row) + " |" for row in cells] + [""])
 
 
-def _caption(path: Path) -> str:
-    """The caption of a table.md (the paragraph before its table), or ''."""
-    if not path.exists():
-        return ""
-    first = path.read_text().split("\n\n", 1)[0]
-    return "" if first.startswith("|") else first.strip()
-
-
 def _recipe(caption: str) -> list[str]:
     """The caption's sentences on how the rows were made and scored (preset, split, steps, loss, seeds)
     and on the references, as the table states them."""
@@ -140,7 +132,7 @@ def metrics_section(results_dir: Path, name: str, what: str, claims: pd.DataFram
     """A metrics table: what it compares, each row's mean (± std over seeds) of PSNR, SSIM and relMSE."""
     folder = results_dir / name
     table = pd.read_csv(folder / "table.csv")
-    caption = _caption(folder / "table.md")
+    caption = read_caption(folder / "table.md")
     lines = [f"### {name}", "", what, "",
              f"Numbers: {_link(results_dir, f'{name}/table.csv')} (mean ± std over seeds; "
              f"[`table.md`]({name}/table.md) has every column)."]
@@ -349,11 +341,11 @@ def page(results_dir: str | Path, preset: str, shown_as: str | None = None) -> s
 
 
 def scored_split(results_dir: Path) -> str | None:
-    """The split the folder's tables and claims scored, as their captions state it (context.SCORED_ON),
+    """The split the folder's tables and claims scored, as their captions state it (table_writer.SCORED_ON),
     when they agree on one."""
     splits = set()
     for name in [n for n, _ in PAPER_TABLES + CONTROLS if n != "generalization"] + ["claims"]:
-        match = re.search(SCORED_ON_PATTERN, _caption(results_dir / name / "table.md"))
+        match = re.search(SCORED_ON_PATTERN, read_caption(results_dir / name / "table.md"))
         if match:
             splits.add(match.group(2))
     return splits.pop() if len(splits) == 1 else None
@@ -394,7 +386,7 @@ def _page(results_dir: Path, preset: str) -> str:
                   "below are all this folder holds.", ""]
     if claims is not None or paper:
         lines += claims_section(results_dir, claims)
-    others = [(p.parent.name, _caption(p.parent / "table.md").split(". ")[0] + ".")
+    others = [(p.parent.name, read_caption(p.parent / "table.md").split(". ")[0] + ".")
               for p in sorted(results_dir.glob("*/table.csv")) if p.parent.name not in known and present(p.parent.name)]
     lines += group_section(results_dir, "The paper's tables", paper, claims)
     lines += group_section(results_dir, "Controls", [(n, w) for n, w in CONTROLS if present(n)], claims)

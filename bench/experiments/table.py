@@ -21,6 +21,7 @@ import hashlib
 import itertools
 import json
 import logging
+import math
 from pathlib import Path
 
 import pandas as pd
@@ -28,7 +29,7 @@ import pandas as pd
 from bench import runs
 from bench.errors import UserError
 from bench.datagen import load_manifest
-from bench.experiments.context import SCORED_ON, Context, model_config, split_note, with_training, working_split
+from bench.experiments.context import Context, model_config, split_note, with_training, working_split
 from bench.experiments.datasets import ensure_data, evaluation_data
 from bench.experiments.figure import crop_figure, curve_figure
 from bench.experiments.macs import frame_inputs
@@ -38,7 +39,7 @@ from bench.macs import count_macs, on_meta
 from bench.metrics import HIGHER_IS_BETTER, LOWER_IS_BETTER, RELMSE_FORMULA
 from bench.models.factory import build_model, is_learned
 from bench.paper import TABLES, paper_values
-from bench.table_writer import write_table
+from bench.table_writer import SCORED_ON, write_table
 from bench.tasks import CASCADE_STAGES, get_task
 
 log = logging.getLogger("bench")
@@ -210,17 +211,22 @@ def paper_agreement(table: pd.DataFrame) -> dict[str, tuple[int, int]]:
 REFERENCE_SHARE = 0.1  # a reference passes when its estimated error is below this share of the best row's
 
 
+def reference_errors(frames: list[dict], res: str = "hr") -> dict:
+    """(sequence, frame) -> the estimated relMSE of its `res` reference (two half-sample renders,
+    bench.metrics.reference_error), for the frames that have one."""
+    return {(str(f["sequence"]), f["frame"]): f["ref_error"][res] for f in frames if res in (f.get("ref_error") or {})}
+
+
 def reference_shortfall(frames: list[dict], per_image: pd.DataFrame, res: str = "hr") -> pd.Series:
-    """Per scored frame ((sequence, frame) index): its estimated reference relMSE (two half-sample renders,
-    bench.metrics.reference_error; `res`: the resolution of the task's target) over REFERENCE_SHARE of the
-    best row's relMSE on that frame (`per_image`: that row's per-frame values, averaged over seeds); below 1
-    the frame passes (issue #17's criterion). `frames`: the manifest records of the scored split; frames
-    without an estimate are left out."""
-    errors = {(str(f["sequence"]), f["frame"]): f["ref_error"][res] for f in frames
-              if res in (f.get("ref_error") or {})}
+    """Per scored frame ((sequence, frame) index): its estimated reference relMSE (`res`: the resolution of
+    the task's target) over REFERENCE_SHARE of the best row's relMSE on that frame (`per_image`: that row's
+    per-frame values, averaged over seeds); below 1 the frame passes (issue #17's criterion), inf where the
+    row's relMSE is 0. `frames`: the manifest records of the scored split; frames without an estimate are
+    left out."""
+    errors = reference_errors(frames, res)
     per_frame = per_image.assign(sequence=per_image["sequence"].astype(str)).groupby(["sequence", "frame"])["relMSE"].mean()
-    return pd.Series({key: errors[key] / (REFERENCE_SHARE * rel) for key, rel in per_frame.items() if key in errors},
-                     dtype=float)
+    return pd.Series({key: errors[key] / (REFERENCE_SHARE * rel) if rel > 0 else math.inf
+                      for key, rel in per_frame.items() if key in errors}, dtype=float)
 
 
 def reference_check(frames: list[dict], per_image: pd.DataFrame, best: str, res: str = "hr") -> str:
@@ -228,8 +234,7 @@ def reference_check(frames: list[dict], per_image: pd.DataFrame, best: str, res:
     of them."""
     spp = sorted({int(f["ref_spp"]) for f in frames if "ref_spp" in f})
     spp_text = "/".join(map(str, spp)) or "?"
-    errors = {(str(f["sequence"]), f["frame"]): f["ref_error"][res] for f in frames
-              if res in (f.get("ref_error") or {})}
+    errors = reference_errors(frames, res)
     if not errors:
         return (f" References: one render of {spp_text} spp per frame; their error is not estimated (frames "
                 "rendered with their split's own ref_spp, as two halves, have it).")
@@ -238,6 +243,18 @@ def reference_check(frames: list[dict], per_image: pd.DataFrame, best: str, res:
     return (f" References ({spp_text} spp as two independent halves): estimated relMSE median {values.median():.2g}, "
             f"max {values.max():.2g}; below a tenth of the best row's ({best}) relMSE on {int((shortfall < 1).sum())} "
             f"of {len(shortfall)} scored frames.")
+
+
+def per_image_of(eval_hashes, runs_dir, archives=()) -> pd.DataFrame:
+    """The per-frame scores of evaluation runs (all seeds of a row, stacked), from the run store or an
+    archive."""
+    parts = []
+    for h in eval_hashes:
+        path = runs.find_record("eval", h, runs_dir, archives)[0]
+        if path is None or not (path.parent / "per_image.csv").exists():
+            raise UserError(f"evaluation run {h} has no per_image.csv in {runs_dir} or the archive")
+        parts.append(pd.read_csv(path.parent / "per_image.csv", dtype={"sequence": str}))
+    return pd.concat(parts)
 
 
 def _reference_note(ctx: Context, frames: Context, table: pd.DataFrame, rows: list[dict], split: str | None) -> str:
@@ -250,10 +267,8 @@ def _reference_note(ctx: Context, frames: Context, table: pd.DataFrame, rows: li
     if target not in ("hr_ref", "lr_ref"):  # a noisy target (sr_noisy) is no converged reference
         return ""
     scored = row_def.get("split", split) or ctx.eval.split
-    per_image = pd.concat([pd.read_csv(ctx.runs_dir / "eval" / h / "per_image.csv", dtype={"sequence": str})
-                           for h in best["runs"].split()])
     return reference_check([f for f in load_manifest(frames.data_dir)["frames"] if f["split"] == scored],
-                           per_image, best["method"], target[:2])
+                           per_image_of(best["runs"].split(), ctx.runs_dir), best["method"], target[:2])
 
 
 def run(ctx: Context, name: str, rows: list[dict], caption: str = "", task: str = "srd",
