@@ -56,7 +56,8 @@ def test_a_study_is_pinned_to_the_recipe_it_was_measured_at_only_on_the_preset_t
 
 def test_conf_experiment_holds_the_paper_tables_their_controls_and_the_tools_only():
     """Studies are a group of their own (conf/study/, `+study=NAME`)."""
-    tools = {"smoke", "train", "all", "claims", "data", "macs", "time", "speed", "stability", "lr_range", "adopt", "migrate"}
+    tools = {"smoke", "train", "all", "claims", "data", "references", "macs", "time", "speed", "stability", "lr_range", "adopt",
+             "migrate"}
     tables = {name for name, _ in PAPER_TABLES + CONTROLS}
     assert set(available_experiments()) == tables | tools
 
