@@ -23,6 +23,7 @@ from omegaconf import DictConfig, OmegaConf
 from bench.errors import UserError
 from bench.exrio import ExrError
 from bench.infer import keep_freed_memory
+from bench.measure import fused_kernels_on_cuda
 from bench.runs import ensure_writable, out_of_space
 from bench.train import TrainingInterrupted
 from bench.experiments import KINDS
@@ -480,7 +481,8 @@ def main(cfg: DictConfig) -> None:
     if threading.current_thread() is threading.main_thread():  # (a launcher may run jobs in threads)
         signal.signal(signal.SIGTERM, _terminate)
     try:
-        run_or_serve(cfg)
+        with fused_kernels_on_cuda():
+            run_or_serve(cfg)
     except (UserError, PermissionError, FileNotFoundError) as err:
         print(f"error: {err}", file=sys.stderr)
         sys.exit(getattr(err, "exit_code", 2))

@@ -1,5 +1,5 @@
-"""Measurements of this machine: the one timing loop, the CPU's vector features, and the fast path
-chosen by measurement (`fast_path=auto`).
+"""Measurements of this machine: the one timing loop, the CPU's vector features, the fast path
+chosen by measurement (`fast_path=auto`), and the fused GPU kernels taken where they were tested.
 
 `choose_fast_path` times the candidate paths of bench.infer on the input a model will see and returns
 the fastest whose output stays within `TOLERANCE` of fp32's. Candidates are the paths this device runs
@@ -13,8 +13,10 @@ so a choice made with one set of weights is never reused for another.
 """
 from __future__ import annotations
 
+import contextlib
 import hashlib
 import json
+import os
 import platform
 import re
 import statistics
@@ -25,9 +27,24 @@ import torch
 
 from bench.evaluate import sync
 from bench.infer import REFERENCE, max_abs_diff, prepare
+from bench.nn import fused
 
 TOLERANCE = 0.02       # max |fast - fp32| relative to fp32's output range: bf16 rounding passes, a bug does not
 AUTO = "auto"
+
+
+FUSED_GPU = "SRD_BENCH_FUSED_GPU"
+
+
+def fused_kernels_on_cuda() -> contextlib.AbstractContextManager:
+    """A command's CUDA calls take the fused Triton kernels (bench/nn/triton_kernels.py) for the deformable
+    conv and CFM, unless SRD_BENCH_FUSED_GPU=0: tests/test_cuda.py passed with them on an H200
+    (results/gpu/cuda_tests/; their speed: results/gpu/speed/). Entered by the entry points (python -m bench, srd-bench) for the whole command;
+    the variable is set as well, so the processes they spawn (DDP workers) take them too."""
+    if not torch.cuda.is_available() or os.environ.get(FUSED_GPU) == "0":
+        return contextlib.nullcontext()
+    os.environ[FUSED_GPU] = "1"
+    return fused.on_cuda(True)
 
 
 def time_call(fn, device: str, repeats: int = 5, warmup: int = 1) -> dict:

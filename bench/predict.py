@@ -40,7 +40,7 @@ from bench.errors import UserError
 from bench.evaluate import predict as predict_batch
 from bench.evaluate import runner
 from bench.infer import REFERENCE, parse_path
-from bench.measure import AUTO, choose_fast_path
+from bench.measure import AUTO, choose_fast_path, fused_kernels_on_cuda
 from bench.tasks import GBUF_LAYERS
 from bench.weights import export, from_run, load_exported
 
@@ -271,8 +271,9 @@ def main(argv: list[str] | None = None) -> int:
         check_fast_path(args.fast_path, args.tile)
         model, meta = load_exported(args.weights) if args.weights else from_run(args.run, args.runs_dir)
         limit = None if args.accept_nonfinite else args.max_nonfinite
-        for path in apply(model, meta, args.inputs, args.output_dir, args.tile, args.fast_path, limit):
-            print(path)
+        with fused_kernels_on_cuda():
+            for path in apply(model, meta, args.inputs, args.output_dir, args.tile, args.fast_path, limit):
+                print(path)
         return 0
     except (UserError, exrio.ExrError) as err:
         print(f"error: {err}", file=sys.stderr)

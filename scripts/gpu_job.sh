@@ -19,7 +19,7 @@
 # Everything comes back in $OUT as at most 8 files: log.txt, results.tar.gz (results/gpu), and
 # runs.tar.gz.part-* (the run store without rendered data, 15 MiB parts). Unpack them here with
 # scripts/gpu_unpack.sh. Environment: PYTHON (python3), DEVICE (cuda), PRESET (gpu), JOB_S, STEP_S,
-# SOTA_ARGS, PROFILE_ARGS. A dry run on a CPU (its records land in results/gpu: delete them after):
+# SPEED_ARGS, SOTA_ARGS, PROFILE_ARGS. A dry run on a CPU (its records land in results/gpu: delete them after):
 #     DEVICE=cpu PROFILE_ARGS="--batch 1 --frames 2 --crop 16 --channels 8 --no-compile" OUT=/tmp/x \
 #         bash scripts/gpu_job.sh tests profile
 set -uo pipefail
@@ -29,6 +29,7 @@ DEVICE=${DEVICE:-cuda}
 PRESET=${PRESET:-gpu}
 JOB_S=${JOB_S:-560}
 STEP_S=${STEP_S:-540}
+SPEED_ARGS=${SPEED_ARGS:-}
 SOTA_ARGS=${SOTA_ARGS:-}
 PROFILE_ARGS=${PROFILE_ARGS:-}
 STEPS=${*:-tests speed sota}
@@ -84,7 +85,7 @@ step_speed() {
     tests_passed && fused=1
     echo "gpu_job: speed with SRD_BENCH_FUSED_GPU=$fused"
     SRD_BENCH_FUSED_GPU=$fused timeout "$(step_limit)" "$PYTHON" -m bench +experiment=speed preset="$PRESET" device="$DEVICE" \
-        experiment.oidn=false
+        experiment.oidn=false $SPEED_ARGS
 }
 
 step_sota() {

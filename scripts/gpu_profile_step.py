@@ -2,8 +2,9 @@
 backward, Adam) eager and under torch.compile, at the gpu preset's training batch. Writes a markdown
 table: wall ms per step, the GPU kernels' ms per step (the profiler's own per-kernel totals, device
 time of kernels only, each kernel counted once), and the GPU busy share (kernels / wall). A busy share
-far under 1 means the step is host-bound (launches, Python), not GPU-bound. On a machine without CUDA
-it profiles the CPU and says so (no GPU columns).
+far under 1 means the step is host-bound (launches, Python), not GPU-bound; the host column then says
+where the host's time goes. `--reduce-overhead` adds torch.compile's CUDA-graph mode. On a machine
+without CUDA it profiles the CPU and says so (no GPU columns).
     python scripts/gpu_profile_step.py --device cuda --out results/gpu/profile/<device>.md
     python scripts/gpu_profile_step.py --device cpu --batch 1 --frames 2 --crop 16 --channels 8 --out /tmp/p.md
 """
@@ -32,9 +33,10 @@ def ours(channels: int | None) -> torch.nn.Module:
     return build_model(cfg, 2)
 
 
-def make_step(model, x, g, target, compiled: bool):
+def make_step(model, x, g, target, mode: str):
     optimizer = torch.optim.Adam(model.parameters(), lr=1e-4)
-    forward = torch.compile(model) if compiled else model
+    forward = {"eager": model, "torch.compile": None, "reduce-overhead": None}[mode] or torch.compile(
+        model, mode="reduce-overhead" if mode == "reduce-overhead" else None)
 
     def step():
         optimizer.zero_grad(set_to_none=True)
@@ -65,17 +67,22 @@ def profile_step(step, device: str, warmup: int, steps: int) -> dict:
         synchronize(device)
         wall_ms = (time.perf_counter() - start) * 1e3 / steps
     row = {"wall ms/step": wall_ms}
+    averages = prof.key_averages()  # seconds per call over a step's tens of thousands of events: once
     if device == "cuda":
         # kernels only (device_type CUDA events): memcpy/memset and the CPU-side ops' "cuda time" (which
         # re-counts their kernels) are left out, so no kernel is counted twice
-        kernel_us = sum(e.device_time_total for e in prof.key_averages()
+        kernel_us = sum(e.device_time_total for e in averages
                         if e.device_type == torch.autograd.DeviceType.CUDA)
         row["GPU kernels ms/step"] = kernel_us / 1e3 / steps
         row["GPU busy"] = row["GPU kernels ms/step"] / wall_ms
-    row["top ops (self time)"] = ", ".join(
-        f"{e.key} {(e.self_device_time_total if device == 'cuda' else e.self_cpu_time_total) / 1e3 / steps:.2f}"
-        for e in sorted(prof.key_averages(), key=lambda e: -(e.self_device_time_total if device == "cuda"
-                                                                else e.self_cpu_time_total))[:5])
+    def top(time_of):
+        ranked = sorted(averages, key=lambda e: -time_of(e))[:5]
+        return ", ".join(f"{e.key[:60]} {time_of(e) / 1e3 / steps:.2f}" for e in ranked)
+    if device == "cuda":
+        row["top ops (GPU self ms)"] = top(lambda e: e.self_device_time_total)
+        row["launches/step"] = sum(e.count for e in averages
+                                   if e.device_type == torch.autograd.DeviceType.CUDA) / steps
+    row["top ops (host self ms)"] = top(lambda e: e.self_cpu_time_total)
     return row
 
 
@@ -89,17 +96,21 @@ def main() -> None:
     parser.add_argument("--warmup", type=int, default=3)
     parser.add_argument("--steps", type=int, default=5)
     parser.add_argument("--no-compile", action="store_true")
+    parser.add_argument("--reduce-overhead", action="store_true", help="also torch.compile(mode='reduce-overhead')")
     parser.add_argument("--out", required=True)
     args = parser.parse_args()
     device = args.device if args.device != "cuda" or torch.cuda.is_available() else "cpu"
     x, g = frame_inputs(args.batch, args.frames, (args.crop, args.crop), device, seed=1)
     target = torch.rand(args.batch, args.frames, 3, 2 * args.crop, 2 * args.crop, device=device)
     rows = {}
-    for compiled in (False,) if args.no_compile else (False, True):
+    modes = ["eager"] + ([] if args.no_compile else ["torch.compile"]) + (["reduce-overhead"] if args.reduce_overhead else [])
+    for mode in modes:
         model = ours(args.channels).to(device).train()
-        rows["torch.compile" if compiled else "eager"] = profile_step(make_step(model, x, g, target, compiled),
-                                                                      device, args.warmup, args.steps)
-    columns = list(next(iter(rows.values())))
+        try:
+            rows[mode] = profile_step(make_step(model, x, g, target, mode), device, args.warmup, args.steps)
+        except Exception as error:  # a mode that fails here is a finding, not the end of the profile
+            rows[mode] = {"wall ms/step": f"failed: {str(error).splitlines()[0][:100]}"}
+    columns = max(rows.values(), key=len)
     lines = [f"# Ours' training step under torch.profiler on {device_tag(device)}", "",
              f"`{' '.join(['python scripts/gpu_profile_step.py'] + [a for a in os.sys.argv[1:]])}`: batch "
              f"{args.batch} x {args.frames} frames of {args.crop}x{args.crop} LR, L1 loss, Adam; mean of "
@@ -107,8 +118,8 @@ def main() -> None:
              f"torch {torch.__version__}." + ("" if device == "cuda" else " No CUDA here: CPU only, no GPU columns."), "",
              "| path | " + " | ".join(columns) + " |", "|---" * (len(columns) + 1) + "|"]
     for path, row in rows.items():
-        lines.append(f"| {path} | " + " | ".join(f"{v:.3g}" if isinstance(v, float) else str(v)
-                                                  for v in row.values()) + " |")
+        lines.append(f"| {path} | " + " | ".join(f"{row[c]:.3g}" if isinstance(row.get(c), float) else str(row.get(c, ""))
+                                                  for c in columns) + " |")
     os.makedirs(os.path.dirname(os.path.abspath(args.out)), exist_ok=True)
     with open(args.out, "w") as f:
         f.write("\n".join(lines) + "\n")

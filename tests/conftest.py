@@ -5,15 +5,16 @@ import tempfile
 
 import torch
 
-from baselines.cfm import CFMNet
-from baselines.edsr import EDSR
-from baselines.kpcn import KPCN
-from baselines.rae import RAE
-
 # Without a GPU the fused Triton kernels run in Triton's interpreter (read when bench.nn.triton_kernels
-# is imported, so set before any test imports it); with one, tests/test_cuda.py compiles them.
+# is imported, so set before anything imports bench: with SRD_BENCH_FUSED_GPU=1 bench.nn imports them);
+# with one, tests/test_cuda.py compiles them.
 if not torch.cuda.is_available():
     os.environ.setdefault("TRITON_INTERPRET", "1")
+
+from baselines.cfm import CFMNet  # noqa: E402
+from baselines.edsr import EDSR  # noqa: E402
+from baselines.kpcn import KPCN  # noqa: E402
+from baselines.rae import RAE  # noqa: E402
 # Mirroring to MLflow costs seconds per command; the tests that check it turn it on (tracking=mlflow).
 os.environ.setdefault("SRD_TRACKING", "none")
 # What the suite caches per machine (predict's measured fast path) stays out of the user's home.

@@ -1,5 +1,6 @@
 """bench.measure: the fast-path chooser never times an emulated path, never picks an incorrect one,
 picks the fastest of the rest, and measures once per machine and model."""
+import os
 import time
 
 import pytest
@@ -76,3 +77,21 @@ def test_a_path_that_fails_is_recorded_and_skipped_and_none_running_is_an_error(
     monkeypatch.setattr(measure, "prepare", lambda model, name: (_ for _ in ()).throw(OSError("nope")))
     with pytest.raises(RuntimeError, match="no fast path runs this model"):
         measure.choose_fast_path(model, x, None, "cpu", None, {})
+
+
+def test_the_fused_kernels_are_the_cuda_default_unless_switched_off(monkeypatch):
+    """CUDA commands take the fused kernels (tested on an H200: results/gpu/cuda_tests/) unless
+    SRD_BENCH_FUSED_GPU=0; without CUDA nothing changes. The GPU itself is checked by tests/test_cuda.py."""
+    from bench.nn import fused
+    monkeypatch.delenv(measure.FUSED_GPU, raising=False)
+    monkeypatch.setattr(fused, "_on_cuda", False)
+    monkeypatch.setattr(torch.cuda, "is_available", lambda: False)
+    with measure.fused_kernels_on_cuda():
+        assert not fused._on_cuda and measure.FUSED_GPU not in os.environ
+    monkeypatch.setattr(torch.cuda, "is_available", lambda: True)
+    with measure.fused_kernels_on_cuda():
+        assert fused._on_cuda and os.environ[measure.FUSED_GPU] == "1"  # spawned workers inherit it
+    assert not fused._on_cuda
+    monkeypatch.setenv(measure.FUSED_GPU, "0")
+    with measure.fused_kernels_on_cuda():
+        assert not fused._on_cuda
