@@ -408,8 +408,10 @@ def run_experiment(cfg: DictConfig) -> None:
     ensure_writable(ctx.runs_dir, "runs_dir")
     if (not ctx.render_data or ctx.eval.data_dir) and \
             ctx.results_dir.resolve().is_relative_to(Path(CONF_DIR).parent):
+        keep = (f" runs_archive={ctx.runs_archive.resolve()} keeps them out and still reads the recorded models "
+                "from that archive" if ctx.runs_archive else " keeps them out")
         log.warning("your frames' tables and crops go to %s, inside the repository where git would commit "
-                    "them; results_dir=/elsewhere keeps them out", ctx.results_dir)
+                    "them; results_dir=/elsewhere%s", ctx.results_dir, keep)
     t0 = time.perf_counter()
     interrupted = False
     try:

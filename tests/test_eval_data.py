@@ -89,8 +89,11 @@ def test_recorded_models_score_your_frames_on_a_fresh_clone_rendering_and_traini
     Every row is scored from the archived weights: no render job, no training, the same scores as the
     table that trained them (same frames)."""
     mine = copy_of_split(trained / "data", "val", tmp_path / "mine")
+    archived_evaluations = sorted(p.name for p in (trained / "archive" / "eval").iterdir())
     out = bench(*store(tmp_path, trained / "archive", tmp_path / "nowhere"), f"eval.data_dir={mine}")
     assert out.returncode == 0, out.stderr[-3000:]
+    # the archive is read for the models; the scores of your frames stay out of it (it is committed)
+    assert sorted(p.name for p in (trained / "archive" / "eval").iterdir()) == archived_evaluations
     log = out.stdout + out.stderr
     assert "smoke: 2 rows scored on" in log and "nothing was rendered or trained" in log
     assert "trained in" not in log and "rendering" not in log

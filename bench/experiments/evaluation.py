@@ -80,8 +80,10 @@ def evaluation_identity(trained, split: str, data: str, hdr: str, fast_path: str
 
 def archive_evaluation(ctx: Context, run: runs.Run) -> runs.Run:
     """Keep a finished evaluation in `ctx.runs_archive`: its record and per-frame scores (claims pair
-    them), not its output frames (`eval.save_exr`), which stay in the run store."""
-    if ctx.runs_archive is not None and not run.record["identity"].get("frames"):
+    them), not its output frames (`eval.save_exr`), which stay in the run store. Scores of your frames
+    (`eval.data_dir`) stay out too: the archive is committed with the preset's tables, and there it is
+    only read, for the recorded models."""
+    if ctx.runs_archive is not None and ctx.eval.data_dir is None and not run.record["identity"].get("frames"):
         runs.archive(run, ctx.runs_archive, ("per_image.csv",))
     return run
 
