@@ -1,4 +1,4 @@
-"""The compact form of an archived training, and the one place that writes and reads it.
+"""The compact form of an archived training or evaluation, and the one place that writes and reads it.
 
 The run store keeps a training's full checkpoint (weights, EMA, optimizer, per-step curve) and its
 per-step `curve.csv`: what resuming needs. The archive (`runs_archive`, committed with the tables)
@@ -14,6 +14,10 @@ keeps what the tables, claims, `adopt`, predict and export read again, small:
   `CURVE_EVERY`th step and the last; a learning-rate range test's (schedule `range`, analysed step by
   step) whole. Rows are kept as the trainer wrote them.
 - `val_curve.csv` and `run.json` as they are.
+
+An archived evaluation keeps its record and its per-frame scores gzip-compressed (`per_image.csv.gz`,
+the same bytes as the store's `per_image.csv`; claims and the reference check read them); its output
+frames (`eval.save_exr`) stay out.
 
 A restored run (the store filled from the archive) holds the compact form too; the readers here take
 either form, the full one first. `python -m bench.archived DIR` converts an archive written before in
@@ -44,6 +48,9 @@ CURVE = "curve.csv"          # the trainer's per-step curve, in the run store
 COMPACT_CURVE = "curve.csv.gz"
 VAL_CURVE = "val_curve.csv"
 FILES = (runs.RECORD, WEIGHTS, COMPACT_CURVE, VAL_CURVE)  # what an archived training may hold
+PER_IMAGE = "per_image.csv"          # an evaluation's per-frame scores, in the run store
+COMPACT_PER_IMAGE = "per_image.csv.gz"
+EVALUATION_FILES = (runs.RECORD, COMPACT_PER_IMAGE)   # what an archived evaluation holds
 FORMAT = "srd-bench-archived-weights/1"
 CURVE_WHOLE_STEPS = 100
 CURVE_EVERY = 10
@@ -158,15 +165,28 @@ def _kept_step(step: int) -> bool:
 
 
 def write_curve(text: str, path: Path, whole: bool = False) -> None:
-    data = gzip.compress(compact_curve(text, whole).encode(), compresslevel=9, mtime=0)  # mtime 0: same bytes
-    runs.write_atomic(path, lambda tmp: tmp.write_bytes(data))
+    _write_gzip(compact_curve(text, whole).encode(), path)
 
 
-def _read_gzip_csv(path: Path) -> pd.DataFrame:
+def _write_gzip(data: bytes, path: Path) -> None:
+    packed = gzip.compress(data, compresslevel=9, mtime=0)  # mtime 0: the same bytes every time
+    runs.write_atomic(path, lambda tmp: tmp.write_bytes(packed))
+
+
+def _read_gzip_csv(path: Path, **read_csv) -> pd.DataFrame:
     try:
-        return pd.read_csv(io.BytesIO(gzip.decompress(Path(path).read_bytes())))
+        return pd.read_csv(io.BytesIO(gzip.decompress(Path(path).read_bytes())), **read_csv)
     except (gzip.BadGzipFile, zlib.error) as err:  # damaged: runs.read_or_none treats it as missing
         raise ValueError(str(err)) from err
+
+
+def read_per_image(run_dir: Path) -> pd.DataFrame | None:
+    """An evaluation's per-frame scores (the store's file, else the archive's compressed one), sequence
+    names as strings; None when it has none or it is damaged (the log names it)."""
+    run_dir = Path(run_dir)
+    if (run_dir / PER_IMAGE).exists():
+        return runs.read_or_none(run_dir / PER_IMAGE, lambda p: pd.read_csv(p, dtype={"sequence": str}))
+    return runs.read_or_none(run_dir / COMPACT_PER_IMAGE, lambda p: _read_gzip_csv(p, dtype={"sequence": str}))
 
 
 def read_curve(run_dir: Path) -> pd.DataFrame | None:
@@ -196,6 +216,27 @@ def write(run_dir: Path, dest: Path, record: dict) -> None:
         runs.write_atomic(dest / VAL_CURVE, lambda tmp: tmp.write_bytes((run_dir / VAL_CURVE).read_bytes()))
 
 
+def write_evaluation(run_dir: Path, dest: Path) -> None:
+    """Write the compact form of the evaluation in `run_dir` (store or archive) into `dest`: its per-frame
+    scores (the record is the archive's to write)."""
+    run_dir, dest = Path(run_dir), Path(dest)
+    if (run_dir / PER_IMAGE).exists():
+        _write_gzip((run_dir / PER_IMAGE).read_bytes(), dest / COMPACT_PER_IMAGE)
+    elif (run_dir / COMPACT_PER_IMAGE).exists() and run_dir != dest:
+        runs.write_atomic(dest / COMPACT_PER_IMAGE,
+                          lambda tmp: tmp.write_bytes((run_dir / COMPACT_PER_IMAGE).read_bytes()))
+
+
+def convert_evaluation(run_dir: Path) -> bool:
+    """Convert one archived evaluation in place to the compact form; False when it already is one."""
+    run_dir = Path(run_dir)
+    if not (run_dir / PER_IMAGE).exists():
+        return False
+    write_evaluation(run_dir, run_dir)
+    (run_dir / PER_IMAGE).unlink()
+    return True
+
+
 def convert(run_dir: Path) -> bool:
     """Convert one archived training in place to the compact form; False when it already is one. The
     compact files are written before the full ones go, so an interrupted conversion loses nothing."""
@@ -212,10 +253,12 @@ def convert(run_dir: Path) -> bool:
 
 
 def convert_archive(archive_dir: Path) -> int:
-    """Convert every training of an archive (`<archive_dir>/train/<hash>/`) in place; the number converted."""
-    trainings = sorted(p.parent for p in Path(archive_dir).glob(f"train/*/{runs.RECORD}")
-                       if not p.parent.name.startswith("."))
-    return sum(convert(run_dir) for run_dir in trainings)
+    """Convert every training and evaluation of an archive (`<archive_dir>/{train,eval}/<hash>/`) in place;
+    the number converted."""
+    def runs_of(kind):
+        return sorted(p.parent for p in Path(archive_dir).glob(f"{kind}/*/{runs.RECORD}")
+                      if not p.parent.name.startswith("."))
+    return sum(convert(d) for d in runs_of("train")) + sum(convert_evaluation(d) for d in runs_of("eval"))
 
 
 def _size(path: Path) -> int:
@@ -224,7 +267,7 @@ def _size(path: Path) -> int:
 
 def main(argv=None) -> int:
     parser = argparse.ArgumentParser(prog="python -m bench.archived",
-                                     description="Convert a run archive's trainings in place to the compact form.")
+                                     description="Convert a run archive's trainings and evaluations in place to the compact form.")
     parser.add_argument("archive", type=Path, help="an archive directory, e.g. results/cpu/runs")
     args = parser.parse_args(argv)
     if not (args.archive / "train").is_dir():
@@ -233,7 +276,7 @@ def main(argv=None) -> int:
     before, t0 = _size(args.archive), time.perf_counter()
     converted = convert_archive(args.archive)
     after = _size(args.archive)
-    print(f"{args.archive}: {converted} trainings converted in {time.perf_counter() - t0:.1f} s; "
+    print(f"{args.archive}: {converted} runs converted in {time.perf_counter() - t0:.1f} s; "
           f"{before} -> {after} bytes ({before / 2**20:.1f} -> {after / 2**20:.1f} MiB)")
     return 0
 

@@ -16,7 +16,7 @@ evaluation (the evaluator repairs a model's inputs, never its outputs); such fra
 
 Writes `per_image.csv` and `table.csv/.md/.tex` (the rows of `--table`, if given, then this one) into
 `--out-dir` (default: `--outputs`) and prints the table. `--against` an evaluation run's folder (its
-run.json and per_image.csv) compares the scores with the recorded ones and exits 1 when one differs by
+run.json and per-frame scores, in a run store or an archive) compares the scores with the recorded ones and exits 1 when one differs by
 more than `--rtol`.
 
 Nothing here imports bench.experiments: scoring needs no model, config or run store.
@@ -31,7 +31,7 @@ import numpy as np
 import pandas as pd
 import torch
 
-from bench import exrio, runs
+from bench import archived, exrio, runs
 from bench.dataset import SequenceDataset
 from bench.errors import UserError
 from bench.evaluate import SCORES, aggregate, evaluate
@@ -159,7 +159,7 @@ def compare(per_image: pd.DataFrame, scores: dict, run_dir: str | Path, rtol: fl
             d = rel(scores[name], float(recorded[name]))
             worst = max(worst, d)
             lines.append(f"{name}: {scores[name]:.10g} scored, {recorded[name]:.10g} recorded, relative difference {d:.2e}")
-    frames = runs.read_or_none(run_dir / "per_image.csv")
+    frames = archived.read_per_image(run_dir)
     if frames is not None:
         merged = per_image.merge(frames, on=["sequence", "frame"], suffixes=("", " recorded"))
         if len(merged) != len(per_image):

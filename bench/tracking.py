@@ -221,7 +221,8 @@ def _curve_metrics(run_dir: Path, start_ms: int) -> list:
 
 def _log_artifacts(client, run_id: str, record: dict, run_dir: Path) -> None:
     client.log_artifact(run_id, str(run_dir / runs.RECORD))
-    for file in (archived.CURVE, archived.COMPACT_CURVE, archived.VAL_CURVE, "per_image.csv"):
+    for file in (archived.CURVE, archived.COMPACT_CURVE, archived.VAL_CURVE, archived.PER_IMAGE,
+                 archived.COMPACT_PER_IMAGE):
         if (run_dir / file).exists():
             client.log_artifact(run_id, str(run_dir / file))
     if record["kind"] == "train" and record["status"] == "complete" and not record["identity"].get("stage"):

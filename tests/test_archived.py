@@ -136,3 +136,29 @@ def test_the_readers_work_on_a_converted_copy_of_a_real_archived_run(tmp_path, m
     pd.testing.assert_frame_equal(thinned.head(10), full.head(10))
     pd.testing.assert_frame_equal(thinned.reset_index(drop=True),
                                   full[full["step"].isin(thinned["step"])].reset_index(drop=True))
+
+
+def _evaluated_run(store: Path) -> runs.Run:
+    """A complete evaluation in the run store as the evaluator leaves it: its per-frame scores."""
+    run = runs.begin(store, "eval", {"trained": "abc", "split": "val"})
+    pd.DataFrame({"sequence": ["0001", "0001", "s2"], "frame": [0, 1, 0], "relMSE": [0.1, 0.2, 1 / 3]}).to_csv(
+        run.dir / archived.PER_IMAGE, index=False)
+    return runs.complete(run, {"relMSE": 0.2})
+
+
+def test_an_archived_evaluation_holds_its_record_and_gzipped_scores_that_read_as_the_stores(tmp_path):
+    from bench.experiments.evaluation import archive_evaluation
+    run = _evaluated_run(tmp_path / "runs")
+    ctx = types.SimpleNamespace(runs_archive=tmp_path / "archive", eval=types.SimpleNamespace(data_dir=None))
+    archive_evaluation(ctx, run)
+    kept = tmp_path / "archive" / "eval" / run.hash
+    assert {p.name for p in kept.iterdir()} == set(archived.EVALUATION_FILES)
+    stored, compact = archived.read_per_image(run.dir), archived.read_per_image(kept)
+    pd.testing.assert_frame_equal(compact, stored)           # the same frames, bit for bit
+    assert list(compact["sequence"]) == ["0001", "0001", "s2"]  # names stay strings
+    old = tmp_path / "old" / "eval" / run.hash                # as archives were written before: the plain csv
+    shutil.copytree(run.dir, old)
+    assert archived.convert_archive(tmp_path / "old") == 1 and archived.convert_archive(tmp_path / "old") == 0
+    assert {p.name: p.read_bytes() for p in old.iterdir()} == {p.name: p.read_bytes() for p in kept.iterdir()}
+    (kept / archived.COMPACT_PER_IMAGE).write_bytes(b"\x1f\x8b not a whole gzip")
+    assert archived.read_per_image(kept) is None             # damaged reads as missing

@@ -106,8 +106,10 @@ def test_a_lost_run_store_is_rebuilt_from_the_archive_without_training(dirs, tmp
     first = pd.read_csv(tmp_path / "results" / "ipt" / "table.csv")
     n = len(first)  # every row learned
     weights = sorted((tmp_path / "archive" / "train").glob(f"*/{archived.WEIGHTS}"))
-    assert len(weights) == n and len(list((tmp_path / "archive" / "eval").glob("*/per_image.csv"))) == n
+    evaluations = sorted((tmp_path / "archive" / "eval").glob(f"*/{archived.COMPACT_PER_IMAGE}"))
+    assert len(weights) == n and len(evaluations) == n
     assert {p.name for p in weights[0].parent.iterdir()} == set(archived.FILES)  # compact: float16 EMA, thinned curve
+    assert {p.name for p in evaluations[0].parent.iterdir()} == set(archived.EVALUATION_FILES)  # scores gzipped
     (tmp_path / "results" / "ipt" / "crops.png").unlink()
     with caplog.at_level("INFO", logger="bench"):
         run_experiment(compose_experiment("ipt", mine + [f"runs_dir={tmp_path / 'fresh'}"]))

@@ -132,8 +132,10 @@ def check_inference(ctx: Context, train_record: dict, train_dir: Path, evaluatio
     frames = dataset(evaluation_data(ctx), evaluation.record["identity"]["split"], task, training=False)
     first = frames[0]
     per_image, _ = evaluate(model, [first], task, hdr=evaluation.record["identity"]["hdr"])
-    recorded = pd.read_csv(evaluation.dir / "per_image.csv")
-    recorded = recorded[recorded["sequence"].astype(str) == str(per_image["sequence"].iloc[0])]
+    recorded = archived.read_per_image(evaluation.dir)
+    if recorded is None:
+        raise UserError(f"adopt: evaluation run {evaluation.hash} has no per-frame scores to compare with")
+    recorded = recorded[recorded["sequence"] == str(per_image["sequence"].iloc[0])]
     merged = per_image.merge(recorded, on="frame", suffixes=("", " recorded"))
     return {m: relative_difference(merged[m], merged[f"{m} recorded"]) for m in COMPARED} | {"frames": len(merged)}
 

@@ -30,7 +30,7 @@ import re
 import numpy as np
 import pandas as pd
 
-from bench import runs, stats
+from bench import archived, runs, stats
 from bench.errors import UserError
 from bench.experiments import results_page
 from bench.experiments.context import Context, split_note
@@ -107,11 +107,11 @@ def _per_sequence_means(ctx: Context, eval_hash: str, cache: dict) -> pd.DataFra
         if scored not in (None, ctx.eval.split):  # never a verdict from two splits' rows
             raise UserError(f"claims: evaluation run {eval_hash} scored split {scored!r}, these claims "
                             f"eval.split={ctx.eval.split!r}; rerun its table with eval.split={ctx.eval.split}")
-        path = ctx.runs_dir / "eval" / eval_hash / "per_image.csv"
-        if not path.exists():
-            raise UserError(f"claims: evaluation run {eval_hash} has no per_image.csv in {ctx.runs_dir}; "
+        frames = archived.read_per_image(ctx.runs_dir / "eval" / eval_hash)
+        if frames is None:
+            raise UserError(f"claims: evaluation run {eval_hash} has no per-frame scores in {ctx.runs_dir}; "
                             "rerun its table with this runs_dir")
-        cache[eval_hash] = pd.read_csv(path).groupby("sequence")[list(METRICS)].mean()
+        cache[eval_hash] = frames.groupby("sequence")[list(METRICS)].mean()
     return cache[eval_hash]
 
 

@@ -84,7 +84,7 @@ def archive_evaluation(ctx: Context, run: runs.Run) -> runs.Run:
     (`eval.data_dir`) stay out too: the archive is committed with the preset's tables, and there it is
     only read, for the recorded models."""
     if ctx.runs_archive is not None and ctx.eval.data_dir is None and not run.record["identity"].get("frames"):
-        runs.archive(run, ctx.runs_archive, ("per_image.csv",))
+        runs.archive(run, ctx.runs_archive, write=lambda directory: archived.write_evaluation(run.dir, directory))
     return run
 
 

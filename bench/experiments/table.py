@@ -26,7 +26,7 @@ from pathlib import Path
 
 import pandas as pd
 
-from bench import runs
+from bench import archived, runs
 from bench.errors import UserError
 from bench.datagen import load_manifest
 from bench.experiments.context import Context, model_config, split_note, with_training, working_split
@@ -251,9 +251,10 @@ def per_image_of(eval_hashes, runs_dir, archives=()) -> pd.DataFrame:
     parts = []
     for h in eval_hashes:
         path = runs.find_record("eval", h, runs_dir, archives)[0]
-        if path is None or not (path.parent / "per_image.csv").exists():
-            raise UserError(f"evaluation run {h} has no per_image.csv in {runs_dir} or the archive")
-        parts.append(pd.read_csv(path.parent / "per_image.csv", dtype={"sequence": str}))
+        frames = archived.read_per_image(path.parent) if path is not None else None
+        if frames is None:
+            raise UserError(f"evaluation run {h} has no per-frame scores in {runs_dir} or the archive")
+        parts.append(frames)
     return pd.concat(parts)
 
 
