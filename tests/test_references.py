@@ -13,7 +13,7 @@ import yaml
 from bench import datagen
 from bench.errors import UserError
 from bench.experiments import references
-from bench.experiments.table import reference_shortfall
+from bench.experiments.table import reference_errors, reference_shortfall
 from bench.table_writer import SCORED_ON, SCORED_ON_PATTERN
 
 REPO = Path(__file__).resolve().parent.parent
@@ -119,9 +119,9 @@ def test_the_references_tool_proposes_more_samples_for_the_sequences_that_fall_s
 
 def test_reference_shortfall_is_the_error_over_a_tenth_of_the_best_rows_relmse_averaged_over_seeds():
     per_image = pd.DataFrame([{"sequence": "s1", "frame": 0, "relMSE": r} for r in (2e-3, 6e-3)])  # two seeds
-    assert reference_shortfall(_frames(), per_image)[("s1", 0)] == pytest.approx(1e-3 / 4e-4)
+    assert reference_shortfall(reference_errors(_frames()), per_image)[("s1", 0)] == pytest.approx(1e-3 / 4e-4)
 
 
 def test_a_frame_the_best_row_reproduces_exactly_falls_short_without_end():
     per_image = pd.DataFrame([{"sequence": "s0", "frame": 0, "relMSE": 0.0}])
-    assert reference_shortfall(_frames(), per_image)[("s0", 0)] == float("inf")
+    assert reference_shortfall(reference_errors(_frames()), per_image)[("s0", 0)] == float("inf")

@@ -27,12 +27,12 @@ import re
 import pandas as pd
 import yaml
 
-from bench import runs
 from bench.datagen import load_manifest
 from bench.errors import UserError
 from bench.experiments.context import Context
 from bench.experiments.datasets import render_digest
-from bench.experiments.table import REFERENCE_SHARE, per_image_of, reference_shortfall
+from bench.experiments.table import (REFERENCE_SHARE, evaluations_of, per_image_of, reference_errors,
+                                    reference_shortfall)
 from bench.table_writer import SCORED_ON_PATTERN, read_caption, write_table
 from bench.tasks import get_task
 
@@ -56,14 +56,14 @@ def table_shortfalls(ctx: Context, frames: list[dict]) -> pd.DataFrame:
             log.info("references: %s left out: %s holds no split %s", name, ctx.data_dir, split)
             continue
         best = table.loc[table["relMSE"].idxmin()]
-        hashes = str(best["runs"]).split()
-        if {(runs.find_record("eval", h, ctx.runs_dir, archives)[1] or {}).get("metrics", {}).get("render")
-                for h in hashes} != {render_digest(ctx, split)}:  # its errors describe other references
+        evaluations = evaluations_of(str(best["runs"]).split(), ctx.runs_dir, archives)
+        if {(record or {}).get("metrics", {}).get("render") for _, record in evaluations} \
+                != {render_digest(ctx, split)}:  # its errors describe other references
             log.info("references: %s left out: it scored another render of split %s", name, split)
             continue
         task = best["task"] if "task" in table else re.search(r"Task (\w+)", caption).group(1)
-        shortfall = reference_shortfall([f for f in frames if f["split"] == split],
-                                        per_image_of(hashes, ctx.runs_dir, archives), get_task(task).y[:2])
+        errors = reference_errors([f for f in frames if f["split"] == split], get_task(task).y[:2])
+        shortfall = reference_shortfall(errors, per_image_of(evaluations))
         out += [{"split": split, "sequence": seq, "frame": frame, "table": name, "best row": best["method"],
                  "shortfall": value} for (seq, frame), value in shortfall.items()]
     return pd.DataFrame(out, columns=["split", "sequence", "frame", "table", "best row", "shortfall"])

@@ -217,13 +217,12 @@ def reference_errors(frames: list[dict], res: str = "hr") -> dict:
     return {(str(f["sequence"]), f["frame"]): f["ref_error"][res] for f in frames if res in (f.get("ref_error") or {})}
 
 
-def reference_shortfall(frames: list[dict], per_image: pd.DataFrame, res: str = "hr") -> pd.Series:
-    """Per scored frame ((sequence, frame) index): its estimated reference relMSE (`res`: the resolution of
-    the task's target) over REFERENCE_SHARE of the best row's relMSE on that frame (`per_image`: that row's
-    per-frame values, averaged over seeds); below 1 the frame passes (issue #17's criterion), inf where the
-    row's relMSE is 0. `frames`: the manifest records of the scored split; frames without an estimate are
-    left out."""
-    errors = reference_errors(frames, res)
+def reference_shortfall(errors: dict, per_image: pd.DataFrame) -> pd.Series:
+    """Per scored frame ((sequence, frame) index): its estimated reference relMSE (`errors`, from
+    `reference_errors` of the scored split's manifest records at the resolution of the task's target) over
+    REFERENCE_SHARE of the best row's relMSE on that frame (`per_image`: that row's per-frame values,
+    averaged over seeds); below 1 the frame passes (issue #17's criterion), inf where the row's relMSE is
+    0. Frames without an estimate are left out."""
     per_frame = per_image.assign(sequence=per_image["sequence"].astype(str)).groupby(["sequence", "frame"])["relMSE"].mean()
     return pd.Series({key: errors[key] / (REFERENCE_SHARE * rel) if rel > 0 else math.inf
                       for key, rel in per_frame.items() if key in errors}, dtype=float)
@@ -238,22 +237,31 @@ def reference_check(frames: list[dict], per_image: pd.DataFrame, best: str, res:
     if not errors:
         return (f" References: one render of {spp_text} spp per frame; their error is not estimated (frames "
                 "rendered with their split's own ref_spp, as two halves, have it).")
-    shortfall = reference_shortfall(frames, per_image, res)
+    shortfall = reference_shortfall(errors, per_image)
     values = pd.Series([errors[key] for key in shortfall.index] or list(errors.values()))
     return (f" References ({spp_text} spp as two independent halves): estimated relMSE median {values.median():.2g}, "
             f"max {values.max():.2g}; below a tenth of the best row's ({best}) relMSE on {int((shortfall < 1).sum())} "
             f"of {len(shortfall)} scored frames.")
 
 
-def per_image_of(eval_hashes, runs_dir, archives=()) -> pd.DataFrame:
-    """The per-frame scores of evaluation runs (all seeds of a row, stacked), from the run store or an
-    archive."""
-    parts = []
+def evaluations_of(eval_hashes, runs_dir, archives=()) -> list[tuple[Path, dict]]:
+    """Where each evaluation run is (the run store, else the first archive that has it) and its record."""
+    found = []
     for h in eval_hashes:
-        path = runs.find_record("eval", h, runs_dir, archives)[0]
-        frames = archived.read_per_image(path.parent) if path is not None else None
+        path, record = runs.find_record("eval", h, runs_dir, archives)
+        if path is None:
+            raise UserError(f"evaluation run {h} is recorded neither in {runs_dir} nor in the archive")
+        found.append((path.parent, record))
+    return found
+
+
+def per_image_of(evaluations: list[tuple[Path, dict]]) -> pd.DataFrame:
+    """The per-frame scores of evaluation runs (`evaluations_of`: all seeds of a row), stacked."""
+    parts = []
+    for run_dir, _ in evaluations:
+        frames = archived.read_per_image(run_dir)
         if frames is None:
-            raise UserError(f"evaluation run {h} has no per-frame scores in {runs_dir} or the archive")
+            raise UserError(f"evaluation run {run_dir.name} has no per-frame scores in {run_dir.parent}")
         parts.append(frames)
     return pd.concat(parts)
 
@@ -269,7 +277,7 @@ def _reference_note(ctx: Context, frames: Context, table: pd.DataFrame, rows: li
         return ""
     scored = row_def.get("split", split) or ctx.eval.split
     return reference_check([f for f in load_manifest(frames.data_dir)["frames"] if f["split"] == scored],
-                           per_image_of(best["runs"].split(), ctx.runs_dir), best["method"], target[:2])
+                           per_image_of(evaluations_of(best["runs"].split(), ctx.runs_dir)), best["method"], target[:2])
 
 
 def run(ctx: Context, name: str, rows: list[dict], caption: str = "", task: str = "srd",
