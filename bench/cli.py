@@ -18,6 +18,7 @@ import time
 from pathlib import Path
 
 import hydra
+import yaml
 from omegaconf import DictConfig, OmegaConf
 
 from bench.errors import UserError
@@ -80,6 +81,34 @@ def choice_problem(args: list[str]) -> str | None:
                 return f"+{group}={name}: no conf/{group}/{name}.yaml; available: {', '.join(available[group])}"
     if len(chosen) == 2:
         return "choose an experiment or a study, not both: +experiment=NAME or +study=NAME"
+    return key_problem(args)
+
+
+def _config_keys(path: Path) -> set[str]:
+    return set(yaml.safe_load(path.read_text()) or {}) - {"defaults"}
+
+
+def key_problem(args: list[str]) -> str | None:
+    """A plain `key=value` whose key no config file has at the top (Hydra's own message is six lines): one
+    line, naming the experiment's key of that name where the chosen experiment has one
+    (`+experiment=data verify=true` means `experiment.verify=true`)."""
+    conf = Path(CONF_DIR)
+    known = {p.name for p in conf.iterdir() if p.is_dir()}  # the config groups (preset=, data=, ...)
+    for path in [conf / "config.yaml", *conf.glob("preset/*.yaml"), *conf.glob("experiment/*.yaml"),
+                 *conf.glob("study/*.yaml")]:
+        known |= _config_keys(path)
+    chosen = [m.groups() for a in args if (m := re.fullmatch(r"\+{0,2}(experiment|study)=(\w+)", a))]
+    for arg in args:
+        match = re.fullmatch(r"(\w+)=.*", arg)  # a plain override of a top-level key: no +, no dots
+        if not match or match.group(1) in known:
+            continue
+        key = match.group(1)
+        for group, name in chosen:
+            own = (yaml.safe_load((conf / group / f"{name}.yaml").read_text()) or {}).get("experiment") or {}
+            if key in own:
+                return f"{arg}: `{key}` is a key of +{group}={name}; write experiment.{arg}"
+        return (f"{arg}: the config has no key `{key}` (a key of the experiment is experiment.{key}=...; "
+                f"`python -m bench --cfg job` prints them all)")
     return None
 
 
