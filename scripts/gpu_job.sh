@@ -2,7 +2,7 @@
 # The GPU work as ONE call per machine start (the machine goes back about 30 s after a call, less than a
 # reply takes to read; docs/gpu.md, "The GPU job"; prepared here by scripts/gpu_prepare.sh). Run from the
 # repository root there, carrying .whl (and runs, from an earlier call):
-#     bash scripts/gpu_job.sh [tests] [speed] [profile] [sota]     (no argument: tests speed sota)
+#     bash scripts/gpu_job.sh [tests] [speed] [profile] [sweep] [sota]     (no argument: tests speed sota)
 # It installs the carried wheels, then runs the steps in order within JOB_S seconds in all (default 560,
 # for a run timeout_s of 600), each within STEP_S (default 540) and what is left; a step whose result is
 # already in the working tree is skipped, so the next call, carrying what the last one brought back,
@@ -13,6 +13,8 @@
 #            -> results/gpu/speed/<device>/
 #   profile  (optional) Ours' training step under torch.profiler, eager and compiled
 #            (scripts/gpu_profile_step.py) -> results/gpu/profile/<device>.md
+#   sweep    (optional) the fused deformable conv's tile sizes against nn.Conv2d (scripts/gpu_deform_sweep.py)
+#            -> results/gpu/profile/<device>-deform-sweep.md
 #   sota     +experiment=sota preset=gpu device=cuda $SOTA_ARGS (rendering: needs the mitsuba wheel),
 #            interrupted at its limit and resumed from its checkpoints by the next call (carry `runs`)
 #            -> results/gpu/sota/, runs/{train,eval}
@@ -99,6 +101,13 @@ step_sota() {
     echo "gpu_job: sota exit $?"
 }
 
+step_sweep() {
+    local record=results/gpu/profile/$tag-deform-sweep.md
+    if [ -f "$record" ]; then echo "gpu_job: sweep already there ($record)"; return; fi
+    timeout "$(step_limit)" "$PYTHON" scripts/gpu_deform_sweep.py --device "$DEVICE" --out "$record"
+    echo "gpu_job: sweep exit $?"
+}
+
 step_profile() {
     local record=results/gpu/profile/$tag.md
     if [ -f "$record" ]; then echo "gpu_job: profile already there ($record)"; return; fi
@@ -112,8 +121,8 @@ step_profile() {
 
 for step in $STEPS; do
     case $step in
-        tests|speed|profile|sota) ;;
-        *) echo "gpu_job: unknown step $step (tests, speed, profile, sota)"; exit 2 ;;
+        tests|speed|profile|sweep|sota) ;;
+        *) echo "gpu_job: unknown step $step (tests, speed, profile, sweep, sota)"; exit 2 ;;
     esac
     if [ "$(step_limit)" -lt 30 ]; then echo "gpu_job: no time left for $step (JOB_S=$JOB_S)"; break; fi
     "step_$step"
