@@ -31,7 +31,7 @@ DEVICE=${DEVICE:-cuda}
 PRESET=${PRESET:-gpu}
 JOB_S=${JOB_S:-560}
 STEP_S=${STEP_S:-540}
-SPEED_ARGS=${SPEED_ARGS:-}
+SPEED_ARGS=${SPEED_ARGS:-experiment.train=null experiment.tiled.uhd=false}  # steps at the preset's size; no 4K tiles
 SOTA_ARGS=${SOTA_ARGS:-}
 PROFILE_ARGS=${PROFILE_ARGS:-}
 STEPS=${*:-tests speed sota}
