@@ -181,11 +181,13 @@ def _read_gzip_csv(path: Path, **read_csv) -> pd.DataFrame:
 
 
 def read_per_image(run_dir: Path) -> pd.DataFrame | None:
-    """An evaluation's per-frame scores (the store's file, else the archive's compressed one), sequence
-    names as strings; None when it has none or it is damaged (the log names it)."""
+    """An evaluation's per-frame scores (the store's file, else, or where it is damaged, the archive's
+    compressed one), sequence names as strings; None when it has neither that reads (the log names a
+    damaged one)."""
     run_dir = Path(run_dir)
-    if (run_dir / PER_IMAGE).exists():
-        return runs.read_or_none(run_dir / PER_IMAGE, lambda p: pd.read_csv(p, dtype={"sequence": str}))
+    plain = runs.read_or_none(run_dir / PER_IMAGE, lambda p: pd.read_csv(p, dtype={"sequence": str}))
+    if plain is not None:
+        return plain
     return runs.read_or_none(run_dir / COMPACT_PER_IMAGE, lambda p: _read_gzip_csv(p, dtype={"sequence": str}))
 
 
@@ -270,8 +272,8 @@ def main(argv=None) -> int:
                                      description="Convert a run archive's trainings and evaluations in place to the compact form.")
     parser.add_argument("archive", type=Path, help="an archive directory, e.g. results/cpu/runs")
     args = parser.parse_args(argv)
-    if not (args.archive / "train").is_dir():
-        print(f"error: {args.archive} holds no train/ directory: not a run archive", file=sys.stderr)
+    if not ((args.archive / "train").is_dir() or (args.archive / "eval").is_dir()):
+        print(f"error: {args.archive} holds no train/ or eval/ directory: not a run archive", file=sys.stderr)
         return 2
     before, t0 = _size(args.archive), time.perf_counter()
     converted = convert_archive(args.archive)

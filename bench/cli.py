@@ -84,31 +84,40 @@ def choice_problem(args: list[str]) -> str | None:
     return key_problem(args)
 
 
-def _config_keys(path: Path) -> set[str]:
-    return set(yaml.safe_load(path.read_text()) or {}) - {"defaults"}
+def _dotted_keys(tree, prefix: str = "") -> set[str]:
+    """Every key of a YAML mapping as a dotted path (a.b.c), the mappings' own included."""
+    if not isinstance(tree, dict):
+        return set()
+    out = set()
+    for key, value in tree.items():
+        path = f"{prefix}{key}"
+        out |= {path} | _dotted_keys(value, path + ".")
+    return out
 
 
 def key_problem(args: list[str]) -> str | None:
     """A plain `key=value` whose key no config file has at the top (Hydra's own message is six lines): one
-    line, naming the experiment's key of that name where the chosen experiment has one
-    (`+experiment=data verify=true` means `experiment.verify=true`)."""
+    line, naming where a key of that name is, e.g. `+experiment=data verify=true` means
+    `experiment.verify=true`, `steps=9` means `train.steps=9`."""
     conf = Path(CONF_DIR)
+    files = [conf / "config.yaml", *conf.glob("preset/*.yaml"), *conf.glob("experiment/*.yaml"), *conf.glob("study/*.yaml")]
+    trees = {path: yaml.safe_load(path.read_text()) or {} for path in files}
     known = {p.name for p in conf.iterdir() if p.is_dir()}  # the config groups (preset=, data=, ...)
-    for path in [conf / "config.yaml", *conf.glob("preset/*.yaml"), *conf.glob("experiment/*.yaml"),
-                 *conf.glob("study/*.yaml")]:
-        known |= _config_keys(path)
-    chosen = [m.groups() for a in args if (m := re.fullmatch(r"\+{0,2}(experiment|study)=(\w+)", a))]
+    for tree in trees.values():
+        known |= set(tree) - {"defaults"}
+    chosen = {(m.group(1), name) for a in args if (m := re.fullmatch(r"\+{0,2}(experiment|study)=([\w,]+)", a))
+              for name in m.group(2).split(",")}
     for arg in args:
-        match = re.fullmatch(r"(\w+)=.*", arg)  # a plain override of a top-level key: no +, no dots
+        match = re.fullmatch(r"(\w+)=.*", arg)  # a plain override of a top-level key: no +, ~, dots or @
         if not match or match.group(1) in known:
             continue
         key = match.group(1)
-        for group, name in chosen:
-            own = (yaml.safe_load((conf / group / f"{name}.yaml").read_text()) or {}).get("experiment") or {}
-            if key in own:
-                return f"{arg}: `{key}` is a key of +{group}={name}; write experiment.{arg}"
-        return (f"{arg}: the config has no key `{key}` (a key of the experiment is experiment.{key}=...; "
-                f"`python -m bench --cfg job` prints them all)")
+        paths = sorted({p for group, name in chosen if (conf / group / f"{name}.yaml").is_file()
+                        for p in _dotted_keys(trees[conf / group / f"{name}.yaml"]) if p.endswith("." + key)}
+                       or {p for path in [conf / "config.yaml", *conf.glob("preset/*.yaml")]
+                           for p in _dotted_keys(trees[path]) if p.endswith("." + key)}, key=len)
+        where = f"; write {paths[0]}={arg.split('=', 1)[1]}" if paths else " (a new key is +KEY=...)"
+        return f"{arg}: the config has no key `{key}` at the top{where}"
     return None
 
 
@@ -437,8 +446,11 @@ def run_experiment(cfg: DictConfig) -> None:
     ensure_writable(ctx.runs_dir, "runs_dir")
     if (not ctx.render_data or ctx.eval.data_dir) and \
             ctx.results_dir.resolve().is_relative_to(Path(CONF_DIR).parent):
+        # scoring your frames reads the committed archive's models and archives nothing: name it, since it
+        # follows results_dir; trainings on your frames (render_data=false) are archived: let it follow
         keep = (f" runs_archive={ctx.runs_archive.resolve()} keeps them out and still reads the recorded models "
-                "from that archive" if ctx.runs_archive else " keeps them out")
+                "from that archive" if ctx.eval.data_dir and ctx.runs_archive else
+                " keeps them out, with the archive of your runs (runs_archive follows results_dir)")
         log.warning("your frames' tables and crops go to %s, inside the repository where git would commit "
                     "them; results_dir=/elsewhere%s", ctx.results_dir, keep)
     t0 = time.perf_counter()

@@ -36,15 +36,28 @@ AUTO = "auto"
 FUSED_GPU = "SRD_BENCH_FUSED_GPU"
 
 
-def fused_kernels_on_cuda() -> contextlib.AbstractContextManager:
-    """A command's CUDA calls take the fused Triton kernels (bench/nn/triton_kernels.py) for the deformable
-    conv and CFM, unless SRD_BENCH_FUSED_GPU=0: tests/test_cuda.py passed with them on an H200
-    (results/gpu/cuda_tests/; their speed: results/gpu/speed/). Entered by the entry points (python -m bench, srd-bench) for the whole command;
-    the variable is set as well, so the processes they spawn (DDP workers) take them too."""
-    if not torch.cuda.is_available() or os.environ.get(FUSED_GPU) == "0":
-        return contextlib.nullcontext()
+@contextlib.contextmanager
+def fused_kernels_on_cuda():
+    """Inside, a command's CUDA calls take the fused Triton kernels (bench/nn/triton_kernels.py) for the
+    deformable conv and CFM, unless SRD_BENCH_FUSED_GPU is 0 (or false, off): tests/test_cuda.py passed
+    with them on an H200 (results/gpu/cuda_tests/; their speed: results/gpu/speed/). Only on GPUs of
+    compute capability 8.0 or more (bf16 tensor-core dots; older ones keep the eager samplers). Entered
+    by the entry points (python -m bench, srd-bench) for the whole command; the variable is set meanwhile,
+    so the processes they spawn (DDP workers) take the kernels too."""
+    off = os.environ.get(FUSED_GPU, "").strip().lower() in ("0", "false", "off")
+    if off or not torch.cuda.is_available() or torch.cuda.get_device_capability() < (8, 0):
+        yield
+        return
+    previous = os.environ.get(FUSED_GPU)
     os.environ[FUSED_GPU] = "1"
-    return fused.on_cuda(True)
+    try:
+        with fused.on_cuda(True):
+            yield
+    finally:
+        if previous is None:
+            os.environ.pop(FUSED_GPU, None)
+        else:
+            os.environ[FUSED_GPU] = previous
 
 
 def time_call(fn, device: str, repeats: int = 5, warmup: int = 1) -> dict:
@@ -110,6 +123,8 @@ def choose_fast_path(model, x: torch.Tensor, g: torch.Tensor | None, device: str
     key = {**key, "weights": weights_digest(model),
            "cpu": platform.processor() or platform.machine(), "isa": cpu_isa(), "device": str(device),
            "input": list(x.shape), "threads": torch.get_num_threads(), "torch": torch.__version__}
+    if str(device).startswith("cuda"):  # the fused kernels or the eager samplers: other times, other errors
+        key["fused"] = fused.applies(x, 0)
     text = json.dumps(key, sort_keys=True, default=str)
     cached = _read_cache(cache)
     if text in cached:

@@ -73,7 +73,8 @@ def main() -> None:
              f"`python scripts/gpu_deform_sweep.py {' '.join(os.sys.argv[1:])}`: 1 x {args.channels} -> "
              f"{args.channels} channels, 3x3, no mask, {args.hw[1]}x{args.hw[0]}, channels-last; median ms of "
              f"{args.repeats} calls; torch {torch.__version__}. fwd+bwd: the forward and the gradients of x, "
-             f"offsets and weight. Today's choice: _blocks(32, 32) = {blocks(args.channels, args.channels)}, "
+             f"offsets and weight. Today's choice: _blocks({args.channels}, {args.channels}) = "
+             f"{blocks(args.channels, args.channels)}, "
              f"NUM_WARPS = {warps}.", ""]
     for dtype in (torch.float32, torch.bfloat16):
         name = "fp32 (TF32 dots)" if dtype == torch.float32 else "bf16"

@@ -35,8 +35,10 @@ def ours(channels: int | None) -> torch.nn.Module:
 
 def make_step(model, x, g, target, mode: str):
     optimizer = torch.optim.Adam(model.parameters(), lr=1e-4)
-    forward = {"eager": model, "torch.compile": None, "reduce-overhead": None}[mode] or torch.compile(
-        model, mode="reduce-overhead" if mode == "reduce-overhead" else None)
+    if mode == "eager":
+        forward = model
+    else:
+        forward = torch.compile(model, mode="reduce-overhead" if mode == "reduce-overhead" else None)
 
     def step():
         optimizer.zero_grad(set_to_none=True)

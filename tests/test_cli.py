@@ -80,9 +80,12 @@ def test_every_study_is_documented_writes_under_studies_and_passes_the_config_ch
     (["+study=no_such_study"], "+study=no_such_study: no conf/study/no_such_study.yaml; available: dark_bias,"),
     (["-m", "+experiment=sota,nope"], "+experiment=nope: no conf/experiment/nope.yaml; available: adopt,"),
     (["+experiment=sota", "+study=dark_bias"], "choose an experiment or a study, not both"),
-    (["+experiment=data", "verify=true"], "verify=true: `verify` is a key of +experiment=data; write experiment.verify=true"),
-    (["+experiment=sota", "stepz=3"], "stepz=3: the config has no key `stepz`"),
-    (["+experiment=sota", "preset=smoke", "force=true", "train.steps=4", "+new_key=1", "hydra/launcher=basic"], None),
+    (["+experiment=data", "verify=true"], "verify=true: the config has no key `verify` at the top; write experiment.verify=true"),
+    (["+experiment=sota,data", "verify=true"], "verify=true: the config has no key `verify` at the top; write experiment.verify=true"),
+    (["+experiment=sota", "steps=3"], "steps=3: the config has no key `steps` at the top; write train.steps=3"),
+    (["+experiment=sota", "stepz=3"], "stepz=3: the config has no key `stepz` at the top (a new key is +KEY=...)"),
+    (["+experiment=sota", "preset=smoke", "force=true", "train.steps=4", "+new_key=1", "++seeds=[0]", "~tracking",
+      "hydra/launcher=basic", "hydra.run.dir=/tmp/x", "model@models.srd=srd", "-m", "--cfg", "job"], None),
 ])
 def test_choices_are_checked_before_hydra_composes_them(args, problem):
     found = choice_problem(args)

@@ -81,17 +81,34 @@ def test_a_path_that_fails_is_recorded_and_skipped_and_none_running_is_an_error(
 
 def test_the_fused_kernels_are_the_cuda_default_unless_switched_off(monkeypatch):
     """CUDA commands take the fused kernels (tested on an H200: results/gpu/cuda_tests/) unless
-    SRD_BENCH_FUSED_GPU=0; without CUDA nothing changes. The GPU itself is checked by tests/test_cuda.py."""
+    SRD_BENCH_FUSED_GPU says 0/false/off or the GPU is older than compute capability 8.0; without CUDA
+    nothing changes. The variable is set for spawned workers and restored after. The GPU itself is
+    checked by tests/test_cuda.py."""
     from bench.nn import fused
-    monkeypatch.delenv(measure.FUSED_GPU, raising=False)
+    monkeypatch.setenv(measure.FUSED_GPU, "placeholder")  # recorded, so the test leaves it as it found it
+    monkeypatch.delenv(measure.FUSED_GPU)
     monkeypatch.setattr(fused, "_on_cuda", False)
     monkeypatch.setattr(torch.cuda, "is_available", lambda: False)
     with measure.fused_kernels_on_cuda():
         assert not fused._on_cuda and measure.FUSED_GPU not in os.environ
     monkeypatch.setattr(torch.cuda, "is_available", lambda: True)
+    monkeypatch.setattr(torch.cuda, "get_device_capability", lambda: (9, 0))
     with measure.fused_kernels_on_cuda():
         assert fused._on_cuda and os.environ[measure.FUSED_GPU] == "1"  # spawned workers inherit it
-    assert not fused._on_cuda
-    monkeypatch.setenv(measure.FUSED_GPU, "0")
+    assert not fused._on_cuda and measure.FUSED_GPU not in os.environ
+    for off in ("0", "false", "OFF"):
+        monkeypatch.setenv(measure.FUSED_GPU, off)
+        with measure.fused_kernels_on_cuda():
+            assert not fused._on_cuda
+    monkeypatch.delenv(measure.FUSED_GPU)
+    monkeypatch.setattr(torch.cuda, "get_device_capability", lambda: (7, 5))  # no bf16 tensor cores
     with measure.fused_kernels_on_cuda():
         assert not fused._on_cuda
+
+
+def test_both_entry_points_enter_the_fused_kernels_default():
+    """python -m bench and srd-bench run their commands inside measure.fused_kernels_on_cuda."""
+    import inspect
+    from bench import cli, predict
+    assert "with fused_kernels_on_cuda():" in inspect.getsource(cli.main)
+    assert "with fused_kernels_on_cuda():" in inspect.getsource(predict.main)

@@ -2,6 +2,7 @@
 data spec re-renders that sequence alone, and `+experiment=references` proposes it from the recorded tables."""
 import copy
 import json
+import shutil
 import re
 from pathlib import Path
 from types import SimpleNamespace
@@ -102,6 +103,8 @@ def test_the_references_tool_proposes_more_samples_for_the_sequences_that_fall_s
     _recorded_table(tmp_path, "loose", best_relmse=0.1)    # a tenth: 1e-2, both sequences pass
     _recorded_table(tmp_path, "strict", best_relmse=4e-3)  # a tenth: 4e-4: s1 falls short 2.5x, s0 passes (0.25)
     _recorded_table(tmp_path, "elsewhere", best_relmse=1e-5, render="0ther")  # another render's: left out
+    _recorded_table(tmp_path, "unrecorded", best_relmse=1e-5)  # its runs in no store here: left out
+    shutil.rmtree(tmp_path / "runs" / "eval" / "unrecorded-best")
     # s9 was given more samples before and is not scored by these tables: its count stays in the proposal
     spec = {"splits": {"test": {"ref_spp": 1024, "sequence_ref_spp": {"s9": 2048}}}}
     ctx = SimpleNamespace(results_dir=tmp_path / "results", runs_dir=tmp_path / "runs", runs_archive=None,

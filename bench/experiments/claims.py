@@ -2,7 +2,7 @@
 
 A claim names pairs of rows, "table:row label" (`better` is the row the paper says wins). For each pair
 and metric the difference is taken per (seed, sequence), oriented so that a positive value supports the
-claim (relMSE: worse minus better), from the evaluation runs' per_image.csv: seeds paired by index,
+claim (relMSE: worse minus better), from the evaluation runs' per-frame scores: seeds paired by index,
 sequences by name, a deterministic row (one evaluation: OIDN, bilinear) against every seed of the other.
 `bench.stats` gives its mean, a 95% t interval and a p-value from a seed x sequence variance decomposition
 (training noise and scene noise, both random).

@@ -31,7 +31,7 @@ from bench.datagen import load_manifest
 from bench.errors import UserError
 from bench.experiments.context import Context
 from bench.experiments.datasets import render_digest
-from bench.experiments.table import (REFERENCE_SHARE, evaluations_of, per_image_of, reference_errors,
+from bench.experiments.table import (REFERENCE_SHARE, evaluation_records, per_image_of, reference_errors,
                                     reference_shortfall)
 from bench.table_writer import SCORED_ON_PATTERN, read_caption, write_table
 from bench.tasks import get_task
@@ -56,7 +56,11 @@ def table_shortfalls(ctx: Context, frames: list[dict]) -> pd.DataFrame:
             log.info("references: %s left out: %s holds no split %s", name, ctx.data_dir, split)
             continue
         best = table.loc[table["relMSE"].idxmin()]
-        evaluations = evaluations_of(str(best["runs"]).split(), ctx.runs_dir, archives)
+        try:
+            evaluations = evaluation_records(str(best["runs"]).split(), ctx.runs_dir, archives)
+        except UserError as err:  # a table of another run store (or of your frames, never archived)
+            log.info("references: %s left out: %s", name, err)
+            continue
         if {(record or {}).get("metrics", {}).get("render") for _, record in evaluations} \
                 != {render_digest(ctx, split)}:  # its errors describe other references
             log.info("references: %s left out: it scored another render of split %s", name, split)

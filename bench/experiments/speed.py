@@ -272,7 +272,7 @@ def note_auto_choice(rows: list[dict], model, x, g, device, repeats) -> str | No
 
 def training_rows(label: str, model, train: dict, loss_weights: dict, lr: float, device, repeats, warmup) -> list[dict]:
     """The training step with the deformable convs' default training sampler (compiled on CPU; on CUDA
-    the fused kernels where SRD_BENCH_FUSED_GPU=1) and, for models that have deformable convs, with
+    the fused kernels, the entry points' default) and, for models that have deformable convs, with
     the grid_sample sampler and, on CUDA, the fused Triton kernels (deformable conv and CFM)."""
     rows = [training_row(label, model, train, loss_weights, lr, device, repeats, warmup)]
     deform = next((m for m in model.modules() if isinstance(m, DeformConv2d)), None)

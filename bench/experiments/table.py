@@ -244,7 +244,7 @@ def reference_check(frames: list[dict], per_image: pd.DataFrame, best: str, res:
             f"of {len(shortfall)} scored frames.")
 
 
-def evaluations_of(eval_hashes, runs_dir, archives=()) -> list[tuple[Path, dict]]:
+def evaluation_records(eval_hashes, runs_dir, archives=()) -> list[tuple[Path, dict]]:
     """Where each evaluation run is (the run store, else the first archive that has it) and its record."""
     found = []
     for h in eval_hashes:
@@ -256,7 +256,7 @@ def evaluations_of(eval_hashes, runs_dir, archives=()) -> list[tuple[Path, dict]
 
 
 def per_image_of(evaluations: list[tuple[Path, dict]]) -> pd.DataFrame:
-    """The per-frame scores of evaluation runs (`evaluations_of`: all seeds of a row), stacked."""
+    """The per-frame scores of evaluation runs (`evaluation_records`: all seeds of a row), stacked."""
     parts = []
     for run_dir, _ in evaluations:
         frames = archived.read_per_image(run_dir)
@@ -277,7 +277,7 @@ def _reference_note(ctx: Context, frames: Context, table: pd.DataFrame, rows: li
         return ""
     scored = row_def.get("split", split) or ctx.eval.split
     return reference_check([f for f in load_manifest(frames.data_dir)["frames"] if f["split"] == scored],
-                           per_image_of(evaluations_of(best["runs"].split(), ctx.runs_dir)), best["method"], target[:2])
+                           per_image_of(evaluation_records(best["runs"].split(), ctx.runs_dir)), best["method"], target[:2])
 
 
 def run(ctx: Context, name: str, rows: list[dict], caption: str = "", task: str = "srd",

@@ -38,12 +38,12 @@ output rows.
     backward is about 2x faster than embedding_bag's (which sorts the indices), and gradients flow to
     input, offsets, mask, weight and bias. Positions are clamped like the other samplers' (huge or
     infinite offsets read zeros, with zero offset gradient).
-  - fused, training and inference on CUDA where SRD_BENCH_FUSED_GPU=1 (bench.nn.fused decides; off by
-    default until tests/test_cuda.py has passed with it on a GPU): one Triton kernel per direction
+  - fused, training and inference on CUDA, the entry points' default (bench.nn.fused decides;
+    SRD_BENCH_FUSED_GPU=0 turns it off; tests/test_cuda.py passed with it on an H200): one Triton kernel per direction
     (bench/nn/triton_kernels.py) samples a tile's taps and multiplies them by the weight on the
     tensor cores without writing columns; its backward recomputes the samples, scatters the input's
     gradient with atomics and sums the weight's per chunk of tiles. float32 (TF32 where torch allows
-    it) and bfloat16 under autocast. No GPU measurement of it yet.
+    it) and bfloat16 under autocast. Its H200 times: results/gpu/speed/ and results/gpu/profile/.
 Measured forward time / a plain nn.Conv2d of the same shape and layout (32->32, 3x3, 2 threads, glibc
 keeping freed memory, see bench.infer.keep_freed_memory; results/*/speed/<machine>/ and runs of the
 same day). AVX512-BF16 EPYC: columns with channels-last input 2.1-2.8x in fp32 and 2.6-3.0x in bf16

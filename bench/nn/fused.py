@@ -1,7 +1,8 @@
 """Which calls take the fused Triton kernels (bench.nn.triton_kernels): the deformable conv and CFM.
 
-On CUDA they are taken only where SRD_BENCH_FUSED_GPU=1, until tests/test_cuda.py has passed with them
-on a GPU (scripts/gpu_job.sh runs it); `forced()` makes every call on any device take them (CPU tensors
+On CUDA they are taken where SRD_BENCH_FUSED_GPU=1 or inside `on_cuda()`, which the entry points enter
+by default (bench.measure.fused_kernels_on_cuda: tests/test_cuda.py passed with them on an H200,
+results/gpu/cuda_tests/); `forced()` makes every call on any device take them (CPU tensors
 need Triton's interpreter, TRITON_INTERPRET=1: the tests) or none. Triton ships with CUDA builds of
 torch; the CPU wheel has none, and then nothing here applies.
 
@@ -77,7 +78,8 @@ MAX_CHANNELS = 128  # the kernels keep a pixel's output (or CFM's conditioning) 
 
 
 def applies(x: torch.Tensor, channels: int) -> bool:
-    """The fused kernels take a call on x: asked for (forced(), or CUDA with SRD_BENCH_FUSED_GPU=1),
+    """The fused kernels take a call on x: asked for (forced(), or CUDA inside on_cuda() or with
+    SRD_BENCH_FUSED_GPU=1),
     computing in float32/bfloat16 (not float16 autocast), at most MAX_CHANNELS `channels` (the call's
     widest), Triton installed."""
     wanted = _forced if _forced is not None else (_on_cuda and x.is_cuda)
