@@ -208,14 +208,19 @@ def write(run_dir: Path, dest: Path, record: dict) -> None:
     run_dir, dest = Path(run_dir), Path(dest)
     if (run_dir / CHECKPOINT).exists():
         write_weights(_checkpoint_weights(run_dir / CHECKPOINT), dest / WEIGHTS)
-    elif (run_dir / WEIGHTS).exists() and run_dir != dest:
-        runs.write_atomic(dest / WEIGHTS, lambda tmp: tmp.write_bytes((run_dir / WEIGHTS).read_bytes()))
+    else:
+        _copy(WEIGHTS, run_dir, dest)
     if (run_dir / CURVE).exists():
         write_curve((run_dir / CURVE).read_text(), dest / COMPACT_CURVE, whole_curve(record))
-    elif (run_dir / COMPACT_CURVE).exists() and run_dir != dest:
-        runs.write_atomic(dest / COMPACT_CURVE, lambda tmp: tmp.write_bytes((run_dir / COMPACT_CURVE).read_bytes()))
-    if (run_dir / VAL_CURVE).exists() and run_dir != dest:
-        runs.write_atomic(dest / VAL_CURVE, lambda tmp: tmp.write_bytes((run_dir / VAL_CURVE).read_bytes()))
+    else:
+        _copy(COMPACT_CURVE, run_dir, dest)
+    _copy(VAL_CURVE, run_dir, dest)
+
+
+def _copy(name: str, run_dir: Path, dest: Path) -> None:
+    """A file kept as it is, copied from `run_dir` to `dest` where it is there and they differ."""
+    if (run_dir / name).exists() and run_dir != dest:
+        runs.write_atomic(dest / name, lambda tmp: tmp.write_bytes((run_dir / name).read_bytes()))
 
 
 def write_evaluation(run_dir: Path, dest: Path) -> None:
@@ -224,9 +229,8 @@ def write_evaluation(run_dir: Path, dest: Path) -> None:
     run_dir, dest = Path(run_dir), Path(dest)
     if (run_dir / PER_IMAGE).exists():
         _write_gzip((run_dir / PER_IMAGE).read_bytes(), dest / COMPACT_PER_IMAGE)
-    elif (run_dir / COMPACT_PER_IMAGE).exists() and run_dir != dest:
-        runs.write_atomic(dest / COMPACT_PER_IMAGE,
-                          lambda tmp: tmp.write_bytes((run_dir / COMPACT_PER_IMAGE).read_bytes()))
+    else:
+        _copy(COMPACT_PER_IMAGE, run_dir, dest)
 
 
 def convert_evaluation(run_dir: Path) -> bool:
