@@ -67,21 +67,22 @@ def available_studies() -> list[str]:
 
 def choice_problem(args: list[str]) -> str | None:
     """What is wrong with the command line's `+experiment=`/`+study=` choices, before Hydra composes them (its
-    own message is a traceback-like block): a name that does not exist, or an experiment and a study together."""
+    own message is a traceback-like block): a name that does not exist, or an experiment and a study together;
+    then a plain key the config lacks (`key_problem`)."""
     available = {"experiment": available_experiments(), "study": available_studies()}
-    chosen = set()
+    chosen = set()  # (group, name)
     for arg in args:
         match = re.fullmatch(r"\+{0,2}(experiment|study)=([\w,]+)", arg)  # names, or a sweep's a,b,c
         if not match:
             continue
         group, names = match.groups()
-        chosen.add(group)
         for name in names.split(","):
             if name not in available[group]:
                 return f"+{group}={name}: no conf/{group}/{name}.yaml; available: {', '.join(available[group])}"
-    if len(chosen) == 2:
+            chosen.add((group, name))
+    if len({group for group, _ in chosen}) == 2:
         return "choose an experiment or a study, not both: +experiment=NAME or +study=NAME"
-    return key_problem(args)
+    return key_problem(args, chosen)
 
 
 def _dotted_keys(tree, prefix: str = "") -> set[str]:
@@ -95,30 +96,35 @@ def _dotted_keys(tree, prefix: str = "") -> set[str]:
     return out
 
 
-def key_problem(args: list[str]) -> str | None:
+def key_problem(args: list[str], chosen: set[tuple[str, str]]) -> str | None:
     """A plain `key=value` whose key no config file has at the top (Hydra's own message is six lines): one
     line, naming where a key of that name is, e.g. `+experiment=data verify=true` means
-    `experiment.verify=true`, `steps=9` means `train.steps=9`."""
+    `experiment.verify=true`, `steps=9` means `train.steps=9`. `chosen`: the (experiment|study, name)
+    pairs of the command line. The other config files are read only for a key that config.yaml and the
+    groups do not name, so a command's start pays for one small file."""
     conf = Path(CONF_DIR)
-    files = [conf / "config.yaml", *conf.glob("preset/*.yaml"), *conf.glob("experiment/*.yaml"), *conf.glob("study/*.yaml")]
-    trees = {path: yaml.safe_load(path.read_text()) or {} for path in files}
-    known = {p.name for p in conf.iterdir() if p.is_dir()}  # the config groups (preset=, data=, ...)
+    plain = [(m.group(1), arg) for arg in args if (m := re.fullmatch(r"(\w+)=.*", arg))]  # no +, ~, dots or @
+    known = {p.name for p in conf.iterdir() if p.is_dir()} | _config_keys(conf / "config.yaml")  # groups: preset=...
+    if all(key in known for key, _ in plain):
+        return None
+    near = [conf / "config.yaml", *conf.glob("preset/*.yaml")]
+    trees = {path: yaml.safe_load(path.read_text()) or {}
+             for path in [*near, *conf.glob("experiment/*.yaml"), *conf.glob("study/*.yaml")]}
     for tree in trees.values():
         known |= set(tree) - {"defaults"}
-    chosen = {(m.group(1), name) for a in args if (m := re.fullmatch(r"\+{0,2}(experiment|study)=([\w,]+)", a))
-              for name in m.group(2).split(",")}
-    for arg in args:
-        match = re.fullmatch(r"(\w+)=.*", arg)  # a plain override of a top-level key: no +, ~, dots or @
-        if not match or match.group(1) in known:
+    for key, arg in plain:
+        if key in known:
             continue
-        key = match.group(1)
-        paths = sorted({p for group, name in chosen if (conf / group / f"{name}.yaml").is_file()
-                        for p in _dotted_keys(trees[conf / group / f"{name}.yaml"]) if p.endswith("." + key)}
-                       or {p for path in [conf / "config.yaml", *conf.glob("preset/*.yaml")]
-                           for p in _dotted_keys(trees[path]) if p.endswith("." + key)}, key=len)
+        paths = sorted({p for group, name in chosen for p in _dotted_keys(trees[conf / group / f"{name}.yaml"])
+                        if p.endswith("." + key)}
+                       or {p for path in near for p in _dotted_keys(trees[path]) if p.endswith("." + key)}, key=len)
         where = f"; write {paths[0]}={arg.split('=', 1)[1]}" if paths else " (a new key is +KEY=...)"
         return f"{arg}: the config has no key `{key}` at the top{where}"
     return None
+
+
+def _config_keys(path: Path) -> set[str]:
+    return set(yaml.safe_load(path.read_text()) or {}) - {"defaults"}
 
 
 _TRAIN_POSITIVE_INTS = ("steps", "batch_size", "seq_len", "crop", "checkpoint_every")
