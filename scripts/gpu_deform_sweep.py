@@ -3,42 +3,26 @@ shape, and what the DeformConv2d layer spends beside the kernel (its 1x1 offset 
 measurements for choosing `_blocks` and `NUM_WARPS`. Each (BLOCK_P, BLOCK_C, num_warps) is timed for the
 forward alone and forward + backward (gradients of x, offsets and weight), without the DCNv2 mask as in
 Ours' layers, channels-last, in
-float32 (TF32 dots where torch's cuDNN flag allows them, its default) and bfloat16. Median of CUDA-event
-timed calls after warm-up. Writes a markdown table.
+float32 (TF32 dots where torch's cuDNN flag allows them, its default) and bfloat16. Median of
+calls after warm-up (bench.measure.time_call, synchronised). Writes a markdown table.
     python scripts/gpu_deform_sweep.py --out results/gpu/profile/<device>-deform-sweep.md
     TRITON_INTERPRET=1 python scripts/gpu_deform_sweep.py --device cpu --hw 6 7 --repeats 1 --out /tmp/s.md
 """
 import argparse
 import itertools
 import os
-import statistics
-import time
 
 import torch
 
 from bench.experiments.speed import device_tag
+from bench.measure import time_call
 from bench.nn import fused
 from bench.nn.deform import DeformConv2d
 
 
-def timed(fn, device: str, repeats: int, warmup: int = 2) -> float:
-    """Median ms of `repeats` calls after `warmup`."""
-    for _ in range(warmup):
-        fn()
-    times = []
-    for _ in range(repeats):
-        if device == "cuda":
-            start, end = torch.cuda.Event(enable_timing=True), torch.cuda.Event(enable_timing=True)
-            start.record()
-            fn()
-            end.record()
-            torch.cuda.synchronize()
-            times.append(start.elapsed_time(end))
-        else:
-            start = time.perf_counter()
-            fn()
-            times.append((time.perf_counter() - start) * 1e3)
-    return statistics.median(times)
+def timed(fn, device: str, repeats: int) -> float:
+    """Median ms of `repeats` calls after two untimed ones (bench.measure.time_call, the suite's one loop)."""
+    return time_call(fn, device, repeats=repeats, warmup=2)["ms"]
 
 
 def inputs(hw, channels: int, dtype, device: str, seed: int = 0):
