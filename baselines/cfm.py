@@ -15,9 +15,8 @@ upsampling of the input radiance to the output, from a zero-initialised last con
 import torch.nn as nn
 
 from baselines import fold_time, gbuffer_prefix, unfold_time
-from baselines.edsr import OLD_NAMES
 from bench.hdr import transforms
-from bench.nn.blocks import EDSRTrunk, RGBUpsampler, load_old_names
+from bench.nn.blocks import EDSRTrunk, RGBUpsampler
 from bench.nn.cfm import ConditionNet
 
 
@@ -37,7 +36,6 @@ class CFMNet(nn.Module):
         self.trunk = EDSRTrunk(in_channels, channels, blocks, deform_blocks=deformable_blocks,
                                cond_channels=cond_channels)
         self.output = RGBUpsampler(channels, scale, input_residual, transforms(linear_base))
-        load_old_names(self, OLD_NAMES)
 
     def forward(self, x, g):
         cond = self.condition(fold_time(gbuffer_prefix(g, self.gbuffer_channels)))

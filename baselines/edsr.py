@@ -21,11 +21,8 @@ import torch.nn as nn
 
 from baselines import fold_time, unfold_time, with_gbuffer
 from bench.hdr import transforms
-from bench.nn.blocks import EDSRTrunk, RGBUpsampler, load_old_names
+from bench.nn.blocks import EDSRTrunk, RGBUpsampler
 
-# parameter names before the shared trunk and output (2026-11): recorded weights hold them
-OLD_NAMES = {"head.": "trunk.head.", "body.": "trunk.body.", "body_conv.": "trunk.body_conv.",
-             "up.": "output.up.", "tail.": "output.tail."}
 
 
 class EDSR(nn.Module):
@@ -38,7 +35,6 @@ class EDSR(nn.Module):
         self.trunk = EDSRTrunk(in_channels + gbuffer_channels, channels, blocks, dilation=dilation,
                                deform_blocks=blocks if deformable else 0, res_scale=res_scale)
         self.output = RGBUpsampler(channels, scale, input_residual, transforms(linear_base))
-        load_old_names(self, OLD_NAMES)
 
     def forward(self, x, g):
         features = self.trunk(fold_time(with_gbuffer(x, g, self.gbuffer_channels)))

@@ -38,6 +38,7 @@ from pathlib import Path
 import pandas as pd
 import torch
 
+from bench.atomic import write_atomic
 from bench import runs
 from bench.train import CHECKPOINT
 
@@ -100,7 +101,7 @@ def decode(saved: dict, device: str = "cpu") -> dict:
 def write_weights(state_dict: dict, path: Path) -> None:
     buffer = io.BytesIO()  # torch.save names the zip's folder after a file: through a buffer, same bytes always
     torch.save(encode(state_dict), buffer)
-    runs.write_atomic(path, lambda tmp: tmp.write_bytes(buffer.getvalue()))
+    write_atomic(path, lambda tmp: tmp.write_bytes(buffer.getvalue()))
 
 
 def _checkpoint_weights(path: Path, device: str = "cpu") -> dict:
@@ -170,7 +171,7 @@ def write_curve(text: str, path: Path, whole: bool = False) -> None:
 
 def _write_gzip(data: bytes, path: Path) -> None:
     packed = gzip.compress(data, compresslevel=9, mtime=0)  # mtime 0: the same bytes every time
-    runs.write_atomic(path, lambda tmp: tmp.write_bytes(packed))
+    write_atomic(path, lambda tmp: tmp.write_bytes(packed))
 
 
 def _read_gzip_csv(path: Path, **read_csv) -> pd.DataFrame:
@@ -220,7 +221,7 @@ def write(run_dir: Path, dest: Path, record: dict) -> None:
 def _copy(name: str, run_dir: Path, dest: Path) -> None:
     """A file kept as it is, copied from `run_dir` to `dest` where it is there and they differ."""
     if (run_dir / name).exists() and run_dir != dest:
-        runs.write_atomic(dest / name, lambda tmp: tmp.write_bytes((run_dir / name).read_bytes()))
+        write_atomic(dest / name, lambda tmp: tmp.write_bytes((run_dir / name).read_bytes()))
 
 
 def write_evaluation(run_dir: Path, dest: Path) -> None:

@@ -38,6 +38,7 @@ import pandas as pd
 import torch
 from tqdm import tqdm
 
+from bench.atomic import write_atomic
 from bench import exrio, metrics, render, runs, scenes
 from bench.errors import UserError
 from bench.tasks import BUFFERS, GBUF_LAYERS
@@ -457,7 +458,7 @@ def _device(variant):
 def _write_json(path, obj):
     """Atomic JSON write (temp file + rename)."""
     os.makedirs(os.path.dirname(os.path.abspath(path)), exist_ok=True)
-    runs.write_atomic(path, lambda tmp: tmp.write_text(json.dumps(obj, indent=1, default=float)))
+    write_atomic(path, lambda tmp: tmp.write_text(json.dumps(obj, indent=1, default=float)))
 
 
 def _leave_interrupts_to_the_parent():

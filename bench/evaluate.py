@@ -15,6 +15,7 @@ import numpy as np
 import pandas as pd
 import torch
 
+from bench.atomic import write_atomic
 from bench.hdr import from_network, to_network
 from bench.infer import REFERENCE, prepare, tiled_predict
 from bench.metrics import METRICS, SEQUENCE_METRICS, all_metrics
@@ -97,7 +98,7 @@ def evaluate(model, dataset, task: Task, *, hdr: str = "clamp", device: str = "c
     per_image = pd.DataFrame(rows)
     if out_dir is not None:
         Path(out_dir).mkdir(parents=True, exist_ok=True)
-        per_image.to_csv(Path(out_dir) / "per_image.csv", index=False)
+        write_atomic(Path(out_dir) / "per_image.csv", lambda tmp: per_image.to_csv(tmp, index=False))
     return per_image, aggregate(per_image)
 
 

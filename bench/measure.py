@@ -60,6 +60,16 @@ def fused_kernels_on_cuda():
             os.environ[FUSED_GPU] = previous
 
 
+def fused_kernels_used(device: str) -> str | None:
+    """For a run's record: the digest of bench/nn/triton_kernels.py where a run on `device` takes the
+    fused kernels (CUDA, switched on as SRD_BENCH_FUSED_GPU=1 or fused_kernels_on_cuda, Triton
+    installed), else None (PyTorch's samplers). Not in any identity: the kernels match the samplers to
+    tests/test_fused_gpu.py's tolerances, not bit for bit."""
+    if torch.device(device).type != "cuda" or os.environ.get(FUSED_GPU) != "1" or fused.kernels() is None:
+        return None
+    return hashlib.sha256((Path(fused.__file__).parent / "triton_kernels.py").read_bytes()).hexdigest()[:16]
+
+
 def time_call(fn, device: str, repeats: int = 5, warmup: int = 1) -> dict:
     """Median, min and max milliseconds of `repeats` calls of fn() after `warmup` untimed ones (the
     device synchronised around each), and the last call's result (to compare outputs without an extra

@@ -42,6 +42,8 @@ from pathlib import Path
 
 import pandas as pd
 
+from bench.atomic import write_atomic
+
 log = logging.getLogger("bench")
 
 RECORD = "run.json"
@@ -143,18 +145,6 @@ def read_or_none(path: str | Path, read=None):
 def read_json_or_none(path: str | Path) -> dict | None:
     """A JSON object the suite wrote, or None when missing or damaged (`read_or_none`)."""
     return read_or_none(path, _read_json_object)
-
-
-def write_atomic(path: Path, write) -> None:
-    """Write `path` by `write(tmp)` into a temporary file beside it, then rename it into place: readers
-    never see half a file, and the temporary file never outlives a failed write (a full disk)."""
-    path = Path(path)
-    tmp = path.with_name(f"{path.name}.{os.getpid()}.tmp")
-    try:
-        write(tmp)
-        os.replace(tmp, path)
-    finally:
-        tmp.unlink(missing_ok=True)
 
 
 def remove_temporary_files(run_dir: Path) -> None:
@@ -440,8 +430,8 @@ def _restore_locked(runs_dir, archive_dir, kind: str, run_hash: str, code: dict 
 
 # ---------------------------------------------------------------- code identity
 
-_ROOT = Path(__file__).resolve().parent.parent
-_PACKAGES = ("bench", "baselines")
+ROOT = Path(__file__).resolve().parent.parent    # the project: the packages whose source runs fingerprint
+PACKAGES = ("bench", "baselines")
 
 
 def code_fingerprint(modules) -> dict:
@@ -462,7 +452,7 @@ def _code_fingerprint(modules: tuple) -> dict:
         path = module_file(name)
         if path is None:
             parent = name.rpartition(".")[0]  # "pkg.module.Class": the module that defines it
-            if parent.split(".")[0] in _PACKAGES:
+            if parent.split(".")[0] in PACKAGES:
                 todo.append(parent)
             continue
         if path in files:
@@ -471,7 +461,7 @@ def _code_fingerprint(modules: tuple) -> dict:
         todo.extend(project_imports(path, name))
         parts = name.split(".")
         todo.extend(".".join(parts[:i]) for i in range(1, len(parts)))  # packages run their __init__
-    return {str(p.relative_to(_ROOT)): _source_hash(p) for p in sorted(files)}
+    return {str(p.relative_to(ROOT)): source_hash(p) for p in sorted(files)}
 
 
 def code_changes(record: dict, code: dict | None) -> list:
@@ -484,9 +474,9 @@ def code_changes(record: dict, code: dict | None) -> list:
 
 
 def module_file(name: str) -> Path | None:
-    if name.split(".")[0] not in _PACKAGES:
+    if name.split(".")[0] not in PACKAGES:
         return None
-    base = _ROOT.joinpath(*name.split("."))
+    base = ROOT.joinpath(*name.split("."))
     for path in (base.with_suffix(".py"), base / "__init__.py"):
         if path.is_file():
             return path
@@ -508,11 +498,11 @@ def project_imports(path: Path, name: str) -> list:
                 base = ".".join(anchor + ([base] if base else []))
             found.append(base)
             found.extend(f"{base}.{alias.name}" for alias in node.names)  # `from pkg import module`
-    return [m for m in found if m.split(".")[0] in _PACKAGES]
+    return [m for m in found if m.split(".")[0] in PACKAGES]
 
 
 @functools.lru_cache(maxsize=None)
-def _source_hash(path: Path) -> str:
+def source_hash(path: Path) -> str:
     if path.suffix != ".py":
         return hashlib.sha256(path.read_bytes()).hexdigest()[:16]
     tree = ast.parse(path.read_text())

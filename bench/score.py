@@ -31,6 +31,7 @@ import numpy as np
 import pandas as pd
 import torch
 
+from bench.atomic import write_atomic
 from bench import archived, exrio, runs
 from bench.dataset import SequenceDataset
 from bench.errors import UserError
@@ -199,7 +200,7 @@ def run(args) -> int:
     out_dir = Path(args.out_dir or args.outputs)
     try:
         out_dir.mkdir(parents=True, exist_ok=True)
-        runs.write_atomic(out_dir / "per_image.csv", lambda tmp: per_image.to_csv(tmp, index=False))
+        write_atomic(out_dir / "per_image.csv", lambda tmp: per_image.to_csv(tmp, index=False))
         written = write_table(table, out_dir, "table", f"{args.label}: {args.outputs} on {args.data} {args.split}",
                               LOWER_IS_BETTER, HIGHER_IS_BETTER)
     except OSError as err:

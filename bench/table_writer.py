@@ -14,7 +14,7 @@ from pathlib import Path
 
 import pandas as pd
 
-from bench.runs import write_atomic
+from bench.atomic import write_atomic
 
 DOWN, UP = "\u2193", "\u2191"
 

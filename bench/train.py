@@ -34,6 +34,7 @@ import torch
 from tqdm import tqdm
 
 from bench import distributed
+from bench.atomic import write_atomic
 from bench.errors import UserError
 from bench.hdr import MODES, to_network, transforms
 from bench.infer import frames_channels_last
@@ -208,11 +209,10 @@ class _State:
 
 
 def save_checkpoint(path: Path, model, ema_model, optimizer, state: _State) -> None:
-    tmp = path.with_suffix(".tmp")
-    torch.save({"model": model.state_dict(), "ema": ema_model.state_dict() if ema_model is not None else None,
-                "optimizer": optimizer.state_dict(), "step": state.step, "curve": state.curve,
-                "val_curve": state.val_curve, "elapsed_s": state.train_s}, tmp)
-    tmp.replace(path)
+    saved = {"model": model.state_dict(), "ema": ema_model.state_dict() if ema_model is not None else None,
+             "optimizer": optimizer.state_dict(), "step": state.step, "curve": state.curve,
+             "val_curve": state.val_curve, "elapsed_s": state.train_s}
+    write_atomic(path, lambda tmp: torch.save(saved, tmp))
 
 
 def load_weights(model, out_dir: str | Path, device: str = "cpu"):
@@ -235,9 +235,10 @@ def _resume(path: Path, model, ema_model, optimizer, device) -> _State:
 
 
 def _write_curves(out_dir: Path, state: _State) -> None:
-    pd.DataFrame(state.curve).to_csv(out_dir / "curve.csv", index=False)
+    """curve.csv and val_curve.csv, each replaced whole: a reader never sees half of one."""
+    write_atomic(out_dir / "curve.csv", lambda tmp: pd.DataFrame(state.curve).to_csv(tmp, index=False))
     if state.val_curve:
-        pd.DataFrame(state.val_curve).to_csv(out_dir / "val_curve.csv", index=False)
+        write_atomic(out_dir / "val_curve.csv", lambda tmp: pd.DataFrame(state.val_curve).to_csv(tmp, index=False))
 
 
 def _validation_point(state: _State, validate, model) -> dict:
@@ -322,7 +323,7 @@ def train(model, dataset, task: Task, out_dir: str | Path, recipe: Recipe, *, fe
                 reported, stopping = dict(zip(reported, means[:-1])), bool(means[-1] > 0)
             if not torch.isfinite(reported["loss"]):
                 if writes:
-                    pd.DataFrame(state.curve).to_csv(out_dir / "curve.csv", index=False)
+                    _write_curves(out_dir, state)
                 last = ckpt_path if ckpt_path.exists() else "none (diverged before the first)"
                 raise TrainingDiverged(f"non-finite loss ({reported['loss'].item()}) at step {step}; the last good "
                                        f"checkpoint is {last}", step)
@@ -333,7 +334,7 @@ def train(model, dataset, task: Task, out_dir: str | Path, recipe: Recipe, *, fe
                 torch.nn.utils.clip_grads_with_norm_(model.parameters(), recipe.clip_grad_norm, grad_norm)
             if not torch.isfinite(grad_norm):  # the same on every rank: DDP averaged the gradients
                 if writes:
-                    pd.DataFrame(state.curve).to_csv(out_dir / "curve.csv", index=False)
+                    _write_curves(out_dir, state)
                 raise TrainingDiverged(f"non-finite gradient at step {step}; the last good checkpoint is "
                                        f"{ckpt_path if ckpt_path.exists() else 'none'}", step)
             optimizer.step()

@@ -273,33 +273,3 @@ def test_kpcn_forward_by_bands_equals_whole_kernels():
     torch.testing.assert_close(banded, whole)
     gx = torch.autograd.grad(whole.square().sum(), x)[0]
     torch.testing.assert_close(torch.autograd.grad(banded.square().sum(), x)[0], gx)
-
-
-# today's name -> the name before the shared EDSRTrunk and RGBUpsampler, as recorded weights still hold it
-OLD_NAMES = {"trunk.head.": "head.", "trunk.body.": "body.", "trunk.body_conv.": "body_conv.",
-             "output.up.": "up.", "output.tail.": "tail."}
-
-
-@pytest.mark.parametrize("name", ["edsr", "cfm", "srd"])
-def test_weights_saved_under_old_names_load_strictly(name):
-    from bench.models.srd import SRDNet
-    cls, kwargs = (SRDNet, dict(channels=8)) if name == "srd" else SMALL[name]
-    renames = OLD_NAMES if name != "srd" else {"sr.trunk.head.": "sr.head.", "sr.trunk.body.": "sr.blocks.",
-                                     "sr.trunk.body_conv.": "sr.body_end."}
-    torch.manual_seed(0)
-    trained = cls(**kwargs)
-    with torch.no_grad():  # away from the zero-initialised output convs, so the outputs tell weights apart
-        for p in trained.parameters():
-            p.add_(0.05 * torch.randn_like(p))
-    old = {}
-    for key, value in trained.state_dict().items():
-        new = next((key.replace(n, o, 1) for n, o in renames.items() if key.startswith(n)), key)
-        old[new] = value
-    assert any(k.startswith(tuple(renames.values())) for k in old)
-    torch.manual_seed(1)
-    fresh = cls(**kwargs)
-    fresh.load_state_dict(old)  # strict: every key renamed, none left over
-    fresh = pickle.loads(pickle.dumps(fresh))  # the renaming hook keeps models picklable
-    x, g = inputs(b=1, t=2, h=16, w=16)
-    with torch.no_grad():
-        assert torch.equal(fresh(x, g)["final"], trained(x, g)["final"])

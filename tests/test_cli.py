@@ -192,7 +192,8 @@ def test_a_real_edit_to_a_model_file_makes_its_trainings_stale_and_a_comment_doe
 def test_adopt_holds_the_code_only_to_evaluations_of_todays_frames(monkeypatch):
     """An evaluation scored against references rendered again since (other settings: another data
     fingerprint; the same settings on another host: another render digest) cannot witness for the code:
-    its numbers moved with the data. Nor can a training replayed on another render of its split."""
+    its numbers moved with the data. Nor can a training's record, unless it trained on this render of its
+    split: the recorded code, rebuilt, is replayed against the current instead."""
     from bench import runs
     from bench.experiments import adopt
     monkeypatch.setattr(adopt, "evaluation_data", lambda ctx: ctx)
@@ -211,9 +212,9 @@ def test_adopt_holds_the_code_only_to_evaluations_of_todays_frames(monkeypatch):
 
     def training(render):
         return runs.Run("train", "0" * 16, Path("."), {"metrics": {"render": render}})
-    assert adopt.other_render(None, training(None)) is None              # recorded before digests
-    assert adopt.other_render(None, training("host-a-train")) is None
-    assert "host-b-train" in adopt.other_render(None, training("host-b-train"))
+    assert not adopt.trained_here(None, training(None))                  # recorded before digests
+    assert adopt.trained_here(None, training("host-a-train"))
+    assert not adopt.trained_here(None, training("host-b-train"))
 
 
 def test_adopt_stops_on_ctrl_c_or_sigterm_during_a_replay(monkeypatch, tmp_path):
@@ -224,12 +225,14 @@ def test_adopt_stops_on_ctrl_c_or_sigterm_during_a_replay(monkeypatch, tmp_path)
     witness = runs.Run("train", "0" * 16, tmp_path, {"identity": {"model": {"_target_": "x"}}, "label": "row"})
     (tmp_path / "checkpoint.pt").write_text("weights")                   # a witness has them
     monkeypatch.setattr(adopt, "stale_groups", lambda ctx: {"g": [witness]})
+    monkeypatch.setattr(adopt, "restore_archive", lambda ctx: 0)
     monkeypatch.setattr(adopt, "code_of", lambda *a: {})
     monkeypatch.setattr(runs, "code_changes", lambda *a: [])
 
     def interrupted(*args):
         raise TrainingInterrupted("SIGTERM at step 3 of 10", 15)
     monkeypatch.setattr(adopt, "check_training", interrupted)
+    monkeypatch.setattr(adopt, "trained_here", lambda *a: True)
     with pytest.raises(TrainingInterrupted):
         adopt.run(None, "adopt", 10, 1e-5, 1e-3, 1e-3, dry_run=True)
 
@@ -253,6 +256,8 @@ def test_adopt_archives_what_it_restamps_over_the_stale_copy(monkeypatch, tmp_pa
     monkeypatch.setattr(adopt, "code_of", lambda *a: {"bench/x.py": "new"})
     monkeypatch.setattr(adopt, "evaluations_of", lambda *a: [])
     monkeypatch.setattr(adopt, "check_training", lambda *a: {"step 1 loss": 0.0, "later loss": 0.0})
+    monkeypatch.setattr(adopt, "trained_here", lambda *a: True)
+    monkeypatch.setattr(adopt, "restore_archive", lambda ctx: 0)
     ctx = types.SimpleNamespace(runs_dir=tmp_path / "runs", runs_archive=archive, results_dir=tmp_path / "results")
     table = adopt.run(ctx, "adopt", 10, 1e-5, 1e-3, 1e-3, dry_run=False)
     assert list(table["verdict"]) == ["adopted"]
@@ -300,6 +305,42 @@ def test_adopt_keeps_runs_through_a_change_that_moves_no_number_and_not_through_
     assert out.returncode == 0, out.stderr[-3000:]
     table = pd.read_csv(tmp_path / "results" / "adopt" / "table.csv")
     assert table.loc[0, "verdict"].startswith("differs") and table.loc[0, "train step 1 loss"] > 1e-3, table.to_string()
+
+
+def test_adopt_holds_a_training_of_another_render_to_its_recorded_code_rebuilt_from_git(smoke_dirs, tmp_path):
+    """A training whose record names another render of its split cannot witness for the code; adopt
+    rebuilds the code it recorded from git history and replays both on today's frames: a refactor is
+    adopted (the same numbers, exactly), an edit that scales the output is not."""
+    project, copied = copy_of_project_and_store(smoke_dirs, tmp_path)
+    git = ["git", "-C", str(project), "-c", "user.name=t", "-c", "user.email=t@t", "-c", "commit.gpgsign=false"]
+
+    def commit():
+        subprocess.run([*git, "add", "-A"], check=True, capture_output=True)
+        subprocess.run([*git, "commit", "-qm", "code"], check=True, capture_output=True)
+    subprocess.run([*git, "init", "-q"], check=True, capture_output=True)
+    commit()                                                     # the code the smoke store recorded
+    (record_path,) = [p for p in (tmp_path / "runs" / "train").glob("*/run.json")
+                      if json.loads(p.read_text())["label"] == "Ours"]
+    record = json.loads(record_path.read_text())
+    record["metrics"]["render"] = "0badf00d"                      # trained on frames no longer here
+    record_path.write_text(json.dumps(record))
+    model_file = project / "bench" / "models" / "srd.py"
+    model_file.write_text(model_file.read_text() + "\n\ndef _a_helper_nothing_calls_yet():\n    return None\n")
+    out = bench("+experiment=adopt", *copied, cwd=project)
+    assert out.returncode == 0, out.stderr[-3000:]
+    table = pd.read_csv(tmp_path / "results" / "adopt" / "table.csv").iloc[-1]
+    assert table["verdict"] == "adopted" and table["check"] == "recorded code", table.to_string()
+    assert table["train step 1 loss"] == 0 and table["later loss" if "later loss" in table else "train later loss"] == 0
+    assert table["eval frames"] > 0 and table["eval PSNR"] == 0, table.to_string()
+
+    commit()                                                     # the adopted code, as a later session finds it
+    model_file.write_text(model_file.read_text() + "\n_forward = SRDNet.forward\nSRDNet.forward = lambda self, *a, "
+                          "**k: {n: 1.01 * v for n, v in _forward(self, *a, **k).items()}\n")
+    out = bench("+experiment=adopt", *copied, cwd=project)
+    assert out.returncode == 0, out.stderr[-3000:]
+    table = pd.read_csv(tmp_path / "results" / "adopt" / "table.csv").iloc[-1]
+    assert table["verdict"].startswith("differs") and table["check"] == "recorded code", table.to_string()
+    assert table["train step 1 loss"] > 1e-3 and table["eval PSNR"] > 1e-4, table.to_string()
 
 
 def test_smoke_end_to_end_then_reuse(smoke_dirs):
@@ -571,6 +612,8 @@ def test_adopt_restamps_a_run_its_archive_kept_without_weights_beside_a_witness_
     assert [[r.hash for r in g] for g in groups] == [[lone.hash], [made[True].hash, made[False].hash]]
     monkeypatch.setattr(adopt, "evaluations_of", lambda *a: [])
     monkeypatch.setattr(adopt, "check_training", lambda *a: {"step 1 loss": 0.0, "later loss": 0.0})
+    monkeypatch.setattr(adopt, "trained_here", lambda *a: True)
+    monkeypatch.setattr(adopt, "restore_archive", lambda ctx: 0)
     ctx = types.SimpleNamespace(runs_dir=tmp_path / "runs", runs_archive=None, results_dir=tmp_path / "results")
     table = adopt.run(ctx, "adopt", 10, 1e-5, 1e-3, 1e-3, dry_run=False).set_index("witness")["verdict"]
     assert table[made[True].hash] == "adopted" and "has its weights" in table[lone.hash]

@@ -15,6 +15,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from bench.atomic import write_atomic
 from bench import datagen, exrio
 from bench.errors import UserError
 from bench.experiments.datasets import ensure_data
@@ -375,7 +376,7 @@ def test_a_failed_write_leaves_no_temporary_file_and_a_killed_ones_is_removed_at
         tmp.write_text("half")
         raise OSError(28, "No space left on device")
     with pytest.raises(OSError):
-        runs.write_atomic(target, fails)
+        write_atomic(target, fails)
     assert list(tmp_path.iterdir()) == []
     run = runs.begin(tmp_path / "runs", "eval", {"a": 1})
     runs.fail(run, "killed")

@@ -1,7 +1,9 @@
 """bench.measure: the fast-path chooser never times an emulated path, never picks an incorrect one,
 picks the fastest of the rest, and measures once per machine and model."""
+import inspect
 import os
 import time
+from pathlib import Path
 
 import pytest
 import torch
@@ -104,6 +106,26 @@ def test_the_fused_kernels_are_the_cuda_default_unless_switched_off(monkeypatch)
     monkeypatch.setattr(torch.cuda, "get_device_capability", lambda: (7, 5))  # no bf16 tensor cores
     with measure.fused_kernels_on_cuda():
         assert not fused._on_cuda
+
+
+def test_a_run_records_the_fused_kernels_it_took_by_their_digest(monkeypatch):
+    """Training and evaluation records name the Triton kernels' file digest where a CUDA run took them,
+    and None elsewhere: the kernels are tested to tolerances, not bit for bit, so a record says which."""
+    import hashlib
+    from bench.nn import fused
+    monkeypatch.setattr(fused, "kernels", lambda: object())
+    monkeypatch.setenv(measure.FUSED_GPU, "1")
+    digest = hashlib.sha256((Path(fused.__file__).parent / "triton_kernels.py").read_bytes()).hexdigest()[:16]
+    assert measure.fused_kernels_used("cuda") == digest and measure.fused_kernels_used("cuda:1") == digest
+    assert measure.fused_kernels_used("cpu") is None
+    monkeypatch.setenv(measure.FUSED_GPU, "0")
+    assert measure.fused_kernels_used("cuda") is None
+    monkeypatch.setenv(measure.FUSED_GPU, "1")
+    monkeypatch.setattr(fused, "kernels", lambda: None)                 # no Triton
+    assert measure.fused_kernels_used("cuda") is None
+    from bench.experiments import evaluation, training
+    assert "fused_kernels_used(ctx.device)" in inspect.getsource(training.trained_model)
+    assert "fused_kernels_used(ctx.device)" in inspect.getsource(evaluation)
 
 
 def test_both_entry_points_enter_the_fused_kernels_default():

@@ -135,7 +135,7 @@ def test_source_hash_ignores_comments_and_docstrings_not_code(tmp_path):
     def source_hash(text, name):
         path = tmp_path / name
         path.write_text(text)
-        return runs._source_hash(path)
+        return runs.source_hash(path)
     base = source_hash('"""Doc."""\ndef f(x):\n    """What f does."""\n    return x + 1\n', "a.py")
     assert source_hash('# a comment\ndef f(x):\n\n    return x + 1  # why\n', "b.py") == base
     assert source_hash('def f(x):\n    return x + 2\n', "c.py") != base

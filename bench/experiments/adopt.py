@@ -17,7 +17,12 @@ reproduces the group's witness run (its lowest seed):
   evaluations all scored frames rendered again since has none to check: it is checked by training), to
   `rtol_rounded_weights` when the weights are the archive's float16-rounded ones (bench.archived);
 
-each to a relative tolerance `rtol` unless said otherwise. A group that passes has its runs (every seed) and
+each to a relative tolerance `rtol` unless said otherwise. A witness that did not train on this render of
+its split (another host's, one from before a render change, or not recorded) cannot be held to its record,
+since its numbers moved with the frames; it is checked against its recorded code instead: the code its
+fingerprint names, rebuilt from git history (bench/experiments/recorded_code.py), replays the same first
+steps and scores the same sequence of today's frames in a subprocess, and the current code must give the
+same numbers (the differential check: the change moves no number, whatever the frames). A group that passes has its runs (every seed) and
 their evaluations re-stamped with the current code fingerprint, the old one and the check kept in the record
 (`code_adopted`), and archived again (`runs_archive`, complete runs only: else a fresh clone restores the
 archive's stale copy); a group that fails is left stale, with the measured difference in the table. What
@@ -27,7 +32,8 @@ and evaluations run another way (a fast path, tiles), which stay stale.
 Stopped trainings (interrupted, failed, or killed: a "running" record no process holds) with a checkpoint are adopted with their group, so they
 resume instead of starting again; a group of only such runs has no evaluation to check.
 
-Runs recorded under an older identity version are not looked at: `+experiment=migrate` re-keys them first.
+The archive's runs (`runs_archive`) that the store lacks are restored into it first, so a fresh clone
+adopts the committed runs. Runs recorded under an older identity version are not looked at: `+experiment=migrate` re-keys them first.
 
 Writes `<results_dir>/adopt/table.{csv,md,tex}`: one row per group with the verdict and the differences.
 """
@@ -35,6 +41,8 @@ from __future__ import annotations
 
 import dataclasses
 import logging
+import pickle
+import sys
 import tempfile
 import time
 from pathlib import Path
@@ -46,6 +54,7 @@ import torch
 from bench import archived, runs
 from bench.errors import UserError
 from bench.evaluate import evaluate
+from bench.experiments import recorded_code
 from bench.experiments.context import EVALUATION_CODE, TRAINING_CODE, Context, code_of, recipe_from
 from bench.experiments.datasets import data_fingerprint, dataset, evaluation_data, render_digest
 from bench.experiments.evaluation import archive_evaluation
@@ -93,16 +102,13 @@ def _model(cfg: dict, task, stage: str | None):
     return build_model(cfg, task.scale) if stage is None else SRDStage(cascade_net(cfg), stage)
 
 
-def check_training(ctx: Context, record: dict, run_dir: Path, steps: int) -> dict:
-    """Replay the witness training's first steps and its schedule; {what: relative difference}."""
+def replayed_curve(ctx: Context, record: dict, run_dir: Path, steps: int) -> pd.DataFrame:
+    """The first `steps` steps of the recorded training, replayed by this code from the same seed on the
+    frames of this store's data: the per-step curve (loss, grad_norm, lr) the trainer writes."""
     identity = record["identity"]
     cfg, task, seed, stage = identity["model"], get_task(identity["task"]), identity["seed"], identity.get("stage")
     recipe = recipe_from({**dataclasses.asdict(ctx.train), **identity["train"], "checkpoint_every": 1,
                           "checkpoint_every_s": 1e9})
-    recorded = archived.read_curve(run_dir)  # the trainer's curve (an archive's keeps the first steps whole)
-    if recorded is None:
-        raise UserError(f"{run_dir} has no per-step curve that reads")
-    out = {"lr": relative_difference([lr_at(int(s) - 1, recipe) for s in recorded["step"]], recorded["lr"])}
     archived.load_weights(_model(cfg, task, stage), run_dir)  # the recorded weights fit the model built now: names, shapes
     torch.manual_seed(seed)  # as trained_model builds it: the initial weights come from this seed
     model = _model(cfg, task, stage)
@@ -114,30 +120,83 @@ def check_training(ctx: Context, record: dict, run_dir: Path, steps: int) -> dic
             train(model, data, task, tmp, recipe, features=features, seed=seed, progress=False)
         except _Replayed:
             pass
-        replayed = pd.DataFrame(torch.load(Path(tmp) / CHECKPOINT, weights_only=False)["curve"])
-    n = min(steps, len(recorded), len(replayed))
-    out["step 1 loss"] = relative_difference(replayed["loss"][:1], recorded["loss"][:1])
-    out["step 1 grad_norm"] = relative_difference(replayed["grad_norm"][:1], recorded["grad_norm"][:1])
-    out["later loss"] = relative_difference(replayed["loss"][1:n], recorded["loss"][1:n])
-    out["steps"] = n
-    return out
+        return pd.DataFrame(torch.load(Path(tmp) / CHECKPOINT, weights_only=False)["curve"])
+
+
+def first_sequence_scores(ctx: Context, train_record: dict, train_dir: Path, split: str, hdr: str) -> pd.DataFrame:
+    """The recorded weights run by this code's evaluator on the first sequence of `split` as the frames
+    are now: its per-frame scores."""
+    identity = train_record["identity"]
+    task = get_task(identity["task"])
+    model = archived.load_weights(build_model(identity["model"], task.scale), train_dir)
+    frames = dataset(evaluation_data(ctx), split, task, training=False)
+    return evaluate(model, [frames[0]], task, hdr=hdr)[0]
+
+
+def replay(ctx: Context, record: dict, run_dir: Path, steps: int, evaluation: dict | None) -> dict:
+    """What the differential check computes twice, by the recorded code and by this code: the replayed
+    curve and, given an evaluation identity, the first sequence's scores."""
+    return {"curve": replayed_curve(ctx, record, run_dir, steps),
+            "scores": None if evaluation is None else
+            first_sequence_scores(ctx, record, run_dir, evaluation["split"], evaluation["hdr"])}
+
+
+def curve_differences(replayed: pd.DataFrame, reference: pd.DataFrame, steps: int) -> dict:
+    n = min(steps, len(reference), len(replayed))
+    return {"step 1 loss": relative_difference(replayed["loss"][:1], reference["loss"][:1]),
+            "step 1 grad_norm": relative_difference(replayed["grad_norm"][:1], reference["grad_norm"][:1]),
+            "later loss": relative_difference(replayed["loss"][1:n], reference["loss"][1:n]), "steps": n}
+
+
+def score_differences(scores: pd.DataFrame, reference: pd.DataFrame) -> dict:
+    reference = reference[reference["sequence"].astype(str) == str(scores["sequence"].iloc[0])]
+    merged = scores.merge(reference, on="frame", suffixes=("", " reference"))
+    return {m: relative_difference(merged[m], merged[f"{m} reference"]) for m in COMPARED} | {"frames": len(merged)}
+
+
+def schedule_difference(record: dict, run_dir: Path, ctx: Context) -> dict:
+    """The current schedule's learning rate at every recorded step against the recorded one."""
+    recorded = archived.read_curve(run_dir)  # the trainer's curve (an archive's keeps the first steps whole)
+    if recorded is None:
+        raise UserError(f"{run_dir} has no per-step curve that reads")
+    recipe = recipe_from({**dataclasses.asdict(ctx.train), **record["identity"]["train"]})
+    return {"lr": relative_difference([lr_at(int(s) - 1, recipe) for s in recorded["step"]], recorded["lr"])}
+
+
+def check_training(ctx: Context, record: dict, run_dir: Path, steps: int) -> dict:
+    """Replay the witness training's first steps and its schedule; {what: relative difference} to its record."""
+    out = schedule_difference(record, run_dir, ctx)
+    return out | curve_differences(replayed_curve(ctx, record, run_dir, steps), archived.read_curve(run_dir), steps)
 
 
 def check_inference(ctx: Context, train_record: dict, train_dir: Path, evaluation: runs.Run) -> dict:
     """Run the recorded weights through the current evaluator on the first sequence of `evaluation`;
     {metric: relative difference to its recorded per-frame values}."""
-    identity = train_record["identity"]
-    task = get_task(identity["task"])
-    model = archived.load_weights(build_model(identity["model"], task.scale), train_dir)
-    frames = dataset(evaluation_data(ctx), evaluation.record["identity"]["split"], task, training=False)
-    first = frames[0]
-    per_image, _ = evaluate(model, [first], task, hdr=evaluation.record["identity"]["hdr"])
+    identity = evaluation.record["identity"]
+    scores = first_sequence_scores(ctx, train_record, train_dir, identity["split"], identity["hdr"])
     recorded = archived.read_per_image(evaluation.dir)
     if recorded is None:
         raise UserError(f"adopt: evaluation run {evaluation.hash} has no per-frame scores to compare with")
-    recorded = recorded[recorded["sequence"] == str(per_image["sequence"].iloc[0])]
-    merged = per_image.merge(recorded, on="frame", suffixes=("", " recorded"))
-    return {m: relative_difference(merged[m], merged[f"{m} recorded"]) for m in COMPARED} | {"frames": len(merged)}
+    return score_differences(scores, recorded)
+
+
+def check_against_recorded_code(ctx: Context, witness: runs.Run, steps: int, evaluation: runs.Run | None) -> dict:
+    """The differential check (bench/experiments/recorded_code.py): the replay by the code the witness
+    (and `evaluation`) recorded, rebuilt from git, against the same replay by this code, on today's
+    frames; {what: relative difference}, keyed as the other checks' ("train ...", "eval ...")."""
+    identity = witness.record["identity"]
+    recorded = {**(evaluation.record.get("code") or {} if evaluation else {}), **(witness.record.get("code") or {})}
+    current = code_of(identity["model"], *EVALUATION_CODE, *TRAINING_CODE)
+    job = {"ctx": ctx, "record": witness.record, "run_dir": witness.dir, "steps": steps,
+           "evaluation": evaluation and {k: evaluation.record["identity"][k] for k in ("split", "hdr")}}
+    with tempfile.TemporaryDirectory(prefix="srd-recorded-code-") as tmp:
+        then = recorded_code.replay_there(recorded_code.rebuild(recorded, current, Path(tmp)), job)
+    now = replay(**job)
+    out = {f"train {k}": v for k, v in (schedule_difference(witness.record, witness.dir, ctx)
+                                         | curve_differences(now["curve"], then["curve"], steps)).items()}
+    if evaluation is not None:
+        out |= {f"eval {k}": v for k, v in score_differences(now["scores"], then["scores"]).items()}
+    return out
 
 
 RESUMABLE = ("complete", "interrupted", "failed")  # a stopped training resumes from its checkpoint once adopted
@@ -169,6 +228,15 @@ def stale_groups(ctx: Context) -> dict[str, list[runs.Run]]:
                                         r.record["status"] != "complete")) for k, v in groups.items()}
 
 
+def restore_archive(ctx: Context) -> int:
+    """Copy the archive's complete runs that the store has no record of into it; how many."""
+    if ctx.runs_archive is None:
+        return 0
+    return sum(runs.restore(ctx.runs_dir, ctx.runs_archive, kind, path.parent.name)
+               for kind in ("train", "eval")
+               for path in sorted((Path(ctx.runs_archive) / kind).glob(f"*/{runs.RECORD}")))
+
+
 def evaluations_of(runs_dir: Path, train_hashes: set[str]) -> list[runs.Run]:
     """Complete evaluation runs whose trainings are all among `train_hashes` (a Cascade's eval has two)."""
     out = []
@@ -197,12 +265,22 @@ def ran_the_default_way(identity: dict) -> bool:
     return identity["fast_path"] == REFERENCE and not identity["tile"]
 
 
-def other_render(ctx: Context, training: runs.Run) -> str | None:
-    """Why a replay of `training` cannot match its record whatever the code: it trained on another render
-    of the split than this store's (same settings, another host); None when the same or not recorded
-    (trainings recorded before 2026-11-25 say nothing)."""
-    recorded, here = training.record.get("metrics", {}).get("render"), render_digest(ctx, "train")
-    return None if recorded in (None, here) else f"trained on render {recorded}, the frames here are {here}"
+def trained_here(ctx: Context, training: runs.Run) -> bool:
+    """Whether `training` recorded that it trained on this render of the split (same settings, same
+    host's noise): only then can its replay be held to its record. Trainings recorded before 2026-11-25
+    record no render."""
+    return training.record.get("metrics", {}).get("render") == render_digest(ctx, "train")
+
+
+def differential_evaluation(ctx: Context, training: runs.Run) -> runs.Run | None:
+    """An evaluation of `training` run the default way on a split whose settings today's frames have (any
+    render of it): the differential check scores its first sequence by both codes."""
+    frames = evaluation_data(ctx)
+    for evaluation in evaluations_of(ctx.runs_dir, {training.hash}):
+        identity = evaluation.record["identity"]
+        if ran_the_default_way(identity) and identity.get("data") == data_fingerprint(frames, identity["split"]):
+            return evaluation
+    return None
 
 
 def restamp(run: runs.Run, code: dict, check: dict) -> None:
@@ -217,6 +295,7 @@ def restamp(run: runs.Run, code: dict, check: dict) -> None:
 def run(ctx: Context, name: str, steps: int, rtol: float, rtol_later_steps: float, rtol_rounded_weights: float,
         dry_run: bool) -> pd.DataFrame:
     """conf/experiment/adopt.yaml says what each argument is."""
+    log.info("adopt: %d archived runs restored into the store", restore_archive(ctx))
     groups = stale_groups(ctx)
     log.info("adopt: %d groups of stale training runs (%d runs)", len(groups), sum(map(len, groups.values())))
     rows, adopted = [], set()
@@ -229,11 +308,17 @@ def run(ctx: Context, name: str, steps: int, rtol: float, rtol_later_steps: floa
         try:
             if not archived.has_weights(witness.dir):
                 raise UserError("no run of the group has its weights (its archive left them out)")
-            row |= {f"train {k}": v for k, v in check_training(ctx, witness.record, witness.dir, steps).items()}
-            evals = [e for e in evaluations_of(ctx.runs_dir, {witness.hash}) if scored_here(ctx, e)]
-            if evals:
-                row |= {f"eval {k}": v for k, v in check_inference(ctx, witness.record, witness.dir, evals[0]).items()}
-            eval_rtol = rtol_rounded_weights if archived.rounded(witness.dir) else rtol
+            if trained_here(ctx, witness):  # its record can judge the code
+                row["check"] = "record"
+                row |= {f"train {k}": v for k, v in check_training(ctx, witness.record, witness.dir, steps).items()}
+                evals = [e for e in evaluations_of(ctx.runs_dir, {witness.hash}) if scored_here(ctx, e)]
+                if evals:
+                    row |= {f"eval {k}": v for k, v in check_inference(ctx, witness.record, witness.dir, evals[0]).items()}
+                eval_rtol = rtol_rounded_weights if archived.rounded(witness.dir) else rtol
+            else:  # trained on other frames: the recorded code, rebuilt, replays on today's
+                row["check"] = "recorded code"
+                row |= check_against_recorded_code(ctx, witness, steps, differential_evaluation(ctx, witness))
+                eval_rtol = rtol  # the same weights on both sides
             limits = {k: eval_rtol if k.startswith("eval ") else rtol for k in row
                       if k.startswith(("train step 1", "train lr", "eval ")) and k != "eval frames"}
             over = {k: row[k] for k, limit in limits.items() if row[k] > limit}
@@ -243,9 +328,6 @@ def run(ctx: Context, name: str, steps: int, rtol: float, rtol_later_steps: floa
             row["verdict"] = ("adopted" if not over and later <= rtol_later_steps else
                               f"differs ({worst} {row[worst]:.2g} > {limits[worst]:g})" if over else
                               f"differs (later loss {later:.2g} > {rtol_later_steps:g})")
-            moved = row["verdict"] != "adopted" and other_render(ctx, witness)  # the data moved, not the code
-            if moved:
-                row["verdict"] = f"not checkable here: {moved}"
         except TrainingInterrupted:  # Ctrl-C / SIGTERM during a replay stops the command, not one group
             raise
         except Exception as err:  # noqa: BLE001 - a group that cannot be checked stays stale, with why
@@ -278,7 +360,10 @@ def run(ctx: Context, name: str, steps: int, rtol: float, rtol_later_steps: floa
         f"initial weights, batch, forward and backward) and the schedule are within rtol, the evaluation "
         f"within eval rtol (rtol, or {rtol_rounded_weights:g} for the archive's float16-rounded weights), "
         f"and the later steps' loss within rtol later steps (summation order makes two runs of the same "
-        f"code drift apart slowly from the second step on). One row per witness, its latest check: groups "
+        f"code drift apart slowly from the second step on). Check: 'record' compares with the witness's "
+        f"recorded values (it trained on this render); 'recorded code' compares with the same replay by the "
+        f"code the witness recorded, rebuilt from git (it trained on another render), on today's frames. "
+        f"One row per witness, its latest check: groups "
         f"that earlier calls adopted are no longer stale and keep their row."))
     log.info("adopt: %d of %d groups adopted%s; table in %s", sum(r["verdict"] == "adopted" for r in rows),
              len(rows), " (dry run)" if dry_run else "", ctx.results_dir / name)
@@ -295,3 +380,16 @@ def with_earlier_verdicts(table: pd.DataFrame, previous_csv: Path) -> pd.DataFra
         return table
     earlier = earlier[~earlier["witness"].isin(table["witness"] if "witness" in table else [])]
     return pd.concat([earlier, table], ignore_index=True)
+
+
+def main(argv=None) -> int:
+    """The differential check's subprocess (recorded_code.replay_there): `replay` of a pickled job, run by
+    the code this module was imported from (the recorded code, rebuilt)."""
+    job_file, out_file = (argv or sys.argv[1:])[:2]
+    job = pickle.loads(Path(job_file).read_bytes())
+    Path(out_file).write_bytes(pickle.dumps(replay(**job)))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

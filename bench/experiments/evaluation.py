@@ -13,7 +13,7 @@ from bench.experiments.datasets import data_fingerprint, dataset, evaluation_dat
 from bench.experiments.training import cascade_model, trained_model
 from bench.exrio import write_exr
 from bench.macs import count_params
-from bench.measure import AUTO, choose_fast_path
+from bench.measure import AUTO, choose_fast_path, fused_kernels_used
 from bench.models.factory import build_model
 from bench.tasks import Task
 
@@ -61,6 +61,7 @@ def evaluated(ctx: Context, cfg: dict, task: Task, seed: int, split: str, label:
     metrics["train_run"] = trained if isinstance(trained, str) else None
     metrics["vgg"] = (train_run.record["identity"].get("vgg") if train_run else None)
     metrics["render"] = render_digest(frames, split)
+    metrics["fused_kernels"] = fused_kernels_used(ctx.device)
     trainings = stage_runs if cascade else [train_run] if train_run is not None else []
     metrics["rounded_weights"] = any(archived.rounded(r.dir) for r in trainings)  # the archive's float16 copy
     return archive_evaluation(ctx, runs.complete(run, metrics))

@@ -26,6 +26,7 @@ from pathlib import Path
 
 import pandas as pd
 
+from bench.atomic import write_atomic
 from bench import runs
 from bench.experiments.context import Context
 from bench.infer import REFERENCE
@@ -116,7 +117,7 @@ def _move(run_dir: Path, record: dict, identity: dict, new_hash: str) -> Path:
         record["migrated_from"] = record["hash"]
     record.update(identity=identity, hash=new_hash)
     text = json.dumps(record, indent=2, sort_keys=True, allow_nan=False)
-    runs.write_atomic(run_dir / runs.RECORD, lambda tmp: tmp.write_text(text))
+    write_atomic(run_dir / runs.RECORD, lambda tmp: tmp.write_text(text))
     if old_hash == new_hash:
         return run_dir
     target = run_dir.parent / new_hash

@@ -17,6 +17,7 @@ from bench.errors import UserError
 from bench.evaluate import evaluate
 from bench.experiments.context import TRAINING_CODE, Context, code_of, working_split
 from bench.experiments.datasets import check_training_frames, dataset, render_digest, training_fingerprint
+from bench.measure import fused_kernels_used
 from bench.models.factory import build_model, is_learned
 from bench.models.srd import SRDNet, SRDStage, load_stage
 from bench.tasks import CASCADE_STAGES, Task, get_task
@@ -195,6 +196,7 @@ def trained_model(ctx: Context, cfg: dict, task: Task, seed: int, label: str = "
         runs.fail(run, f"{type(err).__name__}: {err}")
         raise
     summary["render"] = render_digest(ctx, "train")  # which render it trained on (adopt compares it)
+    summary["fused_kernels"] = fused_kernels_used(ctx.device)
     runs.complete(run, summary)
     if weights_only:
         log.warning("train %s: run %s trained again for its weights, which its archive left out; they match "

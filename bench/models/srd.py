@@ -53,7 +53,7 @@ import torch.nn.functional as F
 
 from bench.hdr import transforms
 from bench.nn import (CFM, ConditionNet, DeformConv2d, EDSRTrunk, PixelShuffleUp, RecurrentBlock, conv3x3,
-                     load_old_names, run_sequence, upsampled_input, zero_init)
+                     run_sequence, upsampled_input, zero_init)
 
 
 class SRStage(nn.Module):
@@ -67,7 +67,6 @@ class SRStage(nn.Module):
                                cond_channels=cond_channels)
         self.up = PixelShuffleUp(channels, out_ch, scale)
         self.rgb = conv3x3(out_ch, 3) if rgb_head else None
-        load_old_names(self, {"head.": "trunk.head.", "blocks.": "trunk.body.", "body_end.": "trunk.body_conv."})
 
     def forward(self, x, cond=None, skip=None):
         """Returns (upsampled features, RGB head output or None, deep LR features before upsampling)."""
@@ -384,8 +383,7 @@ def load_stage(net: SRDNet, stage: str, stage_state: dict) -> SRDNet:
     part = {k[len("net."):]: v for k, v in stage_state.items() if k[len("net."):].startswith(prefixes)}
     if not part:
         raise ValueError(f"no parameters of stage {stage!r} in the given state dict")
-    # missing keys as a load sees them (keys saved under older names are renamed by load_old_names),
-    # found on a copy so that `net` is left as it was when the state does not fit
+    # missing keys as a load sees them, found on a copy so that `net` is left as it was when the state does not fit
     missing = [k for k in copy.deepcopy(net).load_state_dict(part, strict=False).missing_keys
                if k.startswith(prefixes)]
     if missing:

@@ -67,26 +67,6 @@ class EDSRTrunk(nn.Module):
         return head + self.body_conv(y)
 
 
-class _OldNames:
-    """A load_state_dict pre-hook renaming old key prefixes (a class, not a closure: models stay picklable)."""
-
-    def __init__(self, renames: dict):
-        self.renames = dict(renames)
-
-    def __call__(self, _module, state_dict, prefix, *_):
-        for old, new in self.renames.items():
-            for key in [k for k in state_dict if k.startswith(prefix + old)]:
-                state_dict[prefix + new + key[len(prefix + old):]] = state_dict.pop(key)
-
-
-def load_old_names(module, renames: dict):
-    """Let `module` load state dicts saved under older names of its children: `renames` maps an old
-    key prefix (relative to the module, e.g. "blocks.") to the new one ("trunk.body."). Weights recorded
-    before the shared EDSRTrunk (run store, results/*/weights) keep loading; parameter order, and so
-    optimizer state, did not change."""
-    module.register_load_state_dict_pre_hook(_OldNames(renames))
-
-
 def upsampled_input(x, scale, domain=None):
     """Bilinear upsampling of the radiance (first 3 channels) of x (B, C, h, w) by `scale`: the base that
     a model with `input_residual` adds its output to, so such a model starts near the "Input bilinear"
