@@ -29,6 +29,9 @@ archive's stale copy); a group that fails is left stale, with the measured diffe
 is not checked: training steps after the first `steps` (the same code paths run again, on other batches),
 and evaluations run another way (a fast path, tiles), which stay stale.
 
+A group none of whose seeds kept its weights (the archive leaves some out, docs/runs.md) is checked by its
+training replay alone: the evaluator is then not checked for it.
+
 Stopped trainings (interrupted, failed, or killed: a "running" record no process holds) with a checkpoint are adopted with their group, so they
 resume instead of starting again; a group of only such runs has no evaluation to check.
 
@@ -52,6 +55,7 @@ import pandas as pd
 import torch
 
 from bench import archived, runs
+from bench.datagen import load_manifest
 from bench.errors import UserError
 from bench.evaluate import evaluate
 from bench.experiments import recorded_code
@@ -109,7 +113,8 @@ def replayed_curve(ctx: Context, record: dict, run_dir: Path, steps: int) -> pd.
     cfg, task, seed, stage = identity["model"], get_task(identity["task"]), identity["seed"], identity.get("stage")
     recipe = recipe_from({**dataclasses.asdict(ctx.train), **identity["train"], "checkpoint_every": 1,
                           "checkpoint_every_s": 1e9})
-    archived.load_weights(_model(cfg, task, stage), run_dir)  # the recorded weights fit the model built now: names, shapes
+    if archived.has_weights(run_dir):  # the recorded weights fit the model built now: names, shapes
+        archived.load_weights(_model(cfg, task, stage), run_dir)
     torch.manual_seed(seed)  # as trained_model builds it: the initial weights come from this seed
     model = _model(cfg, task, stage)
     features = perceptual_features(ctx)[0] if identity.get("vgg") else None
@@ -204,7 +209,8 @@ RESUMABLE = ("complete", "interrupted", "failed")  # a stopped training resumes 
 
 def stale_groups(ctx: Context) -> dict[str, list[runs.Run]]:
     """Training runs with a checkpoint (complete, or stopped and resumable), or complete without one (an
-    archive left its weights out: restamped with its group, never its witness), whose code changed since
+    archive left its weights out: a witness only when no seed of its group has them, checked by its
+    training alone), whose code changed since
     they were recorded and whose data is this data_dir's, grouped by identity without the seed (one
     table row): runs with weights first, then lowest seed first; complete runs first among equal seeds
     (their evaluations can be checked)."""
@@ -276,9 +282,11 @@ def differential_evaluation(ctx: Context, training: runs.Run) -> runs.Run | None
     """An evaluation of `training` run the default way on a split whose settings today's frames have (any
     render of it): the differential check scores its first sequence by both codes."""
     frames = evaluation_data(ctx)
+    on_disk = {frame["split"] for frame in load_manifest(frames.data_dir)["frames"]}
     for evaluation in evaluations_of(ctx.runs_dir, {training.hash}):
         identity = evaluation.record["identity"]
-        if ran_the_default_way(identity) and identity.get("data") == data_fingerprint(frames, identity["split"]):
+        if ran_the_default_way(identity) and identity["split"] in on_disk \
+                and identity.get("data") == data_fingerprint(frames, identity["split"]):
             return evaluation
     return None
 
@@ -306,18 +314,18 @@ def run(ctx: Context, name: str, steps: int, rtol: float, rtol_later_steps: floa
         row = {"label": witness.record.get("label"), "runs": len(group), "witness": witness.hash,
                "changed": ", ".join(runs.code_changes(witness.record, code))}
         try:
-            if not archived.has_weights(witness.dir):
-                raise UserError("no run of the group has its weights (its archive left them out)")
+            weights = archived.has_weights(witness.dir)  # none: no seed's archive kept them; training is checked
             if trained_here(ctx, witness):  # its record can judge the code
                 row["check"] = "record"
                 row |= {f"train {k}": v for k, v in check_training(ctx, witness.record, witness.dir, steps).items()}
                 evals = [e for e in evaluations_of(ctx.runs_dir, {witness.hash}) if scored_here(ctx, e)]
-                if evals:
+                if evals and weights:
                     row |= {f"eval {k}": v for k, v in check_inference(ctx, witness.record, witness.dir, evals[0]).items()}
                 eval_rtol = rtol_rounded_weights if archived.rounded(witness.dir) else rtol
             else:  # trained on other frames: the recorded code, rebuilt, replays on today's
                 row["check"] = "recorded code"
-                row |= check_against_recorded_code(ctx, witness, steps, differential_evaluation(ctx, witness))
+                row |= check_against_recorded_code(ctx, witness, steps,
+                                                   differential_evaluation(ctx, witness) if weights else None)
                 eval_rtol = rtol  # the same weights on both sides
             limits = {k: eval_rtol if k.startswith("eval ") else rtol for k in row
                       if k.startswith(("train step 1", "train lr", "eval ")) and k != "eval frames"}
