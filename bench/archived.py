@@ -38,8 +38,8 @@ from pathlib import Path
 import pandas as pd
 import torch
 
-from bench.atomic import write_atomic
 from bench import runs
+from bench.atomic import write_atomic
 from bench.train import CHECKPOINT
 
 log = logging.getLogger("bench")

@@ -38,8 +38,8 @@ import pandas as pd
 import torch
 from tqdm import tqdm
 
-from bench.atomic import write_atomic
 from bench import exrio, metrics, render, runs, scenes
+from bench.atomic import write_atomic
 from bench.errors import UserError
 from bench.tasks import BUFFERS, GBUF_LAYERS
 

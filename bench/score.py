@@ -31,8 +31,8 @@ import numpy as np
 import pandas as pd
 import torch
 
-from bench.atomic import write_atomic
 from bench import archived, exrio, runs
+from bench.atomic import write_atomic
 from bench.dataset import SequenceDataset
 from bench.errors import UserError
 from bench.evaluate import SCORES, aggregate, evaluate

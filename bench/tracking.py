@@ -225,7 +225,9 @@ def _log_artifacts(client, run_id: str, record: dict, run_dir: Path) -> None:
                  archived.COMPACT_PER_IMAGE):
         if (run_dir / file).exists():
             client.log_artifact(run_id, str(run_dir / file))
-    if record["kind"] == "train" and record["status"] == "complete" and not record["identity"].get("stage"):
+    # weights where the run has them: an archive leaves some out (docs/runs.md), and the run is mirrored without
+    if record["kind"] == "train" and record["status"] == "complete" and not record["identity"].get("stage") \
+            and archived.has_weights(run_dir):
         from bench.weights import export  # the published weights format, identity and sha256 beside them
         with tempfile.TemporaryDirectory() as tmp:
             out = export(record["hash"], Path(tmp) / "weights.pt", run_dir.parent.parent)

@@ -194,9 +194,11 @@ def test_adopt_holds_the_code_only_to_evaluations_of_todays_frames(monkeypatch):
     fingerprint; the same settings on another host: another render digest) cannot witness for the code:
     its numbers moved with the data. Nor can a training's record, unless it trained on this render of its
     split: the recorded code, rebuilt, is replayed against the current instead."""
+    import types
     from bench import runs
     from bench.experiments import adopt
-    monkeypatch.setattr(adopt, "evaluation_data", lambda ctx: ctx)
+    monkeypatch.setattr(adopt, "evaluation_data", lambda ctx: types.SimpleNamespace(data_dir=Path(".")))
+    monkeypatch.setattr(adopt, "load_manifest", lambda root: {"frames": [{"split": "val"}]})
     monkeypatch.setattr(adopt, "data_fingerprint", lambda ctx, split: f"today-{split}")
     monkeypatch.setattr(adopt, "render_digest", lambda ctx, split: f"host-a-{split}")
 
@@ -209,6 +211,7 @@ def test_adopt_holds_the_code_only_to_evaluations_of_todays_frames(monkeypatch):
     assert not adopt.scored_here(None, evaluation(data="today-val", render="host-b-val"))
     assert not adopt.scored_here(None, evaluation(data="before-val"))
     assert not adopt.scored_here(None, evaluation(data="today-val", fast_path="bf16"))
+    assert not adopt.scored_here(None, evaluation(data="today-test", split="test"))  # not on disk
 
     def training(render):
         return runs.Run("train", "0" * 16, Path("."), {"metrics": {"render": render}})
@@ -326,17 +329,17 @@ def test_adopt_holds_a_training_of_another_render_to_its_recorded_code_rebuilt_f
     record_path.write_text(json.dumps(record))
     model_file = project / "bench" / "models" / "srd.py"
     model_file.write_text(model_file.read_text() + "\n\ndef _a_helper_nothing_calls_yet():\n    return None\n")
-    out = bench("+experiment=adopt", *copied, cwd=project)
+    out = bench("+experiment=adopt", "experiment.steps=3", *copied, cwd=project)
     assert out.returncode == 0, out.stderr[-3000:]
     table = pd.read_csv(tmp_path / "results" / "adopt" / "table.csv").iloc[-1]
     assert table["verdict"] == "adopted" and table["check"] == "recorded code", table.to_string()
-    assert table["train step 1 loss"] == 0 and table["later loss" if "later loss" in table else "train later loss"] == 0
+    assert table["train step 1 loss"] == 0 and table["train later loss"] == 0 and table["train steps"] == 3
     assert table["eval frames"] > 0 and table["eval PSNR"] == 0, table.to_string()
 
     commit()                                                     # the adopted code, as a later session finds it
     model_file.write_text(model_file.read_text() + "\n_forward = SRDNet.forward\nSRDNet.forward = lambda self, *a, "
                           "**k: {n: 1.01 * v for n, v in _forward(self, *a, **k).items()}\n")
-    out = bench("+experiment=adopt", *copied, cwd=project)
+    out = bench("+experiment=adopt", "experiment.steps=3", *copied, cwd=project)
     assert out.returncode == 0, out.stderr[-3000:]
     table = pd.read_csv(tmp_path / "results" / "adopt" / "table.csv").iloc[-1]
     assert table["verdict"].startswith("differs") and table["check"] == "recorded code", table.to_string()
@@ -591,7 +594,8 @@ def test_the_old_names_flops_scale_and_eval_path_are_gone():
 def test_adopt_restamps_a_run_its_archive_kept_without_weights_beside_a_witness_that_has_them(monkeypatch,
                                                                                               tmp_path):
     """An archive leaves big weights out (runs.ARCHIVED_FILE_MAX_BYTES): such a complete run joins its
-    group after the runs with weights and is restamped with them; a group with none stays not checked."""
+    group after the runs with weights and is restamped with them; a group with none is checked by its
+    training alone, and the table says it had no weights."""
     import types
     import torch
     from bench import runs
@@ -615,10 +619,11 @@ def test_adopt_restamps_a_run_its_archive_kept_without_weights_beside_a_witness_
     monkeypatch.setattr(adopt, "trained_here", lambda *a: True)
     monkeypatch.setattr(adopt, "restore_archive", lambda ctx: 0)
     ctx = types.SimpleNamespace(runs_dir=tmp_path / "runs", runs_archive=None, results_dir=tmp_path / "results")
-    table = adopt.run(ctx, "adopt", 10, 1e-5, 1e-3, 1e-3, dry_run=False).set_index("witness")["verdict"]
-    assert table[made[True].hash] == "adopted" and "has its weights" in table[lone.hash]
+    table = adopt.run(ctx, "adopt", 10, 1e-5, 1e-3, 1e-3, dry_run=False).set_index("witness")
+    assert table.loc[made[True].hash, "verdict"] == "adopted" and table.loc[made[True].hash, "weights"]
+    assert table.loc[lone.hash, "verdict"] == "adopted" and not table.loc[lone.hash, "weights"]
     assert runs.read_record(made[False].dir / runs.RECORD)["code"] == {"bench/x.py": "new"}
-    assert runs.read_record(lone.dir / runs.RECORD)["code"] == {"bench/x.py": "old"}
+    assert runs.read_record(lone.dir / runs.RECORD)["code"] == {"bench/x.py": "new"}
 
 
 def test_all_counts_every_seed_and_each_shared_run_once(tmp_path, caplog):
@@ -660,3 +665,38 @@ def test_all_counts_every_seed_and_each_shared_run_once(tmp_path, caplog):
     minutes = recorded_minutes(["h0"], store, (archive,))
     assert minutes == {"eval/h0": pytest.approx(0.1), "train/t0": pytest.approx(10.0), "train/t_gone": None}
     assert runs.wall_time_s(store, "train", "t0+t_gone") == pytest.approx(600)
+
+
+def test_adopt_never_adopts_on_a_comparison_of_nothing():
+    """A replay that compared no step or no frame has differences of 0 that prove nothing."""
+    from bench.experiments.adopt import verdict
+    train = {"train step 1 loss": 0.0, "train step 1 grad_norm": 0.0, "train later loss": 0.0, "train steps": 10}
+    assert verdict(train, 1e-5, 1e-5, 1e-3) == "adopted"
+    assert verdict({**train, "eval PSNR": 0.0, "eval frames": 7}, 1e-5, 1e-5, 1e-3) == "adopted"
+    assert verdict({**train, "eval PSNR": 0.0, "eval frames": 0}, 1e-5, 1e-5, 1e-3).startswith("not checked")
+    assert verdict({**train, "train steps": 0}, 1e-5, 1e-5, 1e-3).startswith("not checked")
+    assert verdict({}, 1e-5, 1e-5, 1e-3).startswith("not checked")
+    assert verdict({**train, "train step 1 loss": 2e-5}, 1e-5, 1e-5, 1e-3).startswith("differs (train step 1 loss")
+    assert verdict({**train, "train later loss": 2e-3}, 1e-5, 1e-5, 1e-3).startswith("differs (later loss")
+
+
+def test_adopt_never_takes_a_nan_for_a_match():
+    from bench.experiments.adopt import relative_difference, verdict
+    nan, inf = float("nan"), float("inf")
+    assert relative_difference([nan], [nan]) == inf and relative_difference([1.0], [nan]) == inf
+    assert relative_difference([inf], [inf]) == 0.0 and relative_difference([inf], [1.0]) == inf
+    assert relative_difference([1.0, 2.0], [1.0, 2.0]) == 0.0
+    row = {"train step 1 loss": nan, "train later loss": 0.0, "train steps": 10}
+    assert verdict(row, 1e-5, 1e-5, 1e-3).startswith("differs")
+
+
+def test_the_differential_check_refuses_a_replay_that_did_not_run_the_recorded_code(monkeypatch, tmp_path):
+    """The subprocess reports the fingerprint of what it imported; one file that is not the recorded
+    version (the rebuilt tree shadowed, a search that picked another blob) fails the check."""
+    from bench.errors import UserError
+    from bench.experiments import adopt, recorded_code
+    monkeypatch.setattr(recorded_code, "rebuild", lambda recorded, current, dest: dest)
+    monkeypatch.setattr(recorded_code, "replay_there", lambda tree, job: {"code": {"bench/x.py": "today"}})
+    monkeypatch.setattr(adopt.runs, "code_fingerprint", lambda modules: {"bench/x.py": "today"})
+    with pytest.raises(UserError, match="not the recorded one: bench/x.py"):
+        adopt.check_against_recorded_code(None, {"bench/x.py": "recorded"}, ["bench.x"], 3, None, None)

@@ -15,8 +15,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from bench.atomic import write_atomic
 from bench import datagen, exrio
+from bench.atomic import write_atomic
 from bench.errors import UserError
 from bench.experiments.datasets import ensure_data
 from conftest import smoke_context

@@ -118,3 +118,20 @@ def test_submitit_local_launcher_runs_a_sweep(tmp_path):
     assert out.returncode == 0, out.stderr[-2000:]
     tables = sorted(p.parent.parent.name for p in (tmp_path / "results" / "sweeps").glob("*/macs/table.csv"))
     assert tables == ["seeds=_0_", "seeds=_1_"]
+
+
+def test_a_training_whose_archive_left_its_weights_out_is_mirrored_without_them(tmp_path):
+    """The archive keeps some trainings without weights (docs/runs.md); mirroring one logs its record and
+    curve, not a failure that stops the whole mirror."""
+    run_dir = tmp_path / "runs" / "train" / ("0" * 16)
+    run_dir.mkdir(parents=True)
+    record = {"kind": "train", "hash": "0" * 16, "status": "complete", "identity": {"model": {}}}
+    (run_dir / runs.RECORD).write_text(json.dumps(record))
+    (run_dir / "curve.csv").write_text("step,loss\n1,0.5\n")
+    logged = []
+
+    class Client:
+        def log_artifact(self, run_id, path):
+            logged.append(Path(path).name)
+    tracking._log_artifacts(Client(), "id", record, run_dir)
+    assert logged == ["run.json", "curve.csv"]

@@ -22,7 +22,11 @@ its split (another host's, one from before a render change, or not recorded) can
 since its numbers moved with the frames; it is checked against its recorded code instead: the code its
 fingerprint names, rebuilt from git history (bench/experiments/recorded_code.py), replays the same first
 steps and scores the same sequence of today's frames in a subprocess, and the current code must give the
-same numbers (the differential check: the change moves no number, whatever the frames). A group that passes has its runs (every seed) and
+same numbers (the differential check: the change moves no number, whatever the frames). The subprocess
+fingerprints what it ran, which must be the recorded code. Where today's frames lack the split an
+evaluation scored, both codes score val (or test) instead: any frames show whether the change moves a
+number. Stale evaluations of models that are not trained (bilinear, OIDN) are checked the same way, on
+their first sequence, against their record or their recorded code. A group that passes has its runs (every seed) and
 their evaluations re-stamped with the current code fingerprint, the old one and the check kept in the record
 (`code_adopted`), and archived again (`runs_archive`, complete runs only: else a fresh clone restores the
 archive's stale copy); a group that fails is left stale, with the measured difference in the table. What
@@ -35,8 +39,8 @@ training replay alone: the evaluator is then not checked for it.
 Stopped trainings (interrupted, failed, or killed: a "running" record no process holds) with a checkpoint are adopted with their group, so they
 resume instead of starting again; a group of only such runs has no evaluation to check.
 
-The archive's runs (`runs_archive`) that the store lacks are restored into it first, so a fresh clone
-adopts the committed runs. Runs recorded under an older identity version are not looked at: `+experiment=migrate` re-keys them first.
+The archive's runs (`runs_archive`) that the store lacks are restored into it first (with `dry_run`
+too), so a fresh clone adopts the committed runs. Runs recorded under an older identity version are not looked at: `+experiment=migrate` re-keys them first.
 
 Writes `<results_dir>/adopt/table.{csv,md,tex}`: one row per group with the verdict and the differences.
 """
@@ -59,16 +63,18 @@ from bench.datagen import load_manifest
 from bench.errors import UserError
 from bench.evaluate import evaluate
 from bench.experiments import recorded_code
-from bench.experiments.context import EVALUATION_CODE, TRAINING_CODE, Context, code_of, recipe_from
+from bench.experiments.context import (EVALUATION_CODE, FROZEN_SPLIT, TRAINING_CODE, TUNING_SPLIT, Context,
+                                      code_of, recipe_from)
 from bench.experiments.datasets import data_fingerprint, dataset, evaluation_data, render_digest
 from bench.experiments.evaluation import archive_evaluation
+from bench.experiments.migrate import IMPLIED_V1
 from bench.experiments.training import archive_training, cascade_net, perceptual_features
 from bench.infer import REFERENCE
 from bench.models.factory import build_model
 from bench.models.srd import SRDStage
 from bench.table_writer import write_table
 from bench.tasks import get_task
-from bench.train import CHECKPOINT, TrainingInterrupted, lr_at, train
+from bench.train import CHECKPOINT, Recipe, TrainingInterrupted, lr_at, train
 
 log = logging.getLogger("bench")
 
@@ -95,11 +101,15 @@ class _FirstSteps:
 
 
 def relative_difference(a, b) -> float:
-    """Largest |a - b| / max(|b|, 1e-12) over paired values (0 for none)."""
+    """Largest |a - b| / max(|b|, 1e-12) over paired values (0 for none); equal values count 0 (inf and inf
+    included), any other non-finite pair inf: a NaN never passes for a match."""
     a, b = np.asarray(a, float), np.asarray(b, float)
     if not a.size:
         return 0.0
-    return float(np.max(np.abs(a - b) / np.maximum(np.abs(b), 1e-12)))
+    with np.errstate(invalid="ignore"):
+        diff = np.abs(a - b) / np.maximum(np.abs(b), 1e-12)
+    diff = np.where(a == b, 0.0, np.where(np.isfinite(diff), diff, np.inf))
+    return float(np.max(diff))
 
 
 def _model(cfg: dict, task, stage: str | None):
@@ -111,8 +121,8 @@ def replayed_curve(ctx: Context, record: dict, run_dir: Path, steps: int) -> pd.
     frames of this store's data: the per-step curve (loss, grad_norm, lr) the trainer writes."""
     identity = record["identity"]
     cfg, task, seed, stage = identity["model"], get_task(identity["task"]), identity["seed"], identity.get("stage")
-    recipe = recipe_from({**dataclasses.asdict(ctx.train), **identity["train"], "checkpoint_every": 1,
-                          "checkpoint_every_s": 1e9})
+    recipe = recipe_of_this_code({**dataclasses.asdict(ctx.train), **identity["train"], "checkpoint_every": 1,
+                                  "checkpoint_every_s": 1e9})
     if archived.has_weights(run_dir):  # the recorded weights fit the model built now: names, shapes
         archived.load_weights(_model(cfg, task, stage), run_dir)
     torch.manual_seed(seed)  # as trained_model builds it: the initial weights come from this seed
@@ -128,22 +138,50 @@ def replayed_curve(ctx: Context, record: dict, run_dir: Path, steps: int) -> pd.
         return pd.DataFrame(torch.load(Path(tmp) / CHECKPOINT, weights_only=False)["curve"])
 
 
-def first_sequence_scores(ctx: Context, train_record: dict, train_dir: Path, split: str, hdr: str) -> pd.DataFrame:
-    """The recorded weights run by this code's evaluator on the first sequence of `split` as the frames
-    are now: its per-frame scores."""
-    identity = train_record["identity"]
-    task = get_task(identity["task"])
-    model = archived.load_weights(build_model(identity["model"], task.scale), train_dir)
+def recipe_of_this_code(train: dict) -> Recipe:
+    """The recipe of `train` as this code's `Recipe` takes it: an option it lacks (the recorded code,
+    rebuilt, predates it) is allowed only at the value the code before it implied (migrate.IMPLIED_V1),
+    and set as a plain attribute, for today's experiment code that reads it."""
+    known = {f.name for f in dataclasses.fields(Recipe)}
+    for option in set(train) - known:
+        if option not in IMPLIED_V1 or train[option] != IMPLIED_V1[option]:
+            raise UserError(f"train.{option}={train[option]!r}: the code replayed has no such option")
+    recipe = recipe_from({k: v for k, v in train.items() if k in known})
+    for option in set(train) - known:
+        object.__setattr__(recipe, option, train[option])  # older recipes were frozen dataclasses
+    return recipe
+
+
+def first_sequence_scores(ctx: Context, cfg: dict, task: str, weights: Path | None, split: str,
+                          hdr: str) -> pd.DataFrame:
+    """The model `cfg` (with the weights of the training in directory `weights`; None: a model that is
+    not trained) run by this code's evaluator on the first sequence of `split` as the frames are now:
+    its per-frame scores."""
+    task = get_task(task)
+    model = build_model(cfg, task.scale)
+    if weights is not None:
+        archived.load_weights(model, weights)
     frames = dataset(evaluation_data(ctx), split, task, training=False)
     return evaluate(model, [frames[0]], task, hdr=hdr)[0]
 
 
-def replay(ctx: Context, record: dict, run_dir: Path, steps: int, evaluation: dict | None) -> dict:
-    """What the differential check computes twice, by the recorded code and by this code: the replayed
-    curve and, given an evaluation identity, the first sequence's scores."""
-    return {"curve": replayed_curve(ctx, record, run_dir, steps),
-            "scores": None if evaluation is None else
-            first_sequence_scores(ctx, record, run_dir, evaluation["split"], evaluation["hdr"])}
+def scoring_of(evaluation: runs.Run, weights: Path | None) -> dict:
+    """`first_sequence_scores`' arguments (past ctx) for the model an evaluation scored."""
+    identity = evaluation.record["identity"]
+    trained = identity["trained"]
+    if isinstance(trained, str):  # a training's hash: its record names the model
+        record = runs.read_record(Path(weights) / runs.RECORD)["identity"]
+        cfg, task = record["model"], record["task"]
+    else:
+        cfg, task = trained["model"], trained["task"]
+    return {"cfg": cfg, "task": task, "weights": weights, "split": identity["split"], "hdr": identity["hdr"]}
+
+
+def replay(ctx: Context, steps: int, training: tuple | None, scoring: dict | None) -> dict:
+    """What the differential check computes twice, by the recorded code and by this code: the first
+    `steps` steps of `training` (record, directory) replayed, and `scoring` (first_sequence_scores)."""
+    return {"curve": None if training is None else replayed_curve(ctx, *training, steps),
+            "scores": None if scoring is None else first_sequence_scores(ctx, **scoring)}
 
 
 def curve_differences(replayed: pd.DataFrame, reference: pd.DataFrame, steps: int) -> dict:
@@ -174,34 +212,44 @@ def check_training(ctx: Context, record: dict, run_dir: Path, steps: int) -> dic
     return out | curve_differences(replayed_curve(ctx, record, run_dir, steps), archived.read_curve(run_dir), steps)
 
 
-def check_inference(ctx: Context, train_record: dict, train_dir: Path, evaluation: runs.Run) -> dict:
-    """Run the recorded weights through the current evaluator on the first sequence of `evaluation`;
-    {metric: relative difference to its recorded per-frame values}."""
-    identity = evaluation.record["identity"]
-    scores = first_sequence_scores(ctx, train_record, train_dir, identity["split"], identity["hdr"])
+def check_inference(ctx: Context, evaluation: runs.Run, weights: Path | None) -> dict:
+    """Run the model `evaluation` scored (with the weights in directory `weights`, or none) through the
+    current evaluator on its first sequence; {metric: relative difference to its recorded per-frame values}."""
+    scores = first_sequence_scores(ctx, **scoring_of(evaluation, weights))
     recorded = archived.read_per_image(evaluation.dir)
     if recorded is None:
         raise UserError(f"adopt: evaluation run {evaluation.hash} has no per-frame scores to compare with")
     return score_differences(scores, recorded)
 
 
-def check_against_recorded_code(ctx: Context, witness: runs.Run, steps: int, evaluation: runs.Run | None) -> dict:
-    """The differential check (bench/experiments/recorded_code.py): the replay by the code the witness
-    (and `evaluation`) recorded, rebuilt from git, against the same replay by this code, on today's
-    frames; {what: relative difference}, keyed as the other checks' ("train ...", "eval ...")."""
-    identity = witness.record["identity"]
-    recorded = {**(evaluation.record.get("code") or {} if evaluation else {}), **(witness.record.get("code") or {})}
-    current = code_of(identity["model"], *EVALUATION_CODE, *TRAINING_CODE)
-    job = {"ctx": ctx, "record": witness.record, "run_dir": witness.dir, "steps": steps,
-           "evaluation": evaluation and {k: evaluation.record["identity"][k] for k in ("split", "hdr")}}
+def check_against_recorded_code(ctx: Context, recorded: dict, modules: list, steps: int,
+                                training: runs.Run | None, scoring: dict | None) -> dict:
+    """The differential check (bench/experiments/recorded_code.py): the replay of `training`'s first steps
+    and of `scoring` by the `recorded` code (the fingerprint of `modules` a run recorded), rebuilt from
+    git, against the same by this code, on today's frames; {what: relative difference}, keyed "train ..."
+    and "eval ...". The subprocess fingerprints what it ran: a file that is not the recorded one is an error."""
+    job = {"ctx": ctx, "steps": steps, "scoring": scoring,
+           "training": None if training is None else (training.record, training.dir)}
     with tempfile.TemporaryDirectory(prefix="srd-recorded-code-") as tmp:
-        then = recorded_code.replay_there(recorded_code.rebuild(recorded, current, Path(tmp)), job)
+        tree = recorded_code.rebuild(recorded, runs.code_fingerprint(modules), Path(tmp))
+        then = recorded_code.replay_there(tree, {"replay": job, "modules": modules})
+    other = sorted(p for p in recorded if then["code"].get(p) != recorded[p])
+    if other:
+        raise UserError(f"the rebuilt code is not the recorded one: {', '.join(other)}")
     now = replay(**job)
-    out = {f"train {k}": v for k, v in (schedule_difference(witness.record, witness.dir, ctx)
-                                         | curve_differences(now["curve"], then["curve"], steps)).items()}
-    if evaluation is not None:
+    out = {}
+    if training is not None:
+        out |= {f"train {k}": v for k, v in (schedule_difference(training.record, training.dir, ctx)
+                                             | curve_differences(now["curve"], then["curve"], steps)).items()}
+    if scoring is not None:
         out |= {f"eval {k}": v for k, v in score_differences(now["scores"], then["scores"]).items()}
+        out["scored split"] = scoring["split"]
     return out
+
+
+def fingerprints_agree(a: dict, b: dict) -> bool:
+    """Whether two recorded fingerprints name the same version of every file both name."""
+    return all(a[path] == b[path] for path in set(a) & set(b))
 
 
 RESUMABLE = ("complete", "interrupted", "failed")  # a stopped training resumes from its checkpoint once adopted
@@ -262,8 +310,16 @@ def scored_here(ctx: Context, evaluation: runs.Run) -> bool:
     (its render digest, where it recorded one: the noise differs in the last bits and beyond)."""
     identity, frames = evaluation.record["identity"], evaluation_data(ctx)
     recorded = evaluation.record.get("metrics", {}).get("render")
-    return (ran_the_default_way(identity) and identity.get("data") == data_fingerprint(frames, identity["split"])
+    return (same_settings_here(frames, identity)
             and recorded in (None, render_digest(frames, identity["split"])))
+
+
+def same_settings_here(frames: Context, identity: dict) -> bool:
+    """Whether an evaluation (its identity) ran the default way on a split that `frames` has, rendered
+    with the same settings (any render of them)."""
+    split = identity["split"]
+    return (ran_the_default_way(identity) and split in splits_on_disk(frames)
+            and identity.get("data") == data_fingerprint(frames, split))
 
 
 def ran_the_default_way(identity: dict) -> bool:
@@ -279,16 +335,41 @@ def trained_here(ctx: Context, training: runs.Run) -> bool:
 
 
 def differential_evaluation(ctx: Context, training: runs.Run) -> runs.Run | None:
-    """An evaluation of `training` run the default way on a split whose settings today's frames have (any
-    render of it): the differential check scores its first sequence by both codes."""
+    """An evaluation of `training` run the default way, preferably on a split today's frames have with
+    its settings: the differential check scores the model as it did, by both codes."""
     frames = evaluation_data(ctx)
-    on_disk = {frame["split"] for frame in load_manifest(frames.data_dir)["frames"]}
-    for evaluation in evaluations_of(ctx.runs_dir, {training.hash}):
-        identity = evaluation.record["identity"]
-        if ran_the_default_way(identity) and identity["split"] in on_disk \
-                and identity.get("data") == data_fingerprint(frames, identity["split"]):
-            return evaluation
-    return None
+    default = [e for e in evaluations_of(ctx.runs_dir, {training.hash})
+               if ran_the_default_way(e.record["identity"])]
+    here = [e for e in default if same_settings_here(frames, e.record["identity"])]
+    return (here or default or [None])[0]
+
+
+def differential_scoring(ctx: Context, evaluation: runs.Run, weights: Path | None) -> dict:
+    """`scoring_of(evaluation, weights)` on a split of today's frames: its own where they have it, else
+    val or test. Both codes score the same frames, so any frames show whether the change moves a number."""
+    scoring = scoring_of(evaluation, weights)
+    return {**scoring, "split": scoring_split(ctx, scoring["split"])}
+
+
+def training_scoring(ctx: Context, training: runs.Run) -> dict:
+    """The scoring of a training no evaluation ran the default way: its weights on val (or test), in the
+    network domain it trained in."""
+    identity = training.record["identity"]
+    return {"cfg": identity["model"], "task": identity["task"], "weights": training.dir,
+            "split": scoring_split(ctx, TUNING_SPLIT), "hdr": identity["train"]["hdr"]}
+
+
+def scoring_split(ctx: Context, split: str) -> str:
+    """`split` where today's frames have it, else val or test."""
+    here = splits_on_disk(evaluation_data(ctx))
+    splits = [s for s in (split, TUNING_SPLIT, FROZEN_SPLIT) if s in here]
+    if not splits:
+        raise UserError(f"no frames of split {split}, {TUNING_SPLIT} or {FROZEN_SPLIT} to score")
+    return splits[0]
+
+
+def splits_on_disk(frames: Context) -> set[str]:
+    return {f["split"] for f in load_manifest(frames.data_dir)["frames"]}
 
 
 def restamp(run: runs.Run, code: dict, check: dict) -> None:
@@ -314,35 +395,41 @@ def run(ctx: Context, name: str, steps: int, rtol: float, rtol_later_steps: floa
         row = {"label": witness.record.get("label"), "runs": len(group), "witness": witness.hash,
                "changed": ", ".join(runs.code_changes(witness.record, code))}
         try:
-            weights = archived.has_weights(witness.dir)  # none: no seed's archive kept them; training is checked
+            weights = row["weights"] = archived.has_weights(witness.dir)  # False: no seed's archive kept
+            # them, and the group is checked by its training alone
             if trained_here(ctx, witness):  # its record can judge the code
                 row["check"] = "record"
                 row |= {f"train {k}": v for k, v in check_training(ctx, witness.record, witness.dir, steps).items()}
                 evals = [e for e in evaluations_of(ctx.runs_dir, {witness.hash}) if scored_here(ctx, e)]
                 if evals and weights:
-                    row |= {f"eval {k}": v for k, v in check_inference(ctx, witness.record, witness.dir, evals[0]).items()}
+                    row |= {f"eval {k}": v for k, v in check_inference(ctx, evals[0], witness.dir).items()}
                 eval_rtol = rtol_rounded_weights if archived.rounded(witness.dir) else rtol
             else:  # trained on other frames: the recorded code, rebuilt, replays on today's
                 row["check"] = "recorded code"
-                row |= check_against_recorded_code(ctx, witness, steps,
-                                                   differential_evaluation(ctx, witness) if weights else None)
+                evaluation = differential_evaluation(ctx, witness) if weights else None
+                scoring = None
+                if weights:  # as the evaluation scored it, or on val with the training's network domain
+                    scoring = (differential_scoring(ctx, evaluation, witness.dir) if evaluation is not None
+                               else training_scoring(ctx, witness))
+                modules = [identity["model"]["_target_"], *EVALUATION_CODE, *TRAINING_CODE]
+                trained_with = witness.record["code"]
+                scored_with = (evaluation.record.get("code") or {}) if evaluation is not None else {}
+                if fingerprints_agree(trained_with, scored_with):  # one rebuilt tree ran both
+                    row |= check_against_recorded_code(ctx, {**scored_with, **trained_with}, modules, steps,
+                                                       witness, scoring)
+                else:  # the evaluation ran later code than the training: each replayed by its own
+                    row |= check_against_recorded_code(ctx, trained_with, modules, steps, witness, None)
+                    row |= check_against_recorded_code(ctx, scored_with, modules, 0, None, scoring)
                 eval_rtol = rtol  # the same weights on both sides
-            limits = {k: eval_rtol if k.startswith("eval ") else rtol for k in row
-                      if k.startswith(("train step 1", "train lr", "eval ")) and k != "eval frames"}
-            over = {k: row[k] for k, limit in limits.items() if row[k] > limit}
-            later = row["train later loss"]
             row["eval rtol"] = eval_rtol
-            worst = max(over, key=lambda k: row[k] / limits[k]) if over else None
-            row["verdict"] = ("adopted" if not over and later <= rtol_later_steps else
-                              f"differs ({worst} {row[worst]:.2g} > {limits[worst]:g})" if over else
-                              f"differs (later loss {later:.2g} > {rtol_later_steps:g})")
+            row["verdict"] = verdict(row, rtol, eval_rtol, rtol_later_steps)
         except TrainingInterrupted:  # Ctrl-C / SIGTERM during a replay stops the command, not one group
             raise
         except Exception as err:  # noqa: BLE001 - a group that cannot be checked stays stale, with why
             row["verdict"] = f"not checked: {type(err).__name__}: {err}"
         log.info("adopt %s (%d runs): %s", row["label"], len(group), row["verdict"])
         if row["verdict"] == "adopted" and not dry_run:
-            check = {k: v for k, v in row.items() if k.startswith(("train ", "eval "))} | {
+            check = {k: v for k, v in row.items() if k.startswith(("train ", "eval ", "check", "scored", "weights"))} | {
                 "rtol": rtol, "rtol_later_steps": rtol_later_steps}
             for r in group:
                 restamp(r, code, check)
@@ -356,6 +443,14 @@ def run(ctx: Context, name: str, steps: int, rtol: float, rtol_later_steps: floa
         if ran_the_default_way(identity) and runs.code_changes(evaluation.record, code):
             restamp(evaluation, code, {"trainings": trained, "rtol": rtol})
             archive_evaluation(ctx, evaluation)
+    for evaluation in stale_untrained_evaluations(ctx):  # bilinear, OIDN: their evaluator changed
+        row = check_untrained(ctx, evaluation, rtol)
+        log.info("adopt %s (evaluation %s): %s", row["label"], evaluation.hash, row["verdict"])
+        if row["verdict"] == "adopted" and not dry_run:
+            restamp(evaluation, code_of(evaluation.record["identity"]["trained"]["model"], *EVALUATION_CODE),
+                    {k: v for k, v in row.items() if k.startswith(("eval ", "check", "scored"))} | {"rtol": rtol})
+            archive_evaluation(ctx, evaluation)
+        rows.append(row)
     checked = time.strftime("%Y-%m-%dT%H:%M:%S%z")
     table = pd.DataFrame([{**row, "checked": checked, "rtol": rtol, "rtol later steps": rtol_later_steps,
                            "dry run": dry_run} for row in rows])
@@ -370,12 +465,72 @@ def run(ctx: Context, name: str, steps: int, rtol: float, rtol_later_steps: floa
         f"and the later steps' loss within rtol later steps (summation order makes two runs of the same "
         f"code drift apart slowly from the second step on). Check: 'record' compares with the witness's "
         f"recorded values (it trained on this render); 'recorded code' compares with the same replay by the "
-        f"code the witness recorded, rebuilt from git (it trained on another render), on today's frames. "
+        f"code the witness recorded, rebuilt from git (it trained on another render), on today's frames "
+        f"(scored split: the frames both codes scored). weights false: no seed of the group kept its weights, "
+        f"so only its training was checked. Rows '(evaluation <hash>)' are evaluations of models that are not "
+        f"trained (bilinear, OIDN) whose evaluator changed, checked on their first sequence. "
         f"One row per witness, its latest check: groups "
         f"that earlier calls adopted are no longer stale and keep their row."))
     log.info("adopt: %d of %d groups adopted%s; table in %s", sum(r["verdict"] == "adopted" for r in rows),
              len(rows), " (dry run)" if dry_run else "", ctx.results_dir / name)
     return table
+
+
+def verdict(row: dict, rtol: float, eval_rtol: float, rtol_later_steps: float) -> str:
+    """"adopted", or "differs (<what> <difference> > <limit>)" for the largest difference over its limit;
+    "not checked" when a replay compared nothing (no step, no frame: a difference of 0 would be vacuous)."""
+    limits = {k: eval_rtol if k.startswith("eval ") else rtol for k in row
+              if k.startswith(("train step 1", "train lr")) or k.removeprefix("eval ") in COMPARED}
+    empty = [k for k in ("train steps", "eval frames") if k in row and not row[k]]
+    if empty or not limits:
+        return f"not checked: nothing compared ({', '.join(empty) or 'no replay'})"
+    over = {k: row[k] for k, limit in limits.items() if not row[k] <= limit}  # NaN: over
+    later = row.get("train later loss", 0.0)
+    worst = max(over, key=lambda k: row[k] / limits[k]) if over else None
+    return ("adopted" if not over and later <= rtol_later_steps else
+            f"differs ({worst} {row[worst]:.2g} > {limits[worst]:g})" if over else
+            f"differs (later loss {later:.2g} > {rtol_later_steps:g})")
+
+
+def stale_untrained_evaluations(ctx: Context) -> list[runs.Run]:
+    """Complete evaluations of a model that is not trained (bilinear, OIDN: the identity names its config),
+    run the default way, whose code changed since they were recorded."""
+    out = []
+    for path in sorted((ctx.runs_dir / "eval").glob(f"*/{runs.RECORD}")):
+        record = runs.read_record(path) or {}
+        identity = record.get("identity") or {}
+        trained = identity.get("trained")
+        if record.get("status") == "complete" and isinstance(trained, dict) \
+                and identity.get("version") == runs.IDENTITY_VERSION and ran_the_default_way(identity) \
+                and runs.code_changes(record, code_of(trained["model"], *EVALUATION_CODE)):
+            out.append(runs.Run("eval", record["hash"], path.parent, record))
+    return out
+
+
+def check_untrained(ctx: Context, evaluation: runs.Run, rtol: float) -> dict:
+    """The table row of a stale evaluation of a model that is not trained: its first sequence scored by
+    the current code against its record (scored on today's render) or against its recorded code (on
+    another render of the same settings)."""
+    identity = evaluation.record["identity"]
+    code = code_of(identity["trained"]["model"], *EVALUATION_CODE)
+    row = {"label": evaluation.record.get("label"), "runs": 1, "witness": evaluation.hash,
+           "changed": ", ".join(runs.code_changes(evaluation.record, code))}
+    try:
+        if scored_here(ctx, evaluation):
+            row["check"] = "record"
+            row |= {f"eval {k}": v for k, v in check_inference(ctx, evaluation, None).items()}
+        else:
+            row["check"] = "recorded code"
+            row |= check_against_recorded_code(ctx, evaluation.record["code"],
+                                               [identity["trained"]["model"]["_target_"], *EVALUATION_CODE], 0,
+                                               None, differential_scoring(ctx, evaluation, None))
+        row["eval rtol"] = rtol
+        row["verdict"] = verdict(row, rtol, rtol, 0.0)
+    except TrainingInterrupted:
+        raise
+    except Exception as err:  # noqa: BLE001 - an evaluation that cannot be checked stays stale, with why
+        row["verdict"] = f"not checked: {type(err).__name__}: {err}"
+    return row
 
 
 def with_earlier_verdicts(table: pd.DataFrame, previous_csv: Path) -> pd.DataFrame:
@@ -395,7 +550,8 @@ def main(argv=None) -> int:
     the code this module was imported from (the recorded code, rebuilt)."""
     job_file, out_file = (argv or sys.argv[1:])[:2]
     job = pickle.loads(Path(job_file).read_bytes())
-    Path(out_file).write_bytes(pickle.dumps(replay(**job)))
+    out = replay(**job["replay"]) | {"code": runs.code_fingerprint(job["modules"])}  # what ran: the rebuilt files
+    Path(out_file).write_bytes(pickle.dumps(out))
     return 0
 
 

@@ -26,8 +26,8 @@ from pathlib import Path
 
 import pandas as pd
 
-from bench.atomic import write_atomic
 from bench import runs
+from bench.atomic import write_atomic
 from bench.experiments.context import Context
 from bench.infer import REFERENCE
 from bench.losses import absolute_weights

@@ -13,8 +13,10 @@ pickle of `adopt.replay`'s arguments, OUT receives what it returns.
 """
 from __future__ import annotations
 
+import logging
 import os
 import pickle
+import re
 import shutil
 import subprocess
 import sys
@@ -24,34 +26,46 @@ from pathlib import Path
 from bench import runs
 from bench.errors import UserError
 
+log = logging.getLogger("bench")
+
 
 def rebuild(recorded: dict, current: dict, dest: Path, repo: Path = runs.ROOT) -> Path:
     """A copy of the project's packages at `dest` in which every file whose recorded source hash differs
-    from `current`'s is the version git history has with the recorded hash (a file added since stays:
-    the recorded code imports nothing it did not name). UserError naming a file no version matches."""
+    from `current`'s is the version git history has with the recorded hash, with the C++ sources it names
+    from the same commit (a file added since stays: the recorded code imports nothing it did not name).
+    UserError naming a file no version matches."""
     for package in runs.PACKAGES:
         shutil.copytree(repo / package, dest / package, dirs_exist_ok=True,
                         ignore=shutil.ignore_patterns("__pycache__", "*.so"))
-    changed = [p for p in runs.code_changes({"code": recorded}, current) if p in recorded]
-    for path in sorted(changed, key=lambda p: p.endswith(".py")):  # C++ sources first: a .py hash reads them
-        if not _checkout_version(repo, path, recorded[path], dest):
+    for path in runs.code_changes({"code": recorded}, current):
+        if path in recorded and not _checkout_version(repo, path, recorded[path], dest):
             raise UserError(f"{path}: no version in the git history of {repo} has the recorded source hash "
                             f"{recorded[path]} (the recorded code cannot be rebuilt)")
     return dest
 
 
+NATIVE = re.compile(r"""["']([\w./-]+\.(?:cpp|cu))["']""")  # the C++ sources a module names (runs.source_hash)
+
+
 def _checkout_version(repo: Path, path: str, source_hash: str, dest: Path) -> bool:
-    """Write into `dest/path` the newest version of `path` in git history whose source hash is `source_hash`."""
-    log = subprocess.run(["git", "-C", str(repo), "log", "--format=", "--raw", "--no-abbrev", "--", path],
-                         capture_output=True, text=True, timeout=60)
-    blobs = dict.fromkeys(line.split()[3] for line in log.stdout.splitlines()
-                          if line.startswith(":") and line.split()[3].strip("0"))
+    """Write into `dest` the newest version of `path` in git history whose source hash is `source_hash`,
+    each candidate with the C++ sources it names from its own commit (a .py's hash covers them)."""
+    def git(*args) -> subprocess.CompletedProcess:
+        return subprocess.run(["git", "-C", str(repo), *args], capture_output=True, timeout=60)
+    folder = Path(path).parent
+    natives = [str(folder / n) for n in NATIVE.findall((repo / path).read_text())] if (repo / path).exists() else []
+    commits = git("log", "--full-history", "--format=%H", "--", path, *natives).stdout.decode().split()
     target = dest / path
     target.parent.mkdir(parents=True, exist_ok=True)
-    for blob in blobs:
-        content = subprocess.run(["git", "-C", str(repo), "cat-file", "blob", blob], capture_output=True,
-                                 timeout=60).stdout
-        target.write_bytes(content)
+    for commit in commits:
+        shown = git("show", f"{commit}:{path}")
+        if shown.returncode != 0:  # not there in this commit
+            continue
+        target.write_bytes(shown.stdout)
+        for native in NATIVE.findall(shown.stdout.decode(errors="replace")):
+            source = git("show", f"{commit}:{(folder / native).as_posix()}")
+            if source.returncode == 0:
+                (dest / folder / native).write_bytes(source.stdout)
         try:
             if runs.source_hash.__wrapped__(target) == source_hash:  # uncached: one path, many versions
                 return True
@@ -60,15 +74,21 @@ def _checkout_version(repo: Path, path: str, source_hash: str, dest: Path) -> bo
     return False
 
 
-def replay_there(tree: Path, job: dict) -> dict:
-    """adopt's replay (`adopt.replay`) of `job` by the code in `tree`, in a subprocess; its result."""
+def replay_there(tree: Path, job: dict, timeout_s: float = 1800) -> dict:
+    """adopt's replay of `job` by the code in `tree`, in a subprocess (`adopt.main`); its result, with the
+    code fingerprint the subprocess computed of what it ran."""
     with tempfile.TemporaryDirectory() as tmp:
         job_file, out_file = Path(tmp) / "job.pkl", Path(tmp) / "out.pkl"
         job_file.write_bytes(pickle.dumps(job))
         env = {**os.environ, "PYTHONPATH": str(tree)}
-        done = subprocess.run([sys.executable, "-m", "bench.experiments.adopt", str(job_file),
-                               str(out_file)], cwd=tree, env=env, capture_output=True, text=True)
+        # -P: the working directory (where relative paths resolve) does not shadow the rebuilt packages
+        try:
+            done = subprocess.run([sys.executable, "-P", "-m", "bench.experiments.adopt", str(job_file),
+                                   str(out_file)], env=env, capture_output=True, text=True, timeout=timeout_s)
+        except subprocess.TimeoutExpired:
+            raise RuntimeError(f"the recorded code's replay took over {timeout_s:.0f} s") from None
         if done.returncode != 0 or not out_file.exists():
-            last = (done.stderr.strip().splitlines() or ["no output"])[-1]
-            raise RuntimeError(f"the recorded code's replay failed (exit {done.returncode}): {last}")
+            lines = done.stderr.strip().splitlines() or ["no output"]
+            log.debug("the recorded code's replay:\n%s", "\n".join(lines[-20:]))
+            raise RuntimeError(f"the recorded code's replay failed (exit {done.returncode}): {lines[-1]}")
         return pickle.loads(out_file.read_bytes())
