@@ -14,7 +14,8 @@ $(STAMP): pyproject.toml
 	@$(PYTHON) -c 'import sys; assert sys.version_info[:2] == (3, 11), sys.version' 2>/dev/null || \
 		{ echo "SRD-Bench needs Python 3.11 (torch==2.13.0 CPU wheel); set PYTHON=/path/to/python3.11"; exit 1; }
 	@test -x $(PY) || $(PYTHON) -m venv $(VENV)
-	$(PY) -m pip install -q --no-compile -e '.[test]'  # bytecode compiles on first import: 1-2 min less
+	@# not --no-compile: where PYTHONDONTWRITEBYTECODE=1 (CI here) every process would compile every import (CI 15 -> 21 min)
+	$(PY) -m pip install -q -e '.[test]'
 	@touch $(STAMP)
 
 run: setup

@@ -681,7 +681,8 @@ def test_adopt_never_adopts_on_a_comparison_of_nothing():
 
 
 def test_adopt_never_takes_a_nan_for_a_match():
-    from bench.experiments.adopt import relative_difference, verdict
+    from bench.experiments.adopt import verdict
+    from bench.experiments.replay import relative_difference
     nan, inf = float("nan"), float("inf")
     assert relative_difference([nan], [nan]) == inf and relative_difference([1.0], [nan]) == inf
     assert relative_difference([inf], [inf]) == 0.0 and relative_difference([inf], [1.0]) == inf
@@ -694,9 +695,9 @@ def test_the_differential_check_refuses_a_replay_that_did_not_run_the_recorded_c
     """The subprocess reports the fingerprint of what it imported; one file that is not the recorded
     version (the rebuilt tree shadowed, a search that picked another blob) fails the check."""
     from bench.errors import UserError
-    from bench.experiments import adopt, recorded_code
+    from bench.experiments import recorded_code, replay
     monkeypatch.setattr(recorded_code, "rebuild", lambda recorded, current, dest: dest)
     monkeypatch.setattr(recorded_code, "replay_there", lambda tree, job: {"code": {"bench/x.py": "today"}})
-    monkeypatch.setattr(adopt.runs, "code_fingerprint", lambda modules: {"bench/x.py": "today"})
+    monkeypatch.setattr(replay.runs, "code_fingerprint", lambda modules: {"bench/x.py": "today"})
     with pytest.raises(UserError, match="not the recorded one: bench/x.py"):
-        adopt.check_against_recorded_code(None, {"bench/x.py": "recorded"}, ["bench.x"], 3, None, None)
+        replay.check_against_recorded_code(None, {"bench/x.py": "recorded"}, ["bench.x"], 3, None, None)

@@ -20,7 +20,8 @@ reproduces the group's witness run (its lowest seed):
 each to a relative tolerance `rtol` unless said otherwise. A witness that did not train on this render of
 its split (another host's, one from before a render change, or not recorded) cannot be held to its record,
 since its numbers moved with the frames; it is checked against its recorded code instead: the code its
-fingerprint names, rebuilt from git history (bench/experiments/recorded_code.py), replays the same first
+fingerprint names, rebuilt from git history (bench/experiments/recorded_code.py; what is replayed and
+compared: bench/experiments/replay.py), replays the same first
 steps and scores the same sequence of today's frames in a subprocess, and the current code must give the
 same numbers (the differential check: the change moves no number, whatever the frames). The subprocess
 fingerprints what it ran, which must be the recorded code. Where today's frames lack the split an
@@ -46,211 +47,27 @@ Writes `<results_dir>/adopt/table.{csv,md,tex}`: one row per group with the verd
 """
 from __future__ import annotations
 
-import dataclasses
 import logging
-import pickle
-import sys
-import tempfile
 import time
 from pathlib import Path
 
-import numpy as np
 import pandas as pd
-import torch
 
 from bench import archived, runs
 from bench.datagen import load_manifest
 from bench.errors import UserError
-from bench.evaluate import evaluate
-from bench.experiments import recorded_code
 from bench.experiments.context import (EVALUATION_CODE, FROZEN_SPLIT, TRAINING_CODE, TUNING_SPLIT, Context,
-                                      code_of, recipe_from)
-from bench.experiments.datasets import data_fingerprint, dataset, evaluation_data, render_digest
+                                      code_of)
+from bench.experiments.datasets import data_fingerprint, evaluation_data, render_digest
 from bench.experiments.evaluation import archive_evaluation
-from bench.experiments.migrate import IMPLIED_V1
-from bench.experiments.training import archive_training, cascade_net, perceptual_features
+from bench.experiments.replay import (COMPARED, check_against_recorded_code, check_inference, check_training,
+                                      fingerprints_agree, scoring_of)
+from bench.experiments.training import archive_training
 from bench.infer import REFERENCE
-from bench.models.factory import build_model
-from bench.models.srd import SRDStage
 from bench.table_writer import write_table
-from bench.tasks import get_task
-from bench.train import CHECKPOINT, Recipe, TrainingInterrupted, lr_at, train
+from bench.train import TrainingInterrupted
 
 log = logging.getLogger("bench")
-
-COMPARED = ("relMSE", "PSNR", "SSIM")
-
-
-class _Replayed(Exception):
-    """Raised by `_FirstSteps` once the trainer asks for a batch past the replayed steps."""
-
-
-class _FirstSteps:
-    """The training dataset, stopping the trainer when it draws the first batch of step `steps`."""
-
-    def __init__(self, data, steps: int, batch_size: int):
-        self.data, self.last_draw = data, steps * batch_size
-
-    def __len__(self):
-        return len(self.data)
-
-    def item(self, index: int, draw: int):
-        if draw >= self.last_draw:
-            raise _Replayed
-        return self.data.item(index, draw)
-
-
-def relative_difference(a, b) -> float:
-    """Largest |a - b| / max(|b|, 1e-12) over paired values (0 for none); equal values count 0 (inf and inf
-    included), any other non-finite pair inf: a NaN never passes for a match."""
-    a, b = np.asarray(a, float), np.asarray(b, float)
-    if not a.size:
-        return 0.0
-    with np.errstate(invalid="ignore"):
-        diff = np.abs(a - b) / np.maximum(np.abs(b), 1e-12)
-    diff = np.where(a == b, 0.0, np.where(np.isfinite(diff), diff, np.inf))
-    return float(np.max(diff))
-
-
-def _model(cfg: dict, task, stage: str | None):
-    return build_model(cfg, task.scale) if stage is None else SRDStage(cascade_net(cfg), stage)
-
-
-def replayed_curve(ctx: Context, record: dict, run_dir: Path, steps: int) -> pd.DataFrame:
-    """The first `steps` steps of the recorded training, replayed by this code from the same seed on the
-    frames of this store's data: the per-step curve (loss, grad_norm, lr) the trainer writes."""
-    identity = record["identity"]
-    cfg, task, seed, stage = identity["model"], get_task(identity["task"]), identity["seed"], identity.get("stage")
-    recipe = recipe_of_this_code({**dataclasses.asdict(ctx.train), **identity["train"], "checkpoint_every": 1,
-                                  "checkpoint_every_s": 1e9})
-    if archived.has_weights(run_dir):  # the recorded weights fit the model built now: names, shapes
-        archived.load_weights(_model(cfg, task, stage), run_dir)
-    torch.manual_seed(seed)  # as trained_model builds it: the initial weights come from this seed
-    model = _model(cfg, task, stage)
-    features = perceptual_features(ctx)[0] if identity.get("vgg") else None
-    ctx = dataclasses.replace(ctx, train=recipe)  # the recorded recipe's crops and sequence length
-    data = _FirstSteps(dataset(ctx, "train", task, training=True, seed=seed), steps, recipe.batch_size)
-    with tempfile.TemporaryDirectory() as tmp:
-        try:
-            train(model, data, task, tmp, recipe, features=features, seed=seed, progress=False)
-        except _Replayed:
-            pass
-        return pd.DataFrame(torch.load(Path(tmp) / CHECKPOINT, weights_only=False)["curve"])
-
-
-def recipe_of_this_code(train: dict) -> Recipe:
-    """The recipe of `train` as this code's `Recipe` takes it: an option it lacks (the recorded code,
-    rebuilt, predates it) is allowed only at the value the code before it implied (migrate.IMPLIED_V1),
-    and set as a plain attribute, for today's experiment code that reads it."""
-    known = {f.name for f in dataclasses.fields(Recipe)}
-    for option in set(train) - known:
-        if option not in IMPLIED_V1 or train[option] != IMPLIED_V1[option]:
-            raise UserError(f"train.{option}={train[option]!r}: the code replayed has no such option")
-    recipe = recipe_from({k: v for k, v in train.items() if k in known})
-    for option in set(train) - known:
-        object.__setattr__(recipe, option, train[option])  # older recipes were frozen dataclasses
-    return recipe
-
-
-def first_sequence_scores(ctx: Context, cfg: dict, task: str, weights: Path | None, split: str,
-                          hdr: str) -> pd.DataFrame:
-    """The model `cfg` (with the weights of the training in directory `weights`; None: a model that is
-    not trained) run by this code's evaluator on the first sequence of `split` as the frames are now:
-    its per-frame scores."""
-    task = get_task(task)
-    model = build_model(cfg, task.scale)
-    if weights is not None:
-        archived.load_weights(model, weights)
-    frames = dataset(evaluation_data(ctx), split, task, training=False)
-    return evaluate(model, [frames[0]], task, hdr=hdr)[0]
-
-
-def scoring_of(evaluation: runs.Run, weights: Path | None) -> dict:
-    """`first_sequence_scores`' arguments (past ctx) for the model an evaluation scored."""
-    identity = evaluation.record["identity"]
-    trained = identity["trained"]
-    if isinstance(trained, str):  # a training's hash: its record names the model
-        record = runs.read_record(Path(weights) / runs.RECORD)["identity"]
-        cfg, task = record["model"], record["task"]
-    else:
-        cfg, task = trained["model"], trained["task"]
-    return {"cfg": cfg, "task": task, "weights": weights, "split": identity["split"], "hdr": identity["hdr"]}
-
-
-def replay(ctx: Context, steps: int, training: tuple | None, scoring: dict | None) -> dict:
-    """What the differential check computes twice, by the recorded code and by this code: the first
-    `steps` steps of `training` (record, directory) replayed, and `scoring` (first_sequence_scores)."""
-    return {"curve": None if training is None else replayed_curve(ctx, *training, steps),
-            "scores": None if scoring is None else first_sequence_scores(ctx, **scoring)}
-
-
-def curve_differences(replayed: pd.DataFrame, reference: pd.DataFrame, steps: int) -> dict:
-    n = min(steps, len(reference), len(replayed))
-    return {"step 1 loss": relative_difference(replayed["loss"][:1], reference["loss"][:1]),
-            "step 1 grad_norm": relative_difference(replayed["grad_norm"][:1], reference["grad_norm"][:1]),
-            "later loss": relative_difference(replayed["loss"][1:n], reference["loss"][1:n]), "steps": n}
-
-
-def score_differences(scores: pd.DataFrame, reference: pd.DataFrame) -> dict:
-    reference = reference[reference["sequence"].astype(str) == str(scores["sequence"].iloc[0])]
-    merged = scores.merge(reference, on="frame", suffixes=("", " reference"))
-    return {m: relative_difference(merged[m], merged[f"{m} reference"]) for m in COMPARED} | {"frames": len(merged)}
-
-
-def schedule_difference(record: dict, run_dir: Path, ctx: Context) -> dict:
-    """The current schedule's learning rate at every recorded step against the recorded one."""
-    recorded = archived.read_curve(run_dir)  # the trainer's curve (an archive's keeps the first steps whole)
-    if recorded is None:
-        raise UserError(f"{run_dir} has no per-step curve that reads")
-    recipe = recipe_from({**dataclasses.asdict(ctx.train), **record["identity"]["train"]})
-    return {"lr": relative_difference([lr_at(int(s) - 1, recipe) for s in recorded["step"]], recorded["lr"])}
-
-
-def check_training(ctx: Context, record: dict, run_dir: Path, steps: int) -> dict:
-    """Replay the witness training's first steps and its schedule; {what: relative difference} to its record."""
-    out = schedule_difference(record, run_dir, ctx)
-    return out | curve_differences(replayed_curve(ctx, record, run_dir, steps), archived.read_curve(run_dir), steps)
-
-
-def check_inference(ctx: Context, evaluation: runs.Run, weights: Path | None) -> dict:
-    """Run the model `evaluation` scored (with the weights in directory `weights`, or none) through the
-    current evaluator on its first sequence; {metric: relative difference to its recorded per-frame values}."""
-    scores = first_sequence_scores(ctx, **scoring_of(evaluation, weights))
-    recorded = archived.read_per_image(evaluation.dir)
-    if recorded is None:
-        raise UserError(f"adopt: evaluation run {evaluation.hash} has no per-frame scores to compare with")
-    return score_differences(scores, recorded)
-
-
-def check_against_recorded_code(ctx: Context, recorded: dict, modules: list, steps: int,
-                                training: runs.Run | None, scoring: dict | None) -> dict:
-    """The differential check (bench/experiments/recorded_code.py): the replay of `training`'s first steps
-    and of `scoring` by the `recorded` code (the fingerprint of `modules` a run recorded), rebuilt from
-    git, against the same by this code, on today's frames; {what: relative difference}, keyed "train ..."
-    and "eval ...". The subprocess fingerprints what it ran: a file that is not the recorded one is an error."""
-    job = {"ctx": ctx, "steps": steps, "scoring": scoring,
-           "training": None if training is None else (training.record, training.dir)}
-    with tempfile.TemporaryDirectory(prefix="srd-recorded-code-") as tmp:
-        tree = recorded_code.rebuild(recorded, runs.code_fingerprint(modules), Path(tmp))
-        then = recorded_code.replay_there(tree, {"replay": job, "modules": modules})
-    other = sorted(p for p in recorded if then["code"].get(p) != recorded[p])
-    if other:
-        raise UserError(f"the rebuilt code is not the recorded one: {', '.join(other)}")
-    now = replay(**job)
-    out = {}
-    if training is not None:
-        out |= {f"train {k}": v for k, v in (schedule_difference(training.record, training.dir, ctx)
-                                             | curve_differences(now["curve"], then["curve"], steps)).items()}
-    if scoring is not None:
-        out |= {f"eval {k}": v for k, v in score_differences(now["scores"], then["scores"]).items()}
-        out["scored split"] = scoring["split"]
-    return out
-
-
-def fingerprints_agree(a: dict, b: dict) -> bool:
-    """Whether two recorded fingerprints name the same version of every file both name."""
-    return all(a[path] == b[path] for path in set(a) & set(b))
-
 
 RESUMABLE = ("complete", "interrupted", "failed")  # a stopped training resumes from its checkpoint once adopted
 
@@ -398,28 +215,10 @@ def run(ctx: Context, name: str, steps: int, rtol: float, rtol_later_steps: floa
             weights = row["weights"] = archived.has_weights(witness.dir)  # False: no seed's archive kept
             # them, and the group is checked by its training alone
             if trained_here(ctx, witness):  # its record can judge the code
-                row["check"] = "record"
-                row |= {f"train {k}": v for k, v in check_training(ctx, witness.record, witness.dir, steps).items()}
-                evals = [e for e in evaluations_of(ctx.runs_dir, {witness.hash}) if scored_here(ctx, e)]
-                if evals and weights:
-                    row |= {f"eval {k}": v for k, v in check_inference(ctx, evals[0], witness.dir).items()}
+                row |= against_record(ctx, witness, steps, weights)
                 eval_rtol = rtol_rounded_weights if archived.rounded(witness.dir) else rtol
             else:  # trained on other frames: the recorded code, rebuilt, replays on today's
-                row["check"] = "recorded code"
-                evaluation = differential_evaluation(ctx, witness) if weights else None
-                scoring = None
-                if weights:  # as the evaluation scored it, or on val with the training's network domain
-                    scoring = (differential_scoring(ctx, evaluation, witness.dir) if evaluation is not None
-                               else training_scoring(ctx, witness))
-                modules = [identity["model"]["_target_"], *EVALUATION_CODE, *TRAINING_CODE]
-                trained_with = witness.record["code"]
-                scored_with = (evaluation.record.get("code") or {}) if evaluation is not None else {}
-                if fingerprints_agree(trained_with, scored_with):  # one rebuilt tree ran both
-                    row |= check_against_recorded_code(ctx, {**scored_with, **trained_with}, modules, steps,
-                                                       witness, scoring)
-                else:  # the evaluation ran later code than the training: each replayed by its own
-                    row |= check_against_recorded_code(ctx, trained_with, modules, steps, witness, None)
-                    row |= check_against_recorded_code(ctx, scored_with, modules, 0, None, scoring)
+                row |= against_recorded_code(ctx, witness, steps, weights)
                 eval_rtol = rtol  # the same weights on both sides
             row["eval rtol"] = eval_rtol
             row["verdict"] = verdict(row, rtol, eval_rtol, rtol_later_steps)
@@ -474,6 +273,37 @@ def run(ctx: Context, name: str, steps: int, rtol: float, rtol_later_steps: floa
     log.info("adopt: %d of %d groups adopted%s; table in %s", sum(r["verdict"] == "adopted" for r in rows),
              len(rows), " (dry run)" if dry_run else "", ctx.results_dir / name)
     return table
+
+
+def against_record(ctx: Context, witness: runs.Run, steps: int, weights: bool) -> dict:
+    """A group's check against the witness's record: its first steps replayed, its weights scored on the
+    first sequence of an evaluation of today's frames (where there is one)."""
+    row = {"check": "record"}
+    row |= {f"train {k}": v for k, v in check_training(ctx, witness.record, witness.dir, steps).items()}
+    evals = [e for e in evaluations_of(ctx.runs_dir, {witness.hash}) if scored_here(ctx, e)]
+    if evals and weights:
+        row |= {f"eval {k}": v for k, v in check_inference(ctx, evals[0], witness.dir).items()}
+    return row
+
+
+def against_recorded_code(ctx: Context, witness: runs.Run, steps: int, weights: bool) -> dict:
+    """A group's check against its recorded code (the differential check): the same first steps, and its
+    weights scored as an evaluation scored them (or on val in its training's network domain)."""
+    evaluation = differential_evaluation(ctx, witness) if weights else None
+    scoring = None
+    if weights:
+        scoring = (differential_scoring(ctx, evaluation, witness.dir) if evaluation is not None
+                   else training_scoring(ctx, witness))
+    modules = [witness.record["identity"]["model"]["_target_"], *EVALUATION_CODE, *TRAINING_CODE]
+    trained_with = witness.record["code"]
+    scored_with = (evaluation.record.get("code") or {}) if evaluation is not None else {}
+    row = {"check": "recorded code"}
+    if fingerprints_agree(trained_with, scored_with):  # one rebuilt tree ran both
+        return row | check_against_recorded_code(ctx, {**scored_with, **trained_with}, modules, steps, witness,
+                                                 scoring)
+    # the evaluation ran later code than the training: each is replayed by its own
+    return (row | check_against_recorded_code(ctx, trained_with, modules, steps, witness, None)
+            | check_against_recorded_code(ctx, scored_with, modules, 0, None, scoring))
 
 
 def verdict(row: dict, rtol: float, eval_rtol: float, rtol_later_steps: float) -> str:
@@ -543,17 +373,3 @@ def with_earlier_verdicts(table: pd.DataFrame, previous_csv: Path) -> pd.DataFra
         return table
     earlier = earlier[~earlier["witness"].isin(table["witness"] if "witness" in table else [])]
     return pd.concat([earlier, table], ignore_index=True)
-
-
-def main(argv=None) -> int:
-    """The differential check's subprocess (recorded_code.replay_there): `replay` of a pickled job, run by
-    the code this module was imported from (the recorded code, rebuilt)."""
-    job_file, out_file = (argv or sys.argv[1:])[:2]
-    job = pickle.loads(Path(job_file).read_bytes())
-    out = replay(**job["replay"]) | {"code": runs.code_fingerprint(job["modules"])}  # what ran: the rebuilt files
-    Path(out_file).write_bytes(pickle.dumps(out))
-    return 0
-
-
-if __name__ == "__main__":
-    sys.exit(main())

@@ -8,8 +8,8 @@ names is rebuilt in a copy of the project (each changed file's most recent versi
 source hash is the recorded one) and the same replay runs there, in a subprocess, and here, on today's
 frames: equal numbers mean the change moves none, whatever the frames.
 
-The subprocess runs `python -m bench.experiments.adopt JOB OUT` with the copy on its path: JOB is a
-pickle of `adopt.replay`'s arguments, OUT receives what it returns.
+The subprocess runs `python -m bench.experiments.replay JOB OUT` with the copy on its path: JOB is a
+pickle of `replay.replay`'s arguments, OUT receives what it returns.
 """
 from __future__ import annotations
 
@@ -75,7 +75,7 @@ def _checkout_version(repo: Path, path: str, source_hash: str, dest: Path) -> bo
 
 
 def replay_there(tree: Path, job: dict, timeout_s: float = 1800) -> dict:
-    """adopt's replay of `job` by the code in `tree`, in a subprocess (`adopt.main`); its result, with the
+    """adopt's replay of `job` by the code in `tree`, in a subprocess (`replay.main`); its result, with the
     code fingerprint the subprocess computed of what it ran."""
     with tempfile.TemporaryDirectory() as tmp:
         job_file, out_file = Path(tmp) / "job.pkl", Path(tmp) / "out.pkl"
@@ -83,7 +83,7 @@ def replay_there(tree: Path, job: dict, timeout_s: float = 1800) -> dict:
         env = {**os.environ, "PYTHONPATH": str(tree)}
         # -P: the working directory (where relative paths resolve) does not shadow the rebuilt packages
         try:
-            done = subprocess.run([sys.executable, "-P", "-m", "bench.experiments.adopt", str(job_file),
+            done = subprocess.run([sys.executable, "-P", "-m", "bench.experiments.replay", str(job_file),
                                    str(out_file)], env=env, capture_output=True, text=True, timeout=timeout_s)
         except subprocess.TimeoutExpired:
             raise RuntimeError(f"the recorded code's replay took over {timeout_s:.0f} s") from None
