@@ -234,7 +234,9 @@ def begin(runs_dir: str | Path, kind: str, identity: dict, config: dict | None =
             return done
     h = config_hash(identity)
     run_dir = Path(runs_dir) / kind / h
-    ensure_writable(run_dir)
+    # the kind's folder, not the run's: a concurrent forced command may be deleting the run's folder under
+    # its lock, and a probe file inside it would fail (or keep rmtree from finishing)
+    ensure_writable(run_dir.parent)
     lock = acquire(run_dir.parent / f".{h}.lock", f"computing {kind}/{h}")
     if force:  # a forced run computed since this command started (here, or by a concurrent command)
         done = None if every_call else _computed_this_command(runs_dir, kind, identity, label)
