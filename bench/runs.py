@@ -23,6 +23,7 @@ import errno
 import fcntl
 import functools
 import getpass
+import gzip
 import hashlib
 import importlib.metadata
 import json
@@ -107,7 +108,8 @@ def _decode_metrics(metrics: dict) -> dict:
 # Any file the suite reads back (a record, a checkpoint, a curve, a manifest) may have been cut short
 # or overwritten since: one that does not parse counts as missing, so what it held is computed again.
 
-DAMAGED = (ValueError, EOFError, RuntimeError, UnicodeDecodeError, zipfile.BadZipFile, pickle.UnpicklingError)
+DAMAGED = (ValueError, EOFError, RuntimeError, UnicodeDecodeError, zipfile.BadZipFile, pickle.UnpicklingError,
+           gzip.BadGzipFile)
 
 
 def _check_zip(path: Path) -> bool:
@@ -271,6 +273,19 @@ def begin(runs_dir: str | Path, kind: str, identity: dict, config: dict | None =
     run = Run(kind, h, run_dir, record, _lock=lock)
     run.save()
     return run
+
+
+def reusable(runs_dir: str | Path, kind: str, identity: dict, code: dict | None = None,
+             reuse_stale: bool = False, archive: str | Path | None = None) -> Run | None:
+    """The complete run `begin` would reuse rather than compute, or None: decided from records alone,
+    before anything it would read (frames, weights) exists. As `begin` does, an archived run is restored
+    first where the store lacks it or holds it computed with other code."""
+    h = config_hash(identity)
+    if archive is not None and (Path(archive) / kind / h / RECORD).exists():
+        (Path(runs_dir) / kind).mkdir(parents=True, exist_ok=True)
+        with contextlib.closing(acquire(Path(runs_dir) / kind / f".{h}.lock", f"computing {kind}/{h}")):
+            _restore_locked(runs_dir, archive, kind, h, code)
+    return _reusable(runs_dir, kind, identity, code, reuse_stale, "", quiet=True)
 
 
 def _reusable_locked(runs_dir, archive, kind: str, identity: dict, code, reuse_stale: bool, label: str,
@@ -503,14 +518,19 @@ def project_imports(path: Path, name: str) -> list:
     return [m for m in found if m.split(".")[0] in PACKAGES]
 
 
+def native_sources(tree: ast.AST) -> set[str]:
+    """The C++ sources a module names (string constants ending .cpp or .cu, relative to its folder):
+    its compiled kernels, part of its source hash."""
+    return {node.value for node in ast.walk(tree) if isinstance(node, ast.Constant)
+            and isinstance(node.value, str) and node.value.endswith((".cpp", ".cu"))}
+
+
 @functools.lru_cache(maxsize=None)
 def source_hash(path: Path) -> str:
     if path.suffix != ".py":
         return hashlib.sha256(path.read_bytes()).hexdigest()[:16]
     tree = ast.parse(path.read_text())
-    native = sorted({path.parent / node.value for node in ast.walk(tree)
-                     if isinstance(node, ast.Constant) and isinstance(node.value, str)
-                     and node.value.endswith((".cpp", ".cu")) and (path.parent / node.value).is_file()})
+    native = sorted({path.parent / name for name in native_sources(tree) if (path.parent / name).is_file()})
     for node in ast.walk(tree):
         body = getattr(node, "body", None)
         if isinstance(body, list) and body and isinstance(body[0], ast.Expr) \

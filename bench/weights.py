@@ -3,14 +3,16 @@ store, with what is needed to use them.
 
 An exported file holds the model's config (its `_target_` and arguments), the upsampling factor, the
 network domain (`hdr`) it was trained in, its evaluation weights (the EMA when the recipe kept one), the
-training run's identity, metrics and code fingerprint. A JSON beside it repeats all but the weights and
-adds the file's sha256, which `load_exported` checks. `bench.predict` applies such a file (or a recorded
+training run's identity, metrics and code fingerprint; weights the archive rounded to float16 in its
+compact form (`bench.archived.encode`): the values evaluation scored, bit for bit. A JSON beside it
+repeats all but the weights and adds the file's sha256, which `load_exported` checks. `bench.predict` applies such a file (or a recorded
 run, `from_run`) to EXR frames; `bench.tracking` attaches one to each training it mirrors.
 """
 from __future__ import annotations
 
 import hashlib
 import json
+import lzma
 from pathlib import Path
 
 import torch
@@ -21,6 +23,7 @@ from bench.models.factory import build_model
 from bench.tasks import get_task
 
 FORMAT = "srd-bench-weights/1"
+COMPACT = "weights_float16_compact"  # instead of "state_dict" when the run's weights are float16-rounded
 
 ARCHIVES = "results/*/runs"  # the tables' archived runs (conf/config.yaml runs_archive), from the project root
 
@@ -60,7 +63,10 @@ def export(run_hash: str, out: str | Path, runs_dir: str | Path = "runs") -> Pat
             "git_commit": record.get("git_commit"), "git_dirty": record.get("git_dirty")}
     out = Path(out)
     out.parent.mkdir(parents=True, exist_ok=True)
-    torch.save({**meta, "state_dict": model.state_dict()}, out)
+    # float16-rounded weights in the archive's compact form: the same values, a quarter of the bytes
+    weights = ({COMPACT: archived.encode(model.state_dict())} if meta["weights_rounded_to_float16"]
+               else {"state_dict": model.state_dict()})
+    torch.save({**meta, **weights}, out)
     meta["sha256"] = hashlib.sha256(out.read_bytes()).hexdigest()
     out.with_suffix(out.suffix + ".json").write_text(json.dumps(meta, indent=2, sort_keys=True, default=str))
     return out
@@ -118,8 +124,12 @@ def load_exported(path: str | Path):
     saved = _torch_load(path, "the weights file")
     if not isinstance(saved, dict) or saved.get("format") != FORMAT:
         raise UserError(f"{path} is not an SRD-Bench weights file (write one with `srd-bench export RUN`)")
-    model = _model_with(saved["model"], saved["scale"], saved["state_dict"], path)
-    return model.eval(), {k: v for k, v in saved.items() if k != "state_dict"}
+    try:
+        state = archived.decode(saved[COMPACT]) if COMPACT in saved else saved["state_dict"]
+    except (KeyError, ValueError, RuntimeError, EOFError, lzma.LZMAError) as err:
+        raise UserError(f"{path}: its weights do not read ({_one_line(err)}); export them again") from err
+    model = _model_with(saved["model"], saved["scale"], state, path)
+    return model.eval(), {k: v for k, v in saved.items() if k not in ("state_dict", COMPACT)}
 
 
 def from_run(run_hash: str, runs_dir: str | Path = "runs"):

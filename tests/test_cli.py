@@ -701,3 +701,27 @@ def test_the_differential_check_refuses_a_replay_that_did_not_run_the_recorded_c
     monkeypatch.setattr(replay.runs, "code_fingerprint", lambda modules: {"bench/x.py": "today"})
     with pytest.raises(UserError, match="not the recorded one: bench/x.py"):
         replay.check_against_recorded_code(None, {"bench/x.py": "recorded"}, ["bench.x"], 3, None, None)
+
+
+def test_the_recorded_code_loads_weights_renamed_since_by_order_and_only_where_every_shape_matches(tmp_path):
+    """The archive's weights carry today's parameter names; the recorded code may predate a rename. Its
+    replay loads them by order where every shape matches, and refuses weights of another architecture."""
+    from bench import archived
+    from bench.experiments.replay import _load_recorded
+
+    class Then(torch.nn.Module):  # today's model under the names it had before a rename
+        def __init__(self, width=4):
+            super().__init__()
+            self.old_head, self.old_tail = torch.nn.Conv2d(3, width, 3), torch.nn.Conv2d(width, 3, 1)
+
+    class Now(torch.nn.Module):
+        def __init__(self):
+            super().__init__()
+            self.head, self.tail = torch.nn.Conv2d(3, 4, 3), torch.nn.Conv2d(4, 3, 1)
+
+    archived.write_weights(Now().state_dict(), tmp_path / archived.WEIGHTS)
+    saved = archived.state_dict(tmp_path)
+    loaded = _load_recorded(Then(), tmp_path).state_dict()
+    assert all(torch.equal(a, b) for a, b in zip(loaded.values(), saved.values()))
+    with pytest.raises(RuntimeError):
+        _load_recorded(Then(width=5), tmp_path)

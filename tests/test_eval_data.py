@@ -2,6 +2,7 @@
 Nothing is rendered, nothing is trained and the training data is not read: a training's identity takes
 its data fingerprint from the data spec then, planned without rendering, and that must equal the rendered
 manifest's (here at the smoke preset, and the cpu preset's committed trainings)."""
+import gzip
 import json
 import os
 import shutil
@@ -17,7 +18,7 @@ from hydra import compose, initialize_config_dir
 from bench import archived
 from bench.cli import CONF_DIR, make_context
 from bench.datagen import frame_paths, load_manifest
-from bench.experiments.datasets import data_fingerprint, training_fingerprint
+from bench.experiments.datasets import data_fingerprint, split_fingerprint
 from bench.train import CHECKPOINT
 
 REPO = Path(__file__).resolve().parent.parent
@@ -68,11 +69,12 @@ def context(*overrides):
         return make_context(compose("config", overrides=list(overrides)))
 
 
-def test_the_training_fingerprint_planned_from_the_spec_is_the_rendered_manifests(trained, tmp_path):
+def test_the_split_fingerprint_planned_from_the_spec_is_the_rendered_manifests(trained, tmp_path):
     ctx = context(*SMOKE, f"data_dir={trained / 'data'}", f"eval.data_dir={tmp_path}")  # planned: nothing read
-    assert training_fingerprint(ctx) == data_fingerprint(ctx, "train")
+    for split in ("train", "val"):  # a training's, an evaluation's
+        assert split_fingerprint(ctx, split) == data_fingerprint(ctx, split)
     records = [json.loads(p.read_text()) for p in (trained / "runs" / "train").glob("*/run.json")]
-    assert [r["identity"]["data"] for r in records] == [training_fingerprint(ctx)]
+    assert [r["identity"]["data"] for r in records] == [split_fingerprint(ctx, "train")]
 
 
 def test_the_cpu_presets_committed_trainings_are_found_from_its_spec_alone(tmp_path):
@@ -80,7 +82,7 @@ def test_the_cpu_presets_committed_trainings_are_found_from_its_spec_alone(tmp_p
     ctx = context("preset=cpu", f"data_dir={tmp_path / 'nowhere'}", f"eval.data_dir={tmp_path / 'mine'}")
     recorded = {json.loads(p.read_text())["identity"]["data"]
                 for p in (REPO / "results" / "cpu" / "runs" / "train").glob("*/run.json")}
-    assert recorded == {training_fingerprint(ctx)}
+    assert recorded == {split_fingerprint(ctx, "train")}
     assert not (tmp_path / "nowhere").exists()
 
 
@@ -106,6 +108,31 @@ def test_recorded_models_score_your_frames_on_a_fresh_clone_rendering_and_traini
     rtol = yaml.safe_load((Path(CONF_DIR) / "experiment" / "adopt.yaml").read_text())["experiment"]["rtol_rounded_weights"]
     pd.testing.assert_frame_equal(scored[SCORES], pd.read_csv(trained / "results" / "smoke" / "table.csv")[SCORES],
                                   rtol=rtol)
+
+
+def test_a_fresh_clone_regenerates_a_recorded_table_rendering_and_training_nothing(trained, tmp_path):
+    """Every run of the table archived, and the archive's copy of the frame records: a fresh clone (no run
+    store, no data) writes the same table, caption included (its reference check), without rendering or
+    training; only the crops figure, which reads frames, is not redrawn (it says so)."""
+    cards = list((trained / "archive" / "frames").glob("*.json.gz"))
+    assert len(cards) == 1
+    out = bench(*store(tmp_path, trained / "archive", tmp_path / "nowhere"))
+    assert out.returncode == 0, out.stderr[-3000:]
+    log = out.stdout + out.stderr
+    assert "every evaluation is recorded: nothing is rendered or trained" in log and "crops figure not redrawn" in log
+    assert "trained in" not in log and "rendering" not in log and not (tmp_path / "nowhere").exists()
+    table = (tmp_path / "results" / "smoke" / "table.md").read_text()
+    assert table == (trained / "results" / "smoke" / "table.md").read_text() and "References" in table
+    # a damaged copy of the frame records is treated as missing: the scored split is rendered for them
+    cards[0].write_bytes(cards[0].read_bytes()[:20])
+    try:
+        out = bench(*store(tmp_path, trained / "archive", tmp_path / "data"))
+        assert out.returncode == 0, out.stderr[-3000:]
+        log = out.stdout + out.stderr
+        assert "is damaged" in log and "trained in" not in log
+        assert {f["split"] for f in load_manifest(tmp_path / "data")["frames"]} == {"val"}
+    finally:  # the render wrote it again, whole
+        assert json.loads(gzip.decompress(cards[0].read_bytes()))["frames"]
 
 
 def test_a_training_without_recorded_weights_is_one_line_before_anything_is_scored(trained, tmp_path):

@@ -143,12 +143,12 @@ def _sota_ours_identities(ctx, recorded_train: dict, recorded_eval: dict) -> tup
     task = get_task("srd")
     cfg = model_config(ctx, "srd")
     row_ctx = with_training(ctx, None, "srd")
-    fingerprint = training.training_fingerprint
-    training.training_fingerprint = lambda *_: recorded_train["identity"]["data"]
+    fingerprint = training.split_fingerprint
+    training.split_fingerprint = lambda *_: recorded_train["identity"]["data"]
     try:
         train = training._train_identity(row_ctx, cfg, task, 0, None)
     finally:
-        training.training_fingerprint = fingerprint
+        training.split_fingerprint = fingerprint
     evaluation = evaluation_identity(runs.config_hash(train), ctx.eval.split, recorded_eval["identity"]["data"],
                                      row_ctx.train.hdr, ctx.eval.fast_path, ctx.eval.tile, ctx.eval.save_exr)
     return train, evaluation

@@ -3,10 +3,11 @@ import json
 from pathlib import Path
 
 import numpy as np
+import pandas as pd
 import pytest
 import torch
 
-from bench import exrio, runs
+from bench import archived, exrio, runs
 from bench.errors import UserError
 from bench.evaluate import predict as predict_batch
 from bench.predict import apply, fast_path_cache, main, read_frame
@@ -113,13 +114,21 @@ def test_each_bad_input_gets_its_message(recorded, tmp_path, capsys, case, messa
 
 @pytest.mark.parametrize("path", sorted(Path(__file__).parents[1].glob("results/*/weights/*.pt")),
                          ids=lambda p: f"{p.parent.parent.name}/{p.name}")
-def test_committed_weights_load_into_todays_models(path):
-    """Weights committed under results/ load strictly into the model their file names, whatever the
-    parameters were called when they were trained (load_old_names), and give a finite output."""
+def test_committed_weights_are_the_sota_tables_seed_0_trainings_as_it_scored_them(path):
+    """Weights committed under results/<preset>/weights load strictly into the model their file names and
+    give a finite output; each is the training of a row of that preset's sota table, seed 0, with the
+    archive's float16-rounded values bit for bit (what the table scored)."""
     model, meta = load_exported(path)
     x, g = torch.rand(1, 1, 3, 16, 16), torch.rand(1, 1, 7, 16, 16)
     with torch.no_grad():
         assert torch.isfinite(model(x, g)["final"]).all()
+    results = path.parent.parent
+    evaluations = [runs.read_record(results / "runs" / "eval" / h / runs.RECORD)
+                   for hashes in pd.read_csv(results / "sota" / "table.csv")["runs"] for h in hashes.split()]
+    assert meta["run"] in {e["metrics"]["train_run"] for e in evaluations if e["seed"] == 0}
+    assert meta["weights_rounded_to_float16"]
+    scored = archived.state_dict(results / "runs" / "train" / meta["run"])
+    assert all(torch.equal(tensor, scored[name]) for name, tensor in model.state_dict().items())
 
 
 def test_a_run_kept_only_in_an_archive_exports_the_same_weights(recorded, tmp_path, monkeypatch):

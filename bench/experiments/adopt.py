@@ -54,11 +54,10 @@ from pathlib import Path
 import pandas as pd
 
 from bench import archived, runs
-from bench.datagen import load_manifest
 from bench.errors import UserError
 from bench.experiments.context import (EVALUATION_CODE, FROZEN_SPLIT, TRAINING_CODE, TUNING_SPLIT, Context,
                                       code_of)
-from bench.experiments.datasets import data_fingerprint, evaluation_data, render_digest
+from bench.experiments.datasets import data_fingerprint, evaluation_data, render_digest, splits_on_disk
 from bench.experiments.evaluation import archive_evaluation
 from bench.experiments.replay import (COMPARED, check_against_recorded_code, check_inference, check_training,
                                       fingerprints_agree, scoring_of)
@@ -173,7 +172,8 @@ def training_scoring(ctx: Context, training: runs.Run) -> dict:
     network domain it trained in."""
     identity = training.record["identity"]
     return {"cfg": identity["model"], "task": identity["task"], "weights": training.dir,
-            "split": scoring_split(ctx, TUNING_SPLIT), "hdr": identity["train"]["hdr"]}
+            "split": scoring_split(ctx, TUNING_SPLIT), "hdr": identity["train"]["hdr"],
+            "stage": identity.get("stage")}
 
 
 def scoring_split(ctx: Context, split: str) -> str:
@@ -183,10 +183,6 @@ def scoring_split(ctx: Context, split: str) -> str:
     if not splits:
         raise UserError(f"no frames of split {split}, {TUNING_SPLIT} or {FROZEN_SPLIT} to score")
     return splits[0]
-
-
-def splits_on_disk(frames: Context) -> set[str]:
-    return {f["split"] for f in load_manifest(frames.data_dir)["frames"]}
 
 
 def restamp(run: runs.Run, code: dict, check: dict) -> None:
@@ -235,8 +231,15 @@ def run(ctx: Context, name: str, steps: int, rtol: float, rtol_later_steps: floa
                 archive_training(ctx, r)
             adopted |= {r.hash for r in group}
         rows.append(row)
-    for evaluation in evaluations_of(ctx.runs_dir, adopted):  # their evaluations, run the default way
+    # the evaluations of adopted trainings (this call's or an earlier one's: a Cascade's stages may be
+    # adopted apart), run the default way, once every training they scored is current
+    current = {p.parent.name for p in (ctx.runs_dir / "train").glob(f"*/{runs.RECORD}")} - {
+        r.hash for g in stale_groups(ctx).values() for r in g}
+    for evaluation in [] if dry_run else evaluations_of(ctx.runs_dir, current):
         identity, trained = evaluation.record["identity"], evaluation.record["metrics"]["train_run"]
+        if not any((runs.read_record(ctx.runs_dir / "train" / h / runs.RECORD) or {}).get("code_adopted")
+                   for h in trained.split("+")):
+            continue
         model_cfg = runs.read_record(ctx.runs_dir / "train" / trained.split("+")[0] / runs.RECORD)["identity"]["model"]
         code = code_of(model_cfg, *EVALUATION_CODE, *TRAINING_CODE)
         if ran_the_default_way(identity) and runs.code_changes(evaluation.record, code):
@@ -266,8 +269,9 @@ def run(ctx: Context, name: str, steps: int, rtol: float, rtol_later_steps: floa
         f"recorded values (it trained on this render); 'recorded code' compares with the same replay by the "
         f"code the witness recorded, rebuilt from git (it trained on another render), on today's frames "
         f"(scored split: the frames both codes scored). weights false: no seed of the group kept its weights, "
-        f"so only its training was checked. Rows '(evaluation <hash>)' are evaluations of models that are not "
-        f"trained (bilinear, OIDN) whose evaluator changed, checked on their first sequence. "
+        f"so only its training was checked. Rows whose witness is an evaluation (runs 1, no step columns) are "
+        f"of models that are not trained (bilinear, OIDN) whose evaluator changed, checked on their first "
+        f"sequence. "
         f"One row per witness, its latest check: groups "
         f"that earlier calls adopted are no longer stale and keep their row."))
     log.info("adopt: %d of %d groups adopted%s; table in %s", sum(r["verdict"] == "adopted" for r in rows),

@@ -8,12 +8,14 @@ import contextlib
 import copy
 import dataclasses
 import functools
+import gzip
 import json
 import logging
 import os
 from pathlib import Path
 
 from bench import runs
+from bench.atomic import write_atomic
 from bench.datagen import (build_dataset, damaged_frames, frame_paths, load_manifest, manifest_problems,
                            planned_settings, rebuild_manifest)
 from bench.dataset import SequenceDataset
@@ -65,15 +67,16 @@ def _planned_fingerprint(spec_json: str, split: str) -> str:
     return _identity_hash(spec, frames, split)
 
 
-def training_fingerprint(ctx: Context) -> str:
-    """The data fingerprint of the training split, as training identities hold it. Rendered data's is
-    planned from the data spec, without reading or rendering anything: its spec and settings determine
-    the manifest datagen writes, so it equals the rendered manifest's (tests/test_eval_data.py), and a
-    recorded training is found before its data exists (a table whose trainings are all recorded renders
-    only the splits it scores). Your own data (render_data=false) is read from its files."""
+def split_fingerprint(ctx: Context, split: str) -> str:
+    """The data fingerprint of `split` as run identities hold it (a training's of "train", an
+    evaluation's of the split it scores). Rendered data's is planned from the data spec, without reading
+    or rendering anything: its spec and settings determine the manifest datagen writes, so it equals the
+    rendered manifest's (tests/test_eval_data.py), and a recorded run is found before its data exists (a
+    table whose runs are all recorded renders nothing). Your own data (render_data=false) is read from
+    its files."""
     if ctx.render_data:
-        return _planned_fingerprint(_canonical(ctx.data_spec), "train")
-    return data_fingerprint(ctx, "train")
+        return _planned_fingerprint(_canonical(ctx.data_spec), split)
+    return data_fingerprint(ctx, split)
 
 
 def data_fingerprint(ctx: Context, split: str | None = None) -> str:
@@ -163,6 +166,7 @@ def _render_missing(ctx: Context, passes: set[str], splits: list[str]) -> str:
             damaged = damaged_frames(ctx.data_dir, frames, manifest["passes"])
             if not damaged and not lacking and not absent:
                 log.info("data: %s already holds %s of %s", ctx.data_dir, ", ".join(sorted(passes)), ", ".join(splits))
+                archive_frame_records(ctx, manifest)
                 return data_fingerprint(ctx)
             if damaged:
                 log.warning("data: %d damaged frame files (%s); rendering them again", len(damaged), _listed(damaged))
@@ -184,7 +188,66 @@ def _render_missing(ctx: Context, passes: set[str], splits: list[str]) -> str:
                         "nonfinite_repaired": int(manifest.get("nonfinite_repaired", 0).sum())})
     log.info("data: %d frames rendered, %d were already complete (%.1f min)", len(manifest) - complete, complete,
              run.record["wall_time_s"] / 60)
+    archive_frame_records(ctx, load_manifest(ctx.data_dir))
     return data_fingerprint(ctx)
+
+
+FRAME_RECORD_KEYS = ("split", "sequence", "frame", "ref_spp", "ref_error")  # what tables read of a frame
+
+
+def _frame_records_path(ctx: Context) -> Path:
+    """Where the archive keeps the frame records of `ctx.data_spec`'s renders."""
+    name = f"{ctx.data_spec.get('name', 'data')}-{runs.config_hash({'spec': ctx.data_spec})[:12]}.json.gz"
+    return Path(ctx.runs_archive) / "frames" / name
+
+
+def _read_gzipped_json(path: Path) -> dict:
+    return json.loads(gzip.decompress(Path(path).read_bytes()))
+
+
+def archive_frame_records(ctx: Context, manifest: dict) -> None:
+    """Keep in the archive, beside the runs, what tables read of the rendered frames (each frame's
+    reference spp and estimated reference error, and its files' CRC-32 stamps, which `render_digest`
+    hashes): a table whose evaluations are all recorded is then written on a machine that has not
+    rendered its split. Merged per split: a data_dir holding some splits replaces only theirs."""
+    if ctx.runs_archive is None or not ctx.render_data or _canonical(manifest.get("spec")) != _canonical(ctx.data_spec):
+        return
+    path = _frame_records_path(ctx)
+    kept = runs.read_or_none(path, read=_read_gzipped_json)
+    ours = {f["split"] for f in manifest["frames"]}
+    frames = [f for f in (kept or {}).get("frames", []) if f["split"] not in ours] + [
+        {**{k: f[k] for k in FRAME_RECORD_KEYS if k in f},
+         "files": {res: {"crc32": v["crc32"]} for res, v in (f.get("files") or {}).items()}}
+        for f in manifest["frames"]]
+    card = {"spec": ctx.data_spec, "frames": sorted(frames, key=lambda f: (f["split"], str(f["sequence"]), f["frame"]))}
+    if card != kept:
+        path.parent.mkdir(parents=True, exist_ok=True)
+        data = gzip.compress(json.dumps(card, sort_keys=True).encode(), mtime=0)
+        write_atomic(path, lambda tmp: tmp.write_bytes(data))
+
+
+def frame_records(ctx: Context, split: str) -> list[dict]:
+    """The records of `split`'s frames (`load_manifest`'s, or the `FRAME_RECORD_KEYS` of them): from
+    data_dir's manifest when it holds the split as `ctx` specifies it, else from the archive's copy
+    (`archive_frame_records`); [] when neither has them."""
+    path = ctx.data_dir / "manifest.json"
+    manifest = runs.read_json_or_none(path) if path.exists() else None
+    if manifest is not None and (not ctx.render_data or _canonical(manifest.get("spec")) == _canonical(ctx.data_spec)):
+        frames = [f for f in manifest["frames"] if f["split"] == split]
+        if frames or not ctx.render_data:
+            return frames
+    if ctx.runs_archive is None or not ctx.render_data:
+        return []
+    kept = runs.read_or_none(_frame_records_path(ctx), read=_read_gzipped_json)
+    return [f for f in (kept or {}).get("frames", []) if f["split"] == split]
+
+
+def splits_on_disk(ctx: Context) -> set[str]:
+    """The splits data_dir's manifest holds as `ctx` specifies them (rendered data), or all it holds (yours)."""
+    manifest = runs.read_json_or_none(ctx.data_dir / "manifest.json") if (ctx.data_dir / "manifest.json").exists() else None
+    if manifest is None or (ctx.render_data and _canonical(manifest.get("spec")) != _canonical(ctx.data_spec)):
+        return set()
+    return {f["split"] for f in manifest["frames"]}
 
 
 def _manifest_or_rebuilt(ctx: Context) -> dict | None:
@@ -209,7 +272,7 @@ def evaluation_data(ctx: Context) -> Context:
     """The context evaluations read their frames from: `eval.data_dir` when set (another dataset, e.g.
     your own renders, used as it is), else `data_dir`. With `eval.data_dir` the recorded trainings of
     `data_dir` are scored and none is trained (`training.trained_model`); rendered training data is
-    then neither rendered nor read (`training_fingerprint`)."""
+    then neither rendered nor read (`split_fingerprint`)."""
     other = ctx.eval.data_dir
     return dataclasses.replace(ctx, data_dir=Path(other), render_data=False) if other else ctx
 

@@ -13,10 +13,10 @@ pickle of `replay.replay`'s arguments, OUT receives what it returns.
 """
 from __future__ import annotations
 
+import ast
 import logging
 import os
 import pickle
-import re
 import shutil
 import subprocess
 import sys
@@ -44,7 +44,12 @@ def rebuild(recorded: dict, current: dict, dest: Path, repo: Path = runs.ROOT) -
     return dest
 
 
-NATIVE = re.compile(r"""["']([\w./-]+\.(?:cpp|cu))["']""")  # the C++ sources a module names (runs.source_hash)
+def _natives(text: str) -> list[str]:
+    """The C++ sources a module's text names (`runs.native_sources`); none when it does not parse."""
+    try:
+        return sorted(runs.native_sources(ast.parse(text)))
+    except SyntaxError:
+        return []
 
 
 def _checkout_version(repo: Path, path: str, source_hash: str, dest: Path) -> bool:
@@ -53,7 +58,7 @@ def _checkout_version(repo: Path, path: str, source_hash: str, dest: Path) -> bo
     def git(*args) -> subprocess.CompletedProcess:
         return subprocess.run(["git", "-C", str(repo), *args], capture_output=True, timeout=60)
     folder = Path(path).parent
-    natives = [str(folder / n) for n in NATIVE.findall((repo / path).read_text())] if (repo / path).exists() else []
+    natives = [str(folder / n) for n in _natives((repo / path).read_text())] if (repo / path).exists() else []
     commits = git("log", "--full-history", "--format=%H", "--", path, *natives).stdout.decode().split()
     target = dest / path
     target.parent.mkdir(parents=True, exist_ok=True)
@@ -62,7 +67,7 @@ def _checkout_version(repo: Path, path: str, source_hash: str, dest: Path) -> bo
         if shown.returncode != 0:  # not there in this commit
             continue
         target.write_bytes(shown.stdout)
-        for native in NATIVE.findall(shown.stdout.decode(errors="replace")):
+        for native in _natives(shown.stdout.decode(errors="replace")):
             source = git("show", f"{commit}:{(folder / native).as_posix()}")
             if source.returncode == 0:
                 (dest / folder / native).write_bytes(source.stdout)

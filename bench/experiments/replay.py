@@ -69,6 +69,20 @@ def _model(cfg: dict, task, stage: str | None):
     return build_model(cfg, task.scale) if stage is None else SRDStage(cascade_net(cfg), stage)
 
 
+def _load_recorded(model, run_dir: Path):
+    """`model` with the training's weights: by name, or by order where every shape matches, for the
+    recorded code (its parameter names may predate a rename that the archive's weights carry)."""
+    state = archived.state_dict(run_dir)
+    try:
+        model.load_state_dict(state)
+    except RuntimeError:
+        own = model.state_dict()
+        if [tuple(t.shape) for t in own.values()] != [tuple(t.shape) for t in state.values()]:
+            raise
+        model.load_state_dict(dict(zip(own, state.values())))
+    return model
+
+
 def replayed_curve(ctx: Context, record: dict, run_dir: Path, steps: int) -> pd.DataFrame:
     """The first `steps` steps of the recorded training, replayed by this code from the same seed on the
     frames of this store's data: the per-step curve (loss, grad_norm, lr) the trainer writes."""
@@ -77,7 +91,7 @@ def replayed_curve(ctx: Context, record: dict, run_dir: Path, steps: int) -> pd.
     recipe = recipe_of_this_code({**dataclasses.asdict(ctx.train), **identity["train"], "checkpoint_every": 1,
                                   "checkpoint_every_s": 1e9})
     if archived.has_weights(run_dir):  # the recorded weights fit the model built now: names, shapes
-        archived.load_weights(_model(cfg, task, stage), run_dir)
+        _load_recorded(_model(cfg, task, stage), run_dir)
     torch.manual_seed(seed)  # as trained_model builds it: the initial weights come from this seed
     model = _model(cfg, task, stage)
     features = perceptual_features(ctx)[0] if identity.get("vgg") else None
@@ -106,14 +120,14 @@ def recipe_of_this_code(train: dict) -> Recipe:
 
 
 def first_sequence_scores(ctx: Context, cfg: dict, task: str, weights: Path | None, split: str,
-                          hdr: str) -> pd.DataFrame:
+                          hdr: str, stage: str | None = None) -> pd.DataFrame:
     """The model `cfg` (with the weights of the training in directory `weights`; None: a model that is
-    not trained) run by this code's evaluator on the first sequence of `split` as the frames are now:
-    its per-frame scores."""
+    not trained; `stage`: one stage of a Cascade, on its own task) run by this code's evaluator on the
+    first sequence of `split` as the frames are now: its per-frame scores."""
     task = get_task(task)
-    model = build_model(cfg, task.scale)
+    model = _model(cfg, task, stage)
     if weights is not None:
-        archived.load_weights(model, weights)
+        _load_recorded(model, weights)
     frames = dataset(evaluation_data(ctx), split, task, training=False)
     return evaluate(model, [frames[0]], task, hdr=hdr)[0]
 
@@ -122,12 +136,14 @@ def scoring_of(evaluation: runs.Run, weights: Path | None) -> dict:
     """`first_sequence_scores`' arguments (past ctx) for the model an evaluation scored."""
     identity = evaluation.record["identity"]
     trained = identity["trained"]
-    if isinstance(trained, str):  # a training's hash: its record names the model
+    stage = None
+    if weights is not None:  # a training (a Cascade's evaluation: the witness stage on its own task)
         record = runs.read_record(Path(weights) / runs.RECORD)["identity"]
-        cfg, task = record["model"], record["task"]
+        cfg, task, stage = record["model"], record["task"], record.get("stage")
     else:
         cfg, task = trained["model"], trained["task"]
-    return {"cfg": cfg, "task": task, "weights": weights, "split": identity["split"], "hdr": identity["hdr"]}
+    return {"cfg": cfg, "task": task, "weights": weights, "split": identity["split"], "hdr": identity["hdr"],
+            "stage": stage}
 
 
 def replay(ctx: Context, steps: int, training: tuple | None, scoring: dict | None) -> dict:

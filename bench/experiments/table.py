@@ -28,9 +28,9 @@ import pandas as pd
 
 from bench import archived, runs
 from bench.errors import UserError
-from bench.datagen import load_manifest
 from bench.experiments.context import Context, model_config, split_note, with_training, working_split
-from bench.experiments.datasets import ensure_data, evaluation_data
+from bench.experiments.datasets import ensure_data, evaluation_data, frame_records, splits_on_disk
+from bench.experiments.evaluation import evaluation_recorded
 from bench.experiments.figure import crop_figure, curve_figure
 from bench.experiments.macs import frame_inputs
 from bench.experiments.row import row
@@ -276,8 +276,18 @@ def _reference_note(ctx: Context, frames: Context, table: pd.DataFrame, rows: li
     if target not in ("hr_ref", "lr_ref"):  # a noisy target (sr_noisy) is no converged reference
         return ""
     scored = row_def.get("split", split) or ctx.eval.split
-    return reference_check([f for f in load_manifest(frames.data_dir)["frames"] if f["split"] == scored],
+    return reference_check(frame_records(frames, scored),
                            per_image_of(evaluation_records(best["runs"].split(), ctx.runs_dir)), best["method"], target[:2])
+
+
+def unrecorded_rows(ctx: Context, rows: list[dict], split: str | None) -> list[dict]:
+    """The rows with an evaluation that is not recorded (scoring it reads its split's frames, and its
+    training's weights), decided from records alone (`evaluation_recorded`)."""
+    def recorded(r: dict, seed: int) -> bool:
+        return evaluation_recorded(with_training(ctx, r.get("train"), r["model"]),
+                                   model_config(ctx, r["model"], r.get("overrides")), get_task(r["task"]), seed,
+                                   r.get("split", split) or ctx.eval.split, r.get("cascade", False))
+    return [r for r in rows if not all(recorded(r, seed) for seed in ctx.seeds)]
 
 
 def run(ctx: Context, name: str, rows: list[dict], caption: str = "", task: str = "srd",
@@ -295,20 +305,30 @@ def run(ctx: Context, name: str, rows: list[dict], caption: str = "", task: str 
         model_config(ctx, r["model"], r.get("overrides"))
         get_task(r["task"])
     frames = evaluation_data(ctx)
-    unscored = [] if ctx.force else [
-        f"{r['label']} seed {seed}: {why}" for r in rows for seed in ctx.seeds
+    unscored = {r["label"]: [] if ctx.force else [  # per row: the trainings to run before its weights load
+        f"{r['label']} seed {seed}: {why}" for seed in ctx.seeds
         for why in untrained(with_training(ctx, r.get("train"), r["model"]),
                              model_config(ctx, r["model"], r.get("overrides")), get_task(r["task"]),
-                             seed, r.get("cascade", False))]
-    if frames is ctx:  # the scored splits, and what a training reads when one is to run (not the others)
-        needed = {r.get("split", split) or ctx.eval.split for r in rows}
-        if ctx.force or unscored:
+                             seed, r.get("cascade", False))] for r in rows}
+    drawn = figure  # the crops figure reads the scored split's frames and each row's weights
+    if frames is ctx:  # render what runs: the splits of evaluations not recorded, what a training reads
+        pending = unrecorded_rows(ctx, rows, split)
+        needed = {r.get("split", split) or ctx.eval.split for r in pending}
+        shown = split or ctx.eval.split
+        # the caption's reference check reads the frames' records (the archive keeps a copy: frame_records)
+        if (figure and shown in splits_on_disk(ctx)) or not frame_records(ctx, shown):
+            needed.add(shown)
+        drawn = figure and shown in needed
+        if ctx.force or any(unscored[r["label"]] for r in (rows if drawn else pending)):
             needed |= {"train", working_split(ctx)} & set(ctx.data_spec["splits"])
-        ensure_data(ctx, passes_for(rows, task), needed)
+        if needed:
+            ensure_data(ctx, passes_for(rows, task), needed)
+        else:
+            log.info("%s: every evaluation is recorded: nothing is rendered or trained", name)
     else:  # recorded models scored on another dataset: it is checked; the training data is not needed
         ensure_data(frames, set())
-        if unscored:  # before anything is scored, every training that would be missing
-            raise scoring_only_error(unscored)
+        if any(unscored.values()):  # before anything is scored, every training that would be missing
+            raise scoring_only_error([why for whys in unscored.values() for why in whys])
     if ctx.shard:  # compute this shard's runs only; a run without a shard assembles the table from them
         index, count = ctx.shard
         # a unit's lock is this table under this whole configuration, whichever process runs it
@@ -369,8 +389,13 @@ def run(ctx: Context, name: str, rows: list[dict], caption: str = "", task: str 
     curves = {label: hashes.split() for label, hashes in zip(table["method"], table.pop("train runs")) if hashes}
     write_table(table.drop(columns=["reused"]), out_dir, caption=f"{caption} {notes}".strip(),
                 lower_is_better=LOWER_IS_BETTER, higher_is_better=HIGHER_IS_BETTER)
-    if figure:
+    if drawn:
         crop_figure(ctx, rows, out_dir / "crops.png", split=split or ctx.eval.split)
+    elif figure:
+        log.info("%s: crops figure not redrawn: split %s is not rendered in %s and no evaluation needed it "
+                 "(`python -m bench +experiment=data preset=%s` renders it)", name, split or ctx.eval.split,
+                 ctx.data_dir, ctx.preset)
+    if figure:
         curve_figure(ctx.runs_dir, curves, out_dir / "curves.png")
     reused = int(table["reused"].sum())
     log.info("%s: %d of %d rows reused from the run store; table in %s", name, reused, len(table), out_dir)

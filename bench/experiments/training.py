@@ -16,7 +16,7 @@ from bench import archived, distributed, runs
 from bench.errors import UserError
 from bench.evaluate import evaluate
 from bench.experiments.context import TRAINING_CODE, Context, code_of, working_split
-from bench.experiments.datasets import check_training_frames, dataset, render_digest, training_fingerprint
+from bench.experiments.datasets import check_training_frames, dataset, render_digest, split_fingerprint
 from bench.measure import fused_kernels_used
 from bench.models.factory import build_model, is_learned
 from bench.models.srd import SRDNet, SRDStage, load_stage
@@ -79,7 +79,7 @@ def _file_sha256(path: str) -> str:
 def _train_identity(ctx: Context, cfg: dict, task: Task, seed: int, vgg_id: dict | None,
                     stage: str | None = None) -> dict:
     identity = {"version": runs.IDENTITY_VERSION, "model": cfg, "task": task.name, "train": ctx.train.identity(),
-                "data": training_fingerprint(ctx), "seed": seed, "vgg": vgg_id}
+                "data": split_fingerprint(ctx, "train"), "seed": seed, "vgg": vgg_id}
     if stage is not None:
         identity["stage"] = stage
     return identity
@@ -94,21 +94,38 @@ def recorded_training(ctx: Context, cfg: dict, task: Task, seed: int) -> runs.Ru
     return runs.lookup(ctx.runs_dir, "train", _train_identity(ctx, cfg, task, seed, vgg_id, None), ctx.runs_archive)
 
 
+def _trainings(ctx: Context, cfg: dict, task: Task, seed: int, cascade: bool):
+    """(stage label or None, identity) of each training that scoring (cfg, task, seed) uses: a
+    Cascade's stages in order, none for a model that learns nothing."""
+    stages = CASCADE_STAGES[cfg.get("stage_order", "sr_dn")] if cascade else [(None, task.name)]
+    for stage, task_name in stages:
+        stage_task = get_task(task_name)
+        if is_learned(_initial_model(cfg, stage_task, seed, stage)):
+            yield stage, _train_identity(ctx, cfg, stage_task, seed, _loss_features(ctx)[1], stage)
+
+
 def untrained(ctx: Context, cfg: dict, task: Task, seed: int, cascade: bool = False) -> list[str]:
     """Why each training that scoring (cfg, task, seed) loads is not recorded with weights this code
     reuses ("[sr stage] ..." for a Cascade's stages); empty when every one is, or the model learns nothing.
     Reads records and restores archived runs; never renders, trains or records a run."""
-    stages = CASCADE_STAGES[cfg.get("stage_order", "sr_dn")] if cascade else [(None, task.name)]
     out = []
-    for stage, task_name in stages:
-        stage_task = get_task(task_name)
-        if not is_learned(_initial_model(cfg, stage_task, seed, stage)):
-            continue
-        identity = _train_identity(ctx, cfg, stage_task, seed, _loss_features(ctx)[1], stage)
+    for stage, identity in _trainings(ctx, cfg, task, seed, cascade):
         why = _why_not_recorded(ctx, identity, code_of(cfg, *TRAINING_CODE), load=True)
         if why:
             out.append(f"[{stage} stage] {why}" if stage else why)
     return out
+
+
+def recorded_trainings(ctx: Context, cfg: dict, task: Task, seed: int, cascade: bool = False) -> list[str] | None:
+    """The run hashes of the trainings scoring (cfg, task, seed) reuses as recorded (a Cascade's stages
+    in order; [] for a model that learns nothing), or None when one would be trained. From records alone,
+    as `untrained`, but weights are not asked for: a recorded evaluation does not load them."""
+    hashes = []
+    for _, identity in _trainings(ctx, cfg, task, seed, cascade):
+        if _why_not_recorded(ctx, identity, code_of(cfg, *TRAINING_CODE), load=False):
+            return None
+        hashes.append(runs.config_hash(identity))
+    return hashes
 
 
 def _why_not_recorded(ctx: Context, identity: dict, code: dict, load: bool) -> str | None:
