@@ -198,7 +198,7 @@ def test_adopt_holds_the_code_only_to_evaluations_of_todays_frames(monkeypatch):
     from bench import runs
     from bench.experiments import adopt
     monkeypatch.setattr(adopt, "evaluation_data", lambda ctx: types.SimpleNamespace(data_dir=Path(".")))
-    monkeypatch.setattr(adopt, "load_manifest", lambda root: {"frames": [{"split": "val"}]})
+    monkeypatch.setattr(adopt, "splits_on_disk", lambda frames: {"val"})
     monkeypatch.setattr(adopt, "data_fingerprint", lambda ctx, split: f"today-{split}")
     monkeypatch.setattr(adopt, "render_digest", lambda ctx, split: f"host-a-{split}")
 
