@@ -703,10 +703,13 @@ def test_the_differential_check_refuses_a_replay_that_did_not_run_the_recorded_c
         replay.check_against_recorded_code(None, {"bench/x.py": "recorded"}, ["bench.x"], 3, None, None)
 
 
-def test_the_recorded_code_loads_weights_renamed_since_by_order_and_only_where_every_shape_matches(tmp_path):
+def test_the_recorded_code_loads_weights_renamed_since_by_order_and_only_where_every_shape_matches(
+        tmp_path, monkeypatch):
     """The archive's weights carry today's parameter names; the recorded code may predate a rename. Its
-    replay loads them by order where every shape matches, and refuses weights of another architecture."""
+    replay loads them by order where every shape matches, and refuses weights of another architecture;
+    today's code loads by name only, as the tables do."""
     from bench import archived
+    from bench.experiments import replay
     from bench.experiments.replay import _load_recorded
 
     class Then(torch.nn.Module):  # today's model under the names it had before a rename
@@ -721,7 +724,37 @@ def test_the_recorded_code_loads_weights_renamed_since_by_order_and_only_where_e
 
     archived.write_weights(Now().state_dict(), tmp_path / archived.WEIGHTS)
     saved = archived.state_dict(tmp_path)
+    with pytest.raises(RuntimeError):
+        _load_recorded(Then(), tmp_path)
+    monkeypatch.setattr(replay, "BY_ORDER", True)  # as replay.main sets it in the recorded code's subprocess
     loaded = _load_recorded(Then(), tmp_path).state_dict()
     assert all(torch.equal(a, b) for a, b in zip(loaded.values(), saved.values()))
     with pytest.raises(RuntimeError):
         _load_recorded(Then(width=5), tmp_path)
+
+
+def test_adopt_restamps_the_evaluations_of_trainings_it_adopted_only_once_all_their_trainings_are_current(tmp_path):
+    """An evaluation is re-stamped by the call that adopted one of its trainings (whose check scored the
+    witness with today's evaluator), once every training it scored runs today's code (a Cascade's stages
+    may be adopted in different calls); never one whose trainings were current before: nothing checked
+    its evaluator."""
+    import types
+    from bench import runs
+    from bench.experiments.adopt import evaluation_code, evaluations_to_restamp
+    from bench.experiments.context import TRAINING_CODE, code_of
+    cfg = {"_target_": "baselines.edsr.EDSR", "channels": 8, "blocks": 2}
+    ctx = types.SimpleNamespace(runs_dir=tmp_path)
+
+    def record(kind, h, **fields):
+        (tmp_path / kind / h).mkdir(parents=True)
+        (tmp_path / kind / h / runs.RECORD).write_text(json.dumps({"kind": kind, "hash": h, "status": "complete", **fields}))
+    today = code_of(cfg, *TRAINING_CODE)
+    record("train", "a" * 16, identity={"model": cfg}, code=today)
+    record("train", "b" * 16, identity={"model": cfg}, code={**today, "bench/train.py": "old"})
+    default = {"version": runs.IDENTITY_VERSION, "fast_path": "fp32", "tile": None}
+    record("eval", "e" * 16, identity=default, metrics={"train_run": "a" * 16}, code={"bench/evaluate.py": "old"})
+    record("eval", "f" * 16, identity=default, metrics={"train_run": "a" * 16 + "+" + "b" * 16},
+           code={"bench/evaluate.py": "old"})
+    assert evaluations_to_restamp(ctx, set()) == []                          # nothing adopted by this call
+    assert [e.hash for e in evaluations_to_restamp(ctx, {"a" * 16})] == ["e" * 16]  # "f": its other stage is stale
+    assert evaluation_code(ctx, evaluations_to_restamp(ctx, {"a" * 16})[0])["bench/train.py"] == today["bench/train.py"]

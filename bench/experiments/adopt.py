@@ -119,6 +119,33 @@ def evaluations_of(runs_dir: Path, train_hashes: set[str]) -> list[runs.Run]:
     return out
 
 
+def evaluation_code(ctx: Context, evaluation: runs.Run) -> dict:
+    """Today's code fingerprint of a learned row's evaluation: the evaluator's and its model's trainer's."""
+    first = evaluation.record["metrics"]["train_run"].split("+")[0]
+    model = runs.read_record(ctx.runs_dir / "train" / first / runs.RECORD)["identity"]["model"]
+    return code_of(model, *EVALUATION_CODE, *TRAINING_CODE)
+
+
+def evaluations_to_restamp(ctx: Context, adopted: set[str]) -> list[runs.Run]:
+    """The stale evaluations, run the default way, of trainings this call adopted, once every training
+    they scored runs today's code (a Cascade's stages may be adopted in different calls): the adopted
+    group's check scored its witness with this evaluator. An evaluation whose trainings were all current
+    before this call is not one of them: nothing here checked its evaluator."""
+    def current(h: str) -> bool:
+        record = runs.read_record(ctx.runs_dir / "train" / h / runs.RECORD) or {}
+        identity = record.get("identity") or {}
+        return "model" in identity and not runs.code_changes(record, code_of(identity["model"], *TRAINING_CODE))
+    out = []
+    trainings = {p.parent.name for p in (ctx.runs_dir / "train").glob(f"*/{runs.RECORD}")}
+    for evaluation in evaluations_of(ctx.runs_dir, trainings):
+        trained = evaluation.record["metrics"]["train_run"].split("+")
+        if set(trained) & adopted and all(map(current, trained)) \
+                and ran_the_default_way(evaluation.record["identity"]) \
+                and runs.code_changes(evaluation.record, evaluation_code(ctx, evaluation)):
+            out.append(evaluation)
+    return out
+
+
 def scored_here(ctx: Context, evaluation: runs.Run) -> bool:
     """Whether `evaluation` ran the default way on frames as they are now: only then can the current code
     be held to its numbers. An evaluation against references rendered again since says nothing about the
@@ -231,20 +258,10 @@ def run(ctx: Context, name: str, steps: int, rtol: float, rtol_later_steps: floa
                 archive_training(ctx, r)
             adopted |= {r.hash for r in group}
         rows.append(row)
-    # the evaluations of adopted trainings (this call's or an earlier one's: a Cascade's stages may be
-    # adopted apart), run the default way, once every training they scored is current
-    current = {p.parent.name for p in (ctx.runs_dir / "train").glob(f"*/{runs.RECORD}")} - {
-        r.hash for g in stale_groups(ctx).values() for r in g}
-    for evaluation in [] if dry_run else evaluations_of(ctx.runs_dir, current):
-        identity, trained = evaluation.record["identity"], evaluation.record["metrics"]["train_run"]
-        if not any((runs.read_record(ctx.runs_dir / "train" / h / runs.RECORD) or {}).get("code_adopted")
-                   for h in trained.split("+")):
-            continue
-        model_cfg = runs.read_record(ctx.runs_dir / "train" / trained.split("+")[0] / runs.RECORD)["identity"]["model"]
-        code = code_of(model_cfg, *EVALUATION_CODE, *TRAINING_CODE)
-        if ran_the_default_way(identity) and runs.code_changes(evaluation.record, code):
-            restamp(evaluation, code, {"trainings": trained, "rtol": rtol})
-            archive_evaluation(ctx, evaluation)
+    for evaluation in [] if dry_run else evaluations_to_restamp(ctx, adopted):
+        restamp(evaluation, evaluation_code(ctx, evaluation),
+                {"trainings": evaluation.record["metrics"]["train_run"], "rtol": rtol})
+        archive_evaluation(ctx, evaluation)
     for evaluation in stale_untrained_evaluations(ctx):  # bilinear, OIDN: their evaluator changed
         row = check_untrained(ctx, evaluation, rtol)
         log.info("adopt %s (evaluation %s): %s", row["label"], evaluation.hash, row["verdict"])

@@ -207,9 +207,10 @@ def _read_gzipped_json(path: Path) -> dict:
 
 def archive_frame_records(ctx: Context, manifest: dict) -> None:
     """Keep in the archive, beside the runs, what tables read of the rendered frames (each frame's
-    reference spp and estimated reference error, and its files' CRC-32 stamps, which `render_digest`
-    hashes): a table whose evaluations are all recorded is then written on a machine that has not
-    rendered its split. Merged per split: a data_dir holding some splits replaces only theirs."""
+    reference spp and estimated reference error), with its files' CRC-32 stamps (which render they
+    describe): a table whose evaluations are all recorded is then written on a machine that has not
+    rendered its split. Merged per split: a data_dir holding some splits replaces only theirs. The last
+    host to find the data writes it: another host's render of the same settings differs in its noise."""
     if ctx.runs_archive is None or not ctx.render_data or _canonical(manifest.get("spec")) != _canonical(ctx.data_spec):
         return
     path = _frame_records_path(ctx)
@@ -242,11 +243,15 @@ def frame_records(ctx: Context, split: str) -> list[dict]:
     return [f for f in (kept or {}).get("frames", []) if f["split"] == split]
 
 
-def splits_on_disk(ctx: Context) -> set[str]:
-    """The splits data_dir's manifest holds (none without one that reads)."""
+def splits_on_disk(ctx: Context, as_specified: bool = False) -> set[str]:
+    """The splits data_dir's manifest holds (none without one that reads); `as_specified`: only if it
+    was rendered from `ctx`'s data spec (a table would render the others again)."""
     path = ctx.data_dir / "manifest.json"
     manifest = runs.read_json_or_none(path) if path.exists() else None
-    return {f["split"] for f in manifest["frames"]} if manifest else set()
+    if not manifest or (as_specified and ctx.render_data
+                        and _canonical(manifest.get("spec")) != _canonical(ctx.data_spec)):
+        return set()
+    return {f["split"] for f in manifest["frames"]}
 
 
 def _manifest_or_rebuilt(ctx: Context) -> dict | None:

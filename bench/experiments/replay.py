@@ -69,13 +69,19 @@ def _model(cfg: dict, task, stage: str | None):
     return build_model(cfg, task.scale) if stage is None else SRDStage(cascade_net(cfg), stage)
 
 
+BY_ORDER = False  # set by `main`: the rebuilt recorded code's subprocess
+
+
 def _load_recorded(model, run_dir: Path):
-    """`model` with the training's weights: by name, or by order where every shape matches, for the
-    recorded code (its parameter names may predate a rename that the archive's weights carry)."""
+    """`model` with the training's weights: by name, or, in the recorded code's replay (`BY_ORDER`), by
+    order where every shape matches (its parameter names may predate a rename the archive's weights
+    carry). Today's code loads by name only, as tables do."""
     state = archived.state_dict(run_dir)
     try:
         model.load_state_dict(state)
     except RuntimeError:
+        if not BY_ORDER:
+            raise
         own = model.state_dict()
         if [tuple(t.shape) for t in own.values()] != [tuple(t.shape) for t in state.values()]:
             raise
@@ -137,7 +143,7 @@ def scoring_of(evaluation: runs.Run, weights: Path | None) -> dict:
     identity = evaluation.record["identity"]
     trained = identity["trained"]
     stage = None
-    if weights is not None:  # a training (a Cascade's evaluation: the witness stage on its own task)
+    if weights is not None:  # a training's weights (a Cascade stage's: that stage, on its own task)
         record = runs.read_record(Path(weights) / runs.RECORD)["identity"]
         cfg, task, stage = record["model"], record["task"], record.get("stage")
     else:
@@ -224,6 +230,8 @@ def fingerprints_agree(a: dict, b: dict) -> bool:
 def main(argv=None) -> int:
     """The differential check's subprocess (recorded_code.replay_there): `replay` of a pickled job, run by
     the code this module was imported from (the recorded code, rebuilt)."""
+    global BY_ORDER
+    BY_ORDER = True
     job_file, out_file = (argv or sys.argv[1:])[:2]
     job = pickle.loads(Path(job_file).read_bytes())
     out = replay(**job["replay"]) | {"code": runs.code_fingerprint(job["modules"])}  # what ran: the rebuilt files

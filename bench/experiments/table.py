@@ -290,6 +290,31 @@ def unrecorded_rows(ctx: Context, rows: list[dict], split: str | None) -> list[d
     return [r for r in rows if not all(recorded(r, seed) for seed in ctx.seeds)]
 
 
+def render_what_runs(ctx: Context, name: str, rows: list[dict], task: str, split: str | None, figure: bool,
+                     unscored: dict) -> bool:
+    """Render the data this table computes from, and nothing else: the splits of the evaluations not
+    recorded (`unrecorded_rows`); the training and working splits when a training must run for them or
+    for the figure (`unscored`: (label, seed) -> why its training would run); the scored split when the
+    crops figure is redrawn (where that split is rendered as the preset specifies it) or when its frame
+    records, which the caption's reference check reads, are neither there nor archived. Returns whether
+    the figure is redrawn."""
+    pending = unrecorded_rows(ctx, rows, split)
+    needed = {r.get("split", split) or ctx.eval.split for r in pending}
+    shown = split or ctx.eval.split
+    if (figure and shown in splits_on_disk(ctx, as_specified=True)) or not frame_records(ctx, shown):
+        needed.add(shown)
+    drawn = figure and shown in needed
+    loading = {(r["label"], seed) for r in pending for seed in ctx.seeds} | (
+        {(r["label"], ctx.seeds[0]) for r in rows} if drawn else set())  # the figure shows the first seed
+    if ctx.force or any(unscored.get(key) for key in loading):
+        needed |= {"train", working_split(ctx)} & set(ctx.data_spec["splits"])
+    if needed:
+        ensure_data(ctx, passes_for(rows, task), needed)
+    else:
+        log.info("%s: every evaluation is recorded: nothing is rendered or trained", name)
+    return drawn
+
+
 def run(ctx: Context, name: str, rows: list[dict], caption: str = "", task: str = "srd",
         split: str | None = None, paper: str | None = "auto", gmac_column: bool = False,
         figure: bool = True, leave_out: list[str] | None = None) -> pd.DataFrame:
@@ -305,30 +330,19 @@ def run(ctx: Context, name: str, rows: list[dict], caption: str = "", task: str 
         model_config(ctx, r["model"], r.get("overrides"))
         get_task(r["task"])
     frames = evaluation_data(ctx)
-    unscored = {r["label"]: [] if ctx.force else [  # per row: the trainings to run before its weights load
-        f"{r['label']} seed {seed}: {why}" for seed in ctx.seeds
-        for why in untrained(with_training(ctx, r.get("train"), r["model"]),
-                             model_config(ctx, r["model"], r.get("overrides")), get_task(r["task"]),
-                             seed, r.get("cascade", False))] for r in rows}
-    drawn = figure  # the crops figure reads the scored split's frames and each row's weights
-    if frames is ctx:  # render what runs: the splits of evaluations not recorded, what a training reads
-        pending = unrecorded_rows(ctx, rows, split)
-        needed = {r.get("split", split) or ctx.eval.split for r in pending}
-        shown = split or ctx.eval.split
-        # the caption's reference check reads the frames' records (the archive keeps a copy: frame_records)
-        if (figure and shown in splits_on_disk(ctx)) or not frame_records(ctx, shown):
-            needed.add(shown)
-        drawn = figure and shown in needed
-        if ctx.force or any(unscored[r["label"]] for r in (rows if drawn else pending)):
-            needed |= {"train", working_split(ctx)} & set(ctx.data_spec["splits"])
-        if needed:
-            ensure_data(ctx, passes_for(rows, task), needed)
-        else:
-            log.info("%s: every evaluation is recorded: nothing is rendered or trained", name)
+    # per (row, seed): the trainings to run before its weights load
+    unscored = {} if ctx.force else {
+        (r["label"], seed): untrained(with_training(ctx, r.get("train"), r["model"]),
+                                      model_config(ctx, r["model"], r.get("overrides")), get_task(r["task"]),
+                                      seed, r.get("cascade", False)) for r in rows for seed in ctx.seeds}
+    if frames is ctx:
+        drawn = render_what_runs(ctx, name, rows, task, split, figure, unscored)
     else:  # recorded models scored on another dataset: it is checked; the training data is not needed
+        drawn = figure
         ensure_data(frames, set())
-        if any(unscored.values()):  # before anything is scored, every training that would be missing
-            raise scoring_only_error([why for whys in unscored.values() for why in whys])
+        whys = [f"{label} seed {seed}: {why}" for (label, seed), reasons in unscored.items() for why in reasons]
+        if whys:  # before anything is scored, every training that would be missing
+            raise scoring_only_error(whys)
     if ctx.shard:  # compute this shard's runs only; a run without a shard assembles the table from them
         index, count = ctx.shard
         # a unit's lock is this table under this whole configuration, whichever process runs it

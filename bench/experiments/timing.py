@@ -62,7 +62,7 @@ from bench import archived, render, runs, scenes
 from bench.datagen import derive_seed, frame_view, plan_sequences, render_settings
 from bench.dataset import SequenceDataset
 from bench.errors import UserError
-from bench.evaluate import predict, sync
+from bench.evaluate import predict
 from bench.experiments.context import Context, model_config, with_training
 from bench.experiments.datasets import ensure_data
 from bench.experiments.speed import LABELS, cpu_model, device_tag
@@ -616,8 +616,8 @@ def report(ctx: Context, name: str, caption: str, table: pd.DataFrame, per_view:
     shown = table.drop(columns=["MSE"]).assign(Pareto=table["Pareto"].map({True: "yes", False: ""}))
     write_table(shown, out, caption=f"{_caption(ctx, caption, views, variant, train_spp)} {notes}",
                 lower_is_better=LOWER_IS_BETTER, higher_is_better=HIGHER_IS_BETTER)
-    curve_text = (f"PT's curves: least-squares lines through (log seconds, log relMSE), (log seconds, PSNR) and "
-                  f"(log seconds, log(1 - SSIM)) over all its points; extrapolated: outside its measured times.")
+    curve_text = ("PT's curves: least-squares lines through (log seconds, log relMSE), (log seconds, PSNR) and "
+                  "(log seconds, log(1 - SSIM)) over all its points; extrapolated: outside its measured times.")
     write_table(speedup_table(table, operating_spp), out, name="speedup", caption=(
         f"Equal quality and equal time against brute-force HR path tracing (PT) at the operating point "
         f"({operating_spp} spp; the paper's is LR 8 spp, where it implies about {PAPER_SPEEDUP}x), preset "

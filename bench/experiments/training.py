@@ -119,10 +119,10 @@ def untrained(ctx: Context, cfg: dict, task: Task, seed: int, cascade: bool = Fa
 def recorded_trainings(ctx: Context, cfg: dict, task: Task, seed: int, cascade: bool = False) -> list[str] | None:
     """The run hashes of the trainings scoring (cfg, task, seed) reuses as recorded (a Cascade's stages
     in order; [] for a model that learns nothing), or None when one would be trained. From records alone,
-    as `untrained`, but weights are not asked for: a recorded evaluation does not load them."""
+    as `untrained`; weights are asked for only of a Cascade's stages, which `cascade_model` always loads."""
     hashes = []
     for _, identity in _trainings(ctx, cfg, task, seed, cascade):
-        if _why_not_recorded(ctx, identity, code_of(cfg, *TRAINING_CODE), load=False):
+        if _why_not_recorded(ctx, identity, code_of(cfg, *TRAINING_CODE), load=cascade):
             return None
         hashes.append(runs.config_hash(identity))
     return hashes
