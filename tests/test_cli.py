@@ -696,11 +696,44 @@ def test_the_differential_check_refuses_a_replay_that_did_not_run_the_recorded_c
     version (the rebuilt tree shadowed, a search that picked another blob) fails the check."""
     from bench.errors import UserError
     from bench.experiments import recorded_code, replay
-    monkeypatch.setattr(recorded_code, "rebuild", lambda recorded, current, dest: dest)
+    monkeypatch.setattr(recorded_code, "rebuild", lambda recorded, current, dest, commit=None: dest)
     monkeypatch.setattr(recorded_code, "replay_there", lambda tree, job: {"code": {"bench/x.py": "today"}})
     monkeypatch.setattr(replay.runs, "code_fingerprint", lambda modules: {"bench/x.py": "today"})
     with pytest.raises(UserError, match="not the recorded one: bench/x.py"):
         replay.check_against_recorded_code(None, {"bench/x.py": "recorded"}, ["bench.x"], 3, None, None)
+
+
+def test_the_rebuilt_code_takes_a_core_file_neither_fingerprint_names_at_the_runs_commit(tmp_path):
+    """An EDSR run's fingerprint does not name models/srd.py, but the replay's harness imports it: rebuilt
+    beside an older hdr.py, today's srd.py would import what that hdr.py lacks. So it is taken at the
+    run's recorded commit; the files the fingerprint names at their recorded hashes."""
+    import subprocess
+
+    from bench import runs
+    from bench.experiments import recorded_code
+    repo = tmp_path / "repo"
+    (repo / "bench" / "models").mkdir(parents=True)
+    (repo / "baselines").mkdir()
+
+    def commit(hdr: str, srd: str) -> str:
+        (repo / "bench" / "hdr.py").write_text(hdr)
+        (repo / "bench" / "models" / "srd.py").write_text(srd)
+        git = ["git", "-C", str(repo), "-c", "user.name=t", "-c", "user.email=t@t"]
+        subprocess.run([*git, "add", "-A"], check=True, capture_output=True)
+        subprocess.run([*git, "commit", "-qm", "v"], check=True, capture_output=True)
+        return subprocess.run([*git, "rev-parse", "HEAD"], capture_output=True, text=True).stdout.strip()
+
+    subprocess.run(["git", "init", "-q", str(repo)], check=True)
+    then = commit("def to_network(x):\n    return x\n", "from bench.hdr import to_network\n")
+    commit("def transforms(mode):\n    return mode\n", "from bench.hdr import transforms\n")
+    old_hdr = tmp_path / "hdr_then.py"
+    old_hdr.write_text("def to_network(x):\n    return x\n")
+    recorded = {"bench/hdr.py": runs.source_hash.__wrapped__(old_hdr)}
+    current = {"bench/hdr.py": runs.source_hash.__wrapped__(repo / "bench" / "hdr.py")}
+    for at, srd in ((then, "from bench.hdr import to_network\n"), (None, "from bench.hdr import transforms\n")):
+        dest = recorded_code.rebuild(recorded, current, tmp_path / f"tree-{at}", at, repo=repo)
+        assert (dest / "bench" / "hdr.py").read_text() == old_hdr.read_text()
+        assert (dest / "bench" / "models" / "srd.py").read_text() == srd  # without the commit: today's
 
 
 def test_the_recorded_code_loads_weights_renamed_since_by_order_and_only_where_every_shape_matches(

@@ -292,8 +292,10 @@ def dataset(ctx: Context, split: str, task: Task, training: bool, seed: int = 0)
     if frames is not None and recipe.seq_len > frames:
         raise UserError(f"train.seq_len={recipe.seq_len} but the dataset's sequences have {frames} frames")
     check_training_frames(ctx, split, manifest)
+    # an option added later is passed only when set: adopt's replay runs dataset code that predates it
+    later = {"permute_colours": True} if recipe.colour_permute else {}
     return SequenceDataset(ctx.data_dir, split, buffers, seq_len=recipe.seq_len, crop=recipe.crop,
-                           augment=True, seed=seed, permute_colours=recipe.colour_permute)
+                           augment=True, seed=seed, **later)
 
 
 def check_training_frames(ctx: Context, split: str = "train", manifest: dict | None = None) -> None:

@@ -29,19 +29,35 @@ from bench.errors import UserError
 log = logging.getLogger("bench")
 
 
-def rebuild(recorded: dict, current: dict, dest: Path, repo: Path = runs.ROOT) -> Path:
+# The modules a run's code fingerprint can name (every model's factory, trainer, evaluator): the core
+CORE = ("bench.models.factory", "bench.train", "bench.dataset", "bench.evaluate")
+
+
+def rebuild(recorded: dict, current: dict, dest: Path, commit: str | None = None, repo: Path = runs.ROOT) -> Path:
     """A copy of the project's packages at `dest` in which every file whose recorded source hash differs
     from `current`'s is the version git history has with the recorded hash, with the C++ sources it names
     from the same commit (a file added since stays: the recorded code imports nothing it did not name).
-    UserError naming a file no version matches."""
+    A core file that neither fingerprint names (another model's, which only the replay's harness imports,
+    e.g. models/srd.py beside an EDSR run) is taken at the run's recorded git `commit`, where it exists,
+    so that it imports what the rebuilt files define. UserError naming a file no version matches."""
     for package in runs.PACKAGES:
         shutil.copytree(repo / package, dest / package, dirs_exist_ok=True,
                         ignore=shutil.ignore_patterns("__pycache__", "*.so"))
-    for path in runs.code_changes({"code": recorded}, current):
+    changed = runs.code_changes({"code": recorded}, current)
+    for path in changed:
         if path in recorded and not _checkout_version(repo, path, recorded[path], dest):
             raise UserError(f"{path}: no version in the git history of {repo} has the recorded source hash "
                             f"{recorded[path]} (the recorded code cannot be rebuilt)")
+    if commit and changed:
+        for path in sorted(set(runs.code_fingerprint(CORE)) - set(recorded) - set(current)):
+            shown = _git(repo, "show", f"{commit}:{path}")
+            if shown.returncode == 0:
+                (dest / path).write_bytes(shown.stdout)
     return dest
+
+
+def _git(repo: Path, *args) -> subprocess.CompletedProcess:
+    return subprocess.run(["git", "-C", str(repo), *args], capture_output=True, timeout=60)
 
 
 def _natives(text: str) -> list[str]:
@@ -55,20 +71,18 @@ def _natives(text: str) -> list[str]:
 def _checkout_version(repo: Path, path: str, source_hash: str, dest: Path) -> bool:
     """Write into `dest` the newest version of `path` in git history whose source hash is `source_hash`,
     each candidate with the C++ sources it names from its own commit (a .py's hash covers them)."""
-    def git(*args) -> subprocess.CompletedProcess:
-        return subprocess.run(["git", "-C", str(repo), *args], capture_output=True, timeout=60)
     folder = Path(path).parent
     natives = [str(folder / n) for n in _natives((repo / path).read_text())] if (repo / path).exists() else []
-    commits = git("log", "--full-history", "--format=%H", "--", path, *natives).stdout.decode().split()
+    commits = _git(repo, "log", "--full-history", "--format=%H", "--", path, *natives).stdout.decode().split()
     target = dest / path
     target.parent.mkdir(parents=True, exist_ok=True)
     for commit in commits:
-        shown = git("show", f"{commit}:{path}")
+        shown = _git(repo, "show", f"{commit}:{path}")
         if shown.returncode != 0:  # not there in this commit
             continue
         target.write_bytes(shown.stdout)
         for native in _natives(shown.stdout.decode(errors="replace")):
-            source = git("show", f"{commit}:{(folder / native).as_posix()}")
+            source = _git(repo, "show", f"{commit}:{(folder / native).as_posix()}")
             if source.returncode == 0:
                 (dest / folder / native).write_bytes(source.stdout)
         try:

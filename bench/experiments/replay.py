@@ -198,15 +198,16 @@ def check_inference(ctx: Context, evaluation: runs.Run, weights: Path | None) ->
 
 
 def check_against_recorded_code(ctx: Context, recorded: dict, modules: list, steps: int,
-                                training: runs.Run | None, scoring: dict | None) -> dict:
+                                training: runs.Run | None, scoring: dict | None, commit: str | None = None) -> dict:
     """The differential check (bench/experiments/recorded_code.py): the replay of `training`'s first steps
     and of `scoring` by the `recorded` code (the fingerprint of `modules` a run recorded), rebuilt from
-    git, against the same by this code, on today's frames; {what: relative difference}, keyed "train ..."
-    and "eval ...". The subprocess fingerprints what it ran: a file that is not the recorded one is an error."""
+    git (`commit`: the git commit the run recorded), against the same by this code, on today's frames;
+    {what: relative difference}, keyed "train ..." and "eval ...". The subprocess fingerprints what it
+    ran: a file that is not the recorded one is an error."""
     job = {"ctx": ctx, "steps": steps, "scoring": scoring,
            "training": None if training is None else (training.record, training.dir)}
     with tempfile.TemporaryDirectory(prefix="srd-recorded-code-") as tmp:
-        tree = recorded_code.rebuild(recorded, runs.code_fingerprint(modules), Path(tmp))
+        tree = recorded_code.rebuild(recorded, runs.code_fingerprint(modules), Path(tmp), commit)
         then = recorded_code.replay_there(tree, {"replay": job, "modules": modules})
     other = sorted(p for p in recorded if then["code"].get(p) != recorded[p])
     if other:
