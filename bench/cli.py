@@ -459,6 +459,13 @@ def run_experiment(cfg: DictConfig) -> None:
                 " keeps them out, with the archive of your runs (runs_archive follows results_dir)")
         log.warning("your frames' tables and crops go to %s, inside the repository where git would commit "
                     "them; results_dir=/elsewhere%s", ctx.results_dir, keep)
+    committed = Path(CONF_DIR).parent / "results" / cfg.preset.name / "runs"
+    if ctx.runs_archive is not None and ctx.runs_archive.resolve() != committed.resolve() \
+            and not ctx.runs_archive.exists() and committed.is_dir():
+        # runs_archive follows results_dir: elsewhere, the recorded runs would all be computed again
+        log.warning("runs_archive=%s (it follows results_dir) holds no runs: the committed archive %s is not "
+                    "read, so recorded runs are computed again; runs_archive=%s reads it",
+                    ctx.runs_archive, committed.relative_to(Path(CONF_DIR).parent), committed)
     t0 = time.perf_counter()
     interrupted = False
     try:

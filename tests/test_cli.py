@@ -791,3 +791,15 @@ def test_adopt_restamps_the_evaluations_of_trainings_it_adopted_only_once_all_th
     assert evaluations_to_restamp(ctx, set()) == []                          # nothing adopted by this call
     assert [e.hash for e in evaluations_to_restamp(ctx, {"a" * 16})] == ["e" * 16]  # "f": its other stage is stale
     assert evaluation_code(ctx, evaluations_to_restamp(ctx, {"a" * 16})[0])["bench/train.py"] == today["bench/train.py"]
+
+
+def test_a_results_dir_elsewhere_says_the_committed_archive_is_not_read(tmp_path):
+    """runs_archive follows results_dir: moved elsewhere, the committed runs are not read and every
+    recorded run would be computed again; the first line says so and how to read them."""
+    out = bench("+experiment=train", "experiment.model=nosuch", "preset=cpu", "tracking=none",
+                f"results_dir={tmp_path / 'results'}", f"runs_dir={tmp_path / 'runs'}",
+                f"data_dir={tmp_path / 'data'}", timeout=120)
+    said = out.stdout + out.stderr
+    assert "the committed archive results/cpu/runs is not read" in said
+    assert f"runs_archive={REPO / 'results' / 'cpu' / 'runs'} reads it" in said
+    assert not (tmp_path / "data").exists()
