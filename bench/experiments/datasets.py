@@ -49,18 +49,22 @@ def _fingerprint(manifest_path: str, mtime_ns: int, split: str | None, files: st
               if split is None or f["split"] == split]
     if not frames and split is not None:
         splits = sorted({f["split"] for f in manifest["frames"]})
-        raise UserError(f"{Path(manifest_path).parent}: no frames in split {split!r} (it has {splits}); tables "
-                        f"score the split eval.split (e.g. eval.split={([s for s in splits if s != 'train'] or ['NAME'])[0]}), "
-                        "trainings read 'train'")
+        raise _no_split(f"{Path(manifest_path).parent}: no frames in split {split!r}", splits)
     return _identity_hash(manifest.get("spec"), frames, split, files)
+
+
+def _no_split(what: str, splits: list[str]) -> UserError:
+    example = ([s for s in splits if s != "train"] or ["NAME"])[0]
+    return UserError(f"{what} (it has {splits}); tables score the split eval.split (e.g. eval.split={example}), "
+                     "trainings read 'train'")
 
 
 @functools.lru_cache(maxsize=8)
 def _planned_fingerprint(spec_json: str, split: str) -> str:
     spec = json.loads(spec_json)
     if not (spec.get("splits") or {}).get(split):
-        raise UserError(f"data: the data spec {spec.get('name', '')!r} has no {split!r} split "
-                        f"(it has {sorted(spec.get('splits') or {})}); trainings read 'train'")
+        raise _no_split(f"data: the data spec {spec.get('name', '')!r} has no {split!r} split",
+                        sorted(spec.get("splits") or {}))
     part = {**spec, "splits": {split: spec["splits"][split]}}  # a split's plan does not depend on the others
     frames = [(split, job["sequence"], frame, digest) for job, digest in planned_settings(part)
               for frame in range(int(spec["seq_len"]))]
@@ -231,9 +235,8 @@ def frame_records(ctx: Context, split: str) -> list[dict]:
     """The records of `split`'s frames (`load_manifest`'s, or the `FRAME_RECORD_KEYS` of them): from
     data_dir's manifest when it holds the split as `ctx` specifies it, else from the archive's copy
     (`archive_frame_records`); [] when neither has them."""
-    path = ctx.data_dir / "manifest.json"
-    manifest = runs.read_json_or_none(path) if path.exists() else None
-    if manifest is not None and (not ctx.render_data or _canonical(manifest.get("spec")) == _canonical(ctx.data_spec)):
+    manifest = _manifest_here(ctx, as_specified=True)
+    if manifest is not None:
         frames = [f for f in manifest["frames"] if f["split"] == split]
         if frames or not ctx.render_data:
             return frames
@@ -246,12 +249,19 @@ def frame_records(ctx: Context, split: str) -> list[dict]:
 def splits_on_disk(ctx: Context, as_specified: bool = False) -> set[str]:
     """The splits data_dir's manifest holds (none without one that reads); `as_specified`: only if it
     was rendered from `ctx`'s data spec (a table would render the others again)."""
+    manifest = _manifest_here(ctx, as_specified)
+    return {f["split"] for f in manifest["frames"]} if manifest else set()
+
+
+def _manifest_here(ctx: Context, as_specified: bool) -> dict | None:
+    """data_dir's manifest, read only (None when there is none or it does not read); `as_specified`:
+    only if it was rendered from `ctx`'s data spec (your own frames, render_data=false, always are)."""
     path = ctx.data_dir / "manifest.json"
     manifest = runs.read_json_or_none(path) if path.exists() else None
-    if not manifest or (as_specified and ctx.render_data
-                        and _canonical(manifest.get("spec")) != _canonical(ctx.data_spec)):
-        return set()
-    return {f["split"] for f in manifest["frames"]}
+    if manifest is None or (as_specified and ctx.render_data
+                            and _canonical(manifest.get("spec")) != _canonical(ctx.data_spec)):
+        return None
+    return manifest
 
 
 def _manifest_or_rebuilt(ctx: Context) -> dict | None:

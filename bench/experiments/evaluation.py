@@ -10,7 +10,7 @@ from bench import archived, runs
 from bench.evaluate import SCORES, evaluate
 from bench.experiments.context import EVALUATION_CODE, TRAINING_CODE, Context, code_of
 from bench.experiments.datasets import dataset, evaluation_data, render_digest, split_fingerprint
-from bench.experiments.training import cascade_model, recorded_trainings, trained_model
+from bench.experiments.training import RecordedTraining, cascade_model, reused_trainings, trained_model
 from bench.exrio import write_exr
 from bench.macs import count_params
 from bench.measure import AUTO, choose_fast_path, fused_kernels_used
@@ -34,7 +34,8 @@ def evaluated(ctx: Context, cfg: dict, task: Task, seed: int, split: str, label:
     fast_path = ctx.eval.fast_path
     if fast_path == AUTO:
         fast_path = measured_fast_path(ctx, cfg, task, split, label)
-    identity, code = _evaluation_key(ctx, cfg, trained, split, fast_path, learned=train_run is not None or cascade)
+    identity, code = _evaluation_key(ctx, frames, cfg, trained, split, fast_path,
+                                     learned=train_run is not None or cascade)
     run = runs.begin(ctx.runs_dir, "eval", identity, seed=seed, device=ctx.device, label=label,
                      force=ctx.force, code=code, reuse_stale=ctx.reuse_stale, archive=ctx.runs_archive)
     missing = [m for m in SCORES if f"{m} se" not in run.metrics] if run.reused else []
@@ -64,25 +65,28 @@ def evaluated(ctx: Context, cfg: dict, task: Task, seed: int, split: str, label:
     return archive_evaluation(ctx, runs.complete(run, metrics))
 
 
-def evaluation_recorded(ctx: Context, cfg: dict, task: Task, seed: int, split: str, cascade: bool = False) -> bool:
+def evaluation_recorded(ctx: Context, cfg: dict, task: Task, seed: int, split: str,
+                        trainings: list[RecordedTraining], cascade: bool = False) -> bool:
     """Whether scoring (cfg, task, seed) on `split` reuses a recorded evaluation, and so reads no frame:
-    decided from records alone (restoring archived runs), before any data is rendered. False when
-    force=true or eval.fast_path=auto (its choice is measured on the frames)."""
+    decided from records alone (its `trainings`, `training_records`), before any data is rendered. False
+    when force=true or eval.fast_path=auto (its choice is measured on the frames)."""
     if ctx.force or ctx.eval.fast_path == AUTO:
         return False
-    hashes = recorded_trainings(ctx, cfg, task, seed, cascade)
+    hashes = reused_trainings(trainings, cascade)
     if hashes is None:
         return False
     trained = "+".join(hashes) if cascade else hashes[0] if hashes else {"model": cfg, "task": task.name}
-    identity, code = _evaluation_key(ctx, cfg, trained, split, ctx.eval.fast_path, learned=bool(hashes))
+    identity, code = _evaluation_key(ctx, evaluation_data(ctx), cfg, trained, split, ctx.eval.fast_path,
+                                     learned=bool(hashes))
     run = runs.reusable(ctx.runs_dir, "eval", identity, code, ctx.reuse_stale, ctx.runs_archive)
     return run is not None and all(f"{m} se" in run.metrics for m in SCORES)
 
 
-def _evaluation_key(ctx: Context, cfg: dict, trained, split: str, fast_path: str, learned: bool) -> tuple[dict, dict]:
-    """(identity, code fingerprint) of the evaluation of `trained` on `split`; a learned row's numbers
-    also depend on the trainer: retraining it makes its evaluation stale too."""
-    identity = evaluation_identity(trained, split, split_fingerprint(evaluation_data(ctx), split), ctx.train.hdr,
+def _evaluation_key(ctx: Context, frames: Context, cfg: dict, trained, split: str, fast_path: str,
+                    learned: bool) -> tuple[dict, dict]:
+    """(identity, code fingerprint) of the evaluation of `trained` on `split` of `frames` (`evaluation_data`);
+    a learned row's numbers also depend on the trainer: retraining it makes its evaluation stale too."""
+    identity = evaluation_identity(trained, split, split_fingerprint(frames, split), ctx.train.hdr,
                                    fast_path, ctx.eval.tile, ctx.eval.save_exr)
     return identity, code_of(cfg, *EVALUATION_CODE, *(TRAINING_CODE if learned else ()))
 

@@ -34,7 +34,7 @@ from bench.experiments.evaluation import evaluation_recorded
 from bench.experiments.figure import crop_figure, curve_figure
 from bench.experiments.macs import frame_inputs
 from bench.experiments.row import row
-from bench.experiments.training import scoring_only_error, untrained
+from bench.experiments.training import scoring_only_error, training_records, untrained
 from bench.macs import count_macs, on_meta
 from bench.metrics import HIGHER_IS_BETTER, LOWER_IS_BETTER, RELMSE_FORMULA
 from bench.models.factory import build_model, is_learned
@@ -280,25 +280,27 @@ def _reference_note(ctx: Context, frames: Context, table: pd.DataFrame, rows: li
                            per_image_of(evaluation_records(best["runs"].split(), ctx.runs_dir)), best["method"], target[:2])
 
 
-def unrecorded_rows(ctx: Context, rows: list[dict], split: str | None) -> list[dict]:
+def unrecorded_rows(ctx: Context, rows: list[dict], split: str | None, trainings: dict) -> list[dict]:
     """The rows with an evaluation that is not recorded (scoring it reads its split's frames, and its
-    training's weights), decided from records alone (`evaluation_recorded`)."""
+    training's weights), decided from records alone (`evaluation_recorded`; `trainings`: (label, seed) ->
+    its `training_records`)."""
     def recorded(r: dict, seed: int) -> bool:
         return evaluation_recorded(with_training(ctx, r.get("train"), r["model"]),
                                    model_config(ctx, r["model"], r.get("overrides")), get_task(r["task"]), seed,
-                                   r.get("split", split) or ctx.eval.split, r.get("cascade", False))
-    return [r for r in rows if not all(recorded(r, seed) for seed in ctx.seeds)]
+                                   r.get("split", split) or ctx.eval.split, trainings[r["label"], seed],
+                                   r.get("cascade", False))
+    return [r for r in rows if ctx.force or not all(recorded(r, seed) for seed in ctx.seeds)]
 
 
 def render_what_runs(ctx: Context, name: str, rows: list[dict], task: str, split: str | None, figure: bool,
-                     unscored: dict) -> bool:
+                     trainings: dict) -> bool:
     """Render the data this table computes from, and nothing else: the splits of the evaluations not
     recorded (`unrecorded_rows`); the training and working splits when a training must run for them or
-    for the figure (`unscored`: (label, seed) -> why its training would run); the scored split when the
+    for the figure (`trainings`: (label, seed) -> its `training_records`); the scored split when the
     crops figure is redrawn (where that split is rendered as the preset specifies it) or when its frame
     records, which the caption's reference check reads, are neither there nor archived. Returns whether
     the figure is redrawn."""
-    pending = unrecorded_rows(ctx, rows, split)
+    pending = unrecorded_rows(ctx, rows, split, trainings)
     needed = {r.get("split", split) or ctx.eval.split for r in pending}
     shown = split or ctx.eval.split
     if (figure and shown in splits_on_disk(ctx, as_specified=True)) or not frame_records(ctx, shown):
@@ -306,7 +308,7 @@ def render_what_runs(ctx: Context, name: str, rows: list[dict], task: str, split
     drawn = figure and shown in needed
     loading = {(r["label"], seed) for r in pending for seed in ctx.seeds} | (
         {(r["label"], ctx.seeds[0]) for r in rows} if drawn else set())  # the figure shows the first seed
-    if ctx.force or any(unscored.get(key) for key in loading):
+    if ctx.force or any(untrained(trainings[key]) for key in loading):
         needed |= {"train", working_split(ctx)} & set(ctx.data_spec["splits"])
     if needed:
         ensure_data(ctx, passes_for(rows, task), needed)
@@ -330,17 +332,19 @@ def run(ctx: Context, name: str, rows: list[dict], caption: str = "", task: str 
         model_config(ctx, r["model"], r.get("overrides"))
         get_task(r["task"])
     frames = evaluation_data(ctx)
-    # per (row, seed): the trainings to run before its weights load
-    unscored = {} if ctx.force else {
-        (r["label"], seed): untrained(with_training(ctx, r.get("train"), r["model"]),
-                                      model_config(ctx, r["model"], r.get("overrides")), get_task(r["task"]),
-                                      seed, r.get("cascade", False)) for r in rows for seed in ctx.seeds}
+    # per (row, seed): the trainings its scoring uses, as recorded (force=true: every one runs)
+    trainings = {} if ctx.force else {
+        (r["label"], seed): training_records(with_training(ctx, r.get("train"), r["model"]),
+                                             model_config(ctx, r["model"], r.get("overrides")),
+                                             get_task(r["task"]), seed, r.get("cascade", False))
+        for r in rows for seed in ctx.seeds}
     if frames is ctx:
-        drawn = render_what_runs(ctx, name, rows, task, split, figure, unscored)
+        drawn = render_what_runs(ctx, name, rows, task, split, figure, trainings)
     else:  # recorded models scored on another dataset: it is checked; the training data is not needed
         drawn = figure
         ensure_data(frames, set())
-        whys = [f"{label} seed {seed}: {why}" for (label, seed), reasons in unscored.items() for why in reasons]
+        whys = [f"{label} seed {seed}: {why}" for (label, seed), recorded in trainings.items()
+                for why in untrained(recorded)]
         if whys:  # before anything is scored, every training that would be missing
             raise scoring_only_error(whys)
     if ctx.shard:  # compute this shard's runs only; a run without a shard assembles the table from them

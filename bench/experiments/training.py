@@ -5,6 +5,7 @@ trained alone on its own task and assembled; the torchrun ranks that join rank 0
 """
 from __future__ import annotations
 
+import dataclasses
 import functools
 import hashlib
 import logging
@@ -104,47 +105,58 @@ def _trainings(ctx: Context, cfg: dict, task: Task, seed: int, cascade: bool):
             yield stage, _train_identity(ctx, cfg, stage_task, seed, _loss_features(ctx)[1], stage)
 
 
-def untrained(ctx: Context, cfg: dict, task: Task, seed: int, cascade: bool = False) -> list[str]:
-    """Why each training that scoring (cfg, task, seed) loads is not recorded with weights this code
-    reuses ("[sr stage] ..." for a Cascade's stages); empty when every one is, or the model learns nothing.
-    Reads records and restores archived runs; never renders, trains or records a run."""
-    out = []
-    for stage, identity in _trainings(ctx, cfg, task, seed, cascade):
-        why = _why_not_recorded(ctx, identity, code_of(cfg, *TRAINING_CODE), load=True)
-        if why:
-            out.append(f"[{stage} stage] {why}" if stage else why)
-    return out
+@dataclasses.dataclass(frozen=True)
+class RecordedTraining:
+    """A training that scoring a row uses, as the records say (`training_records`)."""
+    hash: str
+    stage: str | None   # a Cascade's stage ("sr", "dn"), else None
+    why: str | None     # why it would run (not recorded, or recorded with other code); None: reused
+    weights: bool       # recorded with its weights
 
 
-def recorded_trainings(ctx: Context, cfg: dict, task: Task, seed: int, cascade: bool = False) -> list[str] | None:
-    """The run hashes of the trainings scoring (cfg, task, seed) reuses as recorded (a Cascade's stages
-    in order; [] for a model that learns nothing), or None when one would be trained. From records alone,
-    as `untrained`; weights are asked for only of a Cascade's stages, which `cascade_model` always loads."""
-    hashes = []
-    for _, identity in _trainings(ctx, cfg, task, seed, cascade):
-        if _why_not_recorded(ctx, identity, code_of(cfg, *TRAINING_CODE), load=cascade):
-            return None
-        hashes.append(runs.config_hash(identity))
-    return hashes
+def training_records(ctx: Context, cfg: dict, task: Task, seed: int, cascade: bool = False) -> list[RecordedTraining]:
+    """The trainings that scoring (cfg, task, seed) uses (a Cascade's stages in order; none for a model
+    that learns nothing), each as `runs.begin` would find it. Reads records and restores archived runs;
+    never renders, trains or records a run."""
+    code = code_of(cfg, *TRAINING_CODE)
+    return [_recorded(ctx, identity, code, stage) for stage, identity in _trainings(ctx, cfg, task, seed, cascade)]
 
 
-def _why_not_recorded(ctx: Context, identity: dict, code: dict, load: bool) -> str | None:
-    """Why the training of `identity` would have to run (no complete record in the store or
-    `ctx.runs_archive`, recorded with other code, or, when its weights are to be `load`ed, without
-    them), or None when it is reused as recorded: what `runs.begin` would decide."""
+def untrained(trainings: list[RecordedTraining]) -> list[str]:
+    """Why each of `trainings` would run before its weights load ("[sr stage] ..." for a Cascade's
+    stages); empty when every one is recorded with weights this code reuses."""
+    whys = [(t.stage, t.why or (None if t.weights else _weightless(t.hash))) for t in trainings]
+    return [f"[{stage} stage] {why}" if stage else why for stage, why in whys if why]
+
+
+def reused_trainings(trainings: list[RecordedTraining], cascade: bool = False) -> list[str] | None:
+    """The run hashes of `trainings` when all are reused as recorded ([] for a model that learns
+    nothing), else None; weights are asked for only of a Cascade's stages, which `cascade_model` always
+    loads (a single training's evaluation, when recorded, needs none)."""
+    if any(t.why or (cascade and not t.weights) for t in trainings):
+        return None
+    return [t.hash for t in trainings]
+
+
+def _recorded(ctx: Context, identity: dict, code: dict, stage: str | None = None) -> RecordedTraining:
+    """The training of `identity` as `runs.begin` would find it: not recorded in the store or
+    `ctx.runs_archive`, recorded with other code, or reused (with or without its weights)."""
+    h = runs.config_hash(identity)
     run = runs.lookup(ctx.runs_dir, "train", identity, ctx.runs_archive)
     if run is None:
-        return f"no complete training recorded in {ctx.runs_dir}" + (f" or {ctx.runs_archive}" if ctx.runs_archive else "")
+        where = f"{ctx.runs_dir}" + (f" or {ctx.runs_archive}" if ctx.runs_archive else "")
+        return RecordedTraining(h, stage, f"no complete training recorded in {where}", False)
     stale = runs.code_changes(run.record, code) and not ctx.reuse_stale
     kept = runs.lookup(ctx.runs_archive, "train", identity) if stale and ctx.runs_archive else None
     if kept is not None and not runs.code_changes(kept.record, code):
         run, stale = kept, False  # begin restores the archive's run of this code over the store's
-    if stale:
-        return f"its training {run.hash} was recorded with other code (reuse_stale=true loads it anyway)"
-    if load and not archived.has_weights(run.dir):
-        return (f"its training {run.hash} is recorded without weights (an archive leaves files over "
-                f"{runs.ARCHIVED_FILE_MAX_BYTES / 2**20:.0f} MiB out)")
-    return None
+    why = f"its training {h} was recorded with other code (reuse_stale=true loads it anyway)" if stale else None
+    return RecordedTraining(h, stage, why, archived.has_weights(run.dir))
+
+
+def _weightless(h: str) -> str:
+    return (f"its training {h} is recorded without weights (an archive leaves files over "
+            f"{runs.ARCHIVED_FILE_MAX_BYTES / 2**20:.0f} MiB out)")
 
 
 def scoring_only_error(unscored: list[str]) -> UserError:
@@ -174,8 +186,11 @@ def trained_model(ctx: Context, cfg: dict, task: Task, seed: int, label: str = "
     identity = _train_identity(ctx, cfg, task, seed, vgg_id, stage)
     code = code_of(cfg, *TRAINING_CODE)
     scoring_only = bool(ctx.eval.data_dir)  # recorded models scored on other frames: never a training
-    if scoring_only and (why := _why_not_recorded(ctx, identity, code, load)):
-        raise scoring_only_error([f"{label or cfg['_target_']} seed {seed}: {why}"])
+    if scoring_only:
+        recorded = _recorded(ctx, identity, code)
+        whys = untrained([recorded]) if load else [recorded.why] if recorded.why else []
+        if whys:
+            raise scoring_only_error([f"{label or cfg['_target_']} seed {seed}: {whys[0]}"])
     if not ctx.render_data:  # your own data: a frame the trainer cannot crop is named before a run is recorded
         check_training_frames(ctx)
     force = ctx.force and not scoring_only  # force=true recomputes the evaluations on your frames only
