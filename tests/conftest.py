@@ -1,8 +1,14 @@
 """Helpers shared by the tests: smoke-preset experiments, small models and their inputs."""
 import dataclasses
+import fcntl
 import os
+import shutil
+import subprocess
+import sys
 import tempfile
+from pathlib import Path
 
+import pytest
 import torch
 
 # Without a GPU the fused Triton kernels run in Triton's interpreter (read when bench.nn.triton_kernels
@@ -28,6 +34,29 @@ def smoke_overrides(root, steps=4):
             f"train.checkpoint_every={steps}", "data.splits.train.sequences=4"]
 
 
+@pytest.fixture(scope="session")
+def smoke_data(tmp_path_factory):
+    """A function copying the smoke dataset `smoke_overrides` asks for (every split and buffer, 4 training
+    sequences) into a data_dir: rendered once per test run and shared by the pytest-xdist workers (a
+    render is deterministic; the modules that render it would each take 20-35 s)."""
+    base = tmp_path_factory.getbasetemp()
+    shared = (base.parent if os.environ.get("PYTEST_XDIST_WORKER") else base) / "smoke-data"
+    with open(f"{shared}.lock", "a") as lock:
+        fcntl.flock(lock, fcntl.LOCK_EX)  # one worker renders, the other waits for it
+        if not (shared / "manifest.json").exists():
+            done = subprocess.run([sys.executable, "-m", "bench", "+experiment=data", "progress=false",
+                                   *[a for a in smoke_overrides(shared.with_name("smoke-data-run"))
+                                     if a.startswith(("preset=", "data.splits."))],
+                                   f"data_dir={shared}", f"runs_dir={shared}-runs", f"results_dir={shared}-results"],
+                                  capture_output=True, text=True, cwd=Path(__file__).resolve().parents[1])
+            assert done.returncode == 0, done.stderr[-3000:]
+
+    def copy(data_dir: Path) -> Path:
+        shutil.copytree(shared, data_dir, ignore=shutil.ignore_patterns(".render.lock"))
+        return data_dir
+    return copy
+
+
 def smoke_context(**fields):
     """The experiments' Context as the CLI builds it from the real config at the smoke preset (`make_context`),
     with `fields` replaced: tests never restate the config's defaults."""
@@ -41,7 +70,6 @@ def smoke_context(**fields):
 def config_recipe(**fields):
     """A training Recipe from conf/config.yaml's `train:` (which sets every field) with `fields` replaced:
     tests never restate the config's values."""
-    from pathlib import Path
     from omegaconf import OmegaConf
     from bench.train import Recipe
     config = OmegaConf.to_container(OmegaConf.load(Path(__file__).parents[1] / "conf/config.yaml").train)

@@ -137,9 +137,10 @@ def test_configured_widths_meet_the_preset_budget(preset):
 
 
 @pytest.fixture(scope="module")
-def smoke_dirs(tmp_path_factory):
+def smoke_dirs(tmp_path_factory, smoke_data):
     """`make run`, shorter, run once for the module; the tests below read its store in any order."""
     root = tmp_path_factory.mktemp("smoke")
+    smoke_data(root / "data")
     args = [f"runs_dir={root / 'runs'}", f"results_dir={root / 'results'}", f"data_dir={root / 'data'}",
             "progress=false", "train.steps=50", "data.splits.train.sequences=4"]
     t0 = time.perf_counter()

@@ -15,8 +15,9 @@ ROOT = Path(__file__).resolve().parents[1]
 
 
 @pytest.fixture(scope="module")
-def stability_table(tmp_path_factory):
+def stability_table(tmp_path_factory, smoke_data):
     root = tmp_path_factory.mktemp("stability")
+    smoke_data(root / "data")
     overrides = smoke_overrides(root) + ["experiment.models=[srd,rae,kpcn,bilinear,oidn_lr]",
                                          "experiment.long_frames=12"]
     with initialize_config_dir(config_dir=CONF_DIR, version_base=None):
