@@ -117,7 +117,10 @@ def test_the_references_tool_proposes_more_samples_for_the_sequences_that_fall_s
     assert table.loc["s1", "ref render s at proposed"] == pytest.approx(4 * 25.0)
     proposal = yaml.safe_load((tmp_path / "results" / "references" / "sequence_ref_spp.yaml").read_text())
     assert proposal == {"test": {"sequence_ref_spp": {"s1": 4096, "s9": 2048}}}
-    assert "test 2 of 4 frames" in (tmp_path / "results" / "references" / "table.md").read_text()
+    caption = (tmp_path / "results" / "references" / "table.md").read_text()
+    assert "test 2 of 4 frames" in caption
+    assert "Left out (it scored another render of split test): elsewhere." in caption  # the caption names them
+    assert "unrecorded." in caption.split("Left out (")[-1]
 
 
 def test_reference_shortfall_is_the_error_over_a_tenth_of_the_best_rows_relmse_averaged_over_seeds():

@@ -39,11 +39,16 @@ from bench.tasks import get_task
 log = logging.getLogger("bench")
 
 
-def table_shortfalls(ctx: Context, frames: list[dict]) -> pd.DataFrame:
-    """One row per (table, scored frame): the frame's reference shortfall against that table's best row."""
+def table_shortfalls(ctx: Context, frames: list[dict]) -> tuple[pd.DataFrame, dict[str, list[str]]]:
+    """One row per (table, scored frame): the frame's reference shortfall against that table's best row;
+    and the tables left out, by why ({why: [table, ...]}, each also logged)."""
     archives = [ctx.runs_archive] if ctx.runs_archive else []
     held = {f["split"] for f in frames}
-    out = []
+    out, left_out = [], {}
+
+    def leave_out(name: str, why: str) -> None:
+        log.info("references: %s left out: %s", name, why)
+        left_out.setdefault(why, []).append(name)
     for path in sorted([*ctx.results_dir.glob("*/table.csv"), *ctx.results_dir.glob("*/*/table.csv")]):
         caption = read_caption(path.with_suffix(".md"))
         match = re.search(SCORED_ON_PATTERN, caption)
@@ -53,24 +58,24 @@ def table_shortfalls(ctx: Context, frames: list[dict]) -> pd.DataFrame:
             continue  # not a metrics table, or its references are not estimated (no two halves)
         split, name = match.group(2), path.parent.relative_to(ctx.results_dir).as_posix()
         if split not in held:
-            log.info("references: %s left out: %s holds no split %s", name, ctx.data_dir, split)
+            leave_out(name, f"{ctx.data_dir} holds no split {split}")
             continue
         best = table.loc[table["relMSE"].idxmin()]
         try:
             evaluations = evaluation_records(str(best["runs"]).split(), ctx.runs_dir, archives)
         except UserError as err:  # a table of another run store (or of your frames, never archived)
-            log.info("references: %s left out: %s", name, err)
+            leave_out(name, str(err))
             continue
         if {(record or {}).get("metrics", {}).get("render") for _, record in evaluations} \
                 != {render_digest(ctx, split)}:  # its errors describe other references
-            log.info("references: %s left out: it scored another render of split %s", name, split)
+            leave_out(name, f"it scored another render of split {split}")
             continue
         task = best["task"] if "task" in table else re.search(r"Task (\w+)", caption).group(1)
         errors = reference_errors([f for f in frames if f["split"] == split], get_task(task).y[:2])
         shortfall = reference_shortfall(errors, per_image_of(evaluations))
         out += [{"split": split, "sequence": seq, "frame": frame, "table": name, "best row": best["method"],
                  "shortfall": value} for (seq, frame), value in shortfall.items()]
-    return pd.DataFrame(out, columns=["split", "sequence", "frame", "table", "best row", "shortfall"])
+    return pd.DataFrame(out, columns=["split", "sequence", "frame", "table", "best row", "shortfall"]), left_out
 
 
 def proposed_spp(ref_spp: int, shortfall: float, margin: float, max_ref_spp: int) -> int:
@@ -87,7 +92,7 @@ def proposed_spp(ref_spp: int, shortfall: float, margin: float, max_ref_spp: int
 
 def run(ctx: Context, name: str = "references", margin: float = 0.8, max_ref_spp: int = 8192) -> pd.DataFrame:
     frames = load_manifest(ctx.data_dir)["frames"]  # the frames' estimated reference errors
-    shortfalls = table_shortfalls(ctx, frames)
+    shortfalls, left_out = table_shortfalls(ctx, frames)
     unknown = shortfalls["shortfall"].isna()
     if unknown.any():
         log.info("references: %d frame scores are not numbers (NaN relMSE), left out", int(unknown.sum()))
@@ -125,7 +130,8 @@ def run(ctx: Context, name: str = "references", margin: float = 0.8, max_ref_spp
                            for split, p in table.groupby("split"))
                + ". ref render s: the recorded seconds of the sequence's reference renders (both resolutions), "
                "and scaled to the proposal. sequence_ref_spp.yaml beside this table holds, per split, the "
-               "sequence_ref_spp to put in conf/data/<preset>.yaml.")
+               "sequence_ref_spp to put in conf/data/<preset>.yaml."
+               + "".join(f" Left out ({why}): {', '.join(names)}." for why, names in left_out.items()))
     write_table(table, out_dir, caption=caption)
     (out_dir / "sequence_ref_spp.yaml").write_text(yaml.safe_dump(
         {split: {"sequence_ref_spp": spp} for split, spp in proposal.items() if spp}, sort_keys=True))
