@@ -383,6 +383,7 @@ def _sweep_job_results(cfg: DictConfig) -> None:
         return
     job = HydraConfig.get().job
     folder = re.sub(r"[^\w=.,+-]", "_", job.override_dirname) or f"job{job.num}"
+    cfg.runs_archive = OmegaConf.select(cfg, "runs_archive")  # resolved: the archive stays where it is
     cfg.results_dir = str(Path(cfg.results_dir) / "sweeps" / folder)
     log.info("sweep job %s: tables go to %s", job.num, cfg.results_dir)
 
@@ -460,11 +461,13 @@ def run_experiment(cfg: DictConfig) -> None:
         log.warning("your frames' tables and crops go to %s, inside the repository where git would commit "
                     "them; results_dir=/elsewhere%s", ctx.results_dir, keep)
     committed = Path(CONF_DIR).parent / "results" / cfg.preset.name / "runs"
-    if ctx.runs_archive is not None and ctx.runs_archive.resolve() != committed.resolve() \
-            and not ctx.runs_archive.exists() and committed.is_dir():
-        # runs_archive follows results_dir: elsewhere, the recorded runs would all be computed again
-        log.warning("runs_archive=%s (it follows results_dir) holds no runs: the committed archive %s is not "
-                    "read, so recorded runs are computed again; runs_archive=%s reads it",
+    if ctx.render_data and not ctx.eval.data_dir and ctx.runs_archive is not None \
+            and ctx.runs_archive.resolve() != committed.resolve() and not ctx.runs_archive.exists() \
+            and committed.is_dir():
+        # runs_archive follows results_dir: elsewhere, the preset's recorded runs would all be computed again
+        # (your own frames' runs are never in the committed archive: nothing to say then)
+        log.warning("runs_archive=%s (by default it follows results_dir) holds no runs: the committed archive "
+                    "%s is not read, so recorded runs are computed again; runs_archive=%s reads it",
                     ctx.runs_archive, committed.relative_to(Path(CONF_DIR).parent), committed)
     t0 = time.perf_counter()
     interrupted = False

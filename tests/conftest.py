@@ -27,28 +27,30 @@ os.environ.setdefault("SRD_TRACKING", "none")
 os.environ["XDG_CACHE_HOME"] = tempfile.mkdtemp(prefix="srd-bench-test-cache-")
 
 
+SMOKE_DATA = ["preset=smoke", "data.splits.train.sequences=4"]  # the dataset the smoke tests share (`smoke_data`)
+
+
 def smoke_overrides(root, steps=4):
     """Hydra overrides for a fast smoke-preset run whose runs, results and data stay under `root`."""
-    return ["preset=smoke", f"runs_dir={root / 'runs'}", f"results_dir={root / 'results'}",
+    return [*SMOKE_DATA, f"runs_dir={root / 'runs'}", f"results_dir={root / 'results'}",
             f"data_dir={root / 'data'}", "progress=false", f"train.steps={steps}",
-            f"train.checkpoint_every={steps}", "data.splits.train.sequences=4"]
+            f"train.checkpoint_every={steps}"]
 
 
 @pytest.fixture(scope="session")
 def smoke_data(tmp_path_factory):
-    """A function copying the smoke dataset `smoke_overrides` asks for (every split and buffer, 4 training
-    sequences) into a data_dir: rendered once per test run and shared by the pytest-xdist workers (a
-    render is deterministic; the modules that render it would each take 20-35 s)."""
+    """A function copying the smoke dataset `smoke_overrides` asks for (SMOKE_DATA: every split and buffer,
+    4 training sequences) into a data_dir: rendered once per test run and shared by the pytest-xdist workers
+    (a render is deterministic; the modules that render it would each take 20-35 s). A run with another
+    data spec renders its copy again, as it would any dataset of another spec."""
     base = tmp_path_factory.getbasetemp()
     shared = (base.parent if os.environ.get("PYTEST_XDIST_WORKER") else base) / "smoke-data"
     with open(f"{shared}.lock", "a") as lock:
         fcntl.flock(lock, fcntl.LOCK_EX)  # one worker renders, the other waits for it
         if not (shared / "manifest.json").exists():
-            done = subprocess.run([sys.executable, "-m", "bench", "+experiment=data", "progress=false",
-                                   *[a for a in smoke_overrides(shared.with_name("smoke-data-run"))
-                                     if a.startswith(("preset=", "data.splits."))],
+            done = subprocess.run([sys.executable, "-m", "bench", "+experiment=data", "progress=false", *SMOKE_DATA,
                                    f"data_dir={shared}", f"runs_dir={shared}-runs", f"results_dir={shared}-results"],
-                                  capture_output=True, text=True, cwd=Path(__file__).resolve().parents[1])
+                                  capture_output=True, text=True, cwd=Path(__file__).resolve().parents[1], timeout=600)
             assert done.returncode == 0, done.stderr[-3000:]
 
     def copy(data_dir: Path) -> Path:

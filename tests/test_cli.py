@@ -4,7 +4,6 @@ import os
 import shutil
 import subprocess
 import sys
-import time
 from pathlib import Path
 
 import pandas as pd
@@ -143,16 +142,15 @@ def smoke_dirs(tmp_path_factory, smoke_data):
     smoke_data(root / "data")
     args = [f"runs_dir={root / 'runs'}", f"results_dir={root / 'results'}", f"data_dir={root / 'data'}",
             "progress=false", "train.steps=50", "data.splits.train.sequences=4"]
-    t0 = time.perf_counter()
     first = bench("+experiment=smoke", *args)
     assert first.returncode == 0, first.stderr[-3000:]
-    return args, root, time.perf_counter() - t0
+    return args, root
 
 
 def copy_of_project_and_store(smoke_dirs, tmp_path):
     """A copy of the project's code (to edit) and of the smoke run store, and the overrides that run the
     copy against the copied store and the smoke data."""
-    args, root, _ = smoke_dirs
+    args, root = smoke_dirs
     project = tmp_path / "project"
     for part in ("bench", "baselines", "conf"):
         shutil.copytree(REPO / part, project / part, ignore=shutil.ignore_patterns("__pycache__", "*.so"))
@@ -348,7 +346,7 @@ def test_adopt_holds_a_training_of_another_render_to_its_recorded_code_rebuilt_f
 
 
 def test_smoke_end_to_end_then_reuse(smoke_dirs):
-    args, root, first_s = smoke_dirs
+    args, root = smoke_dirs
     table_dir = root / "results"
     for ext in ("csv", "tex", "md"):
         assert (table_dir / "smoke" / f"table.{ext}").exists()
@@ -357,13 +355,11 @@ def test_smoke_end_to_end_then_reuse(smoke_dirs):
     for col in ("relMSE", "PSNR", "SSIM"):
         assert table[col].notna().all() and (table[col].abs() < float("inf")).all(), col
 
-    t0 = time.perf_counter()
     second = bench("+experiment=smoke", *args)
-    second_s = time.perf_counter() - t0
     assert second.returncode == 0, second.stderr[-3000:]
     assert "reusing" in second.stdout + second.stderr
     assert "2 of 2 rows reused" in second.stdout + second.stderr
-    assert second_s < 0.5 * first_s, (first_s, second_s)
+    assert "trained in" not in second.stdout + second.stderr and "frames rendered" not in second.stdout + second.stderr
     again = pd.read_csv(table_dir / "smoke" / "table.csv")
     pd.testing.assert_frame_equal(table[["method", "relMSE", "PSNR", "SSIM"]],
                                   again[["method", "relMSE", "PSNR", "SSIM"]])
@@ -373,7 +369,7 @@ def test_smoke_end_to_end_then_reuse(smoke_dirs):
 def test_torchrun_two_processes_train_as_one_and_only_rank_0_records(smoke_dirs, tmp_path):
     """`torchrun --nproc_per_node 2 -m bench` (gloo, no GPU): one run recorded, by rank 0, whose training
     curve is the one-process run's with the same global batch, and the table written once."""
-    args, _, _ = smoke_dirs
+    args, _ = smoke_dirs
     data = [a for a in args if a.startswith("data_dir=")]
     common = ["+experiment=smoke", *data, "progress=false", "train.steps=4", "data.splits.train.sequences=4"]
     env = dict(os.environ, HYDRA_FULL_ERROR="0", OMP_NUM_THREADS="1")
@@ -396,7 +392,7 @@ def test_torchrun_two_processes_train_as_one_and_only_rank_0_records(smoke_dirs,
 def test_reused_training_is_loaded_for_a_new_evaluation(smoke_dirs):
     """A new evaluation of a recorded training (here: with output frames) must use the trained weights:
     same numbers as the first evaluation, and the frames written as EXR."""
-    args, root, _ = smoke_dirs
+    args, root = smoke_dirs
     before = pd.read_csv(root / "results" / "smoke" / "table.csv")
     out = bench("+experiment=smoke", "eval.save_exr=true", *args)
     assert out.returncode == 0, out.stderr[-3000:]
@@ -408,7 +404,7 @@ def test_reused_training_is_loaded_for_a_new_evaluation(smoke_dirs):
 
 
 def test_fast_path_auto_is_measured_and_recorded_as_the_path_it_chose(smoke_dirs):
-    args, root, _ = smoke_dirs
+    args, root = smoke_dirs
     others = [a for a in args if not a.startswith("results_dir=")]
     out = bench("+experiment=smoke", "eval.fast_path=auto", f"results_dir={root / 'results_auto'}", *others)
     assert out.returncode == 0, out.stderr[-3000:]
@@ -425,7 +421,7 @@ def test_fast_path_auto_is_measured_and_recorded_as_the_path_it_chose(smoke_dirs
 def test_recorded_models_score_another_dataset_without_retraining(smoke_dirs):
     """eval.data_dir: the smoke data's val split, copied as a user's dataset with the split renamed,
     scores the same as the original (same frames) with every training reused."""
-    args, root, _ = smoke_dirs
+    args, root = smoke_dirs
     mine = root / "mine"
     shutil.copytree(root / "data", mine)
     (mine / "val").rename(mine / "holdout")
@@ -514,7 +510,7 @@ def test_macs_experiment_audits_the_sota_models(tmp_path):
 
 
 def test_data_experiment_summarises_every_split(smoke_dirs):
-    args, root, _ = smoke_dirs
+    args, root = smoke_dirs
     out = bench("+experiment=data", "preset=smoke", *args)
     assert out.returncode == 0, out.stderr[-3000:]
     table = pd.read_csv(root / "results" / "data" / "table.csv")
@@ -719,6 +715,7 @@ def test_the_rebuilt_code_takes_a_core_file_neither_fingerprint_names_at_the_run
     def commit(hdr: str, srd: str) -> str:
         (repo / "bench" / "hdr.py").write_text(hdr)
         (repo / "bench" / "models" / "srd.py").write_text(srd)
+        (repo / "bench" / "models" / "factory.py").write_text(srd)  # the harness's: always today's
         git = ["git", "-C", str(repo), "-c", "user.name=t", "-c", "user.email=t@t"]
         subprocess.run([*git, "add", "-A"], check=True, capture_output=True)
         subprocess.run([*git, "commit", "-qm", "v"], check=True, capture_output=True)
@@ -735,6 +732,7 @@ def test_the_rebuilt_code_takes_a_core_file_neither_fingerprint_names_at_the_run
         dest = recorded_code.rebuild(recorded, current, tmp_path / f"tree-{at}", at, repo=repo)
         assert (dest / "bench" / "hdr.py").read_text() == old_hdr.read_text()
         assert (dest / "bench" / "models" / "srd.py").read_text() == srd  # without the commit: today's
+        assert (dest / "bench" / "models" / "factory.py").read_text() == "from bench.hdr import transforms\n"
 
 
 def test_the_recorded_code_loads_weights_renamed_since_by_order_and_only_where_every_shape_matches(
@@ -804,3 +802,8 @@ def test_a_results_dir_elsewhere_says_the_committed_archive_is_not_read(tmp_path
     assert "the committed archive results/cpu/runs is not read" in said
     assert f"runs_archive={REPO / 'results' / 'cpu' / 'runs'} reads it" in said
     assert not (tmp_path / "data").exists()
+    for yours in ("render_data=false", f"eval.data_dir={tmp_path / 'yours'}"):  # your frames: never in it
+        out = bench("+experiment=train", "experiment.model=nosuch", "preset=cpu", "tracking=none", yours,
+                    f"results_dir={tmp_path / 'results'}", f"runs_dir={tmp_path / 'runs'}",
+                    f"data_dir={tmp_path / 'data'}", timeout=120)
+        assert "committed archive" not in out.stdout + out.stderr, yours

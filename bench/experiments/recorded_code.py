@@ -9,7 +9,9 @@ source hash is the recorded one) and the same replay runs there, in a subprocess
 frames: equal numbers mean the change moves none, whatever the frames.
 
 The subprocess runs `python -m bench.experiments.replay JOB OUT` with the copy on its path: JOB is a
-pickle of `replay.replay`'s arguments, OUT receives what it returns.
+pickle of `replay.replay`'s arguments, OUT receives what it returns. The harness (today's experiments)
+imports every model module; another model's, which the run's fingerprint does not name, is taken at the
+run's recorded git commit, so that it imports what the rebuilt files define (`rebuild`).
 """
 from __future__ import annotations
 
@@ -31,15 +33,18 @@ log = logging.getLogger("bench")
 
 # The modules a run's code fingerprint can name (every model's factory, trainer, evaluator): the core
 CORE = ("bench.models.factory", "bench.train", "bench.dataset", "bench.evaluate")
+MODEL_FOLDERS = ("bench/models/", "baselines/")  # a model's definition: another run's model, never the harness's
+HARNESS = ("__init__.py", "factory.py")  # what today's harness imports by name from those folders
 
 
 def rebuild(recorded: dict, current: dict, dest: Path, commit: str | None = None, repo: Path = runs.ROOT) -> Path:
     """A copy of the project's packages at `dest` in which every file whose recorded source hash differs
     from `current`'s is the version git history has with the recorded hash, with the C++ sources it names
     from the same commit (a file added since stays: the recorded code imports nothing it did not name).
-    A core file that neither fingerprint names (another model's, which only the replay's harness imports,
-    e.g. models/srd.py beside an EDSR run) is taken at the run's recorded git `commit`, where it exists,
-    so that it imports what the rebuilt files define. UserError naming a file no version matches."""
+    Another model's definition that neither fingerprint names (in bench/models or baselines, not their
+    __init__ or the factory, which today's harness imports by name; e.g. models/srd.py beside an EDSR run,
+    imported only by the replay's harness) is taken at the run's recorded git `commit`, where it exists, so
+    that it imports what the rebuilt files define. UserError naming a file no version matches."""
     for package in runs.PACKAGES:
         shutil.copytree(repo / package, dest / package, dirs_exist_ok=True,
                         ignore=shutil.ignore_patterns("__pycache__", "*.so"))
@@ -50,9 +55,13 @@ def rebuild(recorded: dict, current: dict, dest: Path, commit: str | None = None
                             f"{recorded[path]} (the recorded code cannot be rebuilt)")
     if commit and changed:
         for path in sorted(set(runs.code_fingerprint(CORE)) - set(recorded) - set(current)):
+            if not path.startswith(MODEL_FOLDERS) or path.endswith(HARNESS):
+                continue
             shown = _git(repo, "show", f"{commit}:{path}")
             if shown.returncode == 0:
                 (dest / path).write_bytes(shown.stdout)
+            else:
+                log.debug("recorded code: %s is not in commit %s: today's version stays", path, commit)
     return dest
 
 

@@ -159,10 +159,10 @@ def _weightless(h: str) -> str:
             f"{runs.ARCHIVED_FILE_MAX_BYTES / 2**20:.0f} MiB out)")
 
 
-def scoring_only_error(unscored: list[str]) -> UserError:
+def scoring_only_error(whys: list[str]) -> UserError:
     """What eval.data_dir says instead of training: which trainings it lacks, and what to do."""
     return UserError("eval.data_dir scores recorded trainings only (it renders and trains nothing); not recorded "
-                     "with weights: " + "; ".join(unscored) + ". Train them first (the same command without "
+                     "with weights: " + "; ".join(whys) + ". Train them first (the same command without "
                      "eval.data_dir renders data_dir and trains what is missing), then score your frames again")
 
 
@@ -188,9 +188,9 @@ def trained_model(ctx: Context, cfg: dict, task: Task, seed: int, label: str = "
     scoring_only = bool(ctx.eval.data_dir)  # recorded models scored on other frames: never a training
     if scoring_only:
         recorded = _recorded(ctx, identity, code)
-        whys = untrained([recorded]) if load else [recorded.why] if recorded.why else []
-        if whys:
-            raise scoring_only_error([f"{label or cfg['_target_']} seed {seed}: {whys[0]}"])
+        why = recorded.why or (load and not recorded.weights and _weightless(recorded.hash))
+        if why:
+            raise scoring_only_error([f"{label or cfg['_target_']} seed {seed}: {why}"])
     if not ctx.render_data:  # your own data: a frame the trainer cannot crop is named before a run is recorded
         check_training_frames(ctx)
     force = ctx.force and not scoring_only  # force=true recomputes the evaluations on your frames only
