@@ -552,6 +552,7 @@ def test_shard_parses_i_over_n_and_rejects_the_rest():
     ("+train.lrr=1", "train: unknown train.* keys ['lrr']"),
     ("~train.precision", "train: missing train.* keys ['precision']"),
     ("eval.tile=0", "eval.tile=0: expected null (whole frames) or a positive integer"),
+    ("experiment.rows.1.label=Input bilinear", "experiment.rows: the label 'Input bilinear' names 2 rows"),
 ])
 def test_every_bad_value_is_one_line_naming_key_value_and_rule(tmp_path, override, message):
     with pytest.raises(UserError) as err:

@@ -68,6 +68,10 @@ def expand_rows(rows: list[dict], default_task: str = "srd") -> list[dict]:
             if "paper" in r:
                 new["paper"] = str(r["paper"]).format(**fmt)
             out.append(new)
+    labels = [r["label"] for r in out]
+    twice = sorted({label for label in labels if labels.count(label) > 1})
+    if twice:  # a row's runs, figure panels and claims are found by its label
+        raise ValueError(f"the label {twice[0]!r} names {labels.count(twice[0])} rows; give each row its own")
     return out
 
 
