@@ -38,7 +38,7 @@ import pandas as pd
 import torch
 from tqdm import tqdm
 
-from bench import exrio, metrics, render, runs, scenes
+from bench import exrio, metrics, render, scenes
 from bench.atomic import write_atomic
 from bench.errors import UserError
 from bench.tasks import BUFFERS, GBUF_LAYERS

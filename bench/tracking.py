@@ -165,7 +165,7 @@ def _all_runs(client, experiment_id: str) -> list:
 
 def _log_run(client, experiment_id: str, record: dict, run_dir: Path, version: str) -> str:
     """A new MLflow run mirroring `record`; returns its id."""
-    from mlflow.entities import Metric, Param, RunTag
+    from mlflow.entities import Metric, Param
     seed = record.get("seed")
     name = " ".join(str(p) for p in (record.get("label") or record["hash"],
                                       f"seed {seed}" if seed is not None else None) if p)

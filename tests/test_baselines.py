@@ -1,12 +1,9 @@
 """Baselines: output contract, gradients, recurrence, kernel normalization, receptive field, classical and
 OIDN rows. Small models and images only (the whole file runs in seconds on 2 cores)."""
-import pickle
-
 import pytest
 import torch
 import torch.nn.functional as F
 
-from baselines.cfm import CFMNet
 from baselines.classical import Bicubic, Bilinear
 from baselines.edsr import EDSR
 from baselines.kpcn import KPCN

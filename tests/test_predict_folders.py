@@ -100,6 +100,7 @@ def test_files_sharing_a_name_in_two_views_write_two_outputs_two_sequences(tmp_p
     assert out.returncode == 0, out.stderr
     assert out.stdout.split() == [str(tmp_path / "out" / v / "0000_hr.exr") for v in ("view00", "view01")]
     alone = predict("--weights", weights, "--output-dir", tmp_path / "alone", data / "view01" / "0000_lr.exr")
+    assert alone.returncode == 0, alone.stderr
     np.testing.assert_array_equal(output(tmp_path / "out" / "view01" / "0000_hr.exr"),
                                   output(tmp_path / "alone" / "0000_hr.exr"))
 
