@@ -53,8 +53,11 @@ def smoke_data(tmp_path_factory):
                                   capture_output=True, text=True, cwd=Path(__file__).resolve().parents[1], timeout=600)
             assert done.returncode == 0, done.stderr[-3000:]
 
-    def copy(data_dir: Path) -> Path:
+    def copy(data_dir: Path, runs_dir: Path | None = None) -> Path:
+        """`runs_dir`: the render's data run record goes there too (as if this store had rendered it)."""
         shutil.copytree(shared, data_dir, ignore=shutil.ignore_patterns(".render.lock"))
+        if runs_dir is not None:
+            shutil.copytree(Path(f"{shared}-runs") / "data", runs_dir / "data")
         return data_dir
     return copy
 

@@ -23,10 +23,11 @@ def bench(*args, tracking_mode="none"):
 
 
 @pytest.fixture(scope="module")
-def store(tmp_path_factory):
+def store(tmp_path_factory, smoke_data):
     """Two joblib jobs train the smoke table's two (row, seed) runs; a final run assembles the table from
-    them and mirrors every run into MLflow."""
+    them and mirrors every run into MLflow (the data run too: the shared render's record)."""
     root = tmp_path_factory.mktemp("tracked")
+    smoke_data(root / "data", root / "runs")
     args = ["+experiment=smoke", f"runs_dir={root / 'runs'}", f"results_dir={root / 'results'}",
             f"data_dir={root / 'data'}", "progress=false", "train.steps=20", "data.splits.train.sequences=4"]
     sweep = bench("-m", "hydra/launcher=joblib", "shard=0/2,1/2", *args)
