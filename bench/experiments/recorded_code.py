@@ -31,8 +31,6 @@ from bench.errors import UserError
 log = logging.getLogger("bench")
 
 
-# The modules a run's code fingerprint can name (every model's factory, trainer, evaluator): the core
-CORE = ("bench.models.factory", "bench.train", "bench.dataset", "bench.evaluate")
 MODEL_FOLDERS = ("bench/models/", "baselines/")  # a model's definition: another run's model, never the harness's
 HARNESS = ("__init__.py", "factory.py")  # what today's harness imports by name from those folders
 
@@ -54,8 +52,9 @@ def rebuild(recorded: dict, current: dict, dest: Path, commit: str | None = None
             raise UserError(f"{path}: no version in the git history of {repo} has the recorded source hash "
                             f"{recorded[path]} (the recorded code cannot be rebuilt)")
     if commit and changed:
-        for path in sorted(set(runs.code_fingerprint(CORE)) - set(recorded) - set(current)):
-            if not path.startswith(MODEL_FOLDERS) or path.endswith(HARNESS):
+        models = {p.relative_to(repo).as_posix() for folder in MODEL_FOLDERS for p in (repo / folder).glob("*.py")}
+        for path in sorted(models - set(recorded) - set(current)):
+            if path.endswith(HARNESS):
                 continue
             shown = _git(repo, "show", f"{commit}:{path}")
             if shown.returncode == 0:
