@@ -79,7 +79,22 @@ def plan_sequences(spec):
             raise UserError(f"data.splits.{split}.sequence_ref_spp needs the split's own ref_spp (two-half references)")
         if unknown:
             raise UserError(f"data.splits.{split}.sequence_ref_spp: {unknown[0]!r} is no sequence of split {split!r}")
+        for sequence, count in (part.get("sequence_ref_spp") or {}).items():
+            if _doublings(part["ref_spp"], count) is None:
+                raise UserError(f"data.splits.{split}.sequence_ref_spp.{sequence}={count!r}: expected the split's "
+                                f"ref_spp ({part['ref_spp']}) times a power of two, e.g. {2 * int(part['ref_spp'])}")
     return plan
+
+
+def _doublings(base, count):
+    """How many doublings take `base` samples to `count` (0 when equal); None when no whole number does."""
+    try:
+        base, count = int(base), int(count)
+    except (TypeError, ValueError):
+        return None
+    if base <= 0 or count < base or count % base or (count // base) & (count // base - 1):
+        return None
+    return (count // base).bit_length() - 1
 
 
 def render_settings(spec, features, split=None, sequence=None):
@@ -89,8 +104,10 @@ def render_settings(spec, features, split=None, sequence=None):
     (another table needing another task) are rendered alone and merged into the existing EXRs.
     A split with its own `ref_spp` (the scored ones: converged references) renders its references as
     two independent halves (`ref_halves`), whose difference estimates each reference's error; its
-    `sequence_ref_spp` gives sequences whose references need more samples their own count
-    (`+experiment=references` proposes them).
+    `sequence_ref_spp` gives sequences whose references need more samples their own count, the split's
+    `ref_spp` times a power of two (`+experiment=references` proposes them). Such a reference is the
+    split's two-half reference refined by doublings (`refine_reference`), so a frame already rendered
+    renders only the samples it lacks; `ref_base_spp` names where the doublings start.
     """
     max_depth = features["max_depth"]
     if spec.get("max_depth"):
@@ -101,9 +118,21 @@ def render_settings(spec, features, split=None, sequence=None):
                 "half_gbuffer": bool(spec.get("half_gbuffer", False)), "left_out": sorted(features["left_out"])}
     part = (spec["splits"].get(split) or {}) if split else {}
     if part.get("ref_spp"):  # only then: the settings (and hashes) of other splits' frames stay as they were
-        ref_spp = (part.get("sequence_ref_spp") or {}).get(sequence, part["ref_spp"])
-        settings.update(ref_spp=int(ref_spp), ref_halves=True)
+        ref_spp = int((part.get("sequence_ref_spp") or {}).get(sequence, part["ref_spp"]))
+        settings.update(ref_spp=ref_spp, ref_halves=True)
+        if ref_spp != int(part["ref_spp"]):  # only then: the split's other frames keep their hashes
+            settings["ref_base_spp"] = int(part["ref_spp"])
     return settings
+
+
+def _settings_at(settings, ref_spp):
+    """`settings` with the reference at `ref_spp` samples on the same doubling chain (a frame rendered
+    before its sequence was given more samples, or part way there)."""
+    base = settings.get("ref_base_spp", settings["ref_spp"])
+    earlier = {**settings, "ref_spp": int(ref_spp), "ref_base_spp": base}
+    if int(ref_spp) == base:
+        del earlier["ref_base_spp"]
+    return earlier
 
 
 def _settings_hash(settings):
@@ -321,17 +350,33 @@ def _load_record(rec_path, settings_hash):
     return record if record.get("settings_hash") == settings_hash else None
 
 
+def _earlier_on_chain(rec_path, settings):
+    """The frame's record if it was rendered with these settings but fewer reference samples on the
+    same doubling chain (datagen.refine_reference), else None."""
+    try:
+        with open(rec_path) as f:
+            record = json.load(f)
+        spp = int(record["ref_spp"])
+    except (OSError, ValueError, KeyError, TypeError):
+        return None
+    if spp >= settings["ref_spp"] or _doublings(settings.get("ref_base_spp", settings["ref_spp"]), spp) is None:
+        return None
+    return record if record.get("settings_hash") == _settings_hash(_settings_at(settings, spp)) else None
+
+
 def _present_layers(path):
     """Layers of an EXR that decodes completely (empty if missing or broken)."""
     return set(exrio.exr_layers(path)) if exrio.is_valid_exr(path) else set()
 
 
 def render_resolution(scene, camera, width, height, spp, ref_spp, seeds, passes, res, gbuf_layers,
-                      max_depth, ref_halves=False):
+                      max_depth, ref_halves=False, ref_base_spp=None, stored_ref=None):
     """Render the layers of one resolution of one frame; returns (layers, wall times, non-finite values
-    repaired per buffer (e.g. {"lr_noisy": 3}), reference error). With `ref_halves` the reference is the mean of two independent renders of
-    ref_spp / 2 samples, and the reference error is its estimated relMSE against the converged image
-    (bench.metrics.reference_error); else None."""
+    repaired per buffer (e.g. {"lr_noisy": 3}), reference error). With `ref_halves` the reference is the
+    mean of two independent renders of half its samples, and the reference error is its estimated relMSE
+    against the converged image (bench.metrics.reference_error); else None. With `ref_base_spp` the halves
+    have ref_base_spp samples together and `refine_reference` doubles them up to ref_spp; `stored_ref`
+    (image, spp) is a reference already rendered on that chain, which is refined instead."""
     layers, times, repaired, ref_error = {}, {}, {}, None
     if f"{res}_noisy" in passes or f"{res}_gbuf" in passes:
         gbuf = list(gbuf_layers) if f"{res}_gbuf" in passes else []
@@ -343,24 +388,54 @@ def render_resolution(scene, camera, width, height, spp, ref_spp, seeds, passes,
         for name in gbuf:
             layers[name] = out[name]
     if f"{res}_ref" in passes:
-        halves_seeds = [seeds["ref"], derive_seed(seeds["ref"], "second half")] if ref_halves else [seeds["ref"]]
-        halves = []
-        for seed in halves_seeds:
-            out = render.render_view(scene, camera, width, height, ref_spp // len(halves_seeds), seed, passes=(),
-                                     max_depth=max_depth)
-            times[f"{res}_ref_s"] = times.get(f"{res}_ref_s", 0.0) + out["wall_time_s"]
-            half, count = render.repair_nonfinite(out["radiance"])
-            halves.append(half)
-            repaired[f"{res}_ref"] = repaired.get(f"{res}_ref", 0) + count
-        if ref_halves:
-            a, b = (torch.from_numpy(np.ascontiguousarray(h)).permute(2, 0, 1) for h in halves)
-            ref_error = float(metrics.reference_error(a, b))
-        layers["ref"] = sum(halves) / len(halves)
+        seconds, count = 0.0, 0
+        if stored_ref is None:
+            start_spp = ref_base_spp or ref_spp
+            halves_seeds = [seeds["ref"], derive_seed(seeds["ref"], "second half")] if ref_halves else [seeds["ref"]]
+            halves = []
+            for seed in halves_seeds:
+                out = render.render_view(scene, camera, width, height, start_spp // len(halves_seeds), seed,
+                                         passes=(), max_depth=max_depth)
+                half, repairs = render.repair_nonfinite(out["radiance"])
+                halves.append(half)
+                seconds, count = seconds + out["wall_time_s"], count + repairs
+            if ref_halves:
+                ref_error = _error_of_mean(*halves)
+            ref = sum(halves) / len(halves)
+        else:
+            ref, start_spp = stored_ref
+        ref, error, more_seconds, more_repairs = refine_reference(scene, camera, width, height, ref, start_spp,
+                                                                  ref_spp, seeds["ref"], max_depth)
+        layers["ref"], ref_error = ref, (error if error is not None else ref_error)
+        times[f"{res}_ref_s"] = seconds + more_seconds
+        repaired[f"{res}_ref"] = count + more_repairs
     for name in list(layers):
         layers[name], count = render.repair_nonfinite(layers[name])
         buffer = f"{res}_{name}" if name in ("noisy", "ref") else f"{res}_gbuf"
         repaired[buffer] = repaired.get(buffer, 0) + count
     return layers, times, repaired, ref_error
+
+
+def refine_reference(scene, camera, width, height, ref, ref_spp, target_spp, seed, max_depth):
+    """Double `ref` (a reference of ref_spp samples) until it has target_spp. Each doubling renders as
+    many samples again with a seed of its own and averages the two: independent halves of the new
+    reference, whose difference estimates its error as two halves' does. So more samples for a frame
+    already rendered cost only the samples it lacks, and give the same image as rendering them at once.
+    Returns (reference, estimated error after the last doubling or None, seconds, values repaired)."""
+    error, seconds, repaired = None, 0.0, 0
+    while ref_spp < target_spp:
+        out = render.render_view(scene, camera, width, height, ref_spp, derive_seed(seed, "doubling", ref_spp),
+                                 passes=(), max_depth=max_depth)
+        more, count = render.repair_nonfinite(out["radiance"])
+        error, ref = _error_of_mean(ref, more), (ref + more) / 2
+        ref_spp, seconds, repaired = 2 * ref_spp, seconds + out["wall_time_s"], repaired + count
+    return ref, error, seconds, repaired
+
+
+def _error_of_mean(a, b):
+    """bench.metrics.reference_error of two HxWx3 renders with as many samples each."""
+    a, b = (torch.from_numpy(np.ascontiguousarray(x)).permute(2, 0, 1) for x in (a, b))
+    return float(metrics.reference_error(a, b))
 
 
 def _count_repaired(record, repaired):
@@ -396,6 +471,10 @@ def render_sequence(root, job, spec, passes, variant=None):
         lr_path, hr_path, rec_path = frame_paths(root, job["split"], job["sequence"], frame)
         paths = {"lr": lr_path, "hr": hr_path}
         record = _load_record(rec_path, digest)
+        stored_spp = None
+        if record is None:  # rendered with fewer reference samples on the same chain: refine, keep the rest
+            record = _earlier_on_chain(rec_path, settings)
+            stored_spp = record and int(record["ref_spp"])
         # a file changed since it was written (an edit, NaN written into it) or of the wrong size is
         # rendered again whole: every buffer its record holds at that resolution, not only this job's passes
         changed = {res for res, path in paths.items() if record and os.path.exists(path) and not (
@@ -403,6 +482,10 @@ def render_sequence(root, job, spec, passes, variant=None):
         present = {res: _present_layers(path) if record and res not in changed else set()
                    for res, path in paths.items()}
         wanted = list(passes) + [b for b in (record or {}).get("buffers", []) if b[:2] in changed and b not in passes]
+        stored_ref = {res: "ref" in layers for res, layers in present.items()}
+        if stored_spp:
+            wanted += [b for b in record["buffers"] if b.endswith("_ref") and b not in wanted]
+            present = {res: layers - {"ref"} for res, layers in present.items()}
         missing = [b for b in wanted if not set(buffer_layers(b, gbuf_layers)) <= present[b[:2]]]
         if not missing:
             records.append({**record, "resumed": True})
@@ -430,9 +513,15 @@ def render_sequence(root, job, spec, passes, variant=None):
                 continue
             written.append(res)
             (w, h), path = sizes[res], paths[res]
+            stored = (exrio.read_exr(path, ["ref"])["ref"], stored_spp) \
+                if stored_spp and stored_ref[res] and f"{res}_ref" in todo else None
             layers, times, repaired, ref_error = render_resolution(
                 loaded, camera, w, h, settings["spp"], settings["ref_spp"], seeds[res], todo, res,
-                gbuf_layers, settings["max_depth"], ref_halves=settings.get("ref_halves", False))
+                gbuf_layers, settings["max_depth"], ref_halves=settings.get("ref_halves", False),
+                ref_base_spp=settings.get("ref_base_spp"), stored_ref=stored)
+            if stored is not None:  # the reference's time and repairs include the samples it had
+                times[f"{res}_ref_s"] += record["time_s"].get(f"{res}_ref_s", 0.0)
+                repaired[f"{res}_ref"] += (record.get("nonfinite_repaired_by_buffer") or {}).get(f"{res}_ref", 0)
             if ref_error is not None:
                 record.setdefault("ref_error", {})[res] = ref_error
             kept = exrio.read_exr(path, sorted(present[res] - set(layers))) if present[res] else {}
@@ -443,6 +532,7 @@ def render_sequence(root, job, spec, passes, variant=None):
             record["time_s"].update(times)
             _count_repaired(record, repaired)
             record["channels"][res] = [f"{n}.{s}" for n in merged for s in SUFFIXES[n]]
+        record.update(ref_spp=settings["ref_spp"], settings_hash=digest)  # every reference is at it now
         record["buffers"] = sorted(set(record["buffers"]) | set(wanted))
         record["files"] = {**(record.get("files") or {}), **{res: file_stamp(paths[res]) for res in written}}
         _write_json(rec_path, record)

@@ -7,6 +7,7 @@ import re
 from pathlib import Path
 from types import SimpleNamespace
 
+import numpy as np
 import pandas as pd
 import pytest
 import yaml
@@ -53,6 +54,7 @@ def _planned(spec, split):
 
 def test_a_sequences_own_ref_spp_changes_only_that_sequences_frames():
     spec = yaml.safe_load((REPO / "conf" / "data" / "cpu.yaml").read_text())
+    spec["splits"]["test"].pop("sequence_ref_spp", None)  # from the split's own count
     before = _planned(spec, "test")
     boosted = copy.deepcopy(spec)
     one = sorted(before)[3]
@@ -114,7 +116,7 @@ def test_the_references_tool_proposes_more_samples_for_the_sequences_that_fall_s
     assert table.loc["s1", "worst in"] == "strict (A)"
     assert table.loc["s1", "proposed ref spp"] == 4096      # 3.8x wanted (see _after): two doublings
     assert table.loc["s0", "proposed ref spp"] == 1024
-    assert table.loc["s1", "ref render s at proposed"] == pytest.approx(4 * 25.0)
+    assert table.loc["s1", "ref render s added"] == pytest.approx(3 * 25.0)  # 1024 more, then 2048
     proposal = yaml.safe_load((tmp_path / "results" / "references" / "sequence_ref_spp.yaml").read_text())
     assert proposal == {"test": {"sequence_ref_spp": {"s1": 4096, "s9": 2048}}}
     caption = (tmp_path / "results" / "references" / "table.md").read_text()
@@ -131,3 +133,50 @@ def test_reference_shortfall_is_the_error_over_a_tenth_of_the_best_rows_relmse_a
 def test_a_frame_the_best_row_reproduces_exactly_falls_short_without_end():
     per_image = pd.DataFrame([{"sequence": "s0", "frame": 0, "relMSE": 0.0}])
     assert reference_shortfall(reference_errors(_frames()), per_image)[("s0", 0)] == float("inf")
+
+
+REFINE_SPEC = {"name": "tiny", "seed": 1, "lr_width": 8, "lr_height": 6, "scale": 2, "spp": 1, "ref_spp": 4,
+               "seq_len": 2, "max_depth": 4, "splits": {"test": {"families": ["gallery"], "sequences": 1, "ref_spp": 8}}}
+
+
+def test_more_reference_samples_render_only_the_samples_a_frame_lacks_and_match_a_render_from_scratch(
+        tmp_path, monkeypatch):
+    from bench import render
+    from bench.exrio import read_exr
+    sequence = datagen.plan_sequences(REFINE_SPEC)[0]["sequence"]
+    boosted = copy.deepcopy(REFINE_SPEC)
+    boosted["splits"]["test"]["sequence_ref_spp"] = {sequence: 32}
+    datagen.build_dataset(tmp_path / "refined", REFINE_SPEC, progress=False)
+    before = {p.name: read_exr(p) for p in (tmp_path / "refined" / "test" / sequence).glob("*.exr")}
+    rendered = []
+    real = render.render_view
+    monkeypatch.setattr(render, "render_view", lambda *a, **k: (rendered.append((a[2], a[4])), real(*a, **k))[1])
+    datagen.build_dataset(tmp_path / "refined", boosted, progress=False)
+    # per frame and resolution: 8 more samples, then 16 (two doublings of the two 4-sample halves); no input
+    assert sorted(rendered) == sorted([(w, spp) for w in (8, 16) for spp in (8, 16)] * 2)
+    monkeypatch.setattr(render, "render_view", real)
+    datagen.build_dataset(tmp_path / "scratch", boosted, progress=False)
+    for name, layers in before.items():
+        refined = read_exr(tmp_path / "refined" / "test" / sequence / name)
+        scratch = read_exr(tmp_path / "scratch" / "test" / sequence / name)
+        assert set(refined) == set(layers)
+        for layer in layers:
+            np.testing.assert_array_equal(refined[layer], scratch[layer])  # the same image either way
+            if layer != "ref":
+                np.testing.assert_array_equal(refined[layer], layers[layer])  # inputs and gBuffer kept
+        assert not np.array_equal(refined["ref"], layers["ref"])
+    manifests = [json.loads((tmp_path / d / "manifest.json").read_text())["frames"] for d in ("refined", "scratch")]
+    for refined, scratch in zip(*manifests):
+        assert refined["ref_spp"] == scratch["ref_spp"] == 32
+        assert refined["settings_hash"] == scratch["settings_hash"]
+        assert refined["ref_error"] == scratch["ref_error"]
+    assert datagen.build_dataset(tmp_path / "refined", boosted, progress=False)["resumed"].all()
+
+
+def test_a_sequences_ref_spp_is_the_splits_times_a_power_of_two():
+    spec = copy.deepcopy(REFINE_SPEC)
+    sequence = datagen.plan_sequences(spec)[0]["sequence"]
+    for bad in (12, 4, "many"):
+        spec["splits"]["test"]["sequence_ref_spp"] = {sequence: bad}
+        with pytest.raises(UserError, match=r"times a power of two"):
+            datagen.plan_sequences(spec)

@@ -8,12 +8,12 @@ the reference's error as 1/spp, and the best row's relMSE with it (the reference
 so a sequence whose worst frame falls short by a factor f gets its ref spp times the power of two at or
 above f (1 - m/10) / (m (1 - f/10)), the factor that brings f to `margin` m (at most `max_ref_spp`; f >= 10
 cannot be brought below 1 by samples: the estimate says the reference errs more than the row). That count
-goes into the data spec, `data.splits.<split>.sequence_ref_spp` (datagen.render_settings), which renders
-those sequences' frames again; every table of the split then scores again (evaluations only).
+goes into the data spec, `data.splits.<split>.sequence_ref_spp` (datagen.render_settings), which adds samples to
+those sequences' references; every table of the split then scores again (evaluations only).
 
 Writes `<results_dir>/references/table.{csv,md,tex}` (per sequence: frames, frames passing, worst
 shortfall and the table it comes from, spp now and proposed, the recorded reference render seconds and
-scaled to the proposal) and `sequence_ref_spp.yaml`: every sequence of a split whose count differs from the
+the seconds the proposal adds: more samples are added to a reference, not started over) and `sequence_ref_spp.yaml`: every sequence of a split whose count differs from the
 split's `ref_spp`, those already given more samples included, to replace the split's `sequence_ref_spp`.
 Renders and trains nothing. A table whose evaluations scored another render of the split than `data_dir`
 holds (or a split it does not hold) is left out, and the log says so.
@@ -113,7 +113,7 @@ def run(ctx: Context, name: str = "references", margin: float = 0.8, max_ref_spp
                      "frames passing": int((part["shortfall"] < 1).sum()),
                      "worst shortfall": float(top["shortfall"]), "worst in": f"{top['table']} ({top['best row']})",
                      "ref spp": now, "proposed ref spp": new, "ref render s": seconds,
-                     "ref render s at proposed": seconds * new / now})
+                     "ref render s added": seconds * (new / now - 1)})
     table = pd.DataFrame(rows).sort_values(["split", "worst shortfall"], ascending=[True, False])
     proposal = {}
     for split, part in table.groupby("split"):
@@ -128,8 +128,9 @@ def run(ctx: Context, name: str = "references", margin: float = 0.8, max_ref_spp
                f"at most {max_ref_spp}). Passing now: "
                + ", ".join(f"{split} {int(p['frames passing'].sum())} of {int(p['frames'].sum())} frames"
                            for split, p in table.groupby("split"))
-               + ". ref render s: the recorded seconds of the sequence's reference renders (both resolutions), "
-               "and scaled to the proposal. sequence_ref_spp.yaml beside this table holds, per split, the "
+               + ". ref render s: the recorded seconds of the sequence's reference renders (both resolutions); "
+               "ref render s added: what the proposal adds to them (its samples are added to the references, "
+               "datagen.refine_reference). sequence_ref_spp.yaml beside this table holds, per split, the "
                "sequence_ref_spp to put in conf/data/<preset>.yaml."
                + "".join(f" Left out ({why}): {', '.join(names)}." for why, names in left_out.items()))
     write_table(table, out_dir, caption=caption)
