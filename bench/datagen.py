@@ -416,19 +416,19 @@ def render_resolution(scene, camera, width, height, spp, ref_spp, seeds, passes,
     return layers, times, repaired, ref_error
 
 
-def refine_reference(scene, camera, width, height, ref, ref_spp, target_spp, seed, max_depth):
-    """Double `ref` (a reference of ref_spp samples) until it has target_spp. Each doubling renders as
+def refine_reference(scene, camera, width, height, ref, spp_now, target_spp, seed, max_depth):
+    """Double `ref` (a reference of spp_now samples) until it has target_spp. Each doubling renders as
     many samples again with a seed of its own and averages the two: independent halves of the new
     reference, whose difference estimates its error as two halves' does. So more samples for a frame
     already rendered cost only the samples it lacks, and give the same image as rendering them at once.
     Returns (reference, estimated error after the last doubling or None, seconds, values repaired)."""
     error, seconds, repaired = None, 0.0, 0
-    while ref_spp < target_spp:
-        out = render.render_view(scene, camera, width, height, ref_spp, derive_seed(seed, "doubling", ref_spp),
+    while spp_now < target_spp:
+        out = render.render_view(scene, camera, width, height, spp_now, derive_seed(seed, "doubling", spp_now),
                                  passes=(), max_depth=max_depth)
         more, count = render.repair_nonfinite(out["radiance"])
         error, ref = _error_of_mean(ref, more), (ref + more) / 2
-        ref_spp, seconds, repaired = 2 * ref_spp, seconds + out["wall_time_s"], repaired + count
+        spp_now, seconds, repaired = 2 * spp_now, seconds + out["wall_time_s"], repaired + count
     return ref, error, seconds, repaired
 
 
@@ -482,12 +482,18 @@ def render_sequence(root, job, spec, passes, variant=None):
         present = {res: _present_layers(path) if record and res not in changed else set()
                    for res, path in paths.items()}
         wanted = list(passes) + [b for b in (record or {}).get("buffers", []) if b[:2] in changed and b not in passes]
-        stored_ref = {res: "ref" in layers for res, layers in present.items()}
+        # a stored reference is refined only where its file is stamped as written with this record: a
+        # refinement cut off between the LR and HR files leaves one refined file beside the old record
+        refinable = {res: "ref" in layers and bool(((record or {}).get("files") or {}).get(res))
+                     for res, layers in present.items()}
         if stored_spp:
             wanted += [b for b in record["buffers"] if b.endswith("_ref") and b not in wanted]
             present = {res: layers - {"ref"} for res, layers in present.items()}
         missing = [b for b in wanted if not set(buffer_layers(b, gbuf_layers)) <= present[b[:2]]]
         if not missing:
+            if stored_spp:  # it holds no reference to refine: only the record moves to the new settings
+                record.update(ref_spp=settings["ref_spp"], settings_hash=digest)
+                _write_json(rec_path, record)
             records.append({**record, "resumed": True})
             continue
         if loaded is None:
@@ -514,7 +520,7 @@ def render_sequence(root, job, spec, passes, variant=None):
             written.append(res)
             (w, h), path = sizes[res], paths[res]
             stored = (exrio.read_exr(path, ["ref"])["ref"], stored_spp) \
-                if stored_spp and stored_ref[res] and f"{res}_ref" in todo else None
+                if stored_spp and refinable[res] and f"{res}_ref" in todo else None
             layers, times, repaired, ref_error = render_resolution(
                 loaded, camera, w, h, settings["spp"], settings["ref_spp"], seeds[res], todo, res,
                 gbuf_layers, settings["max_depth"], ref_halves=settings.get("ref_halves", False),

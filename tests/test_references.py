@@ -40,6 +40,7 @@ def test_proposed_spp_keeps_what_passes_caps_more_and_never_lowers():
     assert references.proposed_spp(1024, 4.8, 0.8, 8192) == 8192      # 16x wanted: capped
     assert references.proposed_spp(1024, 40.0, 0.8, 8192) == 8192     # no count is enough: the cap
     assert references.proposed_spp(16384, 2.0, 0.8, 8192) == 16384    # already above the cap: kept
+    assert references.proposed_spp(1024, 40.0, 0.8, 6000) == 4096      # a cap between doublings: the one below
 
 
 def test_the_caption_phrase_is_read_back_by_its_pattern():
@@ -81,14 +82,17 @@ def _frames(split="test"):
             for seq, err in (("s0", 1e-4), ("s1", 1e-3)) for frame in (0, 1)]
 
 
-def _recorded_table(root: Path, name: str, best_relmse: float, other_relmse: float = 1.0, render=None):
+def _recorded_table(root: Path, name: str, best_relmse: float, other_relmse: float = 1.0, render=None,
+                    settings="planned"):
     """A table whose best row scored relMSE `best_relmse` on every frame of _frames() (`render`: the digest
-    its evaluations record; None, as frames without file stamps give)."""
+    its evaluations record; None, as frames without file stamps give; `settings`: the data fingerprint
+    they record, "planned" as today's spec gives)."""
     runs_dir = root / "runs"
     for h, rel in (("best", best_relmse), ("other", other_relmse)):
         run = runs_dir / "eval" / f"{name}-{h}"
         run.mkdir(parents=True)
-        (run / "run.json").write_text(json.dumps({"status": "complete", "metrics": {"render": render}}))
+        (run / "run.json").write_text(json.dumps({"status": "complete", "metrics": {"render": render},
+                                                  "identity": {"data": settings}}))
         pd.DataFrame([{"sequence": s, "frame": f, "relMSE": rel} for s in ("s0", "s1") for f in (0, 1)]).to_csv(
             run / "per_image.csv", index=False)
     out = root / "results" / name
@@ -99,13 +103,15 @@ def _recorded_table(root: Path, name: str, best_relmse: float, other_relmse: flo
                                   "independent halves): ...\n\n| method |\n")
 
 
-def test_the_references_tool_proposes_more_samples_for_the_sequences_that_fall_short(tmp_path):
+def test_the_references_tool_proposes_more_samples_for_the_sequences_that_fall_short(tmp_path, monkeypatch):
+    monkeypatch.setattr(references, "split_fingerprint", lambda ctx, split: "planned")
     (tmp_path / "data").mkdir()
     (tmp_path / "data" / "manifest.json").write_text(json.dumps({"frames": _frames()}))
     _recorded_table(tmp_path, "loose", best_relmse=0.1)    # a tenth: 1e-2, both sequences pass
     _recorded_table(tmp_path, "strict", best_relmse=4e-3)  # a tenth: 4e-4: s1 falls short 2.5x, s0 passes (0.25)
     _recorded_table(tmp_path, "elsewhere", best_relmse=2e-3, render="0ther")  # another render's: an estimate
     _recorded_table(tmp_path, "unrecorded", best_relmse=1e-5)  # its runs in no store here: left out
+    _recorded_table(tmp_path, "before", best_relmse=1e-5, settings="fewer samples")  # other settings: left out
     shutil.rmtree(tmp_path / "runs" / "eval" / "unrecorded-best")
     # s9 was given more samples before and is not scored by these tables: its count stays in the proposal
     spec = {"splits": {"test": {"ref_spp": 1024, "sequence_ref_spp": {"s9": 2048}}}}
@@ -124,6 +130,7 @@ def test_the_references_tool_proposes_more_samples_for_the_sequences_that_fall_s
     assert "Included (estimated: it scored another render of the split, of the same settings): elsewhere." \
         in caption  # the caption names them
     assert "unrecorded." in caption.split("Left out (")[-1]
+    assert "Left out (it scored split test rendered with other settings): before." in caption
 
 
 def test_reference_shortfall_is_the_error_over_a_tenth_of_the_best_rows_relmse_averaged_over_seeds():
@@ -149,6 +156,7 @@ def test_more_reference_samples_render_only_the_samples_a_frame_lacks_and_match_
     boosted["splits"]["test"]["sequence_ref_spp"] = {sequence: 32}
     datagen.build_dataset(tmp_path / "refined", REFINE_SPEC, progress=False)
     before = {p.name: read_exr(p) for p in (tmp_path / "refined" / "test" / sequence).glob("*.exr")}
+    halves_s = json.loads((tmp_path / "refined" / "manifest.json").read_text())["frames"][0]["time_s"]["hr_ref_s"]
     rendered = []
     real = render.render_view
     monkeypatch.setattr(render, "render_view", lambda *a, **k: (rendered.append((a[2], a[4])), real(*a, **k))[1])
@@ -167,6 +175,8 @@ def test_more_reference_samples_render_only_the_samples_a_frame_lacks_and_match_
                 np.testing.assert_array_equal(refined[layer], layers[layer])  # inputs and gBuffer kept
         assert not np.array_equal(refined["ref"], layers["ref"])
     manifests = [json.loads((tmp_path / d / "manifest.json").read_text())["frames"] for d in ("refined", "scratch")]
+    # the reference's seconds are the halves' and the doublings', summed
+    assert manifests[0][0]["time_s"]["hr_ref_s"] > halves_s > 0
     for refined, scratch in zip(*manifests):
         assert refined["ref_spp"] == scratch["ref_spp"] == 32
         assert refined["settings_hash"] == scratch["settings_hash"]
@@ -181,3 +191,36 @@ def test_a_sequences_ref_spp_is_the_splits_times_a_power_of_two():
         spec["splits"]["test"]["sequence_ref_spp"] = {sequence: bad}
         with pytest.raises(UserError, match=r"times a power of two"):
             datagen.plan_sequences(spec)
+
+
+@pytest.mark.parametrize("stamped", [True, False])
+def test_a_refinement_cut_off_between_its_two_files_ends_as_a_render_from_scratch(tmp_path, monkeypatch, stamped):
+    """The LR file is written, then the process dies before the HR file and the record: the next build
+    must not take the refined LR reference for the old one (the stamp says the file changed; a record
+    without stamps, as frames rendered before them have, refines nothing and renders the reference anew)."""
+    from bench.exrio import read_exr
+    sequence = datagen.plan_sequences(REFINE_SPEC)[0]["sequence"]
+    boosted = copy.deepcopy(REFINE_SPEC)
+    boosted["splits"]["test"]["sequence_ref_spp"] = {sequence: 16}
+    datagen.build_dataset(tmp_path / "cut", REFINE_SPEC, progress=False)
+    if not stamped:
+        for path in (tmp_path / "cut" / "test" / sequence).glob("*.json"):
+            record = json.loads(path.read_text())
+            del record["files"]
+            path.write_text(json.dumps(record))
+    real = datagen.exrio.write_exr
+
+    def dies_after_lr(path, *args, **kwargs):
+        real(path, *args, **kwargs)
+        if str(path).endswith("_lr.exr"):
+            raise KeyboardInterrupt
+    monkeypatch.setattr(datagen.exrio, "write_exr", dies_after_lr)
+    with pytest.raises(KeyboardInterrupt):
+        datagen.build_dataset(tmp_path / "cut", boosted, progress=False)
+    monkeypatch.setattr(datagen.exrio, "write_exr", real)
+    datagen.build_dataset(tmp_path / "cut", boosted, progress=False)
+    datagen.build_dataset(tmp_path / "scratch", boosted, progress=False)
+    for path in (tmp_path / "scratch" / "test" / sequence).glob("*.exr"):
+        cut, scratch = read_exr(tmp_path / "cut" / "test" / sequence / path.name), read_exr(path)
+        for layer in scratch:
+            np.testing.assert_array_equal(cut[layer], scratch[layer])

@@ -15,9 +15,10 @@ Writes `<results_dir>/references/table.{csv,md,tex}` (per sequence: frames, fram
 shortfall and the table it comes from, spp now and proposed, the recorded reference render seconds and
 the seconds the proposal adds: more samples are added to a reference, not started over) and `sequence_ref_spp.yaml`: every sequence of a split whose count differs from the
 split's `ref_spp`, those already given more samples included, to replace the split's `sequence_ref_spp`.
-Renders and trains nothing. A table of a split `data_dir` does not hold is left out; one whose evaluations
-scored another render of the split (same settings, other noise) is included as an estimate: its rows'
-per-frame errors with today's reference error estimates. The caption names both.
+Renders and trains nothing. A table of a split `data_dir` does not hold, or that scored it rendered with
+other settings (before its references got more samples), is left out; one whose evaluations scored another
+render of the split (same settings, other noise) is included as an estimate: its rows' per-frame errors
+with today's reference error estimates. The caption names both.
 """
 from __future__ import annotations
 
@@ -31,7 +32,7 @@ import yaml
 from bench.datagen import load_manifest
 from bench.errors import UserError
 from bench.experiments.context import Context
-from bench.experiments.datasets import render_digest
+from bench.experiments.datasets import render_digest, split_fingerprint
 from bench.experiments.table import (REFERENCE_SHARE, evaluation_records, per_image_of, reference_errors,
                                     reference_shortfall)
 from bench.table_writer import SCORED_ON_PATTERN, read_caption, write_table
@@ -51,11 +52,11 @@ def table_shortfalls(ctx: Context, frames: list[dict]) -> tuple[pd.DataFrame, di
     and the tables left out or taken as estimates, by why ({why: [table, ...]}, each also logged)."""
     archives = [ctx.runs_archive] if ctx.runs_archive else []
     held = {f["split"] for f in frames}
-    out, left_out, other_render = [], {}, []
+    out, notes, other_render = [], {}, []
 
     def leave_out(name: str, why: str) -> None:
         log.info("references: %s left out: %s", name, why)
-        left_out.setdefault(why, []).append(name)
+        notes.setdefault(why, []).append(name)
     for path in sorted([*ctx.results_dir.glob("*/table.csv"), *ctx.results_dir.glob("*/*/table.csv")]):
         caption = read_caption(path.with_suffix(".md"))
         match = re.search(SCORED_ON_PATTERN, caption)
@@ -73,6 +74,10 @@ def table_shortfalls(ctx: Context, frames: list[dict]) -> tuple[pd.DataFrame, di
         except UserError as err:  # a table of another run store (or of your frames, never archived)
             leave_out(name, str(err))
             continue
+        if {(record or {}).get("identity", {}).get("data") for _, record in evaluations} \
+                != {split_fingerprint(ctx, split)}:  # e.g. scored before its sequences got more samples
+            leave_out(name, f"it scored split {split} rendered with other settings")
+            continue
         if {(record or {}).get("metrics", {}).get("render") for _, record in evaluations} \
                 != {render_digest(ctx, split)}:  # same settings, other noise: an estimate, said in the caption
             log.info("references: %s scored another render of split %s: its rows' errors are taken with "
@@ -84,8 +89,8 @@ def table_shortfalls(ctx: Context, frames: list[dict]) -> tuple[pd.DataFrame, di
         out += [{"split": split, "sequence": seq, "frame": frame, "table": name, "best row": best["method"],
                  "shortfall": value} for (seq, frame), value in shortfall.items()]
     if other_render:
-        left_out[OTHER_RENDER] = other_render
-    return pd.DataFrame(out, columns=["split", "sequence", "frame", "table", "best row", "shortfall"]), left_out
+        notes[OTHER_RENDER] = other_render
+    return pd.DataFrame(out, columns=["split", "sequence", "frame", "table", "best row", "shortfall"]), notes
 
 
 def proposed_spp(ref_spp: int, shortfall: float, margin: float, max_ref_spp: int) -> int:
@@ -94,15 +99,16 @@ def proposed_spp(ref_spp: int, shortfall: float, margin: float, max_ref_spp: int
     if shortfall < margin:
         return ref_spp
     share = REFERENCE_SHARE
+    cap = ref_spp * 2 ** max(0, math.floor(math.log2(max_ref_spp / ref_spp)))  # doublings of ref_spp only
     if shortfall * share >= 1:  # the estimate exceeds the row's error: no finite count is enough
-        return max(ref_spp, max_ref_spp)
+        return cap
     factor = shortfall * (1 - share * margin) / (margin * (1 - share * shortfall))
-    return max(ref_spp, min(max_ref_spp, ref_spp * 2 ** math.ceil(math.log2(factor))))
+    return max(ref_spp, min(cap, ref_spp * 2 ** math.ceil(math.log2(factor))))
 
 
 def run(ctx: Context, name: str = "references", margin: float = 0.8, max_ref_spp: int = 8192) -> pd.DataFrame:
     frames = load_manifest(ctx.data_dir)["frames"]  # the frames' estimated reference errors
-    shortfalls, left_out = table_shortfalls(ctx, frames)
+    shortfalls, notes = table_shortfalls(ctx, frames)
     unknown = shortfalls["shortfall"].isna()
     if unknown.any():
         log.info("references: %d frame scores are not numbers (NaN relMSE), left out", int(unknown.sum()))
@@ -143,7 +149,7 @@ def run(ctx: Context, name: str = "references", margin: float = 0.8, max_ref_spp
                "datagen.refine_reference). sequence_ref_spp.yaml beside this table holds, per split, the "
                "sequence_ref_spp to put in conf/data/<preset>.yaml."
                + "".join(f" {'Included' if why == OTHER_RENDER else 'Left out'} ({why}): {', '.join(names)}."
-                         for why, names in left_out.items()))
+                         for why, names in notes.items()))
     write_table(table, out_dir, caption=caption)
     (out_dir / "sequence_ref_spp.yaml").write_text(yaml.safe_dump(
         {split: {"sequence_ref_spp": spp} for split, spp in proposal.items() if spp}, sort_keys=True))
