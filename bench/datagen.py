@@ -80,21 +80,19 @@ def plan_sequences(spec):
         if unknown:
             raise UserError(f"data.splits.{split}.sequence_ref_spp: {unknown[0]!r} is no sequence of split {split!r}")
         for sequence, count in (part.get("sequence_ref_spp") or {}).items():
-            if _doublings(part["ref_spp"], count) is None:
+            if not _on_chain(part["ref_spp"], count):
                 raise UserError(f"data.splits.{split}.sequence_ref_spp.{sequence}={count!r}: expected the split's "
                                 f"ref_spp ({part['ref_spp']}) times a power of two, e.g. {2 * int(part['ref_spp'])}")
     return plan
 
 
-def _doublings(base, count):
-    """How many doublings take `base` samples to `count` (0 when equal); None when no whole number does."""
+def _on_chain(base, count):
+    """Whether `count` samples are `base` doubled zero or more times."""
     try:
         base, count = int(base), int(count)
     except (TypeError, ValueError):
-        return None
-    if base <= 0 or count < base or count % base or (count // base) & (count // base - 1):
-        return None
-    return (count // base).bit_length() - 1
+        return False
+    return base > 0 and count >= base and count % base == 0 and not (count // base) & (count // base - 1)
 
 
 def render_settings(spec, features, split=None, sequence=None):
@@ -340,26 +338,30 @@ def _exr_size(path):
         return None
 
 
-def _load_record(rec_path, settings_hash):
-    """The frame's record if it exists and was rendered with the same settings, else None."""
+def _read_record(rec_path):
+    """The frame's record as written, or None when it is missing or does not parse."""
     try:
         with open(rec_path) as f:
-            record = json.load(f)
+            return json.load(f)
     except (OSError, ValueError):
         return None
-    return record if record.get("settings_hash") == settings_hash else None
+
+
+def _load_record(rec_path, settings_hash):
+    """The frame's record if it exists and was rendered with the same settings, else None."""
+    record = _read_record(rec_path)
+    return record if record and record.get("settings_hash") == settings_hash else None
 
 
 def _earlier_on_chain(rec_path, settings):
     """The frame's record if it was rendered with these settings but fewer reference samples on the
     same doubling chain (datagen.refine_reference), else None."""
+    record = _read_record(rec_path)
     try:
-        with open(rec_path) as f:
-            record = json.load(f)
         spp = int(record["ref_spp"])
-    except (OSError, ValueError, KeyError, TypeError):
+    except (KeyError, TypeError, ValueError):
         return None
-    if spp >= settings["ref_spp"] or _doublings(settings.get("ref_base_spp", settings["ref_spp"]), spp) is None:
+    if spp >= settings["ref_spp"] or not _on_chain(settings.get("ref_base_spp", settings["ref_spp"]), spp):
         return None
     return record if record.get("settings_hash") == _settings_hash(_settings_at(settings, spp)) else None
 
