@@ -7,6 +7,7 @@ parameters, calls the experiment, and prints user errors as one line instead of 
 from __future__ import annotations
 
 import importlib
+import inspect
 import logging
 import os
 import re
@@ -27,7 +28,7 @@ from bench.infer import keep_freed_memory
 from bench.measure import fused_kernels_on_cuda
 from bench.runs import ensure_writable, out_of_space
 from bench.train import TrainingInterrupted
-from bench.experiments import KINDS
+from bench.experiments import KINDS, RUNLESS_KINDS
 
 log = logging.getLogger("bench")
 CONF_DIR = str(Path(__file__).resolve().parent.parent / "conf")
@@ -426,6 +427,31 @@ def apply_pin(cfg: DictConfig) -> None:
         cfg.train = OmegaConf.merge(cfg.train, pin)
 
 
+def check_experiment_keys(experiment, keys: dict, kind: str) -> None:
+    """A misspelt or missing `experiment.<key>` is one line naming the keys its kind takes, before anything
+    runs (not a TypeError from the call)."""
+    takes = [name for name in inspect.signature(experiment).parameters if name != "ctx"]
+    try:
+        inspect.signature(experiment).bind(None, **keys)
+    except TypeError as err:
+        unknown = sorted(set(keys) - set(takes))
+        raise UserError(f"experiment {keys.get('name', kind)!r} (kind {kind}): "
+                        + (f"no key {', '.join(unknown)}" if unknown else str(err))
+                        + f"; kind {kind} takes {', '.join(takes)}") from None
+
+
+def warn_if_committed_archive_unread(ctx, kind: str, preset: str) -> None:
+    """runs_archive follows results_dir: elsewhere, the preset's recorded runs would all be computed again.
+    Said for experiments that read runs (not macs, speed), never for your own frames' (never archived)."""
+    committed = Path(CONF_DIR).parent / "results" / preset / "runs"
+    if kind not in RUNLESS_KINDS and ctx.render_data and not ctx.eval.data_dir and ctx.runs_archive is not None \
+            and ctx.runs_archive.resolve() != committed.resolve() and not ctx.runs_archive.exists() \
+            and committed.is_dir():
+        log.warning("runs_archive=%s (by default it follows results_dir) holds no runs: the committed archive "
+                    "%s is not read, so recorded runs are computed again; runs_archive=%s reads it",
+                    ctx.runs_archive, committed.relative_to(Path(CONF_DIR).parent), committed)
+
+
 def run_experiment(cfg: DictConfig) -> None:
     if "experiment" not in cfg:
         raise UserError("choose an experiment: python -m bench +experiment=NAME; available: "
@@ -438,6 +464,7 @@ def run_experiment(cfg: DictConfig) -> None:
     exp.pop("tunes", None)
     kind = exp.pop("kind", "table")
     if kind == "all":
+        check_experiment_keys(lambda ctx, tables, name="all": None, exp, kind)  # run_all's keys
         from hydra.core.hydra_config import HydraConfig
         overrides = [o for o in HydraConfig.get().overrides.task if not o.lstrip("+").startswith("experiment")]
         t0 = time.perf_counter()
@@ -446,6 +473,8 @@ def run_experiment(cfg: DictConfig) -> None:
         return
     if kind not in KINDS:
         raise UserError(f"experiment kind {kind!r} is unknown; known kinds: {', '.join(KINDS)}")
+    experiment = importlib.import_module(f"bench.experiments.{kind}").run
+    check_experiment_keys(experiment, exp, kind)
     _sweep_job_results(cfg)
     ctx = make_context(cfg)
     ctx.device = resolve_device(ctx.device)
@@ -460,19 +489,11 @@ def run_experiment(cfg: DictConfig) -> None:
                 " keeps them out, with the archive of your runs (runs_archive follows results_dir)")
         log.warning("your frames' tables and crops go to %s, inside the repository where git would commit "
                     "them; results_dir=/elsewhere%s", ctx.results_dir, keep)
-    committed = Path(CONF_DIR).parent / "results" / cfg.preset.name / "runs"
-    if ctx.render_data and not ctx.eval.data_dir and ctx.runs_archive is not None \
-            and ctx.runs_archive.resolve() != committed.resolve() and not ctx.runs_archive.exists() \
-            and committed.is_dir():
-        # runs_archive follows results_dir: elsewhere, the preset's recorded runs would all be computed again
-        # (your own frames' runs are never in the committed archive: nothing to say then)
-        log.warning("runs_archive=%s (by default it follows results_dir) holds no runs: the committed archive "
-                    "%s is not read, so recorded runs are computed again; runs_archive=%s reads it",
-                    ctx.runs_archive, committed.relative_to(Path(CONF_DIR).parent), committed)
+    warn_if_committed_archive_unread(ctx, kind, cfg.preset.name)
     t0 = time.perf_counter()
     interrupted = False
     try:
-        importlib.import_module(f"bench.experiments.{kind}").run(ctx, **exp)
+        experiment(ctx, **exp)
     except (KeyboardInterrupt, TrainingInterrupted):
         interrupted = True  # stop now: a scheduler's grace period is short; the next command mirrors them
         raise

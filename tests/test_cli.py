@@ -808,3 +808,37 @@ def test_a_results_dir_elsewhere_says_the_committed_archive_is_not_read(tmp_path
                     f"results_dir={tmp_path / 'results'}", f"runs_dir={tmp_path / 'runs'}",
                     f"data_dir={tmp_path / 'data'}", timeout=120)
         assert "committed archive" not in out.stdout + out.stderr, yours
+
+
+def test_a_misspelt_experiment_key_is_one_line(tmp_path):
+    """`experiment.<key>` that the kind does not take ends in one line naming the keys it takes, before
+    anything runs (nothing written)."""
+    out = bench("+experiment=macs", "+experiment.input_size=[64,96]", "preset=cpu", "tracking=none",
+                f"results_dir={tmp_path / 'results'}", f"runs_dir={tmp_path / 'runs'}",
+                f"data_dir={tmp_path / 'data'}", timeout=120)
+    said = out.stdout + out.stderr
+    assert out.returncode == 2 and "Traceback" not in said, said
+    assert "no key input_size; kind macs takes name, rows, input_hw, caption" in said
+    assert not (tmp_path / "results").exists()
+
+
+def test_the_unread_archive_warning_is_for_experiments_that_read_runs(tmp_path, caplog):
+    import types
+    from bench.cli import warn_if_committed_archive_unread
+    ctx = types.SimpleNamespace(render_data=True, eval=types.SimpleNamespace(data_dir=None),
+                                runs_archive=tmp_path / "results" / "runs")
+    for kind, said in (("table", True), ("claims", True), ("macs", False), ("speed", False)):
+        caplog.clear()
+        with caplog.at_level("WARNING", logger="bench"):
+            warn_if_committed_archive_unread(ctx, kind, "cpu")
+        assert ("the committed archive results/cpu/runs is not read" in caplog.text) == said, kind
+
+
+def test_check_experiment_keys_names_a_missing_key():
+    from bench.cli import check_experiment_keys
+    from bench.experiments import claims
+    check_experiment_keys(claims.run, {"name": "c", "claims": [], "metric": "PSNR", "tables": None}, "claims")
+    with pytest.raises(UserError, match="missing a required argument: 'metric'.*kind claims takes name, claims, metric"):
+        check_experiment_keys(claims.run, {"name": "c", "claims": [], "tables": None}, "claims")
+    out = bench("+experiment=all", "~experiment.tables", "+experiment.table=[sota]", "preset=cpu", timeout=120)
+    assert out.returncode == 2 and "'all' (kind all): no key table; kind all takes tables, name" in out.stderr

@@ -176,3 +176,36 @@ def test_a_table_that_must_train_renders_the_training_and_working_splits_not_the
     assert out.returncode == 0, out.stderr[-3000:]
     assert sorted(p.name for p in (tmp_path / "data").iterdir() if p.is_dir()) == ["train", "val"]
     assert "trained in" in out.stdout + out.stderr
+
+
+def test_frame_records_merge_splits_under_the_archives_lock(tmp_path):
+    """Each command merges its splits' frame records into the archive's copy: another split's stay. The
+    read-merge-write happens under the archive's lock: a split another process writes while it holds the
+    lock is read, not overwritten (read before the lock, it would be lost)."""
+    import gzip
+    import types
+    from bench import runs
+    from bench.experiments.datasets import _frame_records_path, archive_frame_records
+    spec = {"name": "tiny", "splits": {"val": {}, "test": {}, "generalization": {}}}
+    ctx = types.SimpleNamespace(runs_archive=tmp_path / "archive", render_data=True, data_spec=spec,
+                                data_dir=tmp_path / "no data")  # no manifest: records come from the archive
+
+    def frame(split):
+        return {"split": split, "sequence": "s", "frame": 0, "ref_spp": 4, "ref_error": 0.1,
+                "files": {"hr": {"crc32": 1}}}
+    archive_frame_records(ctx, {"spec": spec, "frames": [frame("val")]})
+    path = _frame_records_path(ctx)
+    lock = ctx.runs_archive / runs.PARTIAL / f"frames.{path.name}.lock"
+    lock.parent.mkdir(parents=True, exist_ok=True)
+    card = {"spec": spec, "frames": [frame("generalization"), frame("val")]}
+    holder = subprocess.Popen(  # holds the lock, then writes a third split and lets go
+        [sys.executable, "-c", f"import fcntl, gzip, json, time\nh = open({str(lock)!r}, 'a')\n"
+         "fcntl.flock(h, fcntl.LOCK_EX)\nprint('held', flush=True)\ntime.sleep(1)\n"
+         f"open({str(path)!r}, 'wb').write(gzip.compress(json.dumps({card!r}).encode()))"],
+        stdout=subprocess.PIPE, text=True)
+    assert holder.stdout.readline().strip() == "held"
+    archive_frame_records(ctx, {"spec": spec, "frames": [frame("test")]})
+    assert holder.wait(timeout=10) == 0
+    kept = json.loads(gzip.decompress(path.read_bytes()))
+    assert sorted(f["split"] for f in kept["frames"]) == ["generalization", "test", "val"]
+    assert frame_records(ctx, "test") == [frame("test")]

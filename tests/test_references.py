@@ -127,6 +127,8 @@ def test_the_references_tool_proposes_more_samples_for_the_sequences_that_fall_s
     assert proposal == {"test": {"sequence_ref_spp": {"s1": 8192, "s9": 2048}}}
     caption = (tmp_path / "results" / "references" / "table.md").read_text()
     assert "test 2 of 4 frames" in caption
+    assert "Frames passing per table (its best row against today's references): elsewhere 2 of 4, loose 4 of 4, " \
+        "strict 2 of 4." in caption
     assert "Included (estimated: it scored another render of the split, of the same settings): elsewhere." \
         in caption  # the caption names them
     assert "unrecorded." in caption.split("Left out (")[-1]

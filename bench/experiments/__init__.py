@@ -6,3 +6,5 @@ An experiment is a YAML file in conf/experiment/ whose `experiment.kind` names a
 # modules in this package
 KINDS = ("table", "one_model", "data", "references", "macs", "stability", "timing", "speed", "lr_range", "claims", "adopt",
          "migrate")
+# kinds that read no recorded runs: a run archive elsewhere changes nothing for them
+RUNLESS_KINDS = ("macs", "speed")

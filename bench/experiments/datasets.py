@@ -218,14 +218,22 @@ def archive_frame_records(ctx: Context, manifest: dict) -> None:
     if ctx.runs_archive is None or not ctx.render_data or _canonical(manifest.get("spec")) != _canonical(ctx.data_spec):
         return
     path = _frame_records_path(ctx)
-    kept = runs.read_or_none(path, read=_read_gzipped_json)
     ours = {f["split"] for f in manifest["frames"]}
-    frames = [f for f in (kept or {}).get("frames", []) if f["split"] not in ours] + [
-        {**{k: f[k] for k in FRAME_RECORD_KEYS if k in f},
-         "files": {res: {"crc32": v["crc32"]} for res, v in (f.get("files") or {}).items()}}
-        for f in manifest["frames"]]
-    card = {"spec": ctx.data_spec, "frames": sorted(frames, key=lambda f: (f["split"], str(f["sequence"]), f["frame"]))}
-    if card != kept:
+    frames = [{**{k: f[k] for k in FRAME_RECORD_KEYS if k in f},
+               "files": {res: {"crc32": v["crc32"]} for res, v in (f.get("files") or {}).items()}}
+              for f in manifest["frames"]]
+
+    def merged(kept: dict | None) -> dict:
+        every = frames + [f for f in (kept or {}).get("frames", []) if f["split"] not in ours]
+        return {"spec": ctx.data_spec,
+                "frames": sorted(every, key=lambda f: (f["split"], str(f["sequence"]), f["frame"]))}
+    kept = runs.read_or_none(path, read=_read_gzipped_json)
+    if merged(kept) == kept:
+        return  # as recorded: nothing to write (an archive you may only read stays as it is)
+    # read again, merge and write under the archive's lock: two commands merging other splits keep both
+    lock = Path(ctx.runs_archive) / runs.PARTIAL / f"frames.{path.name}.lock"
+    with contextlib.closing(runs.acquire(lock, f"writing the frame records {path.name}")):
+        card = merged(runs.read_or_none(path, read=_read_gzipped_json))
         path.parent.mkdir(parents=True, exist_ok=True)
         data = gzip.compress(json.dumps(card, sort_keys=True).encode(), mtime=0)
         write_atomic(path, lambda tmp: tmp.write_bytes(data))

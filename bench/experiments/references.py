@@ -144,6 +144,8 @@ def run(ctx: Context, name: str = "references", margin: float = 0.8, max_ref_spp
                f"at most {max_ref_spp}). Passing now: "
                + ", ".join(f"{split} {int(p['frames passing'].sum())} of {int(p['frames'].sum())} frames"
                            for split, p in table.groupby("split"))
+               + ". Frames passing per table (its best row against today's references): "
+               + ", ".join(f"{t} {int((p['shortfall'] < 1).sum())} of {len(p)}" for t, p in shortfalls.groupby("table"))
                + ". ref render s: the recorded seconds of the sequence's reference renders (both resolutions); "
                "ref render s added: what the proposal adds to them (its samples are added to the references, "
                "datagen.refine_reference). sequence_ref_spp.yaml beside this table holds, per split, the "
