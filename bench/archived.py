@@ -21,7 +21,7 @@ frames (`eval.save_exr`) stay out.
 
 A restored run (the store filled from the archive) holds the compact form too; the readers here take
 either form, the full one first. `python -m bench.archived DIR` converts an archive written before in
-place (idempotent).
+place (idempotent); `--drop-unlisted results/<preset>` deletes the evaluations no table lists any more.
 """
 from __future__ import annotations
 
@@ -30,6 +30,7 @@ import gzip
 import io
 import logging
 import lzma
+import shutil
 import sys
 import time
 import zlib
@@ -268,6 +269,28 @@ def convert_archive(archive_dir: Path) -> int:
     return sum(convert(d) for d in runs_of("train")) + sum(convert_evaluation(d) for d in runs_of("eval"))
 
 
+def listed_runs(results_dir: Path) -> set[str]:
+    """The runs the tables under `results_dir` list (every `table.csv`'s `runs` column, a Cascade's stages
+    apart)."""
+    listed = set()
+    for table in Path(results_dir).rglob("table.csv"):
+        frame = pd.read_csv(table)
+        if "runs" in frame:
+            listed.update(h for cell in frame["runs"].dropna() for h in str(cell).replace("+", " ").split())
+    return listed
+
+
+def unlisted_evaluations(archive_dir: Path, results_dir: Path) -> list[Path]:
+    """The archived evaluations no table under `results_dir` lists: superseded ones (e.g. scored before
+    their split's references got more samples, then scored again). Nothing reads them: tables, claims
+    and the reference check read the evaluations a table lists."""
+    listed = listed_runs(results_dir)
+    if not listed:
+        raise ValueError(f"{results_dir} holds no table that lists runs: every evaluation would go")
+    return sorted(p.parent for p in Path(archive_dir).glob(f"eval/*/{runs.RECORD}")
+                  if not p.parent.name.startswith(".") and p.parent.name not in listed)
+
+
 def _size(path: Path) -> int:
     return sum(p.stat().st_size for p in Path(path).rglob("*") if p.is_file())
 
@@ -276,10 +299,27 @@ def main(argv=None) -> int:
     parser = argparse.ArgumentParser(prog="python -m bench.archived",
                                      description="Convert a run archive's trainings and evaluations in place to the compact form.")
     parser.add_argument("archive", type=Path, help="an archive directory, e.g. results/cpu/runs")
+    parser.add_argument("--drop-unlisted", type=Path, metavar="RESULTS_DIR",
+                        help="instead: delete the evaluations no table under RESULTS_DIR (e.g. results/cpu) lists")
+    parser.add_argument("--dry-run", action="store_true", help="with --drop-unlisted: name them, delete nothing")
     args = parser.parse_args(argv)
     if not ((args.archive / "train").is_dir() or (args.archive / "eval").is_dir()):
         print(f"error: {args.archive} holds no train/ or eval/ directory: not a run archive", file=sys.stderr)
         return 2
+    if args.drop_unlisted is not None:
+        try:
+            unlisted = unlisted_evaluations(args.archive, args.drop_unlisted)
+        except ValueError as err:
+            print(f"error: {err}", file=sys.stderr)
+            return 2
+        for run_dir in unlisted:
+            print(f"{'would delete' if args.dry_run else 'deleted'} {run_dir} "
+                  f"({(runs.read_record(run_dir / runs.RECORD) or {}).get('label', '?')})")
+            if not args.dry_run:
+                shutil.rmtree(run_dir)
+        print(f"{args.archive}: {len(unlisted)} evaluations no table under {args.drop_unlisted} lists"
+              + (" (dry run: none deleted)" if args.dry_run else " deleted"))
+        return 0
     before, t0 = _size(args.archive), time.perf_counter()
     converted = convert_archive(args.archive)
     after = _size(args.archive)
