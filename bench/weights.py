@@ -22,7 +22,10 @@ from bench.errors import UserError
 from bench.models.factory import build_model
 from bench.tasks import get_task
 
-FORMAT = "srd-bench-weights/1"
+# /2: the weights may be in the archive's compact float16 form (COMPACT); a /1 reader would fail on it, so
+# it refuses a /2 file by its format instead. This reader reads both.
+FORMAT = "srd-bench-weights/2"
+READABLE_FORMATS = ("srd-bench-weights/1", FORMAT)
 COMPACT = "weights_float16_compact"  # instead of "state_dict" when the run's weights are float16-rounded
 
 ARCHIVES = "results/*/runs"  # the tables' archived runs (conf/config.yaml runs_archive), from the project root
@@ -122,8 +125,11 @@ def load_exported(path: str | Path):
             raise UserError(f"{path}: sha256 {actual[:16]}... does not match {sidecar.name} ({expected[:16]}...): "
                             "the file is damaged or not the one exported")
     saved = _torch_load(path, "the weights file")
-    if not isinstance(saved, dict) or saved.get("format") != FORMAT:
-        raise UserError(f"{path} is not an SRD-Bench weights file (write one with `srd-bench export RUN`)")
+    if not isinstance(saved, dict) or saved.get("format") not in READABLE_FORMATS:
+        newer = isinstance(saved, dict) and str(saved.get("format", "")).startswith("srd-bench-weights/")
+        raise UserError(f"{path} is " + (f"an SRD-Bench weights file of a newer format ({saved['format']}): update "
+                                         "SRD-Bench to read it" if newer else
+                                         "not an SRD-Bench weights file (write one with `srd-bench export RUN`)"))
     try:
         state = archived.decode(saved[COMPACT]) if COMPACT in saved else saved["state_dict"]
     except (KeyError, ValueError, RuntimeError, EOFError, lzma.LZMAError) as err:

@@ -89,6 +89,7 @@ def test_predict_measures_the_fast_path_once_and_its_output_matches_fp32(recorde
     ("two sizes", "must share one size"),
     ("damaged weights", "does not match"),
     ("not weights", "is not an SRD-Bench weights file"),
+    ("newer format", "of a newer format (srd-bench-weights/99): update SRD-Bench"),
     ("unknown run", "no training run"),
 ])
 def test_each_bad_input_gets_its_message(recorded, tmp_path, capsys, case, message):
@@ -102,8 +103,9 @@ def test_each_bad_input_gets_its_message(recorded, tmp_path, capsys, case, messa
         frames.append(_frame(tmp_path / "0001_lr.exr", h=16))
     elif case == "damaged weights":
         weights.write_bytes(weights.read_bytes()[:-10] + b"0123456789")
-    elif case == "not weights":
-        torch.save({"state_dict": {}}, tmp_path / "other.pt")
+    elif case in ("not weights", "newer format"):
+        torch.save({"state_dict": {}, **({"format": "srd-bench-weights/99"} if case == "newer format" else {})},
+                   tmp_path / "other.pt")
         args[2] = str(tmp_path / "other.pt")
     elif case == "unknown run":
         args = ["predict", "--run", "0123456789abcdef", "--runs-dir", str(runs_dir), "--output-dir", str(tmp_path)]
