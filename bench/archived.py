@@ -41,6 +41,7 @@ import torch
 
 from bench import runs
 from bench.atomic import write_atomic
+from bench.table_writer import listed_evaluations
 from bench.train import CHECKPOINT
 
 log = logging.getLogger("bench")
@@ -270,13 +271,12 @@ def convert_archive(archive_dir: Path) -> int:
 
 
 def listed_runs(results_dir: Path) -> set[str]:
-    """The runs the tables under `results_dir` list (every `table.csv`'s `runs` column, a Cascade's stages
-    apart)."""
+    """The evaluations the tables under `results_dir` list (every `table.csv`'s `runs` column)."""
     listed = set()
     for table in Path(results_dir).rglob("table.csv"):
         frame = pd.read_csv(table)
         if "runs" in frame:
-            listed.update(h for cell in frame["runs"].dropna() for h in str(cell).replace("+", " ").split())
+            listed.update(h for cell in frame["runs"] for h in listed_evaluations(cell))
     return listed
 
 

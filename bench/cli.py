@@ -305,9 +305,9 @@ def resolve_device(device: str) -> str:
     return device
 
 
-def run_all(tables: list[str], overrides: list[str], summary_dir: Path) -> None:
-    """Run each experiment in `tables` with the command line's other overrides, one after the other;
-    write each one's wall time and recorded compute to `<summary_dir>/table.{csv,md,tex}`, and a last row
+def run_all(overrides: list[str], results_dir: Path, tables: list[str], name: str = "all") -> None:
+    """Run each experiment in `tables` with the command line's other `overrides`, one after the other;
+    write each one's wall time and recorded compute to `<results_dir>/<name>/table.{csv,md,tex}`, and a last row
     that counts every run once; then rewrite the results page `<results_dir>/README.md` from the tables.
     Runs shared between tables are trained once (the run store), so a restarted `all` continues where it
     stopped."""
@@ -316,20 +316,20 @@ def run_all(tables: list[str], overrides: list[str], summary_dir: Path) -> None:
     from bench.experiments import results_page
     from bench.table_writer import write_table
     rows, every_run, preset = [], {}, None
-    for name in tables:
-        if name not in available_experiments() or name == "all":
-            raise UserError(f"experiment.tables: unknown experiment {name!r}")
+    for experiment in tables:
+        if experiment not in available_experiments() or experiment == "all":
+            raise UserError(f"experiment.tables: unknown experiment {experiment!r}")
         t0 = time.perf_counter()
-        cfg = compose(config_name="config", overrides=overrides + [f"+experiment={name}"])
+        cfg = compose(config_name="config", overrides=overrides + [f"+experiment={experiment}"])
         run_experiment(cfg)
         preset = cfg.preset.name
         archives = (cfg.runs_archive,) if cfg.get("runs_archive") else ()
-        summary, minutes = table_summary(Path(cfg.results_dir) / name, cfg.runs_dir, archives)
+        summary, minutes = table_summary(Path(cfg.results_dir) / experiment, cfg.runs_dir, archives)
         every_run.update(minutes)
-        rows.append({"experiment": name, **summary, "this invocation (min)": (time.perf_counter() - t0) / 60})
+        rows.append({"experiment": experiment, **summary, "this invocation (min)": (time.perf_counter() - t0) / 60})
         total = {"experiment": "all (each run once)", "this invocation (min)": sum(r["this invocation (min)"] for r in rows),
                  **compute_columns(every_run)}
-        write_table(pd.DataFrame(rows + [total]), summary_dir,
+        write_table(pd.DataFrame(rows + [total]), results_dir / name,
                     caption="Time per table of `+experiment=all`. compute: the training and evaluation wall time "
                             "of the table's runs as recorded in the run store or its archive, whenever and "
                             "wherever they ran (every seed; a run shared by several tables counts in each, and "
@@ -341,7 +341,7 @@ def run_all(tables: list[str], overrides: list[str], summary_dir: Path) -> None:
                             "paper': pairs of rows whose order by that metric is the paper's, of the pairs both "
                             "have. this invocation: wall time of this command, ~0 for reused runs.")
     if preset is not None:
-        log.info("results page: %s", results_page.write(summary_dir.parent, preset))
+        log.info("results page: %s", results_page.write(results_dir, preset))
 
 
 def compute_columns(minutes: dict[str, float | None]) -> dict:
@@ -359,13 +359,14 @@ def table_summary(table_dir: Path, runs_dir, archives=()) -> tuple[dict, dict[st
     import pandas as pd
     from bench.experiments.row import recorded_minutes
     from bench.experiments.table import paper_agreement
+    from bench.table_writer import listed_evaluations
     path = table_dir / "table.csv"
     if not path.exists():
         return {}, {}
     table = pd.read_csv(path)
     out, minutes = {}, {}
     if "train (min)" in table:
-        minutes = recorded_minutes(" ".join(table["runs"].dropna().astype(str)).split(), runs_dir, archives)
+        minutes = recorded_minutes([h for cell in table["runs"] for h in listed_evaluations(cell)], runs_dir, archives)
         out.update(compute_columns(minutes))
         if out["runs not found"]:
             log.warning("%s: %d of its runs are in neither the run store nor the archive; compute (min) "
@@ -427,12 +428,13 @@ def apply_pin(cfg: DictConfig) -> None:
         cfg.train = OmegaConf.merge(cfg.train, pin)
 
 
-def check_experiment_keys(experiment, keys: dict, kind: str) -> None:
+def check_experiment_keys(experiment, keys: dict, kind: str, supplied: tuple[str, ...] = ("ctx",)) -> None:
     """A misspelt or missing `experiment.<key>` is one line naming the keys its kind takes, before anything
-    runs (not a TypeError from the call)."""
-    takes = [name for name in inspect.signature(experiment).parameters if name != "ctx"]
+    runs (not a TypeError from the call); `supplied`: the arguments the caller passes itself."""
+    signature = inspect.signature(experiment)
+    takes = [name for name in signature.parameters if name not in supplied]
     try:
-        inspect.signature(experiment).bind(None, **keys)
+        signature.bind(**dict.fromkeys(supplied), **keys)
     except TypeError as err:
         unknown = sorted(set(keys) - set(takes))
         raise UserError(f"experiment {keys.get('name', kind)!r} (kind {kind}): "
@@ -464,11 +466,11 @@ def run_experiment(cfg: DictConfig) -> None:
     exp.pop("tunes", None)
     kind = exp.pop("kind", "table")
     if kind == "all":
-        check_experiment_keys(lambda ctx, tables, name="all": None, exp, kind)  # run_all's keys
+        check_experiment_keys(run_all, exp, kind, supplied=("overrides", "results_dir"))
         from hydra.core.hydra_config import HydraConfig
         overrides = [o for o in HydraConfig.get().overrides.task if not o.lstrip("+").startswith("experiment")]
         t0 = time.perf_counter()
-        run_all(exp["tables"], overrides, Path(cfg.results_dir) / exp.get("name", "all"))
+        run_all(overrides, Path(cfg.results_dir), **exp)
         log.info("all done in %.1f min", (time.perf_counter() - t0) / 60)
         return
     if kind not in KINDS:

@@ -22,6 +22,7 @@ layer exist is skipped; buffers it lacks (a later build asking for more) are ren
 into its EXRs. All files are written atomically, records last, so an interrupted build leaves only
 complete frames behind.
 """
+import dataclasses
 import hashlib
 import json
 import logging
@@ -371,14 +372,29 @@ def _present_layers(path):
     return set(exrio.exr_layers(path)) if exrio.is_valid_exr(path) else set()
 
 
-def render_resolution(scene, camera, width, height, spp, ref_spp, seeds, passes, res, gbuf_layers,
-                      max_depth, ref_halves=False, ref_base_spp=None, stored_ref=None):
+@dataclasses.dataclass(frozen=True)
+class ReferencePlan:
+    """How a frame's reference is rendered: `spp` samples in all. With `halves`, as the mean of two
+    independent renders of half the samples, whose difference estimates its error. With `base_spp`, the
+    halves have base_spp samples together and `refine_reference` doubles them up to spp; `stored` (image,
+    its spp) is a reference already rendered on that chain, which is refined instead."""
+    spp: int
+    halves: bool = False
+    base_spp: int | None = None
+    stored: tuple | None = dataclasses.field(default=None, compare=False)  # holds an image: not compared
+
+    @classmethod
+    def of(cls, settings: dict, stored: tuple | None = None) -> "ReferencePlan":
+        """The plan `render_settings` describes."""
+        return cls(settings["ref_spp"], settings.get("ref_halves", False), settings.get("ref_base_spp"), stored)
+
+
+def render_resolution(scene, camera, width, height, spp, reference: ReferencePlan, seeds, passes, res,
+                      gbuf_layers, max_depth):
     """Render the layers of one resolution of one frame; returns (layers, wall times, non-finite values
-    repaired per buffer (e.g. {"lr_noisy": 3}), reference error). With `ref_halves` the reference is the
-    mean of two independent renders of half its samples, and the reference error is its estimated relMSE
-    against the converged image (bench.metrics.reference_error); else None. With `ref_base_spp` the halves
-    have ref_base_spp samples together and `refine_reference` doubles them up to ref_spp; `stored_ref`
-    (image, spp) is a reference already rendered on that chain, which is refined instead."""
+    repaired per buffer (e.g. {"lr_noisy": 3}), reference error): its estimated relMSE against the
+    converged image (bench.metrics.reference_error) when the plan renders halves or refines by doublings,
+    else None."""
     layers, times, repaired, ref_error = {}, {}, {}, None
     if f"{res}_noisy" in passes or f"{res}_gbuf" in passes:
         gbuf = list(gbuf_layers) if f"{res}_gbuf" in passes else []
@@ -391,9 +407,10 @@ def render_resolution(scene, camera, width, height, spp, ref_spp, seeds, passes,
             layers[name] = out[name]
     if f"{res}_ref" in passes:
         seconds, count = 0.0, 0
-        if stored_ref is None:
-            start_spp = ref_base_spp or ref_spp
-            halves_seeds = [seeds["ref"], derive_seed(seeds["ref"], "second half")] if ref_halves else [seeds["ref"]]
+        if reference.stored is None:
+            start_spp = reference.base_spp or reference.spp
+            halves_seeds = [seeds["ref"], derive_seed(seeds["ref"], "second half")] if reference.halves \
+                else [seeds["ref"]]
             halves = []
             for seed in halves_seeds:
                 out = render.render_view(scene, camera, width, height, start_spp // len(halves_seeds), seed,
@@ -401,13 +418,13 @@ def render_resolution(scene, camera, width, height, spp, ref_spp, seeds, passes,
                 half, repairs = render.repair_nonfinite(out["radiance"])
                 halves.append(half)
                 seconds, count = seconds + out["wall_time_s"], count + repairs
-            if ref_halves:
+            if reference.halves:
                 ref_error = _error_of_mean(*halves)
             ref = sum(halves) / len(halves)
         else:
-            ref, start_spp = stored_ref
+            ref, start_spp = reference.stored
         ref, error, more_seconds, more_repairs = refine_reference(scene, camera, width, height, ref, start_spp,
-                                                                  ref_spp, seeds["ref"], max_depth)
+                                                                  reference.spp, seeds["ref"], max_depth)
         layers["ref"], ref_error = ref, (error if error is not None else ref_error)
         times[f"{res}_ref_s"] = seconds + more_seconds
         repaired[f"{res}_ref"] = count + more_repairs
@@ -524,9 +541,8 @@ def render_sequence(root, job, spec, passes, variant=None):
             stored = (exrio.read_exr(path, ["ref"])["ref"], stored_spp) \
                 if stored_spp and refinable[res] and f"{res}_ref" in todo else None
             layers, times, repaired, ref_error = render_resolution(
-                loaded, camera, w, h, settings["spp"], settings["ref_spp"], seeds[res], todo, res,
-                gbuf_layers, settings["max_depth"], ref_halves=settings.get("ref_halves", False),
-                ref_base_spp=settings.get("ref_base_spp"), stored_ref=stored)
+                loaded, camera, w, h, settings["spp"], ReferencePlan.of(settings, stored), seeds[res], todo, res,
+                gbuf_layers, settings["max_depth"])
             if stored is not None:  # the reference's time and repairs include the samples it had
                 times[f"{res}_ref_s"] += record["time_s"].get(f"{res}_ref_s", 0.0)
                 repaired[f"{res}_ref"] += (record.get("nonfinite_repaired_by_buffer") or {}).get(f"{res}_ref", 0)
@@ -720,8 +736,8 @@ def render_user_scene(xml_path, root, lr_width, lr_height, spp=8, ref_spp=256, s
                               ("hr", (lr_width * scale, lr_height * scale), hr_path)):
         if not [b for b in passes if b.startswith(res)]:
             continue
-        layers, times, repaired, _ = render_resolution(scene, None, w, h, spp, ref_spp, seeds[res], passes, res,
-                                                       GBUF_LAYERS, max_depth)
+        layers, times, repaired, _ = render_resolution(scene, None, w, h, spp, ReferencePlan(ref_spp), seeds[res],
+                                                       passes, res, GBUF_LAYERS, max_depth)
         exrio.write_exr(path, layers, suffixes=SUFFIXES)
         record["time_s"].update(times)
         _count_repaired(record, repaired)

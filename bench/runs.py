@@ -207,10 +207,26 @@ def recorded_wall_s(kind: str, run_hash: str, runs_dir: str | Path, archives=())
     return None if record is None else float(record.get("wall_time_s") or 0.0)
 
 
-def wall_time_s(runs_dir: str | Path, kind: str, hashes: str | None) -> float:
-    """Recorded wall time of runs named by hash ("a+b" for several, e.g. a Cascade's stages) in the
-    run store; 0 for none, and for a run the store lacks."""
-    return sum(recorded_wall_s(kind, h, runs_dir) or 0.0 for h in (hashes or "").split("+") if h)
+def wall_time_s(runs_dir: str | Path, kind: str, hashes: list[str]) -> float:
+    """Recorded wall time of runs named by hash (e.g. a Cascade's stages) in the run store; 0 for none,
+    and for a run the store lacks."""
+    return sum(recorded_wall_s(kind, h, runs_dir) or 0.0 for h in hashes)
+
+
+def join_trainings(hashes: list[str]) -> str:
+    """How an evaluation names the trainings it scored (its identity's `trained`, its metrics' `train_run`):
+    a Cascade's stages joined by "+", in order."""
+    return "+".join(hashes)
+
+
+def split_trainings(trained: str | None) -> list[str]:
+    """The training hashes `join_trainings` joined; [] for None (a model that trains nothing)."""
+    return [h for h in (trained or "").split("+") if h]
+
+
+def trainings_of(evaluation: dict) -> list[str]:
+    """The training runs an evaluation record scored, in stage order; [] for a model that trains nothing."""
+    return split_trainings((evaluation.get("metrics") or {}).get("train_run"))
 
 
 def begin(runs_dir: str | Path, kind: str, identity: dict, config: dict | None = None,

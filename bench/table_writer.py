@@ -24,6 +24,12 @@ SCORED_ON = "preset {preset}, split {split}"
 SCORED_ON_PATTERN = r"[Pp]reset (\w+), split (\w+)"
 
 
+def listed_evaluations(cell) -> list[str]:
+    """The evaluation runs a table row lists in its `runs` column (experiments/row.py writes it): one hash
+    per seed, in seed order, so a deterministic row repeats one; [] for a row that lists none."""
+    return [] if pd.isna(cell) else str(cell).split()  # a single seed's all-digit hash may read as a number
+
+
 def read_caption(path: Path) -> str:
     """The caption of a table.md that write_table wrote (the paragraph before its table), or ''."""
     path = Path(path)

@@ -35,6 +35,7 @@ from pathlib import Path
 import pandas as pd
 
 from bench import archived, runs
+from bench.table_writer import listed_evaluations
 
 log = logging.getLogger("bench")
 
@@ -64,9 +65,8 @@ def sync(runs_dir: str | Path, uri: str | None = None, results_dir: str | Path |
         by_kind = {d.name: [r for r in _records(d) if r.get("status") in MIRRORED]
                    for d in sorted(p for p in runs_dir.iterdir() if p.is_dir())}
         for record in by_kind.get("eval", []):  # a training feeds the tables its evaluations feed
-            for h in ((record.get("metrics") or {}).get("train_run") or "").split("+"):
-                if h:
-                    tables.setdefault(h, []).extend(tables.get(record["hash"], []))
+            for h in runs.trainings_of(record):
+                tables.setdefault(h, []).extend(tables.get(record["hash"], []))
         replaced = []
         for kind, records in by_kind.items():
             if not records:
@@ -117,8 +117,8 @@ def _records(kind_dir: Path) -> list[dict]:
 
 
 def _tables_by_run(results_dir: Path) -> dict[str, list[tuple[str, Path]]]:
-    """run hash -> [(table name, table.csv)] for every table under `results_dir` that lists it (in its
-    `runs` or `train runs` column)."""
+    """run hash -> [(table name, table.csv)] for every table under `results_dir` that lists it in its `runs`
+    column (an evaluation; `sync` gives its trainings its tables)."""
     out: dict[str, list] = {}
     for path in sorted(results_dir.rglob("table.csv")):
         try:
@@ -126,10 +126,9 @@ def _tables_by_run(results_dir: Path) -> dict[str, list[tuple[str, Path]]]:
         except (OSError, pd.errors.ParserError, pd.errors.EmptyDataError):
             continue
         name = str(path.parent.relative_to(results_dir))
-        for column in ("runs", "train runs"):
-            for cell in table.get(column, pd.Series(dtype=object)).dropna():
-                for h in str(cell).replace("+", " ").split():
-                    out.setdefault(h, []).append((name, path))
+        for cell in table.get("runs", []):
+            for h in listed_evaluations(cell):
+                out.setdefault(h, []).append((name, path))
     return out
 
 

@@ -166,16 +166,16 @@ def test_an_archived_evaluation_holds_its_record_and_gzipped_scores_that_read_as
 
 def test_drop_unlisted_deletes_the_evaluations_no_table_lists(tmp_path, capsys):
     archive, results = tmp_path / "results" / "cpu" / "runs", tmp_path / "results" / "cpu"
-    for kind, h in (("eval", "listed"), ("eval", "stage2"), ("eval", "superseded"), ("train", "t")):
+    for kind, h in (("eval", "listed"), ("eval", "deterministic"), ("eval", "superseded"), ("train", "t")):
         (archive / kind / h).mkdir(parents=True)
         (archive / kind / h / runs.RECORD).write_text(json.dumps({"hash": h, "label": h}))
     (results / "sota").mkdir()
-    pd.DataFrame([{"method": "A", "runs": "listed"}, {"method": "B", "runs": "x+stage2"}]).to_csv(
+    pd.DataFrame([{"method": "A", "runs": "listed"}, {"method": "B", "runs": "deterministic deterministic"}]).to_csv(
         results / "sota" / "table.csv", index=False)
     assert archived.main([str(archive), "--drop-unlisted", str(results), "--dry-run"]) == 0
     assert "would delete" in capsys.readouterr().out and (archive / "eval" / "superseded").exists()
     assert archived.main([str(archive), "--drop-unlisted", str(results)]) == 0
-    assert sorted(p.name for p in (archive / "eval").iterdir()) == ["listed", "stage2"]
+    assert sorted(p.name for p in (archive / "eval").iterdir()) == ["deterministic", "listed"]
     assert (archive / "train" / "t").exists()                            # trainings are not its business
     assert archived.main([str(archive), "--drop-unlisted", str(tmp_path / "nothing")]) == 2  # no table: no
     assert "every evaluation would go" in capsys.readouterr().err

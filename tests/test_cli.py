@@ -662,7 +662,7 @@ def test_all_counts_every_seed_and_each_shared_run_once(tmp_path, caplog):
     record(store, "eval", "h0", 6, "t0+t_gone")                                 # a stage the store lost
     minutes = recorded_minutes(["h0"], store, (archive,))
     assert minutes == {"eval/h0": pytest.approx(0.1), "train/t0": pytest.approx(10.0), "train/t_gone": None}
-    assert runs.wall_time_s(store, "train", "t0+t_gone") == pytest.approx(600)
+    assert runs.wall_time_s(store, "train", runs.split_trainings("t0+t_gone")) == pytest.approx(600)
 
 
 def test_adopt_never_adopts_on_a_comparison_of_nothing():
@@ -840,5 +840,8 @@ def test_check_experiment_keys_names_a_missing_key():
     check_experiment_keys(claims.run, {"name": "c", "claims": [], "metric": "PSNR", "tables": None}, "claims")
     with pytest.raises(UserError, match="missing a required argument: 'metric'.*kind claims takes name, claims, metric"):
         check_experiment_keys(claims.run, {"name": "c", "claims": [], "tables": None}, "claims")
+    from bench.cli import run_all
+    with pytest.raises(UserError, match="no key overrides; kind all takes tables, name"):  # the caller's own
+        check_experiment_keys(run_all, {"tables": [], "overrides": []}, "all", supplied=("overrides", "results_dir"))
     out = bench("+experiment=all", "~experiment.tables", "+experiment.table=[sota]", "preset=cpu", timeout=120)
     assert out.returncode == 2 and "'all' (kind all): no key table; kind all takes tables, name" in out.stderr

@@ -451,3 +451,22 @@ def test_a_table_says_when_its_rows_scored_different_renders_of_the_split(tmp_pa
     assert "1 of 3 evaluations has no render digest" in _renders_note([[first], [first, None]])
     note = _renders_note([[first], ["other", None]])
     assert "2 different renders" in note and "1 recorded before render digests" in note
+
+
+def test_a_row_scored_on_its_own_split_gets_that_splits_frame_records_rendered(monkeypatch):
+    """Every evaluation recorded, no frame records anywhere for a row's own split: that split is rendered
+    (the caption's reference check reads the best row's split, whichever it is), and only it."""
+    import types
+
+    from bench.experiments import table
+    rendered = []
+    monkeypatch.setattr(table, "unrecorded_rows", lambda *args: [])
+    monkeypatch.setattr(table, "splits_on_disk", lambda *args, **kwargs: set())
+    monkeypatch.setattr(table, "frame_records", lambda ctx, split: [] if split == "generalization" else [{}])
+    monkeypatch.setattr(table, "ensure_data", lambda ctx, passes, needed: rendered.append(needed))
+    ctx = types.SimpleNamespace(eval=types.SimpleNamespace(split="val"), force=False, seeds=[0])
+    rows = [{"label": "Ours"}, {"label": "Ours, unseen", "split": "generalization"}]
+    assert table.render_what_runs(ctx, "t", rows, "srd", None, False, {}) is False
+    assert rendered == [{"generalization"}]
+    rendered.clear()
+    assert table.render_what_runs(ctx, "t", rows[:1], "srd", None, False, {}) is False and rendered == []

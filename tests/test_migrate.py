@@ -77,8 +77,8 @@ def test_rekey_moves_every_run_to_its_new_hash_and_rewrites_every_link(stores):
         assert ours["identity"]["trained"] == ours["metrics"]["train_run"] == ours_train
         assert (ours["identity"]["fast_path"], ours["identity"]["tile"]) == ("fp32", None)
     cascade = _record(store, "eval", _new_hash(table, "eval", CASCADE_EVAL))
-    assert cascade["identity"]["trained"] == "+".join(_new_hash(table, "train", h) for h in CASCADE_STAGES)
-    assert all((archive / "train" / h).is_dir() for h in cascade["identity"]["trained"].split("+"))
+    assert cascade["identity"]["trained"] == runs.join_trainings([_new_hash(table, "train", h) for h in CASCADE_STAGES])
+    assert all((archive / "train" / h).is_dir() for h in runs.split_trainings(cascade["identity"]["trained"]))
     bilinear = _record(store, "eval", _new_hash(table, "eval", BILINEAR_EVAL))
     assert bilinear["identity"]["trained"] == {"model": {"_target_": "baselines.classical.Bilinear"}, "task": "srd"}
     quoted = (results / "sota" / "table.csv").read_text()
@@ -130,7 +130,7 @@ def test_the_experiment_writes_its_table_and_leaves_other_kinds_alone(stores, tm
     with initialize_config_dir(config_dir=CONF_DIR, version_base=None):
         ctx = make_context(compose("config", overrides=["+experiment=migrate", f"runs_dir={store}",
                                                         f"results_dir={results}"]))
-    counts = migrate.run(ctx, "migrate", delete_dropped=False).set_index(["store", "runs"])
+    counts = migrate.run(ctx, "migrate", delete_dropped=False).set_index(["store", "kind"])
     assert counts.loc[(f"archive ({archive})", "trainings"), [migrate.REKEYED, migrate.DROPPED]].tolist() == [3, 1]
     assert counts.loc[(f"run store ({store})", "evaluations"), [migrate.REKEYED, migrate.DROPPED]].tolist() == [3, 1]
     assert (results / "migrate" / "table.md").exists() and len(pd.read_csv(results / "migrate" / "runs.csv")) == 9

@@ -302,3 +302,9 @@ def test_a_run_directory_made_empty_before_the_lock_is_filled_from_the_archive(t
     runs.archive(runs.complete(runs.begin(tmp_path / "elsewhere", "train", ident), {"PSNR": 30.0}), archive)
     (store / "train" / runs.config_hash(ident)).mkdir(parents=True)
     assert runs.begin(store, "train", ident, archive=archive).reused
+
+
+def test_an_evaluations_trainings_read_back_in_stage_order():
+    assert runs.split_trainings(runs.join_trainings(["stage1", "stage2"])) == ["stage1", "stage2"]
+    assert runs.trainings_of({"metrics": {"train_run": "a+b"}}) == ["a", "b"]
+    assert runs.trainings_of({"metrics": {"train_run": None}}) == runs.trainings_of({}) == []

@@ -1,6 +1,6 @@
 import pandas as pd
 
-from bench.table_writer import write_table
+from bench.table_writer import listed_evaluations, write_table
 
 
 def test_write_table_three_formats_with_best_in_bold(tmp_path):
@@ -37,3 +37,11 @@ def test_seed_std_and_sequence_se_are_printed_inside_their_cells(tmp_path):
     assert "34.5000 \u00b1 0.1000 (se 0.2500)" in md and "0.9000 (se 0.0200)" in md
     assert "PSNR se" not in md.splitlines()[0]
     assert list(pd.read_csv(paths["csv"]).columns) == ["method", "PSNR", "PSNR std", "PSNR se", "SSIM", "SSIM se"]
+
+
+def test_a_rows_runs_cell_reads_back_one_evaluation_per_seed(tmp_path):
+    df = pd.DataFrame([{"method": "Ours", "runs": "a1 b2 c3"}, {"method": "OIDN", "runs": "d4 d4 d4"},
+                       {"method": "paper", "runs": None}])
+    df.to_csv(tmp_path / "table.csv", index=False)
+    cells = pd.read_csv(tmp_path / "table.csv")["runs"]          # an empty cell reads back as NaN
+    assert [listed_evaluations(c) for c in cells] == [["a1", "b2", "c3"], ["d4"] * 3, []]

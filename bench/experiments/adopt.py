@@ -112,8 +112,8 @@ def evaluations_of(runs_dir: Path, train_hashes: set[str]) -> list[runs.Run]:
     out = []
     for path in sorted((runs_dir / "eval").glob(f"*/{runs.RECORD}")):
         record = runs.read_record(path) or {}
-        trained = record.get("metrics", {}).get("train_run") or ""
-        if record.get("status") == "complete" and trained and set(trained.split("+")) <= train_hashes \
+        trained = runs.trainings_of(record)
+        if record.get("status") == "complete" and trained and set(trained) <= train_hashes \
                 and record["identity"].get("version") == runs.IDENTITY_VERSION:
             out.append(runs.Run("eval", record["hash"], path.parent, record))
     return out
@@ -121,7 +121,7 @@ def evaluations_of(runs_dir: Path, train_hashes: set[str]) -> list[runs.Run]:
 
 def evaluation_code(ctx: Context, evaluation: runs.Run) -> dict:
     """Today's code fingerprint of a learned row's evaluation: the evaluator's and its model's trainer's."""
-    first = evaluation.record["metrics"]["train_run"].split("+")[0]
+    first = runs.trainings_of(evaluation.record)[0]
     model = runs.read_record(ctx.runs_dir / "train" / first / runs.RECORD)["identity"]["model"]
     return code_of(model, *EVALUATION_CODE, *TRAINING_CODE)
 
@@ -138,7 +138,7 @@ def evaluations_to_restamp(ctx: Context, adopted: set[str]) -> list[runs.Run]:
     out = []
     trainings = {p.parent.name for p in (ctx.runs_dir / "train").glob(f"*/{runs.RECORD}")}
     for evaluation in evaluations_of(ctx.runs_dir, trainings):
-        trained = evaluation.record["metrics"]["train_run"].split("+")
+        trained = runs.trainings_of(evaluation.record)
         if set(trained) & adopted and all(map(current, trained)) \
                 and ran_the_default_way(evaluation.record["identity"]) \
                 and runs.code_changes(evaluation.record, evaluation_code(ctx, evaluation)):
@@ -232,7 +232,7 @@ def run(ctx: Context, name: str, steps: int, rtol: float, rtol_later_steps: floa
         witness = group[0]
         identity = witness.record["identity"]
         code = code_of(identity["model"], *TRAINING_CODE)
-        row = {"label": witness.record.get("label"), "runs": len(group), "witness": witness.hash,
+        row = {"label": witness.record.get("label"), "runs in group": len(group), "witness": witness.hash,
                "changed": ", ".join(runs.code_changes(witness.record, code))}
         try:
             weights = row["weights"] = archived.has_weights(witness.dir)  # False: no seed's archive kept
@@ -286,11 +286,10 @@ def run(ctx: Context, name: str, steps: int, rtol: float, rtol_later_steps: floa
         f"recorded values (it trained on this render); 'recorded code' compares with the same replay by the "
         f"code the witness recorded, rebuilt from git (it trained on another render), on today's frames "
         f"(scored split: the frames both codes scored). weights false: no seed of the group kept its weights, "
-        f"so only its training was checked. Rows whose witness is an evaluation (runs 1, no step columns) are "
-        f"of models that are not trained (bilinear, OIDN) whose evaluator changed, checked on their first "
-        f"sequence. "
-        f"One row per witness, its latest check: groups "
-        f"that earlier calls adopted are no longer stale and keep their row."))
+        f"so only its training was checked. Rows whose witness is an evaluation (runs in group 1, no step "
+        f"columns) are of models that are not trained (bilinear, OIDN) whose evaluator changed, checked on "
+        f"their first sequence. One row per witness, its latest check: groups that earlier calls adopted are "
+        f"no longer stale and keep their row."))
     log.info("adopt: %d of %d groups adopted%s; table in %s", sum(r["verdict"] == "adopted" for r in rows),
              len(rows), " (dry run)" if dry_run else "", ctx.results_dir / name)
     return table
@@ -366,7 +365,7 @@ def check_untrained(ctx: Context, evaluation: runs.Run, rtol: float) -> dict:
     another render of the same settings)."""
     identity = evaluation.record["identity"]
     code = code_of(identity["trained"]["model"], *EVALUATION_CODE)
-    row = {"label": evaluation.record.get("label"), "runs": 1, "witness": evaluation.hash,
+    row = {"label": evaluation.record.get("label"), "runs in group": 1, "witness": evaluation.hash,
            "changed": ", ".join(runs.code_changes(evaluation.record, code))}
     try:
         if scored_here(ctx, evaluation):
@@ -392,7 +391,7 @@ def with_earlier_verdicts(table: pd.DataFrame, previous_csv: Path) -> pd.DataFra
     adopted group is no longer stale, so a later call would otherwise drop the record of its check)."""
     if not previous_csv.exists():
         return table
-    earlier = pd.read_csv(previous_csv)
+    earlier = pd.read_csv(previous_csv).rename(columns={"runs": "runs in group"})  # its name until session 37
     if "witness" not in earlier:
         return table
     earlier = earlier[~earlier["witness"].isin(table["witness"] if "witness" in table else [])]

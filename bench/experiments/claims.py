@@ -34,7 +34,7 @@ from bench import archived, runs, stats
 from bench.errors import UserError
 from bench.experiments import results_page
 from bench.experiments.context import Context, split_note
-from bench.table_writer import SCORED_ON, write_table
+from bench.table_writer import SCORED_ON, listed_evaluations, write_table
 
 log = logging.getLogger("bench")
 
@@ -77,13 +77,14 @@ def recipe(ctx: Context, row: pd.Series) -> str:
     from the training run of its first evaluation; "untrained" for a row that trains nothing, "runs not
     recorded" when neither the run store nor the archive has them. Tables are rerun at different times,
     so the claims of one table can stand on an earlier recipe than another's."""
-    evaluation = _record(ctx, "eval", str(row["runs"]).split()[0])
+    listed = listed_evaluations(row["runs"])
+    evaluation = _record(ctx, "eval", listed[0]) if listed else None
     if evaluation is None:
         return "runs not recorded"
     trained = evaluation["identity"].get("trained")
     if not isinstance(trained, str):   # a model that trains nothing is named by its config instead
         return "untrained"
-    training = _record(ctx, "train", trained.split("+")[0])   # a Cascade's stages share one recipe
+    training = _record(ctx, "train", runs.split_trainings(trained)[0])   # a Cascade's stages share one recipe
     if training is None:
         return "runs not recorded"
     train = training["identity"]["train"]
@@ -117,7 +118,7 @@ def _per_sequence_means(ctx: Context, eval_hash: str, cache: dict) -> pd.DataFra
 
 def _evaluations(row: pd.Series) -> list[str]:
     """A row's evaluation runs, one per seed; a deterministic row repeats one run, listed here once."""
-    return list(dict.fromkeys(str(row["runs"]).split()))
+    return list(dict.fromkeys(listed_evaluations(row["runs"])))
 
 
 def seeds_by_sequence(ctx: Context, row: pd.Series, metric: str, cache: dict) -> pd.DataFrame:
@@ -155,7 +156,7 @@ def two_se(ctx: Context, better: pd.Series, worse: pd.Series, metric: str, cache
     (unpaired, from the std columns) when both rows have several, else over one seed's per-sequence
     paired differences."""
     diff = METRICS[metric] * (float(better[metric]) - float(worse[metric]))
-    runs_b, runs_w = str(better["runs"]).split(), str(worse["runs"]).split()
+    runs_b, runs_w = listed_evaluations(better["runs"]), listed_evaluations(worse["runs"])
     std = f"{metric} std"
     if len(runs_b) > 1 and len(runs_w) > 1 and std in better and not pd.isna(better[std]):
         se = math.sqrt(float(better[std]) ** 2 / len(runs_b) + float(worse[std]) ** 2 / len(runs_w))

@@ -25,7 +25,7 @@ def evaluated(ctx: Context, cfg: dict, task: Task, seed: int, split: str, label:
     """Evaluation run of a row (training it first if needed)."""
     if cascade:
         model, stage_runs = cascade_model(ctx, cfg, seed, label)
-        train_run, trained = None, "+".join(r.hash for r in stage_runs)
+        train_run, trained = None, runs.join_trainings([r.hash for r in stage_runs])
     else:
         model, train_run = trained_model(ctx, cfg, task, seed, label, load=False)
         trained = train_run.hash if train_run else {"model": cfg, "task": task.name}
@@ -75,7 +75,7 @@ def evaluation_recorded(ctx: Context, cfg: dict, task: Task, seed: int, split: s
     hashes = reused_trainings(trainings, cascade)
     if hashes is None:
         return False
-    trained = "+".join(hashes) if cascade else hashes[0] if hashes else {"model": cfg, "task": task.name}
+    trained = runs.join_trainings(hashes) if cascade else hashes[0] if hashes else {"model": cfg, "task": task.name}
     identity, code = _evaluation_key(ctx, evaluation_data(ctx), cfg, trained, split, ctx.eval.fast_path,
                                      learned=bool(hashes))
     run = runs.reusable(ctx.runs_dir, "eval", identity, code, ctx.reuse_stale, ctx.runs_archive)

@@ -89,7 +89,7 @@ def eval_identity(old: dict, train_hashes: dict[str, str]) -> dict:
     `train_hashes` (old -> new, and new -> new); KeyError for a training in no store."""
     trained = old["trained"]
     if isinstance(trained, str):
-        trained = "+".join(train_hashes[h] for h in trained.split("+"))
+        trained = runs.join_trainings([train_hashes[h] for h in runs.split_trainings(trained)])
     if old.get("version") == runs.IDENTITY_VERSION:
         return {**old, "trained": trained}
     new = {k: v for k, v in old.items() if k not in ("path", "tile")}
@@ -220,7 +220,7 @@ def summary(table: pd.DataFrame, names: dict[str, str]) -> pd.DataFrame:
     rows = []
     for (store, kind), group in table.groupby(["store", "kind"], sort=False):
         counts = group["outcome"].value_counts()
-        rows.append({"store": names.get(store, store), "runs": "trainings" if kind == "train" else "evaluations",
+        rows.append({"store": names.get(store, store), "kind": "trainings" if kind == "train" else "evaluations",
                      **{outcome: int(counts.get(outcome, 0)) for outcome in OUTCOMES}})
     return pd.DataFrame(rows)
 
@@ -243,6 +243,6 @@ def run(ctx: Context, name: str, delete_dropped: bool) -> pd.DataFrame:
     table.assign(store=table["store"].map(lambda s: names.get(s, s))).to_csv(out_dir / "runs.csv", index=False)
     for _, row in dropped.iterrows():
         log.warning("migrate: dropped %s/%s (%s): %s", row["kind"], row["hash"], row["label"], row["reason"])
-    log.info("migrate: %s", "; ".join(f"{r['store']} {r['runs']}: " + ", ".join(f"{r[o]} {o}" for o in OUTCOMES)
+    log.info("migrate: %s", "; ".join(f"{r['store']} {r['kind']}: " + ", ".join(f"{r[o]} {o}" for o in OUTCOMES)
                                       for _, r in counts.iterrows()))
     return counts

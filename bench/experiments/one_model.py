@@ -18,6 +18,7 @@ import pandas as pd
 from bench import runs
 from bench.experiments.context import Context
 from bench.experiments.table import run as run_table
+from bench.table_writer import listed_evaluations
 
 log = logging.getLogger("bench")
 
@@ -38,7 +39,7 @@ def run(ctx: Context, name: str, model: str, overrides: dict | None = None, task
                       paper=None, figure=figure)
     if not table.empty:  # (a shard= run writes no table)
         archives = (ctx.runs_archive,) if ctx.runs_archive else ()
-        for seed, eval_hash in zip(ctx.seeds, table["runs"].iloc[0].split()):
+        for seed, eval_hash in zip(ctx.seeds, listed_evaluations(table["runs"].iloc[0])):
             log.info("%s seed %s: %s", row["label"], seed, provenance(eval_hash, ctx.runs_dir, archives, started))
     return table
 
@@ -48,7 +49,7 @@ def provenance(eval_hash: str, runs_dir, archives, started: float) -> str:
     (reused, with the label of the row that recorded it) or since."""
     said = []
     record = runs.find_record("eval", eval_hash, runs_dir, archives)[1] or {}
-    trainings = [h for h in (record.get("metrics", {}).get("train_run") or "").split("+") if h]
+    trainings = runs.trainings_of(record)
     for kind, h, rec in [("train", t, runs.find_record("train", t, runs_dir, archives)[1] or {})
                          for t in trainings] + [("eval", eval_hash, record)]:
         what = "training" if kind == "train" else "evaluation"

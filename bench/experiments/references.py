@@ -35,7 +35,7 @@ from bench.experiments.context import Context
 from bench.experiments.datasets import render_digest, split_fingerprint
 from bench.experiments.table import (REFERENCE_SHARE, evaluation_records, per_image_of, reference_errors,
                                     reference_shortfall)
-from bench.table_writer import SCORED_ON_PATTERN, read_caption, write_table
+from bench.table_writer import SCORED_ON_PATTERN, listed_evaluations, read_caption, write_table
 from bench.tasks import get_task
 
 log = logging.getLogger("bench")
@@ -70,7 +70,7 @@ def table_shortfalls(ctx: Context, frames: list[dict]) -> tuple[pd.DataFrame, di
             continue
         best = table.loc[table["relMSE"].idxmin()]
         try:
-            evaluations = evaluation_records(str(best["runs"]).split(), ctx.runs_dir, archives)
+            evaluations = evaluation_records(listed_evaluations(best["runs"]), ctx.runs_dir, archives)
         except UserError as err:  # a table of another run store (or of your frames, never archived)
             leave_out(name, str(err))
             continue

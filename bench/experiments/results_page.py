@@ -19,7 +19,7 @@ from pathlib import Path
 
 import pandas as pd
 
-from bench.table_writer import SCORED_ON_PATTERN, read_caption
+from bench.table_writer import SCORED_ON_PATTERN, listed_evaluations, read_caption
 
 PAGE = "README.md"
 ROOT = Path(__file__).resolve().parents[2]   # the repository
@@ -99,7 +99,7 @@ def _recipe(caption: str) -> list[str]:
 
 def _seeds(row: pd.Series) -> int:
     """Distinct evaluations of a row (a deterministic row repeats one per seed)."""
-    return len(set(row["runs"].split())) if isinstance(row.get("runs"), str) else 0
+    return len(set(listed_evaluations(row.get("runs"))))
 
 
 def _mean_std(row: pd.Series, column: str, digits: int) -> str:

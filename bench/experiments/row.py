@@ -24,7 +24,7 @@ def recorded_minutes(eval_hashes, runs_dir: str | Path, archives=()) -> dict[str
             minutes[f"eval/{h}"] = None
             continue
         minutes[f"eval/{h}"] = (record.get("wall_time_s") or 0.0) / 60
-        for t in filter(None, (record.get("metrics", {}).get("train_run") or "").split("+")):
+        for t in runs.trainings_of(record):
             seconds = runs.recorded_wall_s("train", t, runs_dir, archives)
             minutes[f"train/{t}"] = None if seconds is None else seconds / 60
     return minutes
@@ -61,11 +61,11 @@ def row(ctx: Context, label: str, model: str, overrides: dict | None = None, tas
         out[f"{metric} se"] = float(np.mean([r.metrics[f"{metric} se"] for r in results]))
     out["params"] = results[0].metrics.get("params", 0)
     # what this row cost to compute, whenever it was computed (a reused run keeps its recorded time)
-    out["train (min)"] = float(np.mean([runs.wall_time_s(ctx.runs_dir, "train", r.metrics.get("train_run"))
+    out["train (min)"] = float(np.mean([runs.wall_time_s(ctx.runs_dir, "train", runs.trainings_of(r.record))
                                         for r in results])) / 60
     out["eval (min)"] = float(np.mean([r.record.get("wall_time_s") or 0.0 for r in results])) / 60
     gains = [last_fifth_gain(ctx.runs_dir / "train" / h / "val_curve.csv") for r in results
-             for h in (r.metrics.get("train_run") or "").split("+") if h]
+             for h in runs.trainings_of(r.record)]
     gains = [g for g in gains if g is not None]
     out["last fifth (dB)"] = float(np.mean(gains)) if gains else None
     vgg = results[0].metrics.get("vgg")
@@ -73,11 +73,10 @@ def row(ctx: Context, label: str, model: str, overrides: dict | None = None, tas
     out["renders"] = [r.metrics.get("render") for r in results]  # None: recorded before digests
     out["rounded"] = sum(bool(r.metrics.get("rounded_weights")) for r in results)
     trainings = [runs.read_record(ctx.runs_dir / "train" / h / runs.RECORD) for r in results
-                 for h in (r.metrics.get("train_run") or "").split("+")[:1] if h]  # a Cascade's stages: one recipe
+                 for h in runs.trainings_of(r.record)[:1]]  # a Cascade's stages: one recipe
     code = code_of(cfg, *TRAINING_CODE)
     out["stale"] = sum(bool(record and runs.code_changes(record, code)) for record in trainings)
     out["runs"] = " ".join(r.hash for r in results)
-    out["train runs"] = " ".join(t for r in results if r.metrics.get("train_run")
-                                 for t in r.metrics["train_run"].split("+"))
+    out["train runs"] = [t for r in results for t in runs.trainings_of(r.record)]  # the curves figure reads them
     out["reused"] = all(r.reused for r in results)
     return out

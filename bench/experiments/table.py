@@ -39,7 +39,7 @@ from bench.macs import count_macs, on_meta
 from bench.metrics import HIGHER_IS_BETTER, LOWER_IS_BETTER, RELMSE_FORMULA
 from bench.models.factory import build_model, is_learned
 from bench.paper import TABLES, paper_values
-from bench.table_writer import SCORED_ON, write_table
+from bench.table_writer import SCORED_ON, listed_evaluations, write_table
 from bench.tasks import CASCADE_STAGES, get_task
 
 log = logging.getLogger("bench")
@@ -281,7 +281,7 @@ def _reference_note(ctx: Context, frames: Context, table: pd.DataFrame, rows: li
         return ""
     scored = row_def.get("split", split) or ctx.eval.split
     return reference_check(frame_records(frames, scored),
-                           per_image_of(evaluation_records(best["runs"].split(), ctx.runs_dir)), best["method"], target[:2])
+                           per_image_of(evaluation_records(listed_evaluations(best["runs"]), ctx.runs_dir)), best["method"], target[:2])
 
 
 def unrecorded_rows(ctx: Context, rows: list[dict], split: str | None, trainings: dict) -> list[dict]:
@@ -301,13 +301,15 @@ def render_what_runs(ctx: Context, name: str, rows: list[dict], task: str, split
     """Render the data this table computes from, and nothing else: the splits of the evaluations not
     recorded (`unrecorded_rows`); the training and working splits when a training must run for them or
     for the figure (`trainings`: (label, seed) -> its `training_records`); the scored split when the
-    crops figure is redrawn (where that split is rendered as the preset specifies it) or when its frame
-    records, which the caption's reference check reads, are neither there nor archived. Returns whether
-    the figure is redrawn."""
+    crops figure is redrawn (where that split is rendered as the preset specifies it); and each row's
+    scored split whose frame records, which the caption's reference check reads for the best row, are
+    neither there nor archived. Returns whether the figure is redrawn."""
     pending = unrecorded_rows(ctx, rows, split, trainings)
     needed = {r.get("split", split) or ctx.eval.split for r in pending}
     shown = split or ctx.eval.split
-    if (figure and shown in splits_on_disk(ctx, as_specified=True)) or not frame_records(ctx, shown):
+    scored = {r.get("split", split) or ctx.eval.split for r in rows}
+    needed |= {s for s in scored if not frame_records(ctx, s)}
+    if figure and shown in splits_on_disk(ctx, as_specified=True):
         needed.add(shown)
     drawn = figure and shown in needed
     loading = {(r["label"], seed) for r in pending for seed in ctx.seeds} | (
@@ -408,7 +410,7 @@ def run(ctx: Context, name: str, rows: list[dict], caption: str = "", task: str 
               "what the validation PSNR (learning curve subset) gained over the last fifth of training, a "
               "seed average; near 0: the curve has flattened.")
     out_dir = ctx.results_dir / name
-    curves = {label: hashes.split() for label, hashes in zip(table["method"], table.pop("train runs")) if hashes}
+    curves = {label: hashes for label, hashes in zip(table["method"], table.pop("train runs")) if hashes}
     write_table(table.drop(columns=["reused"]), out_dir, caption=f"{caption} {notes}".strip(),
                 lower_is_better=LOWER_IS_BETTER, higher_is_better=HIGHER_IS_BETTER)
     if drawn:
