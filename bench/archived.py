@@ -247,14 +247,17 @@ def convert_evaluation(run_dir: Path) -> bool:
 
 
 def convert(run_dir: Path) -> bool:
-    """Convert one archived training in place to the compact form; False when it already is one. The
-    compact files are written before the full ones go, so an interrupted conversion loses nothing."""
+    """Convert one archived training in place to the compact form; False when it already is one, or is not
+    complete (an interrupted run's checkpoint is what it resumes from). The compact files are written
+    before the full ones go, so an interrupted conversion loses nothing."""
     run_dir = Path(run_dir)
     if not ((run_dir / CHECKPOINT).exists() or (run_dir / CURVE).exists()):
         return False
     record = runs.read_record(run_dir / runs.RECORD)
     if record is None:
         raise ValueError(f"{run_dir / runs.RECORD} is missing or damaged: not converted")
+    if record.get("status") != "complete":
+        return False
     write(run_dir, run_dir, record)
     (run_dir / CHECKPOINT).unlink(missing_ok=True)
     (run_dir / CURVE).unlink(missing_ok=True)
@@ -267,14 +270,25 @@ def convert_archive(archive_dir: Path) -> int:
     def runs_of(kind):
         return sorted(p.parent for p in Path(archive_dir).glob(f"{kind}/*/{runs.RECORD}")
                       if not p.parent.name.startswith("."))
-    return sum(convert(d) for d in runs_of("train")) + sum(convert_evaluation(d) for d in runs_of("eval"))
+    converted = 0
+    jobs = [(d, convert) for d in runs_of("train")] + [(d, convert_evaluation) for d in runs_of("eval")]
+    for run_dir, conversion in jobs:
+        try:
+            converted += conversion(run_dir)
+        except Exception as err:  # a damaged file: name the run; those before it are converted, it is unchanged
+            raise ValueError(f"{run_dir}: not converted ({type(err).__name__}: {err}); "
+                             f"{converted} runs before it were") from err
+    return converted
 
 
 def listed_runs(results_dir: Path) -> set[str]:
     """The evaluations the tables under `results_dir` list (every `table.csv`'s `runs` column)."""
     listed = set()
     for table in Path(results_dir).rglob("table.csv"):
-        frame = pd.read_csv(table)
+        try:
+            frame = pd.read_csv(table, dtype={"runs": str})  # hashes, never numbers
+        except (ValueError, pd.errors.ParserError, UnicodeDecodeError) as err:
+            raise ValueError(f"{table} does not read ({err}): nothing is deleted") from err
         if "runs" in frame:
             listed.update(h for cell in frame["runs"] for h in listed_evaluations(cell))
     return listed
@@ -295,6 +309,23 @@ def _size(path: Path) -> int:
     return sum(p.stat().st_size for p in Path(path).rglob("*") if p.is_file())
 
 
+def archive_problem(archive: Path, results_dir: Path | None) -> str | None:
+    """Why `archive` is not one this tool may change, or None: it must be a run archive, not a run store
+    (whose checkpoints resume trainings), and the tables that --drop-unlisted reads must be those of the
+    results dir it serves (its parent, as runs_archive follows results_dir): any other folder lists only
+    some of its evaluations, and the rest would go."""
+    if not ((archive / "train").is_dir() or (archive / "eval").is_dir()):
+        return f"{archive} holds no train/ or eval/ directory: not a run archive"
+    if any((archive / name).exists() for name in ("data", "hydra", "mlflow.db")):
+        return (f"{archive} is a run store (it holds data/, hydra/ or mlflow.db), not an archive "
+                "(results/<preset>/runs): its full checkpoints are what trainings resume from")
+    if results_dir is not None and results_dir.resolve() != archive.resolve().parent:
+        return (f"--drop-unlisted {results_dir}: the tables that list {archive}'s evaluations are under "
+                f"{archive.resolve().parent} (the results dir it is the archive of); another folder lists only "
+                "some of them")
+    return None
+
+
 def main(argv=None) -> int:
     parser = argparse.ArgumentParser(prog="python -m bench.archived",
                                      description="Convert a run archive's trainings and evaluations in place to the compact form.")
@@ -303,8 +334,9 @@ def main(argv=None) -> int:
                         help="instead: delete the evaluations no table under RESULTS_DIR (e.g. results/cpu) lists")
     parser.add_argument("--dry-run", action="store_true", help="with --drop-unlisted: name them, delete nothing")
     args = parser.parse_args(argv)
-    if not ((args.archive / "train").is_dir() or (args.archive / "eval").is_dir()):
-        print(f"error: {args.archive} holds no train/ or eval/ directory: not a run archive", file=sys.stderr)
+    problem = archive_problem(args.archive, args.drop_unlisted)
+    if problem:
+        print(f"error: {problem}", file=sys.stderr)
         return 2
     if args.drop_unlisted is not None:
         try:
@@ -321,7 +353,11 @@ def main(argv=None) -> int:
               + (" (dry run: none deleted)" if args.dry_run else " deleted"))
         return 0
     before, t0 = _size(args.archive), time.perf_counter()
-    converted = convert_archive(args.archive)
+    try:
+        converted = convert_archive(args.archive)
+    except ValueError as err:
+        print(f"error: {err}", file=sys.stderr)
+        return 2
     after = _size(args.archive)
     print(f"{args.archive}: {converted} runs converted in {time.perf_counter() - t0:.1f} s; "
           f"{before} -> {after} bytes ({before / 2**20:.1f} -> {after / 2**20:.1f} MiB)")

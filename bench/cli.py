@@ -26,7 +26,7 @@ from bench.errors import UserError
 from bench.exrio import ExrError
 from bench.infer import keep_freed_memory
 from bench.measure import fused_kernels_on_cuda
-from bench.runs import ensure_writable, out_of_space
+from bench.runs import PATH_ERRORS, ensure_writable, out_of_space, said
 from bench.train import TrainingInterrupted
 from bench.experiments import KINDS, RUNLESS_KINDS
 
@@ -124,6 +124,33 @@ def key_problem(args: list[str], chosen: set[tuple[str, str]]) -> str | None:
     return None
 
 
+def composition_problem(args: list[str]) -> str | None:
+    """What Hydra cannot compose from the command line (a misspelt dotted key, an unknown preset, a value it
+    cannot parse) as one line: its own message is a block, with exit 1. Left to Hydra when a flag is given
+    (-m sweeps, --cfg), whose values it reads itself."""
+    from hydra import compose, initialize_config_dir
+    from hydra.errors import HydraException
+    if any(arg.startswith("-") for arg in args):
+        return None
+    try:
+        with initialize_config_dir(config_dir=CONF_DIR, version_base=None):
+            compose(config_name="config", overrides=args)
+    except HydraException as err:
+        lines = [line.strip() for line in str(err).splitlines() if line.strip()]
+        missing = re.fullmatch(r"Could not override '(.+)'\.", lines[0])
+        if missing and isinstance(err.__cause__, Exception) and "not in struct" in str(err.__cause__):
+            arg = next((a for a in args if a.split("=", 1)[0] == missing.group(1)), missing.group(1))
+            return f"{arg}: the config has no key {missing.group(1)} (a new key is +{arg})"
+        if "Config search path:" in lines:
+            lines = lines[:lines.index("Config search path:")]
+        said, listing = lines[0], False  # a heading's items ("Available options in 'preset':") on its line
+        for before, line in zip(lines, lines[1:]):
+            listing = before.endswith(":") or (listing and not line.endswith(":"))
+            said += (" " if before.endswith(":") else ", " if listing else "; ") + line
+        return said
+    return None
+
+
 def _config_keys(path: Path) -> set[str]:
     return set(yaml.safe_load(path.read_text()) or {}) - {"defaults"}
 
@@ -131,6 +158,14 @@ def _config_keys(path: Path) -> set[str]:
 _TRAIN_POSITIVE_INTS = ("steps", "batch_size", "seq_len", "crop", "checkpoint_every")
 _TRAIN_NON_NEGATIVE_INTS = ("val_every", "val_sequences")
 _TRAIN_POSITIVE_NUMBERS = ("lr", "checkpoint_every_s")
+_FLAGS = ("render_data", "force", "reuse_stale", "keep_freed_memory", "progress", "vgg.allow_random", "eval.save_exr")
+_TRAIN_RANGES = (  # (key, what is allowed, check)
+    ("warmup", "a fraction of the steps in [0, 1)", lambda v: _is_number(v) and 0 <= v < 1),
+    ("halve_every", "a fraction of the steps in (0, 1]", lambda v: _is_number(v) and 0 < v <= 1),
+    ("ema", "null or a decay in [0, 1)", lambda v: v is None or (_is_number(v) and 0 <= v < 1)),
+    ("clip_grad_norm", "null or a positive number", lambda v: v is None or (_is_number(v) and v > 0)),
+    ("betas", "two numbers in [0, 1), e.g. [0.9,0.99]",
+     lambda v: isinstance(v, list) and len(v) == 2 and all(_is_number(b) and 0 <= b < 1 for b in v)))
 # model arguments that are widths or counts (channels, blocks, layers, kernel sizes, ...): integers >= 1,
 # or >= 0 for the optional parts (deformable blocks, gBuffer channels)
 _MODEL_COUNT = re.compile(r"(channels|blocks|width|layers|size|hidden|dilation)$")
@@ -161,6 +196,11 @@ def train_problems(train: dict, data: dict | None, where: str = "train.") -> lis
                  for key in _TRAIN_NON_NEGATIVE_INTS if not (_is_int(train.get(key)) and train[key] >= 0)]
     problems += [f"{where}{key}={train.get(key)!r}: expected a positive number"
                  for key in _TRAIN_POSITIVE_NUMBERS if not (_is_number(train.get(key)) and train[key] > 0)]
+    problems += [f"{where}{key}={value!r}: expected {allowed}" for key, allowed, ok in _TRAIN_RANGES
+                 if key in train and not ok(value := train[key])]
+    problems += [f"{where}{key}={train[key]!r}: expected true or false" for key in ("colour_permute", "channels_last")
+                 if key in train and not isinstance(train[key], bool)]
+    problems += loss_problems(train.get("loss"), where)
     if problems or data is None:
         return problems
     width, height, frames = data.get("lr_width"), data.get("lr_height"), data.get("seq_len")
@@ -170,6 +210,25 @@ def train_problems(train: dict, data: dict | None, where: str = "train.") -> lis
     if _is_int(frames) and train["seq_len"] > frames:
         problems.append(f"{where}seq_len={train['seq_len']}: longer than the dataset's sequences "
                         f"({frames} frames, data.seq_len)")
+    return problems
+
+
+def loss_problems(loss, where: str) -> list[str]:
+    """Bad loss weights: each stage's terms known to bench.losses, each weight a number >= 0."""
+    from bench.losses import absolute_weights
+    problems = []
+    for stage, weights in (loss or {}).items():
+        if not isinstance(weights, dict):
+            problems.append(f"{where}loss.{stage}={weights!r}: expected a mapping of loss terms to weights")
+            continue
+        bad = [f"{where}loss.{stage}.{term}={w!r}: expected a number >= 0" for term, w in weights.items()
+               if not (_is_number(w) and w >= 0)]
+        if not bad:
+            try:
+                absolute_weights(weights)
+            except ValueError as err:
+                bad = [f"{where}loss.{stage}: {err}"]
+        problems += bad
     return problems
 
 
@@ -245,6 +304,11 @@ def config_problems(plain: dict) -> list[str]:
     for name, lr in (plain.get("model_lr") or {}).items():
         if not (_is_number(lr) and lr > 0):
             problems.append(f"model_lr.{name}={lr!r}: expected a positive number")
+        if name not in (plain.get("models") or {}):
+            problems.append(f"model_lr.{name}: no model {name} (models: {', '.join(plain.get('models') or {})})")
+    # a missing flag (None) is its reader's to name
+    problems += [f"{key}={_lookup(plain, key)!r}: expected true or false" for key in _FLAGS
+                 if not isinstance(_lookup(plain, key), (bool, type(None)))]
     try:
         if _lookup(plain, "eval.fast_path") != "auto":  # auto: chosen by measurement (bench.measure)
             parse_path(_lookup(plain, "eval.fast_path"))
@@ -315,10 +379,12 @@ def run_all(overrides: list[str], results_dir: Path, tables: list[str], name: st
     from hydra import compose
     from bench.experiments import results_page
     from bench.table_writer import write_table
+    unknown = [t for t in tables if t not in available_experiments() or t == "all"]
+    if unknown:  # before the first table runs (it may train for hours)
+        raise UserError(f"experiment.tables: unknown experiment {unknown[0]!r}; available: "
+                        + ", ".join(e for e in available_experiments() if e != "all"))
     rows, every_run, preset = [], {}, None
     for experiment in tables:
-        if experiment not in available_experiments() or experiment == "all":
-            raise UserError(f"experiment.tables: unknown experiment {experiment!r}")
         t0 = time.perf_counter()
         cfg = compose(config_name="config", overrides=overrides + [f"+experiment={experiment}"])
         run_experiment(cfg)
@@ -538,7 +604,7 @@ def mirror_runs(tracking: str, runs_dir: Path, uri: str | None, results_dir: Pat
 
 def entry() -> None:
     """`python -m bench`: an unknown experiment or study is one line, then Hydra parses the rest."""
-    problem = choice_problem(sys.argv[1:])
+    problem = choice_problem(sys.argv[1:]) or composition_problem(sys.argv[1:])
     if problem:
         print(f"error: {problem}", file=sys.stderr)
         sys.exit(2)
@@ -565,8 +631,8 @@ def main(cfg: DictConfig) -> None:
     try:
         with fused_kernels_on_cuda():
             run_or_serve(cfg)
-    except (UserError, PermissionError, FileNotFoundError) as err:
-        print(f"error: {err}", file=sys.stderr)
+    except (UserError, *PATH_ERRORS) as err:
+        print(f"error: {said(err)}", file=sys.stderr)
         sys.exit(getattr(err, "exit_code", 2))
     except KeyboardInterrupt as err:  # outside a training step (rendering, evaluating): nothing recorded is lost
         print("interrupted: runs recorded so far are kept; the same command again reuses them and resumes "

@@ -35,6 +35,7 @@ import numpy as np
 import torch
 
 from bench import exrio, score
+from bench.runs import PATH_ERRORS, said
 from bench.dataset import DEFAULT_ROUGHNESS, GBUF_SIZES
 from bench.errors import UserError
 from bench.evaluate import predict as predict_batch
@@ -275,8 +276,8 @@ def main(argv: list[str] | None = None) -> int:
             for path in apply(model, meta, args.inputs, args.output_dir, args.tile, args.fast_path, limit):
                 print(path)
         return 0
-    except (UserError, exrio.ExrError) as err:
-        print(f"error: {err}", file=sys.stderr)
+    except (UserError, exrio.ExrError, *PATH_ERRORS) as err:
+        print(f"error: {said(err)}", file=sys.stderr)
         return 2
 
 

@@ -671,6 +671,20 @@ def flatten(d: dict, prefix: str = "") -> dict:
     return out
 
 
+# What a command line can cause besides a UserError: a path that is missing or not writable, a file where a
+# folder belongs or the reverse. The entry points print these as one line too (exit 2).
+PATH_ERRORS = (PermissionError, FileNotFoundError, FileExistsError, NotADirectoryError, IsADirectoryError)
+
+
+def said(err: BaseException) -> str:
+    """The one line an entry point prints for a UserError or one of PATH_ERRORS."""
+    if isinstance(err, (FileExistsError, NotADirectoryError)) and err.filename:
+        return f"{err.filename}: a file stands where a folder is needed on this path ({err.strerror})"
+    if isinstance(err, IsADirectoryError) and err.filename:
+        return f"{err.filename}: a folder stands where a file is needed ({err.strerror})"
+    return str(err)
+
+
 def ensure_writable(path: Path, setting: str = "runs_dir") -> None:
     """Create `path` and prove it writable, or raise PermissionError naming the setting to change."""
     try:

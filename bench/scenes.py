@@ -26,12 +26,10 @@ DIFFUSE_BSDFS = {"diffuse"}
 GLOSSY_BSDFS = {"roughconductor", "roughplastic", "principled", "roughdielectric"}
 DELTA_BSDFS = {"conductor", "dielectric", "thindielectric", "plastic"}
 TRANSMISSIVE_BSDFS = {"dielectric", "roughdielectric", "thindielectric"}
-WRAPPER_BSDFS = {"twosided", "mask", "bumpmap", "normalmap", "blendbsdf"}
 METALS = ("Au", "Cu", "Al", "Ag", "Cr")
 # Camera volume: away from walls and above the furniture (every free-standing object is under 1.25 m).
 CAMERA_WALL_MARGIN = 0.7
 CAMERA_MIN_HEIGHT = 1.35
-OBJECT_MAX_HEIGHT = 1.25
 
 
 # ----------------------------------------------------------------------------------------------------------

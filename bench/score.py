@@ -132,6 +132,9 @@ def table_with(label: str, scores: dict, table: str | Path | None = None) -> pd.
         rows = runs.read_or_none(Path(table), pd.read_csv)
         if rows is None or "method" not in rows:
             raise UserError(f"--table {table}: not a readable results table (a CSV with a `method` column)")
+        if not set(SCORES) & set(rows.columns):
+            raise UserError(f"--table {table}: none of the score columns {', '.join(SCORES)}: the new row "
+                            "would show nothing; give a metrics table (results/<preset>/<name>/table.csv)")
     rows = rows.astype({c: object for c in rows.columns if pd.api.types.is_integer_dtype(rows[c])})  # ints stay ints
     row = {c: scores.get(c, math.nan) for c in rows.columns if c != "method"}
     new = pd.DataFrame([{"method": label, **row}], columns=rows.columns)
@@ -171,6 +174,8 @@ def compare(per_image: pd.DataFrame, scores: dict, run_dir: str | Path, rtol: fl
                 d = max((rel(a, b) for a, b in zip(merged[name], merged[f"{name} recorded"])), default=0.0)
                 worst = max(worst, d)
                 lines.append(f"{name} per frame: largest relative difference {d:.2e} over {len(merged)} frames")
+    else:
+        lines.append(f"per frame: not compared ({run_dir} holds no per-frame scores); the aggregates only")
     if not lines:
         raise UserError(f"--against {run_dir}: its record holds none of the scores {list(SCORES)}")
     ok = worst <= rtol
@@ -189,14 +194,21 @@ def add_parser(commands) -> None:
     sc.add_argument("--out-dir", help="where per_image.csv and table.csv/.md/.tex go (default: --outputs)")
     sc.add_argument("--against", help="an evaluation run's folder: compare the scores with its recorded ones")
     sc.add_argument("--rtol", type=float, default=1e-6, help="relative tolerance of --against (default 1e-6)")
+    sc.add_argument("--accept-nonfinite", action="store_true",
+                    help="score outputs holding NaN or Inf as they are (their frames' scores are then NaN)")
 
 
 def run(args) -> int:
     """`srd-bench score`: 0, or 1 when `--against` finds a difference over `--rtol`."""
     per_image, scores, nonfinite = score(args.outputs, args.data, args.split)
+    if nonfinite and not args.accept_nonfinite:
+        raise UserError(f"{len(nonfinite)} of the outputs hold NaN or Inf values, e.g. {nonfinite[0]}: their "
+                        "scores are undefined; repair the method's outputs, or --accept-nonfinite scores them as "
+                        "they are")
     for path in nonfinite:
         print(f"{path}: holds non-finite values; scored as they are", file=sys.stderr)
     table = table_with(args.label, scores, args.table)
+    compared = compare(per_image, scores, args.against, args.rtol) if args.against else None  # before writing
     out_dir = Path(args.out_dir or args.outputs)
     try:
         out_dir.mkdir(parents=True, exist_ok=True)
@@ -208,8 +220,8 @@ def run(args) -> int:
     print(to_markdown(table, LOWER_IS_BETTER, HIGHER_IS_BETTER))
     print(f"{scores['images']} frames, {scores['sequences']} sequences; wrote {out_dir / 'per_image.csv'}, "
           f"{', '.join(str(p) for p in written.values())}", file=sys.stderr)
-    if args.against:
-        lines, ok = compare(per_image, scores, args.against, args.rtol)
+    if compared:
+        lines, ok = compared
         print("\n".join(lines))
         return 0 if ok else 1
     return 0

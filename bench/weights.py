@@ -41,16 +41,28 @@ def training_record(run_hash: str, runs_dir: str | Path = "runs") -> Path:
     return path
 
 
+def finished_training(run_hash: str, runs_dir: str | Path = "runs") -> tuple[Path, dict]:
+    """(run.json path, record) of training run `run_hash`, which must be complete and a whole model (not an
+    interrupted run's last checkpoint, nor one stage of a Cascade)."""
+    path = training_record(run_hash, runs_dir)
+    record = runs.read_record(path)
+    if record is None:
+        raise UserError(f"{path} does not read (damaged); train the run again")
+    if record.get("status") != "complete":
+        raise UserError(f"training run {run_hash} is {record.get('status')!r}, not complete: its weights are "
+                        "not the trained model's; run its table again to finish it")
+    if record["identity"].get("stage"):
+        raise UserError(f"run {run_hash} trained one stage of a Cascade; use a whole model's run")
+    return path, record
+
+
 def export(run_hash: str, out: str | Path, runs_dir: str | Path = "runs") -> Path:
     """Write the weights of the complete training run `run_hash` to `out` (+ `out`.json)."""
-    path = training_record(run_hash, runs_dir)
-    record = json.loads(path.read_text())
-    if record.get("status") != "complete":
-        raise UserError(f"training run {run_hash} is {record.get('status')!r}, not complete: nothing to export")
+    if Path(out).is_dir():
+        raise UserError(f"--out {out} is a folder: give the weights file's path, e.g. {Path(out) / 'weights.pt'}")
+    path, record = finished_training(run_hash, runs_dir)
     identity = record["identity"]
     cfg, task = identity["model"], get_task(identity["task"])
-    if identity.get("stage"):
-        raise UserError(f"run {run_hash} trained one stage of a Cascade; export a whole model's run")
     if not archived.has_weights(path.parent):
         seed = identity.get("seed", record.get("seed"))
         raise UserError(f"training run {run_hash} has no weights in {path.parent}: the archive keeps files over "
@@ -130,6 +142,10 @@ def load_exported(path: str | Path):
         raise UserError(f"{path} is " + (f"an SRD-Bench weights file of a newer format ({saved['format']}): update "
                                          "SRD-Bench to read it" if newer else
                                          "not an SRD-Bench weights file (write one with `srd-bench export RUN`)"))
+    lacking = [key for key in ("model", "scale") if key not in saved]
+    if lacking or not ({COMPACT, "state_dict"} & set(saved)):
+        raise UserError(f"{path}: an SRD-Bench weights file without its {', '.join(lacking) or 'weights'}: "
+                        "damaged or not written by `srd-bench export`; export it again")
     try:
         state = archived.decode(saved[COMPACT]) if COMPACT in saved else saved["state_dict"]
     except (KeyError, ValueError, RuntimeError, EOFError, lzma.LZMAError) as err:
@@ -140,8 +156,8 @@ def load_exported(path: str | Path):
 
 def from_run(run_hash: str, runs_dir: str | Path = "runs"):
     """(model, metadata) of a recorded training run, without exporting it."""
-    path = training_record(run_hash, runs_dir)
-    identity = json.loads(path.read_text())["identity"]
+    path, record = finished_training(run_hash, runs_dir)
+    identity = record["identity"]
     task = get_task(identity["task"])
     checkpoint = archived.weights_file(path.parent)
     if checkpoint is None:

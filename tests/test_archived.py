@@ -177,5 +177,31 @@ def test_drop_unlisted_deletes_the_evaluations_no_table_lists(tmp_path, capsys):
     assert archived.main([str(archive), "--drop-unlisted", str(results)]) == 0
     assert sorted(p.name for p in (archive / "eval").iterdir()) == ["deterministic", "listed"]
     assert (archive / "train" / "t").exists()                            # trainings are not its business
-    assert archived.main([str(archive), "--drop-unlisted", str(tmp_path / "nothing")]) == 2  # no table: no
+    for elsewhere in (results / "sota", tmp_path / "results" / "smoke"):  # some tables, or another preset's
+        assert archived.main([str(archive), "--drop-unlisted", str(elsewhere)]) == 2
+        assert "another folder lists only some of them" in capsys.readouterr().err
+    assert sorted(p.name for p in (archive / "eval").iterdir()) == ["deterministic", "listed"]
+    (results / "sota" / "table.csv").write_bytes(b"\xff\xfe\x00 not a table")
+    assert archived.main([str(archive), "--drop-unlisted", str(results)]) == 2
+    assert f"{results / 'sota' / 'table.csv'} does not read" in capsys.readouterr().err
+    (results / "sota" / "table.csv").unlink()
+    assert archived.main([str(archive), "--drop-unlisted", str(results)]) == 2  # no table: no
     assert "every evaluation would go" in capsys.readouterr().err
+
+
+def test_conversion_leaves_a_run_store_and_unfinished_trainings_alone_and_names_a_damaged_run(tmp_path, capsys):
+    store = tmp_path / "runs"
+    run = _trained_run(store)
+    (store / "data").mkdir()
+    assert archived.main([str(store)]) == 2 and "is a run store" in capsys.readouterr().err
+    assert (run.dir / CHECKPOINT).exists()
+    archive = tmp_path / "results" / "runs"
+    shutil.copytree(run.dir, archive / "train" / run.hash)
+    record = json.loads((archive / "train" / run.hash / runs.RECORD).read_text())
+    (archive / "train" / run.hash / runs.RECORD).write_text(json.dumps({**record, "status": "interrupted"}))
+    assert archived.convert_archive(archive) == 0                    # its checkpoint is what it resumes from
+    assert (archive / "train" / run.hash / CHECKPOINT).exists()
+    (archive / "train" / run.hash / runs.RECORD).write_text(json.dumps(record))
+    (archive / "train" / run.hash / CHECKPOINT).write_bytes(b"cut short")
+    assert archived.main([str(archive)]) == 2
+    assert f"{archive / 'train' / run.hash}: not converted" in capsys.readouterr().err

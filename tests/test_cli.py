@@ -553,6 +553,16 @@ def test_shard_parses_i_over_n_and_rejects_the_rest():
     ("~train.precision", "train: missing train.* keys ['precision']"),
     ("eval.tile=0", "eval.tile=0: expected null (whole frames) or a positive integer"),
     ("experiment.rows.1.label=Input bilinear", "experiment.rows: the label 'Input bilinear' names 2 rows"),
+    ("train.clip_grad_norm=-1", "train.clip_grad_norm=-1: expected null or a positive number"),
+    ("train.warmup=5", "train.warmup=5: expected a fraction of the steps in [0, 1)"),
+    ("train.ema=abc", "train.ema='abc': expected null or a decay in [0, 1)"),
+    ("train.betas=[2,3]", "train.betas=[2, 3]: expected two numbers in [0, 1)"),
+    ("train.colour_permute=maybe", "train.colour_permute='maybe': expected true or false"),
+    ("train.loss.final.edge=-1", "train.loss.final.edge=-1: expected a number >= 0"),
+    ("+train.loss.final.ssmi=1", "train.loss.final: unknown loss terms ['ssmi']"),
+    ("force=maybe", "force='maybe': expected true or false"),
+    ("eval.save_exr=maybe", "eval.save_exr='maybe': expected true or false"),
+    ("+model_lr.srdd=1e-3", "model_lr.srdd: no model srdd (models: srd, "),
 ])
 def test_every_bad_value_is_one_line_naming_key_value_and_rule(tmp_path, override, message):
     with pytest.raises(UserError) as err:
@@ -845,3 +855,36 @@ def test_check_experiment_keys_names_a_missing_key():
         check_experiment_keys(run_all, {"tables": [], "overrides": []}, "all", supplied=("overrides", "results_dir"))
     out = bench("+experiment=all", "~experiment.tables", "+experiment.table=[sota]", "preset=cpu", timeout=120)
     assert out.returncode == 2 and "'all' (kind all): no key table; kind all takes tables, name" in out.stderr
+
+
+@pytest.mark.parametrize("args, message", [
+    (["train.step=5"], "train.step=5: the config has no key train.step (a new key is +train.step=5)"),
+    (["+experiment=claims", "experiment.metrc=SSIM"], "experiment.metrc=SSIM: the config has no key experiment.metrc"),
+    (["preset=nonexistent"], "Could not find 'preset/nonexistent'; Available options in 'preset': cpu, gpu, paper, smoke"),
+    (["seeds=0,1"], "Ambiguous value for argument 'seeds=0,1'; 1. To use it as a list"),
+    (["train.steps=3"], None), (["-m", "seeds=0,1"], None),   # composes; a sweep is Hydra's to expand
+])
+def test_what_hydra_cannot_compose_is_one_line(args, message):
+    from bench.cli import composition_problem
+    said = composition_problem(args)
+    assert said == message if message is None else (message in said and "\n" not in said)
+
+
+def test_unknown_names_stop_all_and_claims_before_anything_runs(tmp_path):
+    from bench.cli import run_all
+    from bench.experiments import claims
+    with pytest.raises(UserError, match="unknown experiment 'sotaa'; available: .*macs"):
+        run_all([], tmp_path, ["macs", "sotaa"])                  # macs is not run first
+    assert not list(tmp_path.iterdir())
+    rows = [{"claim": "c", "better": "sota:A", "worse": "sota:B"}]
+    with pytest.raises(UserError, match="experiment.metric=psnr: the claims are decided on one of PSNR, SSIM"):
+        claims.run(None, "claims", rows, "psnr", None)
+    for tables in (["sota", "dilaton"], "sota"):
+        with pytest.raises(UserError, match="a list of the tables the claims' rows come from.*they are sota"):
+            claims.run(None, "claims", rows, "PSNR", tables)
+
+
+def test_a_bad_model_argument_is_one_line_naming_the_model():
+    from bench.models.factory import build_model
+    with pytest.raises(UserError, match=r"model bench.models.srd.SRDNet with stage_order='foo': stage_order must be"):
+        build_model({"_target_": "bench.models.srd.SRDNet", "stage_order": "foo"}, 2)

@@ -1,5 +1,6 @@
 """`srd-bench export` and `srd-bench predict`: a recorded run's weights applied to EXR frames."""
 import json
+import shutil
 from pathlib import Path
 
 import numpy as np
@@ -162,3 +163,29 @@ def test_a_run_archived_without_its_weights_says_where_they_are(recorded, tmp_pa
     archive_training(smoke_context(runs_archive=Path("results/cpu/runs")), run)
     with pytest.raises(UserError, match=r"no weights.*out of git.*seeds=\[\d\].*trains the run again"):
         export(run_hash, tmp_path / "out.pt", tmp_path / "no_store")
+
+
+@pytest.mark.parametrize("change, message", [({"status": "interrupted"}, "'interrupted', not complete"),
+                                             ({"identity": "stage"}, "one stage of a Cascade")])
+def test_a_run_that_is_not_a_finished_whole_model_neither_predicts_nor_exports(recorded, tmp_path, change, message):
+    """An interrupted training's checkpoint is not the trained model: predict --run refuses it as export does."""
+    from bench.weights import from_run
+    runs_dir, run_hash = recorded
+    store = tmp_path / "runs"
+    shutil.copytree(runs_dir / "train" / run_hash, store / "train" / run_hash)
+    path = store / "train" / run_hash / runs.RECORD
+    record = json.loads(path.read_text())
+    if change.get("identity") == "stage":
+        record["identity"]["stage"] = "sr"
+    else:
+        record.update(change)
+    path.write_text(json.dumps(record))
+    for call in (lambda: from_run(run_hash, store), lambda: export(run_hash, tmp_path / "out.pt", store)):
+        with pytest.raises(UserError, match=message):
+            call()
+
+
+def test_export_to_a_folder_is_one_line(recorded, tmp_path):
+    runs_dir, run_hash = recorded
+    with pytest.raises(UserError, match="is a folder: give the weights file's path"):
+        export(run_hash, tmp_path, runs_dir)

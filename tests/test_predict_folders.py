@@ -160,6 +160,8 @@ def damage(weights, case):
         torch.save({**saved, "model": {"_target_": "baselines.edsr.EDSR", "channels": 8, "blocks": 2}}, weights)
     elif case == "a config that does not build":
         torch.save({**saved, "model": {"_target_": "baselines.edsr.EDSR", "channels": -4}}, weights)
+    elif case == "a weights file without its model":
+        torch.save({k: v for k, v in saved.items() if k != "model"}, weights)
     elif case == "an unknown fast path":
         return ["--fast-path", "fp64"]
     else:
@@ -181,6 +183,7 @@ def test_bad_weights_and_a_bad_tile_end_in_one_line(tmp_path, case, fragments):
 
 @pytest.mark.parametrize("case, fragments", [
     ("a config that does not build", ["its model config (baselines.edsr.EDSR) does not build"]),
+    ("a weights file without its model", ["an SRD-Bench weights file without its model", "export it again"]),
     ("--tile=abc", ["argument --tile: 'abc' is not a positive number of pixels"]),
     ("--tile=0", ["argument --tile: '0' is not a positive number of pixels"]),
     ("--max-nonfinite=2", ["argument --max-nonfinite: '2' is not a share between 0 and 1"]),

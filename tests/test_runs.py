@@ -308,3 +308,16 @@ def test_an_evaluations_trainings_read_back_in_stage_order():
     assert runs.split_trainings(runs.join_trainings(["stage1", "stage2"])) == ["stage1", "stage2"]
     assert runs.trainings_of({"metrics": {"train_run": "a+b"}}) == ["a", "b"]
     assert runs.trainings_of({"metrics": {"train_run": None}}) == runs.trainings_of({}) == []
+
+
+def test_a_path_fault_is_said_in_one_line_naming_the_path(tmp_path):
+    (tmp_path / "afile").write_text("")
+    for make in (lambda: (tmp_path / "afile").mkdir(parents=True, exist_ok=True),
+                 lambda: (tmp_path / "afile" / "sub").mkdir(parents=True)):
+        with pytest.raises(runs.PATH_ERRORS) as err:
+            make()
+        line = runs.said(err.value)
+        assert line.startswith(str(tmp_path / "afile")) and "a file stands where a folder" in line
+    with pytest.raises(IsADirectoryError) as err:
+        tmp_path.joinpath().open("w")
+    assert runs.said(err.value) == f"{tmp_path}: a folder stands where a file is needed (Is a directory)"

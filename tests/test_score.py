@@ -123,6 +123,8 @@ def test_outputs_of_another_framework_in_plain_rgb_channels_score_the_same(score
     (lambda out: exrio.write_exr(out / SEQUENCES[0] / "0001_hr.exr", {"a": np.zeros((32, 32, 3), np.float32),
                                                                        "b": np.zeros((32, 32, 3), np.float32)}),
      "no layer `output` among its layers ['a', 'b']"),
+    (lambda out: exrio.write_exr(out / SEQUENCES[0] / "0001_hr.exr", {"output": np.full((32, 32, 3), np.nan, np.float32)}),
+     "1 of the outputs hold NaN or Inf values, e.g."),
 ])
 def test_a_missing_or_foreign_output_is_one_line(scored, tmp_path, capsys, damage, message):
     import shutil
@@ -138,3 +140,16 @@ def test_a_missing_or_foreign_output_is_one_line(scored, tmp_path, capsys, damag
 def test_score_imports_nothing_from_bench_experiments():
     code = "import sys, bench.score; sys.exit(any(m.startswith('bench.experiments') for m in sys.modules))"
     assert subprocess.run([sys.executable, "-c", code], cwd=REPO, env=dict(os.environ, PYTHONPATH=str(REPO))).returncode == 0
+
+
+def test_nonfinite_outputs_score_only_when_accepted_and_a_table_without_scores_is_refused(scored, tmp_path, capsys):
+    import shutil
+    from bench.predict import main
+    root, *_ = scored
+    shutil.copytree(root / "out", tmp_path / "out")
+    exrio.write_exr(tmp_path / "out" / SEQUENCES[0] / "0001_hr.exr", {"output": np.full((32, 32, 3), np.inf, np.float32)})
+    args = ["score", "--outputs", str(tmp_path / "out"), "--data", str(root / "data"), "--label", "x"]
+    assert main([*args, "--accept-nonfinite"]) == 0 and "scored as they are" in capsys.readouterr().err
+    pd.DataFrame([{"method": "A", "notes": "no scores"}]).to_csv(tmp_path / "t.csv", index=False)
+    assert main([*args, "--accept-nonfinite", "--table", str(tmp_path / "t.csv")]) == 2
+    assert "none of the score columns" in capsys.readouterr().err

@@ -283,7 +283,13 @@ def _caption(ctx: Context, metric: str, tables: list[str] | None) -> str:
 def run(ctx: Context, name: str, claims: list[dict], metric: str, tables: list[str] | None) -> pd.DataFrame:
     """`tables`: judge only the claims whose rows all come from these tables (e.g. the ones rerun with
     the current recipe); None: every claim."""
+    if metric not in METRICS:
+        raise UserError(f"experiment.metric={metric}: the claims are decided on one of {', '.join(METRICS)}")
     if tables is not None:
+        named = set().union(*map(_tables_of, claims))
+        if isinstance(tables, str) or not set(tables) <= named:
+            raise UserError(f"experiment.tables={tables}: a list of the tables the claims' rows come from, "
+                            f"e.g. [sota,dilation]; they are {', '.join(sorted(named))}")
         claims = [c for c in claims if _tables_of(c) <= set(tables)]
         if not claims:
             raise UserError(f"claims: no claim is made of rows of only {tables}")

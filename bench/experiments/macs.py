@@ -17,6 +17,8 @@ from pathlib import Path
 import pandas as pd
 import torch
 
+from bench.errors import UserError
+from bench.experiments.context import model_config
 from bench.macs import audit, closest_width, count_params, on_meta
 from bench.models.factory import build_model
 from bench.paper import paper_values
@@ -108,7 +110,10 @@ def run(ctx, name: str = "macs", rows: list[dict] | None = None, input_hw=(540, 
     (optional)}; defaults to the paper's Table 5 models. Writes to <results_dir>/<name>/."""
     models = {}
     for r in rows or SOTA_ROWS:
-        cfg = {**copy.deepcopy(ctx.models[r["model"]]), **(r.get("overrides") or {})}
+        if not isinstance(r, dict) or "label" not in r or "model" not in r:
+            raise UserError(f"experiment.rows: {r!r}: each row is {{label: ..., model: ...}} (optional width_arg, "
+                            "overrides)")
+        cfg = model_config(ctx, r["model"], r.get("overrides"))
         if r.get("width_arg"):
             cfg["width_arg"] = r["width_arg"]
         models[r["label"]] = cfg

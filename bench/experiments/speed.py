@@ -43,6 +43,7 @@ import pandas as pd
 import torch
 import torch.nn as nn
 
+from bench.errors import UserError
 from bench.evaluate import sync
 from bench.infer import (frames_channels_last, freed_memory_kept, max_abs_diff, parse_path, prepare, release_free_memory,
                          tiled_predict)
@@ -519,6 +520,9 @@ def run(ctx, name: str = "speed", models: list[str] = (), input_hw=(540, 960),
         profile: dict | None = None, caption: str = "") -> pd.DataFrame:
     """CLI entry (conf/experiment/speed.yaml documents every parameter). Returns the table, which is
     rewritten after every section, so an interrupted run leaves what it measured."""
+    unknown = [m for m in models if m not in ctx.models]
+    if unknown:  # before the first section is timed
+        raise UserError(f"experiment.models: no model {unknown[0]!r}; models: {', '.join(ctx.models)}")
     device = str(ctx.device)
     previous_threads = torch.get_num_threads()
     if threads:

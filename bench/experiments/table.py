@@ -334,9 +334,8 @@ def run(ctx: Context, name: str, rows: list[dict], caption: str = "", task: str 
         raise UserError(f"experiment.leave_out: no row {unknown[0]!r} in this table "
                         f"(its rows: {', '.join(r['label'] for r in rows)})")
     rows = [r for r in rows if r["label"] not in (leave_out or [])]
-    for r in rows:  # fail on a bad model or task name before any rendering or training
-        model_config(ctx, r["model"], r.get("overrides"))
-        get_task(r["task"])
+    for r in rows:  # fail on a bad model, model argument or task name before any rendering or training
+        build_model(model_config(ctx, r["model"], r.get("overrides")), get_task(r["task"]).scale)
     frames = evaluation_data(ctx)
     # per (row, seed): the trainings its scoring uses, as recorded (force=true: every one runs)
     trainings = {} if ctx.force else {

@@ -57,7 +57,12 @@ def perceptual_features(ctx: Context):
     if path:
         if not Path(path).exists():
             raise UserError(f"VGG16 weights file {path} (vgg.weights / SRD_VGG16_WEIGHTS) does not exist")
-        return (load_vgg16_features(path, layer).to(ctx.device),
+        try:
+            features = load_vgg16_features(path, layer)
+        except (ValueError, KeyError, RuntimeError, EOFError) as err:  # not VGG16 weights, or cut short
+            raise UserError(f"vgg.weights={path}: not VGG16 weights in torchvision's format up to {layer} "
+                            f"({str(err).splitlines()[0][:300]})") from err
+        return (features.to(ctx.device),
                 {"weights": Path(path).name, "sha256": _file_sha256(str(Path(path).resolve())), "layer": layer})
     if ctx.vgg.allow_random:
         log.warning("perceptual loss uses a fixed-seed RANDOM VGG16 (no weights found); tables will say so")
