@@ -477,6 +477,10 @@ def apply_split(cfg: DictConfig) -> None:
         raise UserError(f"eval.split={FROZEN_SPLIT}: this experiment tunes (chooses settings on what it scores), "
                         f"and the {FROZEN_SPLIT} split is frozen: nothing may be chosen on it; use "
                         f"eval.split={TUNING_SPLIT}")
+    splits = list(OmegaConf.select(cfg, "data.splits", default=None) or {})
+    if cfg.render_data and not cfg.eval.data_dir and splits and split not in splits:  # your frames: any name
+        raise UserError(f"eval.split={split}: the {cfg.preset.name} preset's data has no such split; it has "
+                        f"{', '.join(splits)}")
     cfg.eval.split = split
     if reported == FROZEN_SPLIT and split != reported and not cfg.eval.data_dir:
         cfg.runs_archive = OmegaConf.select(cfg, "runs_archive")  # resolved: the archive stays where it is
@@ -652,3 +656,6 @@ def main(cfg: DictConfig) -> None:
               "set runs_dir=... to another disk, and run the same command again: recorded runs are kept and "
               "trainings resume from their last checkpoint", file=sys.stderr)
         sys.exit(1)
+    finally:  # a SIGTERM while the interpreter shuts down (joining workers) ends it plainly, not in a traceback
+        if threading.current_thread() is threading.main_thread():
+            signal.signal(signal.SIGTERM, signal.SIG_DFL)

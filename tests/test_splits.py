@@ -36,6 +36,12 @@ def test_the_cpu_tables_report_test_and_val_goes_beside_them_with_the_archive_wh
     assert make_context(val).eval.split == "val"
 
 
+def test_a_split_the_data_lacks_is_one_line_unless_the_frames_are_yours():
+    with pytest.raises(UserError, match="eval.split=nosuch: the cpu preset's data has no such split; it has train, val"):
+        composed("preset=cpu", "eval.split=nosuch")
+    assert composed("preset=cpu", "eval.split=holdout", "eval.data_dir=/mine").eval.split == "holdout"
+
+
 @pytest.mark.parametrize("preset", ["smoke", "gpu"])
 def test_a_preset_without_a_test_split_reports_val(preset):
     cfg = composed(f"preset={preset}")
