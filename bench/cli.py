@@ -130,7 +130,7 @@ def composition_problem(args: list[str]) -> str | None:
     (-m sweeps, --cfg), whose values it reads itself."""
     from hydra import compose, initialize_config_dir
     from hydra.errors import HydraException
-    if any(arg.startswith("-") for arg in args):
+    if any(arg.startswith(("-", "hydra.mode=")) for arg in args):
         return None
     try:
         with initialize_config_dir(config_dir=CONF_DIR, version_base=None):
@@ -143,11 +143,15 @@ def composition_problem(args: list[str]) -> str | None:
             return f"{arg}: the config has no key {missing.group(1)} (a new key is +{arg})"
         if "Config search path:" in lines:
             lines = lines[:lines.index("Config search path:")]
+        if err.__cause__ is not None and str(err.__cause__).strip():  # e.g. "Error merging override ...": why
+            lines.append(str(err.__cause__).strip().splitlines()[0])
         said, listing = lines[0], False  # a heading's items ("Available options in 'preset':") on its line
         for before, line in zip(lines, lines[1:]):
             listing = before.endswith(":") or (listing and not line.endswith(":"))
             said += (" " if before.endswith(":") else ", " if listing else "; ") + line
         return said
+    except Exception:  # noqa: BLE001 - anything else is Hydra's to say, as it would without this check
+        return None
     return None
 
 
@@ -223,7 +227,7 @@ def loss_problems(loss, where: str) -> list[str]:
             continue
         bad = [f"{where}loss.{stage}.{term}={w!r}: expected a number >= 0" for term, w in weights.items()
                if not (_is_number(w) and w >= 0)]
-        if not bad:
+        if not bad and any(weights.values()):  # all zero: the stage's loss is off (bench.train)
             try:
                 absolute_weights(weights)
             except ValueError as err:
@@ -630,8 +634,8 @@ def _terminate(signum, frame):
 def main(cfg: DictConfig) -> None:
     if cfg.keep_freed_memory:
         keep_freed_memory()
-    if threading.current_thread() is threading.main_thread():  # (a launcher may run jobs in threads)
-        signal.signal(signal.SIGTERM, _terminate)
+    on_main_thread = threading.current_thread() is threading.main_thread()  # (a launcher may run jobs in threads)
+    previous = signal.signal(signal.SIGTERM, _terminate) if on_main_thread else None
     try:
         with fused_kernels_on_cuda():
             run_or_serve(cfg)
@@ -656,6 +660,6 @@ def main(cfg: DictConfig) -> None:
               "set runs_dir=... to another disk, and run the same command again: recorded runs are kept and "
               "trainings resume from their last checkpoint", file=sys.stderr)
         sys.exit(1)
-    finally:  # a SIGTERM while the interpreter shuts down (joining workers) ends it plainly, not in a traceback
-        if threading.current_thread() is threading.main_thread():
-            signal.signal(signal.SIGTERM, signal.SIG_DFL)
+    finally:  # the caller's handler again: a SIGTERM while the interpreter shuts down (joining workers) is
+        if on_main_thread:  # no Terminated traceback
+            signal.signal(signal.SIGTERM, previous if previous is not None else signal.SIG_DFL)

@@ -678,7 +678,7 @@ PATH_ERRORS = (PermissionError, FileNotFoundError, FileExistsError, NotADirector
 
 def said(err: BaseException) -> str:
     """The one line an entry point prints for a UserError or one of PATH_ERRORS."""
-    if isinstance(err, (FileExistsError, NotADirectoryError)) and err.filename:
+    if isinstance(err, (FileExistsError, NotADirectoryError)) and err.filename and not Path(err.filename).is_dir():
         return f"{err.filename}: a file stands where a folder is needed on this path ({err.strerror})"
     if isinstance(err, IsADirectoryError) and err.filename:
         return f"{err.filename}: a folder stands where a file is needed ({err.strerror})"

@@ -174,10 +174,10 @@ def compare(per_image: pd.DataFrame, scores: dict, run_dir: str | Path, rtol: fl
                 d = max((rel(a, b) for a, b in zip(merged[name], merged[f"{name} recorded"])), default=0.0)
                 worst = max(worst, d)
                 lines.append(f"{name} per frame: largest relative difference {d:.2e} over {len(merged)} frames")
-    else:
-        lines.append(f"per frame: not compared ({run_dir} holds no per-frame scores); the aggregates only")
     if not lines:
         raise UserError(f"--against {run_dir}: its record holds none of the scores {list(SCORES)}")
+    if frames is None:
+        lines.append(f"per frame: not compared ({run_dir} holds no per-frame scores); the aggregates only")
     ok = worst <= rtol
     lines.append(f"{'matches' if ok else 'DIFFERS from'} {run_dir} within rtol {rtol:g} (largest relative difference {worst:.2e})")
     return lines, ok

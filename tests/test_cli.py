@@ -888,3 +888,9 @@ def test_a_bad_model_argument_is_one_line_naming_the_model():
     from bench.models.factory import build_model
     with pytest.raises(UserError, match=r"model bench.models.srd.SRDNet with stage_order='foo': stage_order must be"):
         build_model({"_target_": "bench.models.srd.SRDNet", "stage_order": "foo"}, 2)
+
+
+def test_a_stage_whose_loss_weights_are_all_zero_is_off_not_a_bad_value(tmp_path):
+    cfg = compose_experiment("smoke", "preset=smoke", f"runs_dir={tmp_path}/runs",
+                             "train.loss.intermediate={edge:0,temporal:0,spatial:0,perceptual:0}")
+    assert make_context(cfg).train.loss["intermediate"]["spatial"] == 0

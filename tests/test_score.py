@@ -153,3 +153,13 @@ def test_nonfinite_outputs_score_only_when_accepted_and_a_table_without_scores_i
     pd.DataFrame([{"method": "A", "notes": "no scores"}]).to_csv(tmp_path / "t.csv", index=False)
     assert main([*args, "--accept-nonfinite", "--table", str(tmp_path / "t.csv")]) == 2
     assert "none of the score columns" in capsys.readouterr().err
+
+
+def test_against_a_run_without_scores_is_one_line_not_a_match(scored, tmp_path, capsys):
+    from bench.predict import main
+    root, *_ = scored
+    (tmp_path / "run").mkdir()
+    (tmp_path / "run" / "run.json").write_text(json.dumps({"hash": "x", "status": "complete", "metrics": {}}))
+    assert main(["score", "--outputs", str(root / "out"), "--data", str(root / "data"), "--label", "x",
+                 "--out-dir", str(tmp_path / "o"), "--against", str(tmp_path / "run")]) == 2
+    assert "holds none of the scores" in capsys.readouterr().err and not (tmp_path / "o").exists()
