@@ -470,3 +470,13 @@ def test_a_row_scored_on_its_own_split_gets_that_splits_frame_records_rendered(m
     assert rendered == [{"generalization"}]
     rendered.clear()
     assert table.render_what_runs(ctx, "t", rows[:1], "srd", None, False, {}) is False and rendered == []
+
+
+def test_a_rows_bad_model_argument_stops_the_table_before_anything_is_rendered(tmp_path, monkeypatch):
+    from bench.experiments import table
+    monkeypatch.setattr(table, "ensure_data", lambda *args: pytest.fail("rendered before the rows were checked"))
+    ctx = smoke_context(runs_dir=tmp_path / "runs", results_dir=tmp_path / "results", data_dir=tmp_path / "data",
+                        force=True)   # force: no recorded training is looked up (which builds the model too)
+    with pytest.raises(UserError, match="SRDNet with .*chanels=8: .*unexpected keyword argument 'chanels'"):
+        table.run(ctx, "t", [{"label": "X", "model": "srd", "overrides": {"chanels": 8}}])
+    assert not (tmp_path / "runs").exists() and not (tmp_path / "data").exists()
