@@ -226,3 +226,11 @@ def test_a_refinement_cut_off_between_its_two_files_ends_as_a_render_from_scratc
         cut, scratch = read_exr(tmp_path / "cut" / "test" / sequence / path.name), read_exr(path)
         for layer in scratch:
             np.testing.assert_array_equal(cut[layer], scratch[layer])
+
+
+def test_without_rendered_data_it_says_how_to_render_it(tmp_path):
+    from bench.errors import UserError
+    from bench.experiments import references
+    from conftest import smoke_context
+    with pytest.raises(UserError, match=r"holds no rendered data .*`python -m bench \+experiment=data preset=smoke`"):
+        references.run(smoke_context(data_dir=tmp_path / "nothing", results_dir=tmp_path / "results"))

@@ -25,6 +25,7 @@ from __future__ import annotations
 import logging
 import math
 import re
+from pathlib import Path
 
 import pandas as pd
 import yaml
@@ -107,6 +108,10 @@ def proposed_spp(ref_spp: int, shortfall: float, margin: float, max_ref_spp: int
 
 
 def run(ctx: Context, name: str = "references", margin: float = 0.8, max_ref_spp: int = 8192) -> pd.DataFrame:
+    if not (Path(ctx.data_dir) / "manifest.json").is_file():
+        raise UserError(f"references: {ctx.data_dir} holds no rendered data (its manifest.json gives the frames' "
+                        f"estimated reference errors and render times); `python -m bench +experiment=data "
+                        f"preset={ctx.preset}` renders it")
     frames = load_manifest(ctx.data_dir)["frames"]  # the frames' estimated reference errors
     shortfalls, notes = table_shortfalls(ctx, frames)
     unknown = shortfalls["shortfall"].isna()
