@@ -41,7 +41,7 @@ import torch
 
 from bench import runs
 from bench.atomic import write_atomic
-from bench.table_writer import listed_evaluations
+from bench.table_writer import listed_evaluations, read_table
 from bench.train import CHECKPOINT
 
 log = logging.getLogger("bench")
@@ -286,7 +286,7 @@ def listed_runs(results_dir: Path) -> set[str]:
     listed = set()
     for table in Path(results_dir).rglob("table.csv"):
         try:
-            frame = pd.read_csv(table, dtype={"runs": str})  # hashes, never numbers
+            frame = read_table(table)
         except (ValueError, pd.errors.ParserError, UnicodeDecodeError) as err:
             raise ValueError(f"{table} does not read ({err}): nothing is deleted") from err
         if "runs" in frame:

@@ -26,7 +26,7 @@ from bench.errors import UserError
 from bench.exrio import ExrError
 from bench.infer import keep_freed_memory
 from bench.measure import fused_kernels_on_cuda
-from bench.runs import PATH_ERRORS, ensure_writable, out_of_space, said
+from bench.runs import PATH_ERRORS, ensure_writable, error_line, out_of_space
 from bench.train import TrainingInterrupted
 from bench.experiments import KINDS, RUNLESS_KINDS
 
@@ -169,7 +169,9 @@ _TRAIN_RANGES = (  # (key, what is allowed, check)
     ("ema", "null or a decay in [0, 1)", lambda v: v is None or (_is_number(v) and 0 <= v < 1)),
     ("clip_grad_norm", "null or a positive number", lambda v: v is None or (_is_number(v) and v > 0)),
     ("betas", "two numbers in [0, 1), e.g. [0.9,0.99]",
-     lambda v: isinstance(v, list) and len(v) == 2 and all(_is_number(b) and 0 <= b < 1 for b in v)))
+     lambda v: isinstance(v, list) and len(v) == 2 and all(_is_number(b) and 0 <= b < 1 for b in v)),
+    ("colour_permute", "true or false", lambda v: isinstance(v, bool)),
+    ("channels_last", "true or false", lambda v: isinstance(v, bool)))
 # model arguments that are widths or counts (channels, blocks, layers, kernel sizes, ...): integers >= 1,
 # or >= 0 for the optional parts (deformable blocks, gBuffer channels)
 _MODEL_COUNT = re.compile(r"(channels|blocks|width|layers|size|hidden|dilation)$")
@@ -202,8 +204,6 @@ def train_problems(train: dict, data: dict | None, where: str = "train.") -> lis
                  for key in _TRAIN_POSITIVE_NUMBERS if not (_is_number(train.get(key)) and train[key] > 0)]
     problems += [f"{where}{key}={value!r}: expected {allowed}" for key, allowed, ok in _TRAIN_RANGES
                  if key in train and not ok(value := train[key])]
-    problems += [f"{where}{key}={train[key]!r}: expected true or false" for key in ("colour_permute", "channels_last")
-                 if key in train and not isinstance(train[key], bool)]
     problems += loss_problems(train.get("loss"), where)
     if problems or data is None:
         return problems
@@ -383,10 +383,10 @@ def run_all(overrides: list[str], results_dir: Path, tables: list[str], name: st
     from hydra import compose
     from bench.experiments import results_page
     from bench.table_writer import write_table
-    unknown = [t for t in tables if t not in available_experiments() or t == "all"]
+    available = [e for e in available_experiments() if e != "all"]
+    unknown = [t for t in tables if t not in available]
     if unknown:  # before the first table runs (it may train for hours)
-        raise UserError(f"experiment.tables: unknown experiment {unknown[0]!r}; available: "
-                        + ", ".join(e for e in available_experiments() if e != "all"))
+        raise UserError(f"experiment.tables: unknown experiment {unknown[0]!r}; available: {', '.join(available)}")
     rows, every_run, preset = [], {}, None
     for experiment in tables:
         t0 = time.perf_counter()
@@ -426,14 +426,13 @@ def table_summary(table_dir: Path, runs_dir, archives=()) -> tuple[dict, dict[st
     """From a table's table.csv: the recorded minutes of its distinct runs (`recorded_minutes`), their
     compute columns and, per metric, the pairs of rows ordered as in the paper (empty for tables that
     are not made of trained rows)."""
-    import pandas as pd
     from bench.experiments.row import recorded_minutes
     from bench.experiments.table import paper_agreement
-    from bench.table_writer import listed_evaluations
+    from bench.table_writer import listed_evaluations, read_table
     path = table_dir / "table.csv"
     if not path.exists():
         return {}, {}
-    table = pd.read_csv(path)
+    table = read_table(path)
     out, minutes = {}, {}
     if "train (min)" in table:
         minutes = recorded_minutes([h for cell in table["runs"] for h in listed_evaluations(cell)], runs_dir, archives)
@@ -640,7 +639,7 @@ def main(cfg: DictConfig) -> None:
         with fused_kernels_on_cuda():
             run_or_serve(cfg)
     except (UserError, *PATH_ERRORS) as err:
-        print(f"error: {said(err)}", file=sys.stderr)
+        print(f"error: {error_line(err)}", file=sys.stderr)
         sys.exit(getattr(err, "exit_code", 2))
     except KeyboardInterrupt as err:  # outside a training step (rendering, evaluating): nothing recorded is lost
         print("interrupted: runs recorded so far are kept; the same command again reuses them and resumes "

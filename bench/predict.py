@@ -35,7 +35,7 @@ import numpy as np
 import torch
 
 from bench import exrio, score
-from bench.runs import PATH_ERRORS, said
+from bench.runs import PATH_ERRORS, error_line
 from bench.dataset import DEFAULT_ROUGHNESS, GBUF_SIZES
 from bench.errors import UserError
 from bench.evaluate import predict as predict_batch
@@ -277,7 +277,7 @@ def main(argv: list[str] | None = None) -> int:
                 print(path)
         return 0
     except (UserError, exrio.ExrError, *PATH_ERRORS) as err:
-        print(f"error: {said(err)}", file=sys.stderr)
+        print(f"error: {error_line(err)}", file=sys.stderr)
         return 2
 
 

@@ -676,7 +676,7 @@ def flatten(d: dict, prefix: str = "") -> dict:
 PATH_ERRORS = (PermissionError, FileNotFoundError, FileExistsError, NotADirectoryError, IsADirectoryError)
 
 
-def said(err: BaseException) -> str:
+def error_line(err: BaseException) -> str:
     """The one line an entry point prints for a UserError or one of PATH_ERRORS."""
     if isinstance(err, (FileExistsError, NotADirectoryError)) and err.filename and not Path(err.filename).is_dir():
         return f"{err.filename}: a file stands where a folder is needed on this path ({err.strerror})"

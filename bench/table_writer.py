@@ -24,10 +24,16 @@ SCORED_ON = "preset {preset}, split {split}"
 SCORED_ON_PATTERN = r"[Pp]reset (\w+), split (\w+)"
 
 
+def read_table(path: str | Path) -> pd.DataFrame:
+    """A table.csv as `write_table` wrote it, its `runs` column as text: a single seed's hash of digits
+    would otherwise read back as a number."""
+    return pd.read_csv(path, dtype={"runs": str})
+
+
 def listed_evaluations(cell) -> list[str]:
-    """The evaluation runs a table row lists in its `runs` column (experiments/row.py writes it): one hash
-    per seed, in seed order, so a deterministic row repeats one; [] for a row that lists none."""
-    return [] if pd.isna(cell) else str(cell).split()  # a single seed's all-digit hash may read as a number
+    """The evaluation runs a table row lists in its `runs` column (experiments/row.py writes it, `read_table`
+    reads it): one hash per seed, in seed order, so a deterministic row repeats one; [] for none."""
+    return cell.split() if isinstance(cell, str) else []
 
 
 def read_caption(path: Path) -> str:

@@ -35,7 +35,7 @@ from pathlib import Path
 import pandas as pd
 
 from bench import archived, runs
-from bench.table_writer import listed_evaluations
+from bench.table_writer import listed_evaluations, read_table
 
 log = logging.getLogger("bench")
 
@@ -122,7 +122,7 @@ def _tables_by_run(results_dir: Path) -> dict[str, list[tuple[str, Path]]]:
     out: dict[str, list] = {}
     for path in sorted(results_dir.rglob("table.csv")):
         try:
-            table = pd.read_csv(path)
+            table = read_table(path)
         except (OSError, pd.errors.ParserError, pd.errors.EmptyDataError):
             continue
         name = str(path.parent.relative_to(results_dir))

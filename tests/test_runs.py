@@ -316,8 +316,8 @@ def test_a_path_fault_is_said_in_one_line_naming_the_path(tmp_path):
                  lambda: (tmp_path / "afile" / "sub").mkdir(parents=True)):
         with pytest.raises(runs.PATH_ERRORS) as err:
             make()
-        line = runs.said(err.value)
+        line = runs.error_line(err.value)
         assert line.startswith(str(tmp_path / "afile")) and "a file stands where a folder" in line
     with pytest.raises(IsADirectoryError) as err:
         tmp_path.joinpath().open("w")
-    assert runs.said(err.value) == f"{tmp_path}: a folder stands where a file is needed (Is a directory)"
+    assert runs.error_line(err.value) == f"{tmp_path}: a folder stands where a file is needed (Is a directory)"

@@ -1,6 +1,6 @@
 import pandas as pd
 
-from bench.table_writer import listed_evaluations, write_table
+from bench.table_writer import listed_evaluations, read_table, write_table
 
 
 def test_write_table_three_formats_with_best_in_bold(tmp_path):
@@ -43,5 +43,8 @@ def test_a_rows_runs_cell_reads_back_one_evaluation_per_seed(tmp_path):
     df = pd.DataFrame([{"method": "Ours", "runs": "a1 b2 c3"}, {"method": "OIDN", "runs": "d4 d4 d4"},
                        {"method": "paper", "runs": None}])
     df.to_csv(tmp_path / "table.csv", index=False)
-    cells = pd.read_csv(tmp_path / "table.csv")["runs"]          # an empty cell reads back as NaN
+    cells = read_table(tmp_path / "table.csv")["runs"]          # an empty cell reads back as NaN
     assert [listed_evaluations(c) for c in cells] == [["a1", "b2", "c3"], ["d4"] * 3, []]
+    pd.DataFrame([{"method": "one seed", "runs": "0123456789012345"}]).to_csv(tmp_path / "digits.csv", index=False)
+    assert listed_evaluations(read_table(tmp_path / "digits.csv")["runs"].iloc[0]) == ["0123456789012345"]
+    assert pd.read_csv(tmp_path / "digits.csv")["runs"].iloc[0] == 123456789012345   # what read_table avoids

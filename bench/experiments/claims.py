@@ -34,7 +34,7 @@ from bench import archived, runs, stats
 from bench.errors import UserError
 from bench.experiments import results_page
 from bench.experiments.context import Context, split_note
-from bench.table_writer import SCORED_ON, listed_evaluations, write_table
+from bench.table_writer import SCORED_ON, listed_evaluations, read_table, write_table
 
 log = logging.getLogger("bench")
 
@@ -52,7 +52,7 @@ def _table(ctx: Context, name: str, cache: dict) -> pd.DataFrame:
         path = ctx.results_dir / name / "table.csv"
         if not path.exists():
             raise MissingRow(f"{path} does not exist: run `python -m bench +experiment={name} preset={ctx.preset}`")
-        cache[name] = pd.read_csv(path)
+        cache[name] = read_table(path)
     return cache[name]
 
 

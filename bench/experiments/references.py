@@ -36,7 +36,7 @@ from bench.experiments.context import Context
 from bench.experiments.datasets import render_digest, split_fingerprint
 from bench.experiments.table import (REFERENCE_SHARE, evaluation_records, per_image_of, reference_errors,
                                     reference_shortfall)
-from bench.table_writer import SCORED_ON_PATTERN, listed_evaluations, read_caption, write_table
+from bench.table_writer import SCORED_ON_PATTERN, listed_evaluations, read_caption, read_table, write_table
 from bench.tasks import get_task
 
 log = logging.getLogger("bench")
@@ -61,7 +61,7 @@ def table_shortfalls(ctx: Context, frames: list[dict]) -> tuple[pd.DataFrame, di
     for path in sorted([*ctx.results_dir.glob("*/table.csv"), *ctx.results_dir.glob("*/*/table.csv")]):
         caption = read_caption(path.with_suffix(".md"))
         match = re.search(SCORED_ON_PATTERN, caption)
-        table = pd.read_csv(path)
+        table = read_table(path)
         if not match or "References (" not in caption or not {"relMSE", "runs"} <= set(table) \
                 or table["relMSE"].isna().all():
             continue  # not a metrics table, or its references are not estimated (no two halves)

@@ -19,7 +19,7 @@ from pathlib import Path
 
 import pandas as pd
 
-from bench.table_writer import SCORED_ON_PATTERN, listed_evaluations, read_caption
+from bench.table_writer import SCORED_ON_PATTERN, listed_evaluations, read_caption, read_table
 
 PAGE = "README.md"
 ROOT = Path(__file__).resolve().parents[2]   # the repository
@@ -131,7 +131,7 @@ def _claims_of(claims: pd.DataFrame | None, table: str) -> list[str]:
 def metrics_section(results_dir: Path, name: str, what: str, claims: pd.DataFrame | None) -> list[str]:
     """A metrics table: what it compares, each row's mean (± std over seeds) of PSNR, SSIM and relMSE."""
     folder = results_dir / name
-    table = pd.read_csv(folder / "table.csv")
+    table = read_table(folder / "table.csv")
     caption = read_caption(folder / "table.md")
     lines = [f"### {name}", "", what, "",
              f"Numbers: {_link(results_dir, f'{name}/table.csv')} (mean ± std over seeds; "
