@@ -32,6 +32,7 @@ from bench.experiments import KINDS, RUNLESS_KINDS
 
 log = logging.getLogger("bench")
 CONF_DIR = str(Path(__file__).resolve().parent.parent / "conf")
+DEFAULT_ARCHIVE = "${results_dir}/runs"  # conf/config.yaml's runs_archive: it follows results_dir
 
 
 def hydra_output_dir(runs_dir: str) -> str:
@@ -472,7 +473,8 @@ def apply_split(cfg: DictConfig) -> None:
     """Resolve `eval.split` in place (null: `reported_split`); an experiment that tunes may not read the
     frozen test split. Where the experiment reports the test split, tables of the preset's data on another
     split go to `<results_dir>/<split>/`, beside its own (e.g. results/cpu/val/sota); your frames'
-    (`eval.data_dir`) go to results_dir as given."""
+    (`eval.data_dir`) go to results_dir as given, and their models are read from the preset's committed
+    archive unless runs_archive is given."""
     from bench.experiments.context import FROZEN_SPLIT, TUNING_SPLIT
     reported = reported_split(cfg)
     split = cfg.eval.split or reported
@@ -485,6 +487,10 @@ def apply_split(cfg: DictConfig) -> None:
         raise UserError(f"eval.split={split}: the {cfg.preset.name} preset's data has no such split; it has "
                         f"{', '.join(splits)}")
     cfg.eval.split = split
+    if cfg.eval.data_dir and OmegaConf.to_container(cfg, resolve=False).get("runs_archive") == DEFAULT_ARCHIVE:
+        # your frames are scored with the recorded trainings and nothing is archived: read the preset's
+        # committed archive wherever results_dir points (else results_dir=/tmp/mine would find no model)
+        cfg.runs_archive = str(Path(CONF_DIR).parent / "results" / cfg.preset.name / "runs")
     if reported == FROZEN_SPLIT and split != reported and not cfg.eval.data_dir:
         cfg.runs_archive = OmegaConf.select(cfg, "runs_archive")  # resolved: the archive stays where it is
         cfg.results_dir = str(Path(cfg.results_dir) / split)
@@ -553,17 +559,17 @@ def run_experiment(cfg: DictConfig) -> None:
     _sweep_job_results(cfg)
     ctx = make_context(cfg)
     ctx.device = resolve_device(ctx.device)
+    yours = not ctx.render_data or ctx.eval.data_dir
+    committed = Path(CONF_DIR).parent / "results"
+    if yours and ctx.results_dir.resolve().is_relative_to(committed):
+        raise UserError(f"results_dir={ctx.results_dir}: your frames' tables would replace the committed ones in "
+                        f"{committed.name}/ (and a training on them would join its archive); give "
+                        "results_dir=/elsewhere (e.g. results_dir=/tmp/mine)")
     ensure_writable(ctx.results_dir, "results_dir")
     ensure_writable(ctx.runs_dir, "runs_dir")
-    if (not ctx.render_data or ctx.eval.data_dir) and \
-            ctx.results_dir.resolve().is_relative_to(Path(CONF_DIR).parent):
-        # scoring your frames reads the committed archive's models and archives nothing: name it, since it
-        # follows results_dir; trainings on your frames (render_data=false) are archived: let it follow
-        keep = (f" runs_archive={ctx.runs_archive.resolve()} keeps them out and still reads the recorded models "
-                "from that archive" if ctx.eval.data_dir and ctx.runs_archive else
-                " keeps them out, with the archive of your runs (runs_archive follows results_dir)")
+    if yours and ctx.results_dir.resolve().is_relative_to(Path(CONF_DIR).parent):
         log.warning("your frames' tables and crops go to %s, inside the repository where git would commit "
-                    "them; results_dir=/elsewhere%s", ctx.results_dir, keep)
+                    "them; results_dir=/elsewhere keeps them out", ctx.results_dir)
     warn_if_committed_archive_unread(ctx, kind, cfg.preset.name)
     t0 = time.perf_counter()
     interrupted = False

@@ -820,6 +820,22 @@ def test_a_results_dir_elsewhere_says_the_committed_archive_is_not_read(tmp_path
         assert "committed archive" not in out.stdout + out.stderr, yours
 
 
+def test_your_frames_never_replace_the_committed_tables(tmp_path):
+    """Scoring or training on your frames with results_dir left at the preset's committed folder is one
+    line naming results_dir=, before anything is read or written."""
+    table = REPO / "results" / "cpu" / "sota" / "table.csv"
+    before = table.stat().st_mtime_ns
+    for yours in ([f"eval.data_dir={tmp_path / 'yours'}", "eval.split=holdout"],
+                  ["render_data=false", f"data_dir={tmp_path / 'yours'}"]):
+        out = bench("+experiment=sota", "preset=cpu", "tracking=none", *yours, f"runs_dir={tmp_path / 'runs'}",
+                    timeout=120)
+        said = out.stdout + out.stderr
+        assert out.returncode == 2 and "Traceback" not in said, said[-2000:]
+        assert "would replace the committed ones" in said and "results_dir=/tmp/mine" in said, said[-2000:]
+    assert table.stat().st_mtime_ns == before
+    assert [p.name for p in (tmp_path / "runs").iterdir()] == ["hydra"]  # Hydra's log folder, no run
+
+
 def test_a_misspelt_experiment_key_is_one_line(tmp_path):
     """`experiment.<key>` that the kind does not take ends in one line naming the keys it takes, before
     anything runs (nothing written)."""

@@ -210,6 +210,22 @@ def test_a_signal_while_rendering_is_one_line_and_the_data_run_is_recorded_faile
     assert record["status"] == "failed" and record["error"].startswith(("KeyboardInterrupt", "Terminated"))
 
 
+def test_the_callers_sigterm_handler_is_back_after_a_command(tmp_path):
+    """main handles SIGTERM as Ctrl-C while it runs and gives the caller's handler back when it ends
+    (else a SIGTERM while the interpreter shuts down, joining render workers, printed a traceback)."""
+    code = ("import signal, sys\n"
+            "from bench.cli import main\n"
+            "def mine(signum, frame): pass\n"
+            "signal.signal(signal.SIGTERM, mine)\n"
+            f"sys.argv = ['bench', '+experiment=train', 'experiment.model=nosuch', 'preset=cpu', 'tracking=none',"
+            f" 'runs_dir={tmp_path / 'runs'}', 'results_dir={tmp_path / 'results'}']\n"
+            "try:\n    main()\nexcept SystemExit as end:\n    print('exit', end.code)\n"
+            "print('handler', signal.getsignal(signal.SIGTERM) is mine)\n")
+    out = subprocess.run([sys.executable, "-c", code], cwd=Path(__file__).parent.parent, capture_output=True,
+                         text=True, timeout=120)
+    assert "exit 2" in out.stdout and "handler True" in out.stdout, out.stdout + out.stderr[-2000:]
+
+
 def test_hr_files_of_the_wrong_size_under_a_copied_manifest_are_not_trusted(rendered):
     """The issue's case: another directory with the same manifest but HR files of another size must not
     reuse this one's results: the header check names each file, and rendering replaces it."""

@@ -42,6 +42,17 @@ def test_a_split_the_data_lacks_is_one_line_unless_the_frames_are_yours():
     assert composed("preset=cpu", "eval.split=holdout", "eval.data_dir=/mine").eval.split == "holdout"
 
 
+def test_your_frames_are_scored_with_the_committed_archive_wherever_results_dir_points():
+    """eval.data_dir archives nothing and trains nothing: its models come from the preset's committed
+    archive, also when results_dir is elsewhere (README's command), unless runs_archive is given."""
+    cfg = composed("preset=cpu", "eval.split=holdout", "eval.data_dir=/mine", "results_dir=/tmp/mine")
+    assert Path(cfg.runs_archive) == REPO / "results" / "cpu" / "runs" and cfg.results_dir == "/tmp/mine"
+    given = composed("preset=cpu", "eval.data_dir=/mine", "results_dir=/tmp/mine", "runs_archive=/tmp/store")
+    assert given.runs_archive == "/tmp/store"
+    trained_on_yours = composed("preset=cpu", "render_data=false", "data_dir=/mine", "results_dir=/tmp/mine")
+    assert trained_on_yours.runs_archive == "/tmp/mine/runs"  # its trainings are archived with its tables
+
+
 @pytest.mark.parametrize("preset", ["smoke", "gpu"])
 def test_a_preset_without_a_test_split_reports_val(preset):
     cfg = composed(f"preset={preset}")
