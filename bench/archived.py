@@ -203,6 +203,12 @@ def read_curve(run_dir: Path) -> pd.DataFrame | None:
     return runs.read_or_none(run_dir / COMPACT_CURVE, _read_gzip_csv)
 
 
+def read_val_curve(run_dir: Path) -> pd.DataFrame | None:
+    """A training's validation curve (step, train_s, the metrics), kept as it is in the store and the
+    archive; None when it has none or it is damaged (the log names it)."""
+    return runs.read_or_none(Path(run_dir) / VAL_CURVE)
+
+
 # ---------------------------------------------------------------- writing and converting
 
 def write(run_dir: Path, dest: Path, record: dict) -> None:

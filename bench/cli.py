@@ -22,16 +22,18 @@ import hydra
 import yaml
 from omegaconf import DictConfig, OmegaConf
 
+from bench.config_checks import config_problems
 from bench.errors import UserError
 from bench.exrio import ExrError
 from bench.infer import keep_freed_memory
 from bench.measure import fused_kernels_on_cuda
-from bench.runs import PATH_ERRORS, ensure_writable, error_line, out_of_space
+from bench.runs import PATH_ERRORS, ROOT, ensure_writable, error_line, out_of_space
 from bench.train import TrainingInterrupted
 from bench.experiments import KINDS, RUNLESS_KINDS
 
 log = logging.getLogger("bench")
-CONF_DIR = str(Path(__file__).resolve().parent.parent / "conf")
+CONF_DIR = str(ROOT / "conf")
+COMMITTED_RESULTS = ROOT / "results"  # the tables (and their run archives) committed with the code
 DEFAULT_ARCHIVE = "${results_dir}/runs"  # conf/config.yaml's runs_archive: it follows results_dir
 
 
@@ -98,6 +100,11 @@ def _dotted_keys(tree, prefix: str = "") -> set[str]:
     return out
 
 
+def _config_keys(path: Path) -> set[str]:
+    """The top-level keys a conf/ YAML file sets."""
+    return set(yaml.safe_load(path.read_text()) or {}) - {"defaults"}
+
+
 def key_problem(args: list[str], chosen: set[tuple[str, str]]) -> str | None:
     """A plain `key=value` whose key no config file has at the top (Hydra's own message is six lines): one
     line, naming where a key of that name is, e.g. `+experiment=data verify=true` means
@@ -154,177 +161,6 @@ def composition_problem(args: list[str]) -> str | None:
     except Exception:  # noqa: BLE001 - anything else is Hydra's to say, as it would without this check
         return None
     return None
-
-
-def _config_keys(path: Path) -> set[str]:
-    return set(yaml.safe_load(path.read_text()) or {}) - {"defaults"}
-
-
-_TRAIN_POSITIVE_INTS = ("steps", "batch_size", "seq_len", "crop", "checkpoint_every")
-_TRAIN_NON_NEGATIVE_INTS = ("val_every", "val_sequences")
-_TRAIN_POSITIVE_NUMBERS = ("lr", "checkpoint_every_s")
-_FLAGS = ("render_data", "force", "reuse_stale", "keep_freed_memory", "progress", "vgg.allow_random", "eval.save_exr")
-_TRAIN_RANGES = (  # (key, what is allowed, check)
-    ("warmup", "a fraction of the steps in [0, 1)", lambda v: _is_number(v) and 0 <= v < 1),
-    ("halve_every", "a fraction of the steps in (0, 1]", lambda v: _is_number(v) and 0 < v <= 1),
-    ("ema", "null or a decay in [0, 1)", lambda v: v is None or (_is_number(v) and 0 <= v < 1)),
-    ("clip_grad_norm", "null or a positive number", lambda v: v is None or (_is_number(v) and v > 0)),
-    ("betas", "two numbers in [0, 1), e.g. [0.9,0.99]",
-     lambda v: isinstance(v, list) and len(v) == 2 and all(_is_number(b) and 0 <= b < 1 for b in v)),
-    ("colour_permute", "true or false", lambda v: isinstance(v, bool)),
-    ("channels_last", "true or false", lambda v: isinstance(v, bool)))
-# model arguments that are widths or counts (channels, blocks, layers, kernel sizes, ...): integers >= 1,
-# or >= 0 for the optional parts (deformable blocks, gBuffer channels)
-_MODEL_COUNT = re.compile(r"(channels|blocks|width|layers|size|hidden|dilation)$")
-_MODEL_OPTIONAL_COUNT = re.compile(r"deform|gbuffer")
-
-
-def _lookup(plain: dict, dotted: str):
-    value = plain
-    for part in dotted.split("."):
-        value = value.get(part) if isinstance(value, dict) else None
-    return value
-
-
-def _is_int(value) -> bool:
-    return isinstance(value, int) and not isinstance(value, bool)
-
-
-def _is_number(value) -> bool:
-    return isinstance(value, (int, float)) and not isinstance(value, bool)
-
-
-def train_problems(train: dict, data: dict | None, where: str = "train.") -> list[str]:
-    """Bad values of a `train:` dict (`where` names it: the command line's, or a table row's), and a crop
-    or sequence length the rendered data (`data`, its spec; None: your own frames) cannot give."""
-    problems = [f"{where}{key}={train.get(key)!r}: expected a positive integer"
-                for key in _TRAIN_POSITIVE_INTS if not (_is_int(train.get(key)) and train[key] > 0)]
-    problems += [f"{where}{key}={train.get(key)!r}: expected an integer >= 0"
-                 for key in _TRAIN_NON_NEGATIVE_INTS if not (_is_int(train.get(key)) and train[key] >= 0)]
-    problems += [f"{where}{key}={train.get(key)!r}: expected a positive number"
-                 for key in _TRAIN_POSITIVE_NUMBERS if not (_is_number(train.get(key)) and train[key] > 0)]
-    problems += [f"{where}{key}={value!r}: expected {allowed}" for key, allowed, ok in _TRAIN_RANGES
-                 if key in train and not ok(value := train[key])]
-    problems += loss_problems(train.get("loss"), where)
-    if problems or data is None:
-        return problems
-    width, height, frames = data.get("lr_width"), data.get("lr_height"), data.get("seq_len")
-    if _is_int(width) and _is_int(height) and train["crop"] > min(width, height):
-        problems.append(f"{where}crop={train['crop']}: larger than the LR frame {width}x{height} (data.lr_width, "
-                        "data.lr_height); the crop must fit inside it")
-    if _is_int(frames) and train["seq_len"] > frames:
-        problems.append(f"{where}seq_len={train['seq_len']}: longer than the dataset's sequences "
-                        f"({frames} frames, data.seq_len)")
-    return problems
-
-
-def loss_problems(loss, where: str) -> list[str]:
-    """Bad loss weights: each stage's terms known to bench.losses, each weight a number >= 0."""
-    from bench.losses import absolute_weights
-    problems = []
-    for stage, weights in (loss or {}).items():
-        if not isinstance(weights, dict):
-            problems.append(f"{where}loss.{stage}={weights!r}: expected a mapping of loss terms to weights")
-            continue
-        bad = [f"{where}loss.{stage}.{term}={w!r}: expected a number >= 0" for term, w in weights.items()
-               if not (_is_number(w) and w >= 0)]
-        if not bad and any(weights.values()):  # all zero: the stage's loss is off (bench.train)
-            try:
-                absolute_weights(weights)
-            except ValueError as err:
-                bad = [f"{where}loss.{stage}: {err}"]
-        problems += bad
-    return problems
-
-
-def model_problems(model: dict, where: str) -> list[str]:
-    """Bad widths and counts among a model's arguments (`where` names the model: models.srd, a row)."""
-    problems = []
-    for key, value in model.items():
-        if key.startswith("_") or not _MODEL_COUNT.search(key):
-            continue
-        least = 0 if _MODEL_OPTIONAL_COUNT.search(key) else 1
-        if not (_is_int(value) and value >= least):
-            problems.append(f"{where}.{key}={value!r}: expected an integer >= {least}")
-    return problems
-
-
-def row_problems(plain: dict, data: dict | None) -> list[str]:
-    """Bad values inside a table experiment's rows (or the one row of `+experiment=train`): their model
-    arguments and training overrides."""
-    from bench.experiments.context import deep_merge
-    from bench.experiments.one_model import one_row
-    from bench.experiments.table import expand_rows
-    experiment = plain.get("experiment") or {}
-    kind = experiment.get("kind", "table")
-    try:
-        if kind == "one_model":  # one row, written as a table's
-            rows = expand_rows([one_row(**{k: experiment.get(k) for k in ("model", "overrides", "task", "train",
-                                                                          "cascade", "label") if k in experiment})])
-        elif kind == "table" and isinstance(experiment.get("rows"), list):
-            rows = expand_rows(experiment["rows"], experiment.get("task", "srd"))
-        else:
-            return []
-    except (ValueError, KeyError, TypeError) as err:
-        return [f"experiment.rows: {err}"]
-    problems = []
-    shared = set(train_problems(plain["train"], data))  # said once, for train.*, not again per row
-    for r in rows:
-        where = "experiment" if kind == "one_model" else f"experiment.rows[{r['label']!r}]"
-        problems += model_problems(r.get("overrides") or {}, f"{where}.overrides")
-        if not isinstance(r.get("train") or {}, dict):
-            problems.append(f"{where}.train={r.get('train')!r}: expected a dict of train.* overrides")
-            continue
-        train = deep_merge(plain["train"], r.get("train"))
-        own = train_problems(train, data, f"{where}.train.")
-        problems += [p for p in own if "train." + p.removeprefix(f"{where}.train.") not in shared]
-        own_recipe = recipe_problems(train)
-        problems += [f"{where}.{p}" for p in own_recipe if p not in recipe_problems(plain["train"])]
-    return problems
-
-
-def recipe_problems(train: dict) -> list[str]:
-    """A `train:` dict's unknown or missing keys, or a bad schedule, domain or precision: [] or one line."""
-    from bench.experiments.context import recipe_from
-    try:
-        recipe_from(train)
-    except UserError as err:
-        return [str(err)]
-    return []
-
-
-def config_problems(plain: dict) -> list[str]:
-    """What is wrong with a resolved config, one line per bad value: the key, the value, what is allowed."""
-    from bench.infer import parse_path
-    data = plain["data"] if plain["render_data"] else None  # your own frames: checked at start
-    problems = train_problems(plain["train"], data) + recipe_problems(plain["train"])
-    if not (_is_int(plain.get("workers")) and plain["workers"] > 0):
-        problems.append(f"workers={plain.get('workers')!r}: expected a positive integer")
-    for name, model in (plain.get("models") or {}).items():
-        problems += model_problems(model or {}, f"models.{name}")
-    problems += row_problems(plain, data)
-    seeds = plain.get("seeds")
-    if not (isinstance(seeds, list) and seeds and all(_is_int(s) for s in seeds)):
-        problems.append(f"seeds={seeds!r}: expected a non-empty list of integers, e.g. seeds=[0,1,2]")
-    for name, lr in (plain.get("model_lr") or {}).items():
-        if not (_is_number(lr) and lr > 0):
-            problems.append(f"model_lr.{name}={lr!r}: expected a positive number")
-        if name not in (plain.get("models") or {}):
-            problems.append(f"model_lr.{name}: no model {name} (models: {', '.join(plain.get('models') or {})})")
-    # a missing flag (None) is its reader's to name
-    problems += [f"{key}={_lookup(plain, key)!r}: expected true or false" for key in _FLAGS
-                 if not isinstance(_lookup(plain, key), (bool, type(None)))]
-    try:
-        if _lookup(plain, "eval.fast_path") != "auto":  # auto: chosen by measurement (bench.measure)
-            parse_path(_lookup(plain, "eval.fast_path"))
-    except (ValueError, AttributeError) as err:
-        problems.append(f"eval.fast_path={_lookup(plain, 'eval.fast_path')!r}: {err}")
-    if plain["tracking"] not in ("mlflow", "none"):
-        problems.append(f"tracking={plain['tracking']!r}: expected mlflow or none")
-    tile = _lookup(plain, "eval.tile")
-    if tile is not None and not (_is_int(tile) and tile > 0):
-        problems.append(f"eval.tile={tile!r}: expected null (whole frames) or a positive integer")
-    return problems
 
 
 def make_context(cfg: DictConfig):
@@ -490,7 +326,7 @@ def apply_split(cfg: DictConfig) -> None:
     if cfg.eval.data_dir and OmegaConf.to_container(cfg, resolve=False).get("runs_archive") == DEFAULT_ARCHIVE:
         # your frames are scored with the recorded trainings and nothing is archived: read the preset's
         # committed archive wherever results_dir points (else results_dir=/tmp/mine would find no model)
-        cfg.runs_archive = str(Path(CONF_DIR).parent / "results" / cfg.preset.name / "runs")
+        cfg.runs_archive = str(committed_archive(cfg.preset.name))
     if reported == FROZEN_SPLIT and split != reported and not cfg.eval.data_dir:
         cfg.runs_archive = OmegaConf.select(cfg, "runs_archive")  # resolved: the archive stays where it is
         cfg.results_dir = str(Path(cfg.results_dir) / split)
@@ -521,16 +357,21 @@ def check_experiment_keys(experiment, keys: dict, kind: str, supplied: tuple[str
                         + f"; kind {kind} takes {', '.join(takes)}") from None
 
 
+def committed_archive(preset: str) -> Path:
+    """The preset's committed run archive (conf/config.yaml's runs_archive when results_dir is left as it is)."""
+    return COMMITTED_RESULTS / preset / "runs"
+
+
 def warn_if_committed_archive_unread(ctx, kind: str, preset: str) -> None:
     """runs_archive follows results_dir: elsewhere, the preset's recorded runs would all be computed again.
     Said for experiments that read runs (not macs, speed), never for your own frames' (never archived)."""
-    committed = Path(CONF_DIR).parent / "results" / preset / "runs"
+    committed = committed_archive(preset)
     if kind not in RUNLESS_KINDS and ctx.render_data and not ctx.eval.data_dir and ctx.runs_archive is not None \
             and ctx.runs_archive.resolve() != committed.resolve() and not ctx.runs_archive.exists() \
             and committed.is_dir():
         log.warning("runs_archive=%s (by default it follows results_dir) holds no runs: the committed archive "
                     "%s is not read, so recorded runs are computed again; runs_archive=%s reads it",
-                    ctx.runs_archive, committed.relative_to(Path(CONF_DIR).parent), committed)
+                    ctx.runs_archive, committed.relative_to(ROOT), committed)
 
 
 def run_experiment(cfg: DictConfig) -> None:
@@ -560,14 +401,13 @@ def run_experiment(cfg: DictConfig) -> None:
     ctx = make_context(cfg)
     ctx.device = resolve_device(ctx.device)
     yours = not ctx.render_data or ctx.eval.data_dir
-    committed = Path(CONF_DIR).parent / "results"
-    if yours and ctx.results_dir.resolve().is_relative_to(committed):
+    if yours and ctx.results_dir.resolve().is_relative_to(COMMITTED_RESULTS):
         raise UserError(f"results_dir={ctx.results_dir}: your frames' tables would replace the committed ones in "
-                        f"{committed.name}/ (and a training on them would join its archive); give "
+                        f"{COMMITTED_RESULTS.name}/ (and a training on them would join its archive); give "
                         "results_dir=/elsewhere (e.g. results_dir=/tmp/mine)")
     ensure_writable(ctx.results_dir, "results_dir")
     ensure_writable(ctx.runs_dir, "runs_dir")
-    if yours and ctx.results_dir.resolve().is_relative_to(Path(CONF_DIR).parent):
+    if yours and ctx.results_dir.resolve().is_relative_to(ROOT):
         log.warning("your frames' tables and crops go to %s, inside the repository where git would commit "
                     "them; results_dir=/elsewhere keeps them out", ctx.results_dir)
     warn_if_committed_archive_unread(ctx, kind, cfg.preset.name)
@@ -665,6 +505,7 @@ def main(cfg: DictConfig) -> None:
               "set runs_dir=... to another disk, and run the same command again: recorded runs are kept and "
               "trainings resume from their last checkpoint", file=sys.stderr)
         sys.exit(1)
-    finally:  # the caller's handler again: a SIGTERM while the interpreter shuts down (joining workers) is
-        if on_main_thread:  # no Terminated traceback
+    finally:  # the caller's handler again, so a SIGTERM while the interpreter shuts down (joining
+        # workers) is no Terminated traceback
+        if on_main_thread:
             signal.signal(signal.SIGTERM, previous if previous is not None else signal.SIG_DFL)

@@ -4,8 +4,9 @@ A run is identified by a hash of the part of its config that determines its resu
 model arguments, data spec, training schedule, seed, ...), not by paths, worker counts or labels. A run
 whose hash is recorded with status "complete" is reused instead of recomputed; `force=True` recomputes.
 An interrupted run keeps its directory (status "running"), so whatever it checkpointed can be resumed.
-While a process computes a run it holds an exclusive lock on the run's directory: a second process (another
-table, another shard of a sweep) that asks for the same run waits for it and then reuses it.
+While a process computes a run it holds an exclusive lock (the file `.<hash>.lock` beside the run's
+directory): a second process (another table, another shard of a sweep) that asks for the same run waits
+for it and then reuses it.
 
 A run also records the fingerprint of the code that determines its result (`code_fingerprint`: the
 project modules it runs, transitively). It is checked at reuse rather than hashed into the identity, so
@@ -183,15 +184,9 @@ def lookup(runs_dir: str | Path, kind: str, identity: dict, archive: str | Path 
     return Run(kind, h, path.parent, record, reused=True)
 
 
-def record_path(kind: str, run_hash: str, runs_dir: str | Path, archives=()) -> Path | None:
-    """Where the record of run `run_hash` is: in the run store, else in the first of `archives` that
-    holds it (read there, not restored), else None."""
-    return find_record(kind, run_hash, runs_dir, archives)[0]
-
-
 def find_record(kind: str, run_hash: str, runs_dir, archives=()) -> tuple[Path | None, dict | None]:
     """(path, record) of the first record of run `run_hash` that reads, the run store's first, then the
-    archives'; (None, None) when none does (missing or damaged)."""
+    archives' (read there, not restored); (None, None) when none does (missing or damaged)."""
     for root in (runs_dir, *archives):
         path = Path(root) / kind / run_hash / RECORD
         record = read_record(path)
@@ -201,16 +196,10 @@ def find_record(kind: str, run_hash: str, runs_dir, archives=()) -> tuple[Path |
 
 
 def recorded_wall_s(kind: str, run_hash: str, runs_dir: str | Path, archives=()) -> float | None:
-    """Recorded wall time of one run, from the run store or an archive (`record_path`); None when
+    """Recorded wall time of one run, from the run store or an archive (`find_record`); None when
     neither holds it, so a caller can tell a missing run from a fast one."""
     record = find_record(kind, run_hash, runs_dir, archives)[1]
     return None if record is None else float(record.get("wall_time_s") or 0.0)
-
-
-def wall_time_s(runs_dir: str | Path, kind: str, hashes: list[str]) -> float:
-    """Recorded wall time of runs named by hash (e.g. a Cascade's stages) in the run store; 0 for none,
-    and for a run the store lacks."""
-    return sum(recorded_wall_s(kind, h, runs_dir) or 0.0 for h in hashes)
 
 
 def join_trainings(hashes: list[str]) -> str:
@@ -735,7 +724,7 @@ def provenance() -> dict:
 
 
 def _git_state() -> dict:
-    repo = Path(__file__).resolve().parent.parent
+    repo = ROOT
     try:
         commit = subprocess.run(["git", "rev-parse", "HEAD"], cwd=repo, capture_output=True,
                                 text=True, timeout=10).stdout.strip() or None

@@ -19,7 +19,8 @@ Writes `per_image.csv` and `table.csv/.md/.tex` (the rows of `--table`, if given
 run.json and per-frame scores, in a run store or an archive) compares the scores with the recorded ones and exits 1 when one differs by
 more than `--rtol`.
 
-Nothing here imports bench.experiments: scoring needs no model, config or run store.
+Nothing here imports bench.experiments: scoring needs no model or config; the run store is read only
+for `--against`.
 """
 from __future__ import annotations
 
@@ -37,7 +38,7 @@ from bench.dataset import SequenceDataset
 from bench.errors import UserError
 from bench.evaluate import SCORES, aggregate, evaluate
 from bench.metrics import HIGHER_IS_BETTER, LOWER_IS_BETTER
-from bench.table_writer import to_markdown, write_table
+from bench.table_writer import read_table, to_markdown, write_table
 from bench.tasks import Task
 
 # evaluate() reads an item's task.x, task.g and task.y; the stand-in model ignores x and g
@@ -129,7 +130,7 @@ def table_with(label: str, scores: dict, table: str | Path | None = None) -> pd.
         columns = ["method", *(c for s in SCORES for c in (s, f"{s} se") if c in scores)]
         rows = pd.DataFrame(columns=columns)
     else:
-        rows = runs.read_or_none(Path(table), pd.read_csv)
+        rows = runs.read_or_none(Path(table), read_table)
         if rows is None or "method" not in rows:
             raise UserError(f"--table {table}: not a readable results table (a CSV with a `method` column)")
         if not set(SCORES) & set(rows.columns):

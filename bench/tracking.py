@@ -5,7 +5,7 @@ compared (`mlflow ui --backend-store-uri sqlite:///runs/mlflow.db`). After each 
 `sync`, which mirrors every complete or failed run the store holds and MLflow does not (or holds in an
 older version), so runs computed by other processes (shards, sweep jobs) appear too. Per run:
 
-- the MLflow experiment `srd-bench/<kind>` (train, eval, data, timing, ...), run name = label + seed;
+- the MLflow experiment `srd-bench/<kind>` (train, eval, data, time), run name = label + seed;
 - params: the run's identity, flattened (`model.channels`, `train.lr`, ...);
 - metrics: the final metrics (`val.PSNR` for a training), and for a training its curves by step
   (`train.loss`, `train.lr`, ... from curve.csv, or an archived run's curve.csv.gz; `val.PSNR`, ... from
@@ -207,7 +207,7 @@ def _curve_metrics(run_dir: Path, start_ms: int) -> list:
     val_curve.csv as `val.<column>`."""
     from mlflow.entities import Metric
     out = []
-    for curve, prefix in ((archived.read_curve(run_dir), "train."), (runs.read_or_none(run_dir / archived.VAL_CURVE), "val.")):
+    for curve, prefix in ((archived.read_curve(run_dir), "train."), (archived.read_val_curve(run_dir), "val.")):
         if curve is None:
             continue
         for row in curve.to_dict("records"):

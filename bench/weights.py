@@ -34,7 +34,7 @@ ARCHIVES = "results/*/runs"  # the tables' archived runs (conf/config.yaml runs_
 def training_record(run_hash: str, runs_dir: str | Path = "runs") -> Path:
     """The run.json of training run `run_hash`: in the run store, else in a committed archive (a fresh
     clone has no run store)."""
-    path = runs.record_path("train", run_hash, runs_dir, sorted(Path().glob(ARCHIVES)))
+    path, _ = runs.find_record("train", run_hash, runs_dir, sorted(Path().glob(ARCHIVES)))
     if path is None:
         raise UserError(f"no training run {run_hash} in {runs_dir} (runs are directories of "
                         f"{Path(runs_dir) / 'train'}) or in {ARCHIVES}/train")

@@ -356,7 +356,7 @@ def test_a_damaged_curve_is_treated_as_missing_and_named(store, caplog):
     run_dir = _run_dir(store, "train")
     (run_dir / "val_curve.csv").write_bytes(b"")                  # what a full disk leaves of a CSV
     with caplog.at_level("WARNING", logger="bench"):
-        assert last_fifth_gain(run_dir / "val_curve.csv") is None
+        assert last_fifth_gain(run_dir) is None
         assert curve_figure(store / "runs", {"E": [run_dir.name]}, store / "curves.png") is None
     assert f"{run_dir / 'val_curve.csv'} is damaged" in caplog.text
 

@@ -4,7 +4,6 @@ import shutil
 from pathlib import Path
 
 import numpy as np
-import pandas as pd
 import pytest
 import torch
 
@@ -12,7 +11,7 @@ from bench import archived, exrio, runs
 from bench.errors import UserError
 from bench.evaluate import predict as predict_batch
 from bench.predict import apply, fast_path_cache, main, read_frame
-from bench.table_writer import listed_evaluations
+from bench.table_writer import listed_evaluations, read_table
 from bench.weights import export, load_exported
 from bench.tasks import get_task
 from bench.train import train
@@ -128,7 +127,7 @@ def test_committed_weights_are_the_sota_tables_seed_0_trainings_as_it_scored_the
         assert torch.isfinite(model(x, g)["final"]).all()
     results = path.parent.parent
     evaluations = [runs.read_record(results / "runs" / "eval" / h / runs.RECORD)
-                   for hashes in pd.read_csv(results / "sota" / "table.csv")["runs"] for h in listed_evaluations(hashes)]
+                   for hashes in read_table(results / "sota" / "table.csv")["runs"] for h in listed_evaluations(hashes)]
     assert meta["run"] in {e["metrics"]["train_run"] for e in evaluations if e["seed"] == 0}
     assert meta["weights_rounded_to_float16"]
     scored = archived.state_dict(results / "runs" / "train" / meta["run"])

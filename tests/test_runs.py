@@ -212,16 +212,16 @@ def test_archive_keeps_a_finished_run_that_a_lost_store_gets_back(tmp_path):
     assert not runs.restore(lost, archive, "train", back.hash)           # already there: left alone
 
 
-def test_record_path_looks_in_the_store_then_in_each_archive_in_turn(tmp_path):
+def test_find_record_looks_in_the_store_then_in_each_archive_in_turn(tmp_path):
     store, first, second = tmp_path / "runs", tmp_path / "a", tmp_path / "b"
     run = runs.complete(runs.begin(store, "eval", {"row": 1}), {})
-    assert runs.record_path("eval", run.hash, store, [first, second]) == run.dir / runs.RECORD
+    assert runs.find_record("eval", run.hash, store, [first, second])[0] == run.dir / runs.RECORD
     runs.archive(run, second, ())
     lost = tmp_path / "lost"
-    assert runs.record_path("eval", run.hash, lost, [first, second]) == second / "eval" / run.hash / runs.RECORD
+    assert runs.find_record("eval", run.hash, lost, [first, second])[0] == second / "eval" / run.hash / runs.RECORD
     runs.archive(run, first, ())
-    assert runs.record_path("eval", run.hash, lost, [first, second]).is_relative_to(first)
-    assert runs.record_path("train", run.hash, store, [first, second]) is None
+    assert runs.find_record("eval", run.hash, lost, [first, second])[0].is_relative_to(first)
+    assert runs.find_record("train", run.hash, store, [first, second])[0] is None
     assert not lost.exists()                                             # read where it is, not restored
 
 

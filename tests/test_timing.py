@@ -219,10 +219,10 @@ def test_paper_resolution_alone_reuses_its_renders_and_the_speed_table(tiny, cap
 
 
 def test_renders_recorded_under_the_old_run_kind_are_adopted(tmp_path):
-    from bench.experiments.timing import RUN_KIND, _adopt_legacy_runs
+    from bench.experiments.timing import RUN_KIND, _move_legacy_render_runs
     (tmp_path / "timing" / "abc").mkdir(parents=True)
     (tmp_path / "timing" / "abc" / "run.json").write_text("{}")
-    _adopt_legacy_runs(tmp_path)
+    _move_legacy_render_runs(tmp_path)
     assert (tmp_path / RUN_KIND / "abc" / "run.json").exists() and not (tmp_path / "timing").exists()
-    _adopt_legacy_runs(tmp_path)  # nothing left to move: a no-op
+    _move_legacy_render_runs(tmp_path)  # nothing left to move: a no-op
     assert (tmp_path / RUN_KIND / "abc" / "run.json").exists()

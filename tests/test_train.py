@@ -373,5 +373,5 @@ def test_last_fifth_gain_reads_the_learning_curve(tmp_path):
     from bench.experiments.row import last_fifth_gain
     curve = tmp_path / "val_curve.csv"
     pd.DataFrame({"step": [0, 100, 200, 300, 400, 500], "PSNR": [20.0, 25, 27, 28, 28.5, 28.6]}).to_csv(curve)
-    assert last_fifth_gain(curve) == pytest.approx(0.1)          # 500 vs the point at step 400
-    assert last_fifth_gain(tmp_path / "missing.csv") is None
+    assert last_fifth_gain(tmp_path) == pytest.approx(0.1)       # 500 vs the point at step 400
+    assert last_fifth_gain(tmp_path / "missing") is None

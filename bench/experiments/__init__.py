@@ -3,7 +3,7 @@
 An experiment is a YAML file in conf/experiment/ whose `experiment.kind` names a module here with a
 `run(ctx, **params)` function; the other keys of `experiment` are its params.
 """
-# modules in this package
+# the experiment kinds: modules of this package with a run(ctx, ...) (the others are steps they share)
 KINDS = ("table", "one_model", "data", "references", "macs", "stability", "timing", "speed", "lr_range", "claims", "adopt",
          "migrate")
 # kinds that read no recorded runs: a run archive elsewhere changes nothing for them

@@ -151,18 +151,18 @@ def scored_here(ctx: Context, evaluation: runs.Run) -> bool:
     be held to its numbers. An evaluation against references rendered again since says nothing about the
     code: other render settings (the data fingerprint), or the same settings rendered on another host
     (its render digest, where it recorded one: the noise differs in the last bits and beyond)."""
-    identity, frames = evaluation.record["identity"], evaluation_data(ctx)
+    identity, scoring_ctx = evaluation.record["identity"], evaluation_data(ctx)
     recorded = evaluation.record.get("metrics", {}).get("render")
-    return (same_settings_here(frames, identity)
-            and recorded in (None, render_digest(frames, identity["split"])))
+    return (same_settings_here(scoring_ctx, identity)
+            and recorded in (None, render_digest(scoring_ctx, identity["split"])))
 
 
-def same_settings_here(frames: Context, identity: dict) -> bool:
-    """Whether an evaluation (its identity) ran the default way on a split that `frames` has, rendered
+def same_settings_here(scoring_ctx: Context, identity: dict) -> bool:
+    """Whether an evaluation (its identity) ran the default way on a split that `scoring_ctx` has, rendered
     with the same settings (any render of them)."""
     split = identity["split"]
-    return (ran_the_default_way(identity) and split in splits_on_disk(frames)
-            and identity.get("data") == data_fingerprint(frames, split))
+    return (ran_the_default_way(identity) and split in splits_on_disk(scoring_ctx)
+            and identity.get("data") == data_fingerprint(scoring_ctx, split))
 
 
 def ran_the_default_way(identity: dict) -> bool:
@@ -180,10 +180,10 @@ def trained_here(ctx: Context, training: runs.Run) -> bool:
 def differential_evaluation(ctx: Context, training: runs.Run) -> runs.Run | None:
     """An evaluation of `training` run the default way, preferably on a split today's frames have with
     its settings: the differential check scores the model as it did, by both codes."""
-    frames = evaluation_data(ctx)
+    scoring_ctx = evaluation_data(ctx)
     default = [e for e in evaluations_of(ctx.runs_dir, {training.hash})
                if ran_the_default_way(e.record["identity"])]
-    here = [e for e in default if same_settings_here(frames, e.record["identity"])]
+    here = [e for e in default if same_settings_here(scoring_ctx, e.record["identity"])]
     return (here or default or [None])[0]
 
 

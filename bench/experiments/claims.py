@@ -67,9 +67,7 @@ def _row(ctx: Context, ref: str, cache: dict) -> pd.Series:
 
 
 def _record(ctx: Context, kind: str, run_hash: str) -> dict | None:
-    archives = [ctx.runs_archive] if ctx.runs_archive is not None else []
-    path = runs.record_path(kind, run_hash, ctx.runs_dir, archives)
-    return runs.read_record(path) if path is not None else None
+    return runs.find_record(kind, run_hash, ctx.runs_dir, ctx.archives)[1]
 
 
 def recipe(ctx: Context, row: pd.Series) -> str:

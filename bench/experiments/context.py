@@ -88,6 +88,11 @@ class Context:
     reuse_stale: bool                               # reuse runs whose code changed since they were recorded
     runs_archive: Path | None                       # finished trainings and evaluations kept with the results
 
+    @property
+    def archives(self) -> tuple[Path, ...]:
+        """The archives a recorded run is looked up in after the run store: runs_archive, if any."""
+        return (self.runs_archive,) if self.runs_archive is not None else ()
+
 
 def model_config(ctx: Context, name: str, overrides: dict | None = None) -> dict:
     if name not in ctx.models:

@@ -306,9 +306,9 @@ def dataset(ctx: Context, split: str, task: Task, training: bool, seed: int = 0)
         return SequenceDataset(ctx.data_dir, split, buffers)
     recipe = ctx.train
     manifest = load_manifest(ctx.data_dir)
-    frames = (manifest.get("spec") or {}).get("seq_len")
-    if frames is not None and recipe.seq_len > frames:
-        raise UserError(f"train.seq_len={recipe.seq_len} but the dataset's sequences have {frames} frames")
+    seq_len = (manifest.get("spec") or {}).get("seq_len")
+    if seq_len is not None and recipe.seq_len > seq_len:
+        raise UserError(f"train.seq_len={recipe.seq_len} but the dataset's sequences have {seq_len} frames")
     check_training_frames(ctx, split, manifest)
     # an option added later is passed only when set: adopt's replay runs dataset code that predates it
     later = {"permute_colours": True} if recipe.colour_permute else {}

@@ -30,11 +30,11 @@ def evaluated(ctx: Context, cfg: dict, task: Task, seed: int, split: str, label:
         model, train_run = trained_model(ctx, cfg, task, seed, label, load=False)
         trained = train_run.hash if train_run else {"model": cfg, "task": task.name}
     hdr = ctx.train.hdr
-    frames = evaluation_data(ctx)
+    scoring_ctx = evaluation_data(ctx)
     fast_path = ctx.eval.fast_path
     if fast_path == AUTO:
         fast_path = measured_fast_path(ctx, cfg, task, split, label)
-    identity, code = _evaluation_key(ctx, frames, cfg, trained, split, fast_path,
+    identity, code = _evaluation_key(ctx, scoring_ctx, cfg, trained, split, fast_path,
                                      learned=train_run is not None or cascade)
     run = runs.begin(ctx.runs_dir, "eval", identity, seed=seed, device=ctx.device, label=label,
                      force=ctx.force, code=code, reuse_stale=ctx.reuse_stale, archive=ctx.runs_archive)
@@ -49,7 +49,7 @@ def evaluated(ctx: Context, cfg: dict, task: Task, seed: int, split: str, label:
     if model is None:  # a recorded training whose weights trained_model did not read (or that lacks them)
         model, train_run = trained_model(ctx, cfg, task, seed, label)
     try:
-        _, metrics = evaluate(model, dataset(frames, split, task, training=False), task, hdr=hdr,
+        _, metrics = evaluate(model, dataset(scoring_ctx, split, task, training=False), task, hdr=hdr,
                               device=ctx.device, out_dir=run.dir, save_exr=ctx.eval.save_exr,
                               write_exr=write_exr, path=fast_path, tile=ctx.eval.tile)
     except BaseException as err:  # the record says so, never "running" forever
@@ -58,7 +58,7 @@ def evaluated(ctx: Context, cfg: dict, task: Task, seed: int, split: str, label:
     metrics["params"] = count_params(model)
     metrics["train_run"] = trained if isinstance(trained, str) else None
     metrics["vgg"] = (train_run.record["identity"].get("vgg") if train_run else None)
-    metrics["render"] = render_digest(frames, split)
+    metrics["render"] = render_digest(scoring_ctx, split)
     metrics["fused_kernels"] = fused_kernels_used(ctx.device)
     trainings = stage_runs if cascade else [train_run] if train_run is not None else []
     metrics["rounded_weights"] = any(archived.rounded(r.dir) for r in trainings)  # the archive's float16 copy
@@ -82,23 +82,25 @@ def evaluation_recorded(ctx: Context, cfg: dict, task: Task, seed: int, split: s
     return run is not None and all(f"{m} se" in run.metrics for m in SCORES)
 
 
-def _evaluation_key(ctx: Context, frames: Context, cfg: dict, trained, split: str, fast_path: str,
+def _evaluation_key(ctx: Context, scoring_ctx: Context, cfg: dict, trained, split: str, fast_path: str,
                     learned: bool) -> tuple[dict, dict]:
-    """(identity, code fingerprint) of the evaluation of `trained` on `split` of `frames` (`evaluation_data`);
+    """(identity, code fingerprint) of the evaluation of `trained` on `split` of `scoring_ctx`'s data
+    (`evaluation_data`);
     a learned row's numbers also depend on the trainer: retraining it makes its evaluation stale too."""
-    identity = evaluation_identity(trained, split, split_fingerprint(frames, split), ctx.train.hdr,
+    identity = evaluation_identity(trained, split, split_fingerprint(scoring_ctx, split), ctx.train.hdr,
                                    fast_path, ctx.eval.tile, ctx.eval.save_exr)
     return identity, code_of(cfg, *EVALUATION_CODE, *(TRAINING_CODE if learned else ()))
 
 
 def evaluation_identity(trained, split: str, data: str, hdr: str, fast_path: str, tile: int | None,
-                        frames: bool) -> dict:
+                        saves_frames: bool) -> dict:
     """What an evaluation's numbers depend on: the training (its run hash, Cascade stages' joined by "+",
     or the config of a model that is not trained), the frames scored, the network domain and the way the
-    model runs (the fast path, tiles); `frames`: the output frames are saved, an artifact of their own run."""
+    model runs (the fast path, tiles); `saves_frames`: the output frames are saved (`eval.save_exr`), an
+    artifact of their own run (identity key "frames", hashed as it is named)."""
     identity = {"version": runs.IDENTITY_VERSION, "trained": trained, "split": split, "data": data, "hdr": hdr,
                 "fast_path": fast_path, "tile": tile}
-    if frames:
+    if saves_frames:
         identity["frames"] = True
     return identity
 

@@ -14,7 +14,7 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 
-from bench import runs
+from bench import archived
 from bench.evaluate import predict
 from bench.experiments.context import Context, model_config, with_training
 from bench.experiments.datasets import dataset, evaluation_data
@@ -104,7 +104,7 @@ def curve_figure(runs_dir: Path, curves: dict[str, list[str]], path: Path, metri
     drawn = 0
     for i, (label, hashes) in enumerate(curves.items()):
         for j, h in enumerate(hashes):
-            curve = runs.read_or_none(Path(runs_dir) / "train" / h / "val_curve.csv")  # None: missing or damaged
+            curve = archived.read_val_curve(Path(runs_dir) / "train" / h)  # None: missing or damaged
             if curve is None or not {"step", "train_s", metric} <= set(curve):
                 continue
             style = {"color": f"C{i % 10}", "label": label if j == 0 else None, "alpha": 1.0 if j == 0 else 0.5}

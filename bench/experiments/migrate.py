@@ -227,7 +227,7 @@ def summary(table: pd.DataFrame, names: dict[str, str]) -> pd.DataFrame:
 
 def run(ctx: Context, name: str, delete_dropped: bool) -> pd.DataFrame:
     """conf/experiment/migrate.yaml says what each argument is."""
-    stores = [ctx.runs_dir] + ([ctx.runs_archive] if ctx.runs_archive is not None else [])
+    stores = [ctx.runs_dir, *ctx.archives]
     names = {str(ctx.runs_dir): f"run store ({ctx.runs_dir})"}
     if ctx.runs_archive is not None:
         names[str(ctx.runs_archive)] = f"archive ({ctx.runs_archive})"

@@ -38,13 +38,12 @@ def run(ctx: Context, name: str, model: str, overrides: dict | None = None, task
     table = run_table(ctx, f"{name}/{row['label']}", [row], caption=f"One model: {row['label']}.", task=task, split=split,
                       paper=None, figure=figure)
     if not table.empty:  # (a shard= run writes no table)
-        archives = (ctx.runs_archive,) if ctx.runs_archive else ()
         for seed, eval_hash in zip(ctx.seeds, listed_evaluations(table["runs"].iloc[0])):
-            log.info("%s seed %s: %s", row["label"], seed, provenance(eval_hash, ctx.runs_dir, archives, started))
+            log.info("%s seed %s: %s", row["label"], seed, reuse_summary(eval_hash, ctx.runs_dir, ctx.archives, started))
     return table
 
 
-def provenance(eval_hash: str, runs_dir, archives, started: float) -> str:
+def reuse_summary(eval_hash: str, runs_dir, archives, started: float) -> str:
     """Which runs an evaluation and its trainings are, and whether each was computed before `started`
     (reused, with the label of the row that recorded it) or since."""
     said = []

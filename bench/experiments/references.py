@@ -51,7 +51,6 @@ OTHER_RENDER = "estimated: it scored another render of the split, of the same se
 def table_shortfalls(ctx: Context, frames: list[dict]) -> tuple[pd.DataFrame, dict[str, list[str]]]:
     """One row per (table, scored frame): the frame's reference shortfall against that table's best row;
     and the tables left out or taken as estimates, by why ({why: [table, ...]}, each also logged)."""
-    archives = [ctx.runs_archive] if ctx.runs_archive else []
     held = {f["split"] for f in frames}
     out, notes, other_render = [], {}, []
 
@@ -71,7 +70,7 @@ def table_shortfalls(ctx: Context, frames: list[dict]) -> tuple[pd.DataFrame, di
             continue
         best = table.loc[table["relMSE"].idxmin()]
         try:
-            evaluations = evaluation_records(listed_evaluations(best["runs"]), ctx.runs_dir, archives)
+            evaluations = evaluation_records(listed_evaluations(best["runs"]), ctx.runs_dir, ctx.archives)
         except UserError as err:  # a table of another run store (or of your frames, never archived)
             leave_out(name, str(err))
             continue

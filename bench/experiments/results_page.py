@@ -19,10 +19,10 @@ from pathlib import Path
 
 import pandas as pd
 
+from bench.runs import ROOT
 from bench.table_writer import SCORED_ON_PATTERN, listed_evaluations, read_caption, read_table
 
 PAGE = "README.md"
-ROOT = Path(__file__).resolve().parents[2]   # the repository
 
 # (folder, what it compares). The paper's tables, then the controls the claims read, the studies, the tools.
 PAPER_TABLES = [

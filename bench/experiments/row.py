@@ -7,11 +7,12 @@ from pathlib import Path
 
 import numpy as np
 
-from bench import runs
+from bench import archived, runs
 from bench.evaluate import SCORES
 from bench.experiments.context import TRAINING_CODE, Context, code_of, model_config, with_training
 from bench.experiments.evaluation import evaluated
 from bench.tasks import get_task
+
 
 def recorded_minutes(eval_hashes, runs_dir: str | Path, archives=()) -> dict[str, float | None]:
     """Recorded wall minutes of each distinct run behind these evaluations, keyed "eval/<hash>" and
@@ -30,11 +31,11 @@ def recorded_minutes(eval_hashes, runs_dir: str | Path, archives=()) -> dict[str
     return minutes
 
 
-def last_fifth_gain(curve_csv: Path, metric: str = "PSNR") -> float | None:
-    """How much the validation `metric` rose over the last fifth of a training (the final point minus
-    the point at 80% of the steps, from val_curve.csv): near 0, the curve has flattened; None without
-    a curve."""
-    curve = runs.read_or_none(curve_csv)  # None: missing or damaged (the log names it)
+def last_fifth_gain(run_dir: Path, metric: str = "PSNR") -> float | None:
+    """How much the validation `metric` rose over the last fifth of training `run_dir` (the final point
+    minus the point at 80% of the steps, from its validation curve): near 0, the curve has flattened;
+    None without a curve."""
+    curve = archived.read_val_curve(run_dir)  # None: missing or damaged (the log names it)
     if curve is None or len(curve) < 2 or not {"step", metric} <= set(curve):
         return None
     last = curve.iloc[-1]
@@ -61,10 +62,10 @@ def row(ctx: Context, label: str, model: str, overrides: dict | None = None, tas
         out[f"{metric} se"] = float(np.mean([r.metrics[f"{metric} se"] for r in results]))
     out["params"] = results[0].metrics.get("params", 0)
     # what this row cost to compute, whenever it was computed (a reused run keeps its recorded time)
-    out["train (min)"] = float(np.mean([runs.wall_time_s(ctx.runs_dir, "train", runs.trainings_of(r.record))
-                                        for r in results])) / 60
+    out["train (min)"] = float(np.mean([sum(runs.recorded_wall_s("train", h, ctx.runs_dir, ctx.archives) or 0.0
+                                            for h in runs.trainings_of(r.record)) for r in results])) / 60
     out["eval (min)"] = float(np.mean([r.record.get("wall_time_s") or 0.0 for r in results])) / 60
-    gains = [last_fifth_gain(ctx.runs_dir / "train" / h / "val_curve.csv") for r in results
+    gains = [last_fifth_gain(ctx.runs_dir / "train" / h) for r in results
              for h in runs.trainings_of(r.record)]
     gains = [g for g in gains if g is not None]
     out["last fifth (dB)"] = float(np.mean(gains)) if gains else None

@@ -263,14 +263,14 @@ def per_image_of(evaluations: list[tuple[Path, dict]]) -> pd.DataFrame:
     """The per-frame scores of evaluation runs (`evaluation_records`: all seeds of a row), stacked."""
     parts = []
     for run_dir, _ in evaluations:
-        frames = archived.read_per_image(run_dir)
-        if frames is None:
+        scores = archived.read_per_image(run_dir)
+        if scores is None:
             raise UserError(f"evaluation run {run_dir.name} has no per-frame scores in {run_dir.parent}")
-        parts.append(frames)
+        parts.append(scores)
     return pd.concat(parts)
 
 
-def _reference_note(ctx: Context, frames: Context, table: pd.DataFrame, rows: list[dict], split: str | None) -> str:
+def _reference_note(ctx: Context, scoring_ctx: Context, table: pd.DataFrame, rows: list[dict], split: str | None) -> str:
     """The reference check against the row with the lowest relMSE (none when no row has one)."""
     if table["relMSE"].isna().all():
         return ""
@@ -280,7 +280,7 @@ def _reference_note(ctx: Context, frames: Context, table: pd.DataFrame, rows: li
     if target not in ("hr_ref", "lr_ref"):  # a noisy target (sr_noisy) is no converged reference
         return ""
     scored = row_def.get("split", split) or ctx.eval.split
-    return reference_check(frame_records(frames, scored),
+    return reference_check(frame_records(scoring_ctx, scored),
                            per_image_of(evaluation_records(listed_evaluations(best["runs"]), ctx.runs_dir)), best["method"], target[:2])
 
 
@@ -336,18 +336,18 @@ def run(ctx: Context, name: str, rows: list[dict], caption: str = "", task: str 
     rows = [r for r in rows if r["label"] not in (leave_out or [])]
     for r in rows:  # fail on a bad model, model argument or task name before any rendering or training
         build_model(model_config(ctx, r["model"], r.get("overrides")), get_task(r["task"]).scale)
-    frames = evaluation_data(ctx)
+    scoring_ctx = evaluation_data(ctx)
     # per (row, seed): the trainings its scoring uses, as recorded (force=true: every one runs)
     trainings = {} if ctx.force else {
         (r["label"], seed): training_records(with_training(ctx, r.get("train"), r["model"]),
                                              model_config(ctx, r["model"], r.get("overrides")),
                                              get_task(r["task"]), seed, r.get("cascade", False))
         for r in rows for seed in ctx.seeds}
-    if frames is ctx:
+    if scoring_ctx is ctx:
         drawn = render_what_runs(ctx, name, rows, task, split, figure, trainings)
     else:  # recorded models scored on another dataset: it is checked; the training data is not needed
         drawn = figure
-        ensure_data(frames, set())
+        ensure_data(scoring_ctx, set())
         whys = [f"{label} seed {seed}: {why}" for (label, seed), recorded in trainings.items()
                 for why in untrained(recorded)]
         if whys:  # before anything is scored, every training that would be missing
@@ -398,7 +398,7 @@ def run(ctx: Context, name: str, rows: list[dict], caption: str = "", task: str 
         if agreement:
             notes += " Pairs of rows ordered as in the paper: " + ", ".join(
                 f"{m} {a}/{n}" for m, (a, n) in agreement.items()) + "."
-    notes += _reference_note(ctx, frames, table, rows, split)
+    notes += _reference_note(ctx, scoring_ctx, table, rows, split)
     notes += _renders_note(table.pop("renders"))
     notes += _weights_note(table["method"], table.pop("rounded"), table.pop("stale"), len(ctx.seeds))
     vgg = sorted({v for v in table.pop("vgg") if isinstance(v, str)})
@@ -422,7 +422,7 @@ def run(ctx: Context, name: str, rows: list[dict], caption: str = "", task: str 
         curve_figure(ctx.runs_dir, curves, out_dir / "curves.png")
     reused = int(table["reused"].sum())
     log.info("%s: %d of %d rows reused from the run store; table in %s", name, reused, len(table), out_dir)
-    if frames is not ctx:
+    if scoring_ctx is not ctx:
         log.info("%s: %d rows scored on %s with recorded trainings: nothing was rendered or trained", name,
-                 len(table), frames.data_dir)
+                 len(table), scoring_ctx.data_dir)
     return table

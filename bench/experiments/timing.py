@@ -488,8 +488,7 @@ def plot(table: pd.DataFrame, path, title: str) -> None:
 # ---------------------------------------------------------------- the experiment
 
 
-
-def _adopt_legacy_runs(runs_dir) -> None:
+def _move_legacy_render_runs(runs_dir) -> None:
     """Render runs recorded before the run kind took the experiment's name (runs/timing) move to runs/time;
     their identities are unchanged, so they are reused."""
     legacy, current = runs_dir / "timing", runs_dir / RUN_KIND
@@ -553,7 +552,7 @@ def run(ctx: Context, name: str, caption: str, views: int, lr_spp: list, hr_spp:
         paper_resolution: dict) -> pd.DataFrame:
     """conf/experiment/time.yaml says what each argument is, and its default. Returns the cpu-size table (the
     recorded one with paper_resolution.only=true)."""
-    _adopt_legacy_runs(ctx.runs_dir)
+    _move_legacy_render_runs(ctx.runs_dir)
     methods = _methods(ctx, methods)
     paper = PaperResolution(**paper_resolution)
     if paper.only:
