@@ -221,6 +221,8 @@ def run_all(overrides: list[str], results_dir: Path, tables: list[str], name: st
     from bench.experiments import results_page
     from bench.table_writer import write_table
     available = [e for e in available_experiments() if e != "all"]
+    if not isinstance(tables, list) or not tables:
+        raise UserError(f"experiment.tables={tables!r}: expected a non-empty list of experiments, e.g. [sota,dilation]")
     unknown = [t for t in tables if t not in available]
     if unknown:  # before the first table runs (it may train for hours)
         raise UserError(f"experiment.tables: unknown experiment {unknown[0]!r}; available: {', '.join(available)}")
@@ -355,6 +357,10 @@ def check_experiment_keys(experiment, keys: dict, kind: str, supplied: tuple[str
         raise UserError(f"experiment {keys.get('name', kind)!r} (kind {kind}): "
                         + (f"no key {', '.join(unknown)}" if unknown else str(err))
                         + f"; kind {kind} takes {', '.join(takes)}") from None
+    for key, value in keys.items():  # a YAML `no` or a typo'd flag is a string, and a string is true
+        parameter = signature.parameters.get(key)
+        if parameter is not None and parameter.annotation in (bool, "bool") and not isinstance(value, bool):
+            raise UserError(f"experiment.{key}={value!r}: expected true or false")
 
 
 def committed_archive(preset: str) -> Path:

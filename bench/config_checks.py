@@ -153,6 +153,8 @@ def config_problems(plain: dict) -> list[str]:
     seeds = plain.get("seeds")
     if not (isinstance(seeds, list) and seeds and all(_is_int(s) for s in seeds)):
         problems.append(f"seeds={seeds!r}: expected a non-empty list of integers, e.g. seeds=[0,1,2]")
+    elif len(set(seeds)) < len(seeds):  # one run twice: a spread of 0 that looks like no seed noise
+        problems.append(f"seeds={seeds!r}: a seed named twice; give distinct seeds, e.g. seeds=[0,1,2]")
     for name, lr in (plain.get("model_lr") or {}).items():
         if not (_is_number(lr) and lr > 0):
             problems.append(f"model_lr.{name}={lr!r}: expected a positive number")

@@ -247,6 +247,7 @@ def main(argv: list[str] | None = None) -> int:
     ex.add_argument("run", help="training run hash (runs/train/<hash>)")
     ex.add_argument("--out", required=True, help="weights file to write (.pt); a .json lands beside it")
     ex.add_argument("--runs-dir", default="runs")
+    ex.add_argument("--force", action="store_true", help="replace --out (and its .json) if they exist")
     pr = commands.add_parser("predict", help="apply trained weights to LR EXR frames and folders of them")
     source = pr.add_mutually_exclusive_group(required=True)
     source.add_argument("--weights", help="an exported weights file")
@@ -265,6 +266,9 @@ def main(argv: list[str] | None = None) -> int:
     args = parser.parse_args(argv)
     try:
         if args.command == "export":
+            taken = [p for p in (Path(args.out), Path(args.out).with_suffix(".json")) if p.is_file()]
+            if taken and not args.force:  # a committed weights file, another export, a run's own checkpoint
+                raise UserError(f"--out {args.out}: {taken[0]} exists; --force replaces it")
             print(export(args.run, args.out, args.runs_dir))
             return 0
         if args.command == "score":

@@ -22,7 +22,7 @@ import torch.nn.functional as F
 
 from bench import archived, runs
 from bench.evaluate import evaluate
-from bench.experiments.adopt import COMPARED, relative_difference
+from bench.experiments.replay import COMPARED, relative_difference
 from bench.models.factory import build_model
 from bench.tasks import get_task
 from bench.weights import load_exported
@@ -104,4 +104,6 @@ def main(archive: str, weights_dir: str) -> None:
 
 
 if __name__ == "__main__":
+    if len(sys.argv) != 3 or sys.argv[1] in ("-h", "--help"):
+        sys.exit(f"usage: {sys.argv[0]} RUN_ARCHIVE WEIGHTS_DIR (e.g. results/cpu/runs results/cpu/weights)")
     main(*sys.argv[1:3])

@@ -545,6 +545,10 @@ def test_shard_parses_i_over_n_and_rejects_the_rest():
     ("seeds=0", "seeds=0: expected a non-empty list of integers"),
     ("seeds=[]", "seeds=[]: expected a non-empty list of integers"),
     ("seeds=[a]", "seeds=['a']: expected a non-empty list of integers"),
+    ("seeds=[0,0]", "seeds=[0, 0]: a seed named twice"),
+    ("experiment.rows=[]", "experiment.rows: expected a non-empty list of rows"),
+    ("experiment.rows=[bilinear]", "row 'bilinear': expected a mapping with at least label and model"),
+    ("experiment.rows=[{label:A,model:bilinear,task:nosuch}]", "row 'A': unknown task 'nosuch'"),
     ("+model_lr.srd=-1", "model_lr.srd=-1: expected a positive number"),
     ("eval.fast_path=turbo", "eval.fast_path='turbo': unknown fast path switch 'turbo'"),
     ("+eval.path=fp32", "eval or vgg: EvalSpec.__init__() got an unexpected keyword argument 'path'"),
@@ -832,6 +836,52 @@ def test_your_frames_never_replace_the_committed_tables(tmp_path):
         assert "would replace the committed ones" in said and "results_dir=/tmp/mine" in said, said[-2000:]
     assert table.stat().st_mtime_ns == before
     assert [p.name for p in (tmp_path / "runs").iterdir()] == ["hydra"]  # Hydra's log folder, no run
+
+
+def test_an_experiment_flag_that_is_not_true_or_false_is_refused():
+    """`experiment.delete_dropped=no` is the string 'no', which is true: it would have deleted."""
+    from bench.cli import check_experiment_keys
+    from bench.experiments import migrate
+    with pytest.raises(UserError, match=r"experiment.delete_dropped='no': expected true or false"):
+        check_experiment_keys(migrate.run, {"name": "migrate", "delete_dropped": "no"}, "migrate")
+    check_experiment_keys(migrate.run, {"name": "migrate", "delete_dropped": False}, "migrate")
+
+
+def test_adopt_after_a_call_with_nothing_stale_reads_its_empty_table(tmp_path):
+    """A call with nothing stale writes an empty table.csv; the next call read it as pandas' EmptyDataError."""
+    from bench.experiments.adopt import with_earlier_verdicts
+    empty = tmp_path / "table.csv"
+    pd.DataFrame().to_csv(empty, index=False)
+    table = pd.DataFrame({"witness": ["t1"], "verdict": ["adopted"]})
+    assert with_earlier_verdicts(table, empty).equals(table)
+
+
+@pytest.mark.parametrize("override, said", [("experiment.input_hw=[0,0]", "expected [height, width]"),
+                                            ("experiment.repeats=0", "experiment.repeats=0: expected an integer >= 1"),
+                                            ("experiment.fast_paths=[bogus]", "experiment.fast_paths: 'bogus'")])
+def test_a_bad_speed_option_is_one_line_before_anything_is_timed(tmp_path, override, said):
+    out = bench("+experiment=speed", "experiment.models=[srd]", override, "preset=smoke", "tracking=none",
+                f"results_dir={tmp_path / 'results'}", f"runs_dir={tmp_path / 'runs'}", timeout=120)
+    text = out.stdout + out.stderr
+    assert out.returncode == 2 and said in text and "Traceback" not in text, text[-2000:]
+    assert not list((tmp_path / "results").rglob("table.csv"))
+
+
+@pytest.mark.parametrize("tables", ["[]", "smoke"])
+def test_all_with_no_list_of_tables_is_one_line(tmp_path, tables):
+    from bench.cli import run_all
+    with pytest.raises(UserError, match="expected a non-empty list of experiments"):
+        run_all([], tmp_path, [] if tables == "[]" else tables)
+
+
+def test_a_label_that_leaves_its_folder_is_refused(tmp_path):
+    """`+experiment=train`'s label names the table's folder: `..` in it would write over other tables."""
+    out = bench("+experiment=train", "experiment.model=bilinear", "experiment.label=../../x", "preset=smoke",
+                "tracking=none", f"results_dir={tmp_path / 'results'}", f"runs_dir={tmp_path / 'runs'}",
+                f"data_dir={tmp_path / 'data'}", timeout=120)
+    said = out.stdout + out.stderr
+    assert out.returncode == 2 and "one name without / or .." in said and "Traceback" not in said, said[-2000:]
+    assert not (tmp_path / "x").exists() and not (tmp_path / "data").exists()
 
 
 def test_a_misspelt_experiment_key_is_one_line(tmp_path):

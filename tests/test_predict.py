@@ -188,3 +188,14 @@ def test_export_to_a_folder_is_one_line(recorded, tmp_path):
     runs_dir, run_hash = recorded
     with pytest.raises(UserError, match="is a folder: give the weights file's path"):
         export(run_hash, tmp_path, runs_dir)
+
+
+def test_export_never_replaces_a_file_without_force(recorded, tmp_path, capsys):
+    """A committed weights file, an earlier export or a run's own checkpoint at --out stays as it is."""
+    runs_dir, run_hash = recorded
+    out = tmp_path / "w.pt"
+    out.write_bytes(b"mine")
+    args = ["export", run_hash, "--out", str(out), "--runs-dir", str(runs_dir)]
+    assert main(args) == 2 and "exists; --force replaces it" in capsys.readouterr().err
+    assert out.read_bytes() == b"mine" and not out.with_suffix(".json").exists()
+    assert main([*args, "--force"]) == 0 and load_exported(out)[1]["run"] == run_hash

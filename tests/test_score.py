@@ -163,3 +163,15 @@ def test_against_a_run_without_scores_is_one_line_not_a_match(scored, tmp_path, 
     assert main(["score", "--outputs", str(root / "out"), "--data", str(root / "data"), "--label", "x",
                  "--out-dir", str(tmp_path / "o"), "--against", str(tmp_path / "run")]) == 2
     assert "holds none of the scores" in capsys.readouterr().err and not (tmp_path / "o").exists()
+
+
+def test_scores_never_replace_a_committed_table(scored, capsys):
+    """`--out-dir results/cpu/sota` (adding my row to the sota table) is refused: --table reads it."""
+    from bench.predict import main
+    root, *_ = scored
+    table = REPO / "results" / "cpu" / "sota" / "table.csv"
+    before = table.read_bytes()
+    assert main(["score", "--outputs", str(root / "out"), "--data", str(root / "data"), "--label", "Mine",
+                 "--table", str(table), "--out-dir", str(table.parent)]) == 2
+    assert "under the committed results/" in capsys.readouterr().err and table.read_bytes() == before
+    assert not (table.parent / "per_image.csv").exists()

@@ -389,7 +389,7 @@ def check_untrained(ctx: Context, evaluation: runs.Run, rtol: float) -> dict:
 def with_earlier_verdicts(table: pd.DataFrame, previous_csv: Path) -> pd.DataFrame:
     """`table` after the rows of the previous call's table whose witness this call did not check (an
     adopted group is no longer stale, so a later call would otherwise drop the record of its check)."""
-    if not previous_csv.exists():
+    if not previous_csv.exists() or not previous_csv.stat().st_size > 1:  # a call with nothing stale wrote none
         return table
     earlier = pd.read_csv(previous_csv).rename(columns={"runs": "runs in group"})  # its name until session 37
     if "witness" not in earlier:

@@ -12,10 +12,12 @@ from __future__ import annotations
 
 import logging
 import time
+from pathlib import Path
 
 import pandas as pd
 
 from bench import runs
+from bench.errors import UserError
 from bench.experiments.context import Context
 from bench.experiments.table import run as run_table
 from bench.table_writer import listed_evaluations
@@ -35,6 +37,9 @@ def run(ctx: Context, name: str, model: str, overrides: dict | None = None, task
         figure: bool = True) -> pd.DataFrame:
     started = time.time()
     row = one_row(model, overrides, task, train, cascade, label)
+    if Path(row["label"]).name != row["label"] or row["label"] in ("", ".", ".."):  # it names a folder
+        raise UserError(f"experiment.label={row['label']!r}: the table's folder under {ctx.results_dir / name}, "
+                        "one name without / or ..")
     table = run_table(ctx, f"{name}/{row['label']}", [row], caption=f"One model: {row['label']}.", task=task, split=split,
                       paper=None, figure=figure)
     if not table.empty:  # (a shard= run writes no table)

@@ -523,6 +523,16 @@ def run(ctx, name: str = "speed", models: list[str] = (), input_hw=(540, 960),
     unknown = [m for m in models if m not in ctx.models]
     if unknown:  # before the first section is timed
         raise UserError(f"experiment.models: no model {unknown[0]!r}; models: {', '.join(ctx.models)}")
+    if not (len(input_hw) == 2 and all(isinstance(n, int) and n >= 8 for n in input_hw)):
+        raise UserError(f"experiment.input_hw={list(input_hw)}: expected [height, width], each an integer >= 8")
+    for key, count in (("repeats", repeats), ("warmup", warmup)):
+        if not (isinstance(count, int) and count >= (1 if key == "repeats" else 0)):
+            raise UserError(f"experiment.{key}={count!r}: expected an integer >= {1 if key == 'repeats' else 0}")
+    for path in fast_paths or ():
+        try:
+            parse_path(path)
+        except ValueError as err:
+            raise UserError(f"experiment.fast_paths: {path!r}: {err}") from None
     device = str(ctx.device)
     previous_threads = torch.get_num_threads()
     if threads:

@@ -40,7 +40,7 @@ from bench.metrics import HIGHER_IS_BETTER, LOWER_IS_BETTER, RELMSE_FORMULA
 from bench.models.factory import build_model, is_learned
 from bench.paper import TABLES, paper_values
 from bench.table_writer import SCORED_ON, listed_evaluations, write_table
-from bench.tasks import CASCADE_STAGES, get_task
+from bench.tasks import CASCADE_STAGES, TASKS, get_task
 
 log = logging.getLogger("bench")
 
@@ -52,8 +52,13 @@ def expand_rows(rows: list[dict], default_task: str = "srd") -> list[dict]:
     """Rows with `sweep` become one row per combination of the sweep's values (in the order written);
     `task` in a sweep sets the row's task, any other key a model argument. Labels and `paper` are
     format strings over the sweep values."""
+    if not isinstance(rows, list) or not rows:
+        raise ValueError(f"expected a non-empty list of rows, e.g. [{{label: A, model: bilinear}}], not {rows!r}")
     out = []
     for r in rows:
+        if not isinstance(r, dict) or "label" not in r or "model" not in r:
+            raise ValueError(f"row {r!r}: expected a mapping with at least label and model, "
+                             "e.g. {label: A, model: bilinear}")
         unknown = set(r) - ROW_KEYS - {"sweep"}
         if unknown:
             raise ValueError(f"row {r.get('label')!r}: unknown keys {sorted(unknown)}; known: {sorted(ROW_KEYS)}")
@@ -62,6 +67,8 @@ def expand_rows(rows: list[dict], default_task: str = "srd") -> list[dict]:
             point = dict(zip(sweep, values))
             new = {k: copy.deepcopy(v) for k, v in r.items() if k != "sweep"}
             new["task"] = point.pop("task", r.get("task", default_task))
+            if new["task"] not in TASKS:
+                raise ValueError(f"row {r['label']!r}: unknown task {new['task']!r}; known tasks: {', '.join(TASKS)}")
             new["overrides"] = {**(r.get("overrides") or {}), **point}
             fmt = {**new["overrides"], "task": new["task"]}
             new["label"] = str(r["label"]).format(**fmt)
