@@ -115,7 +115,7 @@ def test_the_references_tool_proposes_more_samples_for_the_sequences_that_fall_s
     shutil.rmtree(tmp_path / "runs" / "eval" / "unrecorded-best")
     # s9 was given more samples before and is not scored by these tables: its count stays in the proposal
     spec = {"splits": {"test": {"ref_spp": 1024, "sequence_ref_spp": {"s9": 2048}}}}
-    ctx = SimpleNamespace(results_dir=tmp_path / "results", runs_dir=tmp_path / "runs", runs_archive=None,
+    ctx = SimpleNamespace(results_dir=tmp_path / "results", runs_dir=tmp_path / "runs", runs_archive=None, archives=(),
                           data_dir=tmp_path / "data", preset="cpu", data_spec=spec)
     table = references.run(ctx, margin=0.8, max_ref_spp=8192).set_index("sequence")
     assert table.loc["s1", "worst shortfall"] == pytest.approx(5.0)  # 1e-3 over a tenth of 2e-3
