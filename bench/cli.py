@@ -27,13 +27,12 @@ from bench.errors import UserError
 from bench.exrio import ExrError
 from bench.infer import keep_freed_memory
 from bench.measure import fused_kernels_on_cuda
-from bench.runs import PATH_ERRORS, ROOT, ensure_writable, error_line, out_of_space
+from bench.runs import COMMITTED_RESULTS, PATH_ERRORS, ROOT, ensure_writable, error_line, out_of_space
 from bench.train import TrainingInterrupted
 from bench.experiments import KINDS, RUNLESS_KINDS
 
 log = logging.getLogger("bench")
 CONF_DIR = str(ROOT / "conf")
-COMMITTED_RESULTS = ROOT / "results"  # the tables (and their run archives) committed with the code
 DEFAULT_ARCHIVE = "${results_dir}/runs"  # conf/config.yaml's runs_archive: it follows results_dir
 
 

@@ -453,6 +453,7 @@ def _restore_locked(runs_dir, archive_dir, kind: str, run_hash: str, code: dict 
 # ---------------------------------------------------------------- code identity
 
 ROOT = Path(__file__).resolve().parent.parent    # the project: the packages whose source runs fingerprint
+COMMITTED_RESULTS = ROOT / "results"  # the tables (and their run archives) committed with the code
 PACKAGES = ("bench", "baselines")
 
 

@@ -211,7 +211,7 @@ def run(args) -> int:
     table = table_with(args.label, scores, args.table)
     compared = compare(per_image, scores, args.against, args.rtol) if args.against else None  # before writing
     out_dir = Path(args.out_dir or args.outputs)
-    if out_dir.resolve().is_relative_to(runs.ROOT / "results"):  # the committed tables are written by the suite
+    if out_dir.resolve().is_relative_to(runs.COMMITTED_RESULTS):  # the committed tables are written by the suite
         raise UserError(f"--out-dir {out_dir}: under the committed results/, where this table would replace the "
                         "suite's; choose another --out-dir (--table reads a committed table without writing it)")
     try:

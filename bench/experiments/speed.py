@@ -525,9 +525,9 @@ def run(ctx, name: str = "speed", models: list[str] = (), input_hw=(540, 960),
         raise UserError(f"experiment.models: no model {unknown[0]!r}; models: {', '.join(ctx.models)}")
     if not (len(input_hw) == 2 and all(isinstance(n, int) and n >= 8 for n in input_hw)):
         raise UserError(f"experiment.input_hw={list(input_hw)}: expected [height, width], each an integer >= 8")
-    for key, count in (("repeats", repeats), ("warmup", warmup)):
-        if not (isinstance(count, int) and count >= (1 if key == "repeats" else 0)):
-            raise UserError(f"experiment.{key}={count!r}: expected an integer >= {1 if key == 'repeats' else 0}")
+    for key, count, least in (("repeats", repeats, 1), ("warmup", warmup, 0)):
+        if not (isinstance(count, int) and count >= least):
+            raise UserError(f"experiment.{key}={count!r}: expected an integer >= {least}")
     for path in fast_paths or ():
         try:
             parse_path(path)
