@@ -131,6 +131,38 @@ def key_problem(args: list[str], chosen: set[tuple[str, str]]) -> str | None:
     return None
 
 
+PATH_KEYS = ("data_dir", "runs_dir", "results_dir")  # conf/config.yaml: relative to the working directory
+
+
+def working_dir_problem(args: list[str], cwd: Path | None = None) -> str | None:
+    """Run from elsewhere than the project, the default data, run store and results folders would be new
+    ones there: the committed tables and their recorded runs unread, everything rendered and trained again
+    under that folder. One line instead, unless the command line gives all three paths."""
+    cwd = (cwd or Path.cwd()).resolve()
+    if cwd == ROOT or any(arg in ("--help", "-h", "--hydra-help", "--info") or arg.startswith("--cfg") for arg in args):
+        return None
+    given = {arg.split("=", 1)[0].lstrip("+") for arg in args if "=" in arg}
+    missing = [key for key in PATH_KEYS if key not in given]
+    if not missing:
+        return None
+    return (f"the working directory {cwd} is not the project's ({ROOT}): {', '.join(missing)} would be folders "
+            f"under it, so the committed tables' recorded runs would not be read and everything would be "
+            f"rendered and trained again there; cd {ROOT}, or give " + " ".join(f"{key}=..." for key in missing))
+
+
+def hydra_dir_problem(args: list[str]) -> str | None:
+    """`hydra.run.dir=` or `hydra.sweep.dir=` where nothing can be written: Hydra would fail there with a
+    traceback before any of our code runs."""
+    for arg in args:
+        match = re.fullmatch(r"\+{0,2}(hydra\.(?:run|sweep)\.dir)=([^$]+)", arg)
+        if match:
+            try:
+                ensure_writable(Path(match.group(2)), match.group(1))
+            except PermissionError as err:
+                return str(err)
+    return None
+
+
 def composition_problem(args: list[str]) -> str | None:
     """What Hydra cannot compose from the command line (a misspelt dotted key, an unknown preset, a value it
     cannot parse) as one line: its own message is a block, with exit 1. Left to Hydra when a flag is given
@@ -462,7 +494,8 @@ def mirror_runs(tracking: str, runs_dir: Path, uri: str | None, results_dir: Pat
 
 def entry() -> None:
     """`python -m bench`: an unknown experiment or study is one line, then Hydra parses the rest."""
-    problem = choice_problem(sys.argv[1:]) or composition_problem(sys.argv[1:])
+    args = sys.argv[1:]
+    problem = working_dir_problem(args) or hydra_dir_problem(args) or choice_problem(args) or composition_problem(args)
     if problem:
         print(f"error: {problem}", file=sys.stderr)
         sys.exit(2)

@@ -119,6 +119,9 @@ def row_problems(plain: dict, data: dict | None) -> list[str]:
     for r in rows:
         where = "experiment" if kind == "one_model" else f"experiment.rows[{r['label']!r}]"
         problems += model_problems(r.get("overrides") or {}, f"{where}.overrides")
+        if r.get("cascade"):
+            problems += cascade_problems(deep_merge((plain.get("models") or {}).get(r["model"]) or {},
+                                                   r.get("overrides")), where)
         if not isinstance(r.get("train") or {}, dict):
             problems.append(f"{where}.train={r.get('train')!r}: expected a dict of train.* overrides")
             continue
@@ -128,6 +131,19 @@ def row_problems(plain: dict, data: dict | None) -> list[str]:
         own_recipe = recipe_problems(train)
         problems += [f"{where}.{p}" for p in own_recipe if p not in recipe_problems(plain["train"])]
     return problems
+
+
+def cascade_problems(model: dict, where: str) -> list[str]:
+    """A Cascade row trains the proposed model's stages apart, which exchange RGB images only
+    (SRDNet.forward_stage): it needs SRDNet with channel_aug and skip off."""
+    if model.get("_target_") != "bench.models.srd.SRDNet":
+        return [f"{where}.cascade=true: a Cascade trains the proposed model's stages apart (model srd), "
+                f"not {model.get('_target_')}"]
+    on = [key for key in ("channel_aug", "skip") if model.get(key, True)]
+    if on:
+        return [f"{where}.cascade=true: its stages exchange RGB images only, so it needs "
+                + " and ".join(f"{key}=false" for key in on) + " in its overrides (conf/experiment/stage_order.yaml)"]
+    return []
 
 
 def recipe_problems(train: dict) -> list[str]:

@@ -326,8 +326,8 @@ def _size_problems(root, rec, scale):
     if lr and rec.get("lr_size") and list(lr) != list(rec["lr_size"]):
         out.append(f"{lr_path}: {lr[0]}x{lr[1]} pixels, but its record's lr_size is {rec['lr_size']}")
     if lr and hr and (hr[0], hr[1]) != (scale * lr[0], scale * lr[1]):
-        out.append(f"{hr_path}: {hr[0]}x{hr[1]} pixels; HR must be {scale}x LR ({lr[0]}x{lr[1]}): "
-                   f"{scale * lr[0]}x{scale * lr[1]} (spec.scale={scale})")
+        out.append(f"{hr_path} is {hr[0]}x{hr[1]} pixels and {os.path.basename(lr_path)} beside it {lr[0]}x{lr[1]}: HR must be "
+                   f"{scale}x LR (spec.scale={scale}); one of the two is not of this frame's size")
     return out
 
 

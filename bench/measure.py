@@ -20,6 +20,7 @@ import os
 import platform
 import re
 import statistics
+import sys
 import time
 from pathlib import Path
 
@@ -160,8 +161,13 @@ def choose_fast_path(model, x: torch.Tensor, g: torch.Tensor | None, device: str
     fastest = min(ran)[1]
     if cache is not None:
         cached[text] = {"path": fastest, "ms": times}
-        Path(cache).parent.mkdir(parents=True, exist_ok=True)
-        Path(cache).write_text(json.dumps(cached, indent=1, sort_keys=True))
+        try:
+            Path(cache).parent.mkdir(parents=True, exist_ok=True)
+            Path(cache).write_text(json.dumps(cached, indent=1, sort_keys=True))
+        except OSError as err:  # e.g. an unwritable HOME: the choice stands, it is only not remembered
+            print(f"note: the fast path chosen is not remembered in {cache} ({err.strerror}): it is measured again "
+                  f"next time; --fast-path {fastest} (or XDG_CACHE_HOME=<a writable folder>) avoids that",
+                  file=sys.stderr)
     return fastest, times
 
 

@@ -42,7 +42,7 @@ from bench.evaluate import predict as predict_batch
 from bench.evaluate import runner
 from bench.infer import REFERENCE, parse_path
 from bench.measure import AUTO, choose_fast_path, fused_kernels_on_cuda
-from bench.tasks import GBUF_LAYERS
+from bench.tasks import GBUF_LAYERS, get_task
 from bench.weights import export, from_run, load_exported
 
 
@@ -153,6 +153,18 @@ def read_sequence(frames: list[Path], max_nonfinite: float | None) -> list[tuple
                             f"{max_nonfinite:.1%} predict repairs; fix the frame, or repair them anyway with "
                             "--accept-nonfinite")
     return read
+
+
+def task_notice(task_name: str) -> str | None:
+    """What outputs mean when the weights were not trained for predict's task (noisy LR in, clean HR out)."""
+    if task_name == "srd":
+        return None
+    task = get_task(task_name)
+    size = f"at {task.scale}x the input's size" if task.scale > 1 else "at the input's size, not super-resolved"
+    trained_on = "noise-free" if task.x.endswith("_ref") else "noisy"
+    target = "noisy" if task.y.endswith("_noisy") else "clean"
+    return (f"note: these weights were trained for the task {task_name!r} ({trained_on} {task.x} in, {target} "
+            f"output {size}), not srd; predict gives them each frame's `noisy` layer as it is")
 
 
 def file_mode() -> int:
@@ -266,16 +278,16 @@ def main(argv: list[str] | None = None) -> int:
     args = parser.parse_args(argv)
     try:
         if args.command == "export":
-            taken = [p for p in (Path(args.out), Path(args.out).with_suffix(".json")) if p.is_file()]
-            if taken and not args.force:  # a committed weights file, another export, a run's own checkpoint
-                raise UserError(f"--out {args.out}: {taken[0]} exists; --force replaces it")
-            print(export(args.run, args.out, args.runs_dir))
+            print(export(args.run, args.out, args.runs_dir, args.force))
             return 0
         if args.command == "score":
             return score.run(args)
         check_fast_path(args.fast_path, args.tile)
         model, meta = load_exported(args.weights) if args.weights else from_run(args.run, args.runs_dir)
         limit = None if args.accept_nonfinite else args.max_nonfinite
+        notice = task_notice(meta.get("task", "srd"))
+        if notice:
+            print(notice, file=sys.stderr)
         with fused_kernels_on_cuda():
             for path in apply(model, meta, args.inputs, args.output_dir, args.tile, args.fast_path, limit):
                 print(path)

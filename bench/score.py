@@ -67,7 +67,11 @@ def read_output(path: Path, shape: tuple) -> np.ndarray:
     if layer is None:
         raise UserError(f"{path}: no layer `output` among its layers {layers}; store the RGB output as the "
                         "layer `output` (channels output.R, output.G, output.B) or as the file's only layer")
-    image = exrio.read_exr(path, [layer])[layer]
+    try:
+        image = exrio.read_exr(path, [layer])[layer]
+    except KeyError as err:  # channels `.R`, `.G`, `.B`: a layer with an empty name, which exrio does not read
+        raise UserError(f"{path}: its channels are named like .{err.args[0]} (a layer with an empty name); "
+                        "name them R, G, B or output.R, output.G, output.B") from err
     if image.shape != shape:
         raise UserError(f"{path}: {image.shape[1]}x{image.shape[0]}x{image.shape[2]}, the reference is "
                         f"{shape[1]}x{shape[0]} RGB")

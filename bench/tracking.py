@@ -25,12 +25,14 @@ import json
 import logging
 import math
 import os
+import socket
 import subprocess
 import sys
 import tempfile
 from contextlib import closing
 from datetime import datetime
 from pathlib import Path
+from urllib.parse import urlparse
 
 import pandas as pd
 
@@ -50,6 +52,19 @@ def default_uri(runs_dir: str | Path) -> str:
     return f"sqlite:///{(Path(runs_dir) / 'mlflow.db').resolve()}"
 
 
+def check_server(uri: str, timeout_s: float = 5.0) -> None:
+    """A server URI that does not take a connection raises ConnectionError at once: MLflow's client would
+    retry each request for minutes before giving up."""
+    parsed = urlparse(uri)
+    if parsed.scheme not in ("http", "https"):
+        return
+    try:
+        socket.create_connection((parsed.hostname, parsed.port or (443 if parsed.scheme == "https" else 80)),
+                                 timeout=timeout_s).close()
+    except OSError as err:
+        raise ConnectionError(f"the MLflow server {uri} does not answer ({err.strerror or err})") from err
+
+
 def sync(runs_dir: str | Path, uri: str | None = None, results_dir: str | Path | None = None) -> dict:
     """Mirror the run store into MLflow at `uri` (None: `default_uri(runs_dir)`); returns counts
     {"logged": new runs, "replaced": runs whose record changed, "tables": runs whose tables changed,
@@ -58,6 +73,7 @@ def sync(runs_dir: str | Path, uri: str | None = None, results_dir: str | Path |
     runs_dir = Path(runs_dir)
     local = uri is None
     uri = uri or default_uri(runs_dir)
+    check_server(uri)
     tables = _tables_by_run(Path(results_dir)) if results_dir else {}
     counts = {"logged": 0, "replaced": 0, "tables": 0, "unchanged": 0}
     with closing(runs.acquire(runs_dir / ".mlflow.lock", "mirroring the run store to MLflow")):

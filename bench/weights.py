@@ -17,7 +17,7 @@ from pathlib import Path
 
 import torch
 
-from bench import archived, runs
+from bench import archived, hdr, runs
 from bench.errors import UserError
 from bench.models.factory import build_model
 from bench.tasks import get_task
@@ -28,16 +28,16 @@ FORMAT = "srd-bench-weights/2"
 READABLE_FORMATS = ("srd-bench-weights/1", FORMAT)
 COMPACT = "weights_float16_compact"  # instead of "state_dict" when the run's weights are float16-rounded
 
-ARCHIVES = "results/*/runs"  # the tables' archived runs (conf/config.yaml runs_archive), from the project root
+ARCHIVES = "*/runs"  # under runs.COMMITTED_RESULTS: the tables' archived runs (conf/config.yaml runs_archive)
 
 
 def training_record(run_hash: str, runs_dir: str | Path = "runs") -> Path:
     """The run.json of training run `run_hash`: in the run store, else in a committed archive (a fresh
     clone has no run store)."""
-    path, _ = runs.find_record("train", run_hash, runs_dir, sorted(Path().glob(ARCHIVES)))
+    path, _ = runs.find_record("train", run_hash, runs_dir, sorted(runs.COMMITTED_RESULTS.glob(ARCHIVES)))
     if path is None:
         raise UserError(f"no training run {run_hash} in {runs_dir} (runs are directories of "
-                        f"{Path(runs_dir) / 'train'}) or in {ARCHIVES}/train")
+                        f"{Path(runs_dir) / 'train'}) or in {runs.COMMITTED_RESULTS / ARCHIVES}/train")
     return path
 
 
@@ -56,10 +56,15 @@ def finished_training(run_hash: str, runs_dir: str | Path = "runs") -> tuple[Pat
     return path, record
 
 
-def export(run_hash: str, out: str | Path, runs_dir: str | Path = "runs") -> Path:
-    """Write the weights of the complete training run `run_hash` to `out` (+ `out`.json)."""
-    if Path(out).is_dir():
-        raise UserError(f"--out {out} is a folder: give the weights file's path, e.g. {Path(out) / 'weights.pt'}")
+def export(run_hash: str, out: str | Path, runs_dir: str | Path = "runs", force: bool = False) -> Path:
+    """Write the weights of the complete training run `run_hash` to `out` (+ `out`.json); an existing
+    file there (a committed weights file, an earlier export, a run's own checkpoint) only with `force`."""
+    out = Path(out)
+    if out.is_dir():
+        raise UserError(f"--out {out} is a folder: give the weights file's path, e.g. {out / 'weights.pt'}")
+    taken = [p for p in (out, out.with_suffix(out.suffix + ".json")) if p.is_file()]
+    if taken and not force:
+        raise UserError(f"--out {out}: {taken[0]} exists; --force replaces it")
     path, record = finished_training(run_hash, runs_dir)
     identity = record["identity"]
     cfg, task = identity["model"], get_task(identity["task"])
@@ -76,7 +81,6 @@ def export(run_hash: str, out: str | Path, runs_dir: str | Path = "runs") -> Pat
             "weights_rounded_to_float16": archived.rounded(path.parent),
             "metrics": record.get("metrics", {}), "code": record.get("code"),
             "git_commit": record.get("git_commit"), "git_dirty": record.get("git_dirty")}
-    out = Path(out)
     out.parent.mkdir(parents=True, exist_ok=True)
     # float16-rounded weights in the archive's compact form: the same values, a quarter of the bytes
     weights = ({COMPACT: archived.encode(model.state_dict())} if meta["weights_rounded_to_float16"]
@@ -123,6 +127,10 @@ def load_exported(path: str | Path):
     """(model in eval mode, metadata) from an exported weights file; its sha256 is checked against the
     JSON beside it when there is one."""
     path = Path(path)
+    if path.is_dir():
+        found = sorted(p.name for p in path.glob("*.pt"))
+        raise UserError(f"--weights {path} is a folder: give a weights file"
+                        + (f" in it ({', '.join(found)})" if found else " (.pt, written by `srd-bench export`)"))
     if not path.is_file():
         raise UserError(f"weights file {path} does not exist")
     sidecar = path.with_suffix(path.suffix + ".json")
@@ -142,10 +150,13 @@ def load_exported(path: str | Path):
         raise UserError(f"{path} is " + (f"an SRD-Bench weights file of a newer format ({saved['format']}): update "
                                          "SRD-Bench to read it" if newer else
                                          "not an SRD-Bench weights file (write one with `srd-bench export RUN`)"))
-    lacking = [key for key in ("model", "scale") if key not in saved]
+    lacking = [key for key in ("model", "scale", "hdr") if key not in saved]
     if lacking or not ({COMPACT, "state_dict"} & set(saved)):
         raise UserError(f"{path}: an SRD-Bench weights file without its {', '.join(lacking) or 'weights'}: "
                         "damaged or not written by `srd-bench export`; export it again")
+    if saved["hdr"] not in hdr.MODES:
+        raise UserError(f"{path}: its network domain hdr={saved['hdr']!r} is none of {', '.join(hdr.MODES)} "
+                        "(bench.hdr): damaged or not written by `srd-bench export`; export it again")
     try:
         state = archived.decode(saved[COMPACT]) if COMPACT in saved else saved["state_dict"]
     except (KeyError, ValueError, RuntimeError, EOFError, lzma.LZMAError) as err:

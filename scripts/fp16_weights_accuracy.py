@@ -104,6 +104,10 @@ def main(archive: str, weights_dir: str) -> None:
 
 
 if __name__ == "__main__":
-    if len(sys.argv) != 3 or sys.argv[1] in ("-h", "--help"):
-        sys.exit(f"usage: {sys.argv[0]} RUN_ARCHIVE WEIGHTS_DIR (e.g. results/cpu/runs results/cpu/weights)")
+    usage = f"usage: {sys.argv[0]} RUN_ARCHIVE WEIGHTS_DIR (e.g. results/cpu/runs results/cpu/weights)"
+    if sys.argv[1:2] in (["-h"], ["--help"]):
+        print(usage)
+        sys.exit(0)
+    if len(sys.argv) != 3:
+        sys.exit(usage)
     main(*sys.argv[1:3])

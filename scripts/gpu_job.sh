@@ -20,13 +20,13 @@
 #            -> results/gpu/sota/, runs/{train,eval}
 # Everything comes back in $OUT as at most 8 files: log.txt, results.tar.gz (results/gpu), and
 # runs.tar.gz.part-* (the run store without rendered data, 15 MiB parts). Unpack them here with
-# scripts/gpu_unpack.sh. Environment: PYTHON (python3), DEVICE (cuda), PRESET (gpu), JOB_S, STEP_S,
+# scripts/gpu_unpack.sh. Environment: PYTHON (.venv/bin/python where `make` made one, else python3), DEVICE (cuda), PRESET (gpu), JOB_S, STEP_S,
 # SPEED_ARGS, SOTA_ARGS, PROFILE_ARGS. A dry run on a CPU (its records land in results/gpu: delete them after):
 #     DEVICE=cpu PROFILE_ARGS="--batch 1 --frames 2 --crop 16 --channels 8 --no-compile" OUT=/tmp/x \
 #         bash scripts/gpu_job.sh tests profile
 set -uo pipefail
 OUT=${OUT:-/tmp/gpu_job_out}
-PYTHON=${PYTHON:-python3}
+PYTHON=${PYTHON:-$([ -x .venv/bin/python ] && echo .venv/bin/python || echo python3)}
 DEVICE=${DEVICE:-cuda}
 PRESET=${PRESET:-gpu}
 JOB_S=${JOB_S:-560}

@@ -22,6 +22,11 @@ def compare(scene, camera, spp):
 
 def main():
     family = sys.argv[1] if len(sys.argv) > 1 else "statue_room"
+    if family in ("-h", "--help"):
+        print(__doc__)
+        sys.exit(0)
+    if family not in scenes.FAMILIES:
+        sys.exit(f"error: hr_reference_repro: no scene family {family!r}; families: {', '.join(scenes.FAMILIES)}")
     render.pick_variant()
     scene = render.load_scene(scenes.make_scene(family, 3))
     camera = scenes.camera_path(3, 0, 1)[0]

@@ -7,7 +7,7 @@ the working tree (64 MiB a call; scripts/gpu_prepare.sh):
 and recompresses it with LZMA (pip installs such wheels: Python's zipfile reads them): mitsuba 3.9.1
 cp311 59.8 MiB -> 26.4 trimmed -> 16.3 with LZMA. Other wheels given (drjit) are only recompressed.
 A trimmed cp311 wheel installed with --target renders every family: see scripts/mitsuba_plugins.py.
-    python scripts/trim_mitsuba_wheel.py WHEEL ...
+Usage: python scripts/trim_mitsuba_wheel.py WHEEL ...
 """
 import os
 import re
@@ -50,5 +50,12 @@ def trim(path: str) -> None:
 
 
 if __name__ == "__main__":
-    for wheel in sys.argv[1:] or sys.exit(__doc__):
+    if {"-h", "--help"} & set(sys.argv[1:]):
+        print(__doc__)
+        sys.exit(0)
+    if not sys.argv[1:]:
+        sys.exit(__doc__)
+    for wheel in sys.argv[1:]:
+        if not zipfile.is_zipfile(wheel):
+            sys.exit(f"error: trim_mitsuba_wheel: {wheel} is not a wheel (a zip file)")
         trim(wheel)

@@ -119,7 +119,8 @@ def test_the_readers_work_on_a_converted_copy_of_a_real_archived_run(tmp_path, m
     assert sorted(p.name for p in copy.iterdir()) == sorted(archived.FILES)
     # the weights: float16-rounded float32 of the original's EMA
     expected = {k: v.half().to(v.dtype) if v.is_floating_point() else v for k, v in archived.state_dict(original).items()}
-    monkeypatch.chdir(tmp_path)                                        # a fresh clone: no run store
+    monkeypatch.setattr(runs, "COMMITTED_RESULTS", tmp_path / "results")  # a fresh clone: no run store,
+    monkeypatch.chdir(tmp_path)                                              # the copy its only archive
     model, meta = from_run(original.name, tmp_path / "no_store")
     assert all(torch.equal(v, expected[k]) for k, v in model.state_dict().items())
     exported, exported_meta = load_exported(export(original.name, tmp_path / "w.pt", tmp_path / "no_store"))

@@ -958,3 +958,32 @@ def test_a_stage_whose_loss_weights_are_all_zero_is_off_not_a_bad_value(tmp_path
     cfg = compose_experiment("smoke", "preset=smoke", f"runs_dir={tmp_path}/runs",
                              "train.loss.intermediate={edge:0,temporal:0,spatial:0,perceptual:0}")
     assert make_context(cfg).train.loss["intermediate"]["spatial"] == 0
+
+
+def test_run_from_another_folder_is_one_line_unless_every_path_is_given(tmp_path):
+    """From elsewhere the default data/, runs/ and results/ would be new folders there: the committed
+    archive unread, everything rendered and trained again. Refused before anything is written."""
+    from bench.cli import working_dir_problem
+    said = working_dir_problem(["+experiment=sota"], cwd=tmp_path)
+    assert said and f"cd {REPO}" in said and "data_dir=... runs_dir=... results_dir=..." in said
+    assert "results_dir=..." not in working_dir_problem(["results_dir=/x", "+experiment=sota"], cwd=tmp_path)
+    assert working_dir_problem(["data_dir=/d", "runs_dir=/r", "++results_dir=/x"], cwd=tmp_path) is None
+    assert working_dir_problem(["+experiment=sota"], cwd=REPO) is None
+    out = bench("+experiment=sota", cwd=tmp_path, timeout=120)
+    assert out.returncode == 2 and "is not the project's" in out.stderr and "Traceback" not in out.stderr
+    assert not list(tmp_path.iterdir())
+
+
+def test_an_unwritable_hydra_dir_is_one_line():
+    from bench.cli import hydra_dir_problem
+    assert "hydra.run.dir directory /proc/x is not writable" in hydra_dir_problem(["hydra.run.dir=/proc/x"])
+    assert "hydra.sweep.dir directory /proc/y" in hydra_dir_problem(["+experiment=sota", "hydra.sweep.dir=/proc/y"])
+    assert hydra_dir_problem(["hydra.run.dir=${runs_dir}/x"]) is None      # Hydra's to resolve
+
+
+@pytest.mark.parametrize("script", sorted(p.name for p in (REPO / "scripts").glob("*.py")))
+def test_every_script_answers_help(script):
+    out = subprocess.run([sys.executable, f"scripts/{script}", "--help"], cwd=REPO, capture_output=True, text=True,
+                         timeout=120, env={**os.environ, "PYTHONPATH": str(REPO)})
+    assert out.returncode == 0 and "Traceback" not in out.stderr and "usage" in out.stdout.lower(), \
+        out.stdout[-500:] + out.stderr[-1500:]

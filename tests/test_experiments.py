@@ -396,7 +396,8 @@ def test_claim_verdicts_pair_seeds_and_sequences_with_holm_and_scene_robustness(
     # a row no recorded table has, or a table not run: that claim is "not run" (and says what to run),
     # every other claim is still judged; with nothing recorded at all, a clear error
     missing = [{"claim": "needs a row added later", "better": "t:A", "worse": ["t:B", "t:D"]},
-               {"claim": "needs a table not run", "better": "t:A", "worse": "other:X"}]
+               {"claim": "needs a table not run", "better": "t:A", "worse": "other:X"},
+               {"claim": "misspelt", "better": "t:A", "worse": "t:BB"}]
     table = claims.run(ctx, "claims", claim_list + missing, "PSNR", tables=None)
     verdicts = table.drop_duplicates("claim").set_index("claim")["verdict"].to_dict()
     assert table.loc[table["PSNR verdict"] == "not run", "PSNR p Holm"].isna().all()
@@ -405,6 +406,9 @@ def test_claim_verdicts_pair_seeds_and_sequences_with_holm_and_scene_robustness(
     later = table[table["claim"] == "needs a row added later"].set_index("worse (paper)")
     assert later.loc["t:B", "PSNR verdict"] == "holds" and later.loc["t:D", "PSNR verdict"] == "not run"
     assert "no row 'D'" in later.loc["t:D", "basis"] and "+experiment=t" in later.loc["t:D", "basis"]
+    assert "(its rows: 'A', 'B'" in later.loc["t:D", "basis"]
+    assert "no row 'BB' in" in table.set_index("claim").loc["misspelt", "basis"] and "(did you mean 'B'?)" in \
+        table.set_index("claim").loc["misspelt", "basis"]
     not_run = table.set_index("claim").loc["needs a table not run"]
     assert "does not exist" in not_run["basis"] and "+experiment=other" in not_run["basis"]
     reversed_and_missing = {"claim": "a reversal decides", "better": "t:B", "worse": ["t:A", "t:D"]}

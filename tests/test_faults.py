@@ -477,6 +477,10 @@ def test_concurrent_forced_commands_compute_each_run_once_between_them(tmp_path)
     ("experiment.rows=[{label:a,model:srd,train:{steps:abc}}]", "experiment.rows['a'].train.steps='abc': expected a positive"),
     ("experiment.rows=[{label:a,model:srd,train:{steps:-5}}]", "experiment.rows['a'].train.steps=-5: expected a positive"),
     ("experiment.rows=[{label:a,model:edsr,overrides:{blocks:0}}]", "experiment.rows['a'].overrides.blocks=0"),
+    ("experiment.rows=[{label:a,model:srd,cascade:true}]",
+     "experiment.rows['a'].cascade=true: its stages exchange RGB images only, so it needs channel_aug=false and skip=false"),
+    ("experiment.rows=[{label:a,model:srd,cascade:true,overrides:{channel_aug:false}}]", "needs skip=false in its"),
+    ("experiment.rows=[{label:a,model:edsr,cascade:true}]", "a Cascade trains the proposed model's stages apart"),
 ])
 def test_a_bad_value_inside_a_model_or_a_row_is_one_line_before_anything_runs(tmp_path, override, message):
     from hydra import compose, initialize_config_dir

@@ -72,6 +72,20 @@ def test_predict_on_the_command_line(recorded, tmp_path, capsys):
     assert (tmp_path / "out" / "0000_hr.exr").exists()
 
 
+def test_predict_says_when_the_weights_were_trained_for_another_task(recorded, tmp_path, capsys):
+    """Weights of a denoise-only (or sr-only) training give outputs at the input's size (or keep the
+    noise): predict runs them, and says so."""
+    runs_dir, run_hash = recorded
+    saved = torch.load(export(run_hash, tmp_path / "srd.pt", runs_dir), weights_only=False)
+    torch.save({**saved, "task": "denoise"}, tmp_path / "denoise.pt")
+    frame = _frame(tmp_path / "0000_lr.exr")
+    for weights, said in (("srd.pt", False), ("denoise.pt", True)):
+        assert main(["predict", "--weights", str(tmp_path / weights), "--fast-path", "fp32",
+                     "--output-dir", str(tmp_path / "out" / weights), str(frame)]) == 0
+        err = capsys.readouterr().err
+        assert ("trained for the task 'denoise'" in err and "not super-resolved" in err) == said, err
+
+
 def test_predict_measures_the_fast_path_once_and_its_output_matches_fp32(recorded, tmp_path, capsys):
     runs_dir, run_hash = recorded
     frame = _frame(tmp_path / "0000_lr.exr")
@@ -85,6 +99,16 @@ def test_predict_measures_the_fast_path_once_and_its_output_matches_fp32(recorde
     assert np.abs(auto - fp32).max() <= 0.02 * np.abs(fp32).max() + 1e-6
 
 
+def test_an_unwritable_cache_folder_only_means_the_fast_path_is_measured_again(recorded, tmp_path, capsys, monkeypatch):
+    runs_dir, run_hash = recorded
+    monkeypatch.setenv("XDG_CACHE_HOME", "/proc/no_cache_here")           # as an unwritable HOME would be
+    assert main(["predict", "--run", run_hash, "--runs-dir", str(runs_dir), "--output-dir", str(tmp_path / "out"),
+                 str(_frame(tmp_path / "0000_lr.exr"))]) == 0
+    err = capsys.readouterr().err
+    assert "fast path: " in err and "is not remembered in /proc/no_cache_here" in err and "--fast-path " in err, err
+    assert (tmp_path / "out" / "0000_hr.exr").exists()
+
+
 @pytest.mark.parametrize("case,message", [
     ("missing layer", "missing layers ['albedo']"),
     ("two sizes", "must share one size"),
@@ -92,6 +116,8 @@ def test_predict_measures_the_fast_path_once_and_its_output_matches_fp32(recorde
     ("not weights", "is not an SRD-Bench weights file"),
     ("newer format", "of a newer format (srd-bench-weights/99): update SRD-Bench"),
     ("unknown run", "no training run"),
+    ("bogus hdr", "its network domain hdr='bogus' is none of clamp, log1p, pu"),
+    ("a folder", "is a folder: give a weights file in it (edsr.pt)"),
 ])
 def test_each_bad_input_gets_its_message(recorded, tmp_path, capsys, case, message):
     runs_dir, run_hash = recorded
@@ -107,6 +133,11 @@ def test_each_bad_input_gets_its_message(recorded, tmp_path, capsys, case, messa
     elif case in ("not weights", "newer format"):
         torch.save({"state_dict": {}, **({"format": "srd-bench-weights/99"} if case == "newer format" else {})},
                    tmp_path / "other.pt")
+        args[2] = str(tmp_path / "other.pt")
+    elif case == "a folder":
+        args[2] = str(tmp_path)
+    elif case == "bogus hdr":
+        torch.save({**torch.load(weights, weights_only=False), "hdr": "bogus"}, tmp_path / "other.pt")
         args[2] = str(tmp_path / "other.pt")
     elif case == "unknown run":
         args = ["predict", "--run", "0123456789abcdef", "--runs-dir", str(runs_dir), "--output-dir", str(tmp_path)]
@@ -142,6 +173,7 @@ def test_a_run_kept_only_in_an_archive_exports_the_same_weights(recorded, tmp_pa
     runs_dir, run_hash = recorded
     run = runs.Run("train", run_hash, runs_dir / "train" / run_hash, runs.read_record(runs_dir / "train" / run_hash / runs.RECORD))
     monkeypatch.chdir(tmp_path)
+    monkeypatch.setattr(runs, "COMMITTED_RESULTS", tmp_path / "results")  # export's archives
     archive_training(smoke_context(runs_archive=Path("results/cpu/runs")), run)
     from_store = load_exported(export(run_hash, tmp_path / "store.pt", runs_dir))[0].state_dict()
     from_archive, meta = load_exported(export(run_hash, tmp_path / "archive.pt", tmp_path / "no_store"))
@@ -158,6 +190,7 @@ def test_a_run_archived_without_its_weights_says_where_they_are(recorded, tmp_pa
     runs_dir, run_hash = recorded
     run = runs.Run("train", run_hash, runs_dir / "train" / run_hash, runs.read_record(runs_dir / "train" / run_hash / runs.RECORD))
     monkeypatch.chdir(tmp_path)
+    monkeypatch.setattr(runs, "COMMITTED_RESULTS", tmp_path / "results")  # export's archives
     monkeypatch.setattr(runs, "ARCHIVED_FILE_MAX_BYTES", 1000)
     archive_training(smoke_context(runs_archive=Path("results/cpu/runs")), run)
     with pytest.raises(UserError, match=r"no weights.*out of git.*seeds=\[\d\].*trains the run again"):
@@ -197,5 +230,9 @@ def test_export_never_replaces_a_file_without_force(recorded, tmp_path, capsys):
     out.write_bytes(b"mine")
     args = ["export", run_hash, "--out", str(out), "--runs-dir", str(runs_dir)]
     assert main(args) == 2 and "exists; --force replaces it" in capsys.readouterr().err
-    assert out.read_bytes() == b"mine" and not out.with_suffix(".json").exists()
+    assert out.read_bytes() == b"mine" and not out.with_suffix(".pt.json").exists()
     assert main([*args, "--force"]) == 0 and load_exported(out)[1]["run"] == run_hash
+    out.unlink()                                         # the JSON beside it alone is kept too
+    assert main(args) == 2 and "w.pt.json exists; --force replaces it" in capsys.readouterr().err
+    with pytest.raises(UserError, match="exists; --force replaces it"):   # the Python API as the command
+        export(run_hash, out, runs_dir)

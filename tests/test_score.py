@@ -125,6 +125,9 @@ def test_outputs_of_another_framework_in_plain_rgb_channels_score_the_same(score
      "no layer `output` among its layers ['a', 'b']"),
     (lambda out: exrio.write_exr(out / SEQUENCES[0] / "0001_hr.exr", {"output": np.full((32, 32, 3), np.nan, np.float32)}),
      "1 of the outputs hold NaN or Inf values, e.g."),
+    (lambda out: OpenEXR.File({"compression": OpenEXR.ZIP_COMPRESSION, "type": OpenEXR.scanlineimage},
+                              {f".{c}": np.zeros((32, 32), np.float32) for c in "RGB"}).write(
+        str(out / SEQUENCES[0] / "0001_hr.exr")), "its channels are named like .R (a layer with an empty name)"),
 ])
 def test_a_missing_or_foreign_output_is_one_line(scored, tmp_path, capsys, damage, message):
     import shutil

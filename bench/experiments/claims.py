@@ -23,6 +23,7 @@ page `<results_dir>/README.md` from the tables (bench/experiments/results_page.p
 """
 from __future__ import annotations
 
+import difflib
 import logging
 import math
 import re
@@ -60,9 +61,13 @@ def _row(ctx: Context, ref: str, cache: dict) -> pd.Series:
     name, _, label = ref.partition(":")
     table = _table(ctx, name, cache)
     found = table[table["method"] == label]
-    if found.empty:
-        raise MissingRow(f"no row {label!r} in {ctx.results_dir / name / 'table.csv'}: rerun "
-                         f"`python -m bench +experiment={name} preset={ctx.preset}`")
+    if found.empty:  # a misspelt claim, or a row the table's config gained since the table was written
+        close = difflib.get_close_matches(label, list(table["method"]), n=1)
+        raise MissingRow(f"no row {label!r} in {ctx.results_dir / name / 'table.csv'}"
+                         + (f" (did you mean {close[0]!r}?)" if close else
+                            f" (its rows: {', '.join(map(repr, table['method']))})")
+                         + f"; a row its config has gained since: rerun `python -m bench +experiment={name} "
+                         f"preset={ctx.preset}`")
     return found.iloc[0]
 
 
