@@ -221,48 +221,48 @@ def restamp(run: runs.Run, code: dict, check: dict) -> None:
     run.save()
 
 
-def run(ctx: Context, name: str, steps: int, rtol: float, rtol_later_steps: float, rtol_rounded_weights: float,
-        dry_run: bool) -> pd.DataFrame:
-    """conf/experiment/adopt.yaml says what each argument is."""
-    log.info("adopt: %d archived runs restored into the store", restore_archive(ctx))
-    groups = stale_groups(ctx)
-    log.info("adopt: %d groups of stale training runs (%d runs)", len(groups), sum(map(len, groups.values())))
-    rows, adopted = [], set()
-    for group in groups.values():
-        witness = group[0]
-        identity = witness.record["identity"]
-        code = code_of(identity["model"], *TRAINING_CODE)
-        row = {"label": witness.record.get("label"), "runs in group": len(group), "witness": witness.hash,
-               "changed": ", ".join(runs.code_changes(witness.record, code))}
-        try:
-            weights = row["weights"] = archived.has_weights(witness.dir)  # False: no seed's archive kept
-            # them, and the group is checked by its training alone
-            if trained_here(ctx, witness):  # its record can judge the code
-                row |= against_record(ctx, witness, steps, weights)
-                eval_rtol = rtol_rounded_weights if archived.rounded(witness.dir) else rtol
-            else:  # trained on other frames: the recorded code, rebuilt, replays on today's
-                row |= against_recorded_code(ctx, witness, steps, weights)
-                eval_rtol = rtol  # the same weights on both sides
-            row["eval rtol"] = eval_rtol
-            row["verdict"] = verdict(row, rtol, eval_rtol, rtol_later_steps)
-        except TrainingInterrupted:  # Ctrl-C / SIGTERM during a replay stops the command, not one group
-            raise
-        except Exception as err:  # noqa: BLE001 - a group that cannot be checked stays stale, with why
-            row["verdict"] = f"not checked: {type(err).__name__}: {err}"
-        log.info("adopt %s (%d runs): %s", row["label"], len(group), row["verdict"])
-        if row["verdict"] == "adopted" and not dry_run:
-            check = {k: v for k, v in row.items() if k.startswith(("train ", "eval ", "check", "scored", "weights"))} | {
-                "rtol": rtol, "rtol_later_steps": rtol_later_steps}
-            for r in group:
-                restamp(r, code, check)
-                archive_training(ctx, r)
-            adopted |= {r.hash for r in group}
-        rows.append(row)
-    for evaluation in [] if dry_run else evaluations_to_restamp(ctx, adopted):
-        restamp(evaluation, evaluation_code(ctx, evaluation),
-                {"trainings": evaluation.record["metrics"]["train_run"], "rtol": rtol})
-        archive_evaluation(ctx, evaluation)
-    for evaluation in stale_untrained_evaluations(ctx):  # bilinear, OIDN: their evaluator changed
+def check_group(ctx: Context, group: list[runs.Run], steps: int, rtol: float, rtol_later_steps: float,
+                rtol_rounded_weights: float) -> dict:
+    """The table row of one group of stale trainings (a table row, every seed): its witness replayed
+    against its record, or against its recorded code (trained on other frames), and the verdict."""
+    witness = group[0]
+    code = code_of(witness.record["identity"]["model"], *TRAINING_CODE)
+    row = {"label": witness.record.get("label"), "runs in group": len(group), "witness": witness.hash,
+           "changed": ", ".join(runs.code_changes(witness.record, code))}
+    try:
+        weights = row["weights"] = archived.has_weights(witness.dir)  # False: no seed's archive kept
+        # them, and the group is checked by its training alone
+        if trained_here(ctx, witness):  # its record can judge the code
+            row |= against_record(ctx, witness, steps, weights)
+            eval_rtol = rtol_rounded_weights if archived.rounded(witness.dir) else rtol
+        else:  # trained on other frames: the recorded code, rebuilt, replays on today's
+            row |= against_recorded_code(ctx, witness, steps, weights)
+            eval_rtol = rtol  # the same weights on both sides
+        row["eval rtol"] = eval_rtol
+        row["verdict"] = verdict(row, rtol, eval_rtol, rtol_later_steps)
+    except TrainingInterrupted:  # Ctrl-C / SIGTERM during a replay stops the command, not one group
+        raise
+    except Exception as err:  # noqa: BLE001 - a group that cannot be checked stays stale, with why
+        row["verdict"] = f"not checked: {type(err).__name__}: {err}"
+    log.info("adopt %s (%d runs): %s", row["label"], len(group), row["verdict"])
+    return row
+
+
+def adopt_group(ctx: Context, group: list[runs.Run], row: dict, rtol: float, rtol_later_steps: float) -> None:
+    """Re-stamp an adopted group's trainings with today's code and what the check found; archive them."""
+    code = code_of(group[0].record["identity"]["model"], *TRAINING_CODE)
+    check = {k: v for k, v in row.items() if k.startswith(("train ", "eval ", "check", "scored", "weights"))} | {
+        "rtol": rtol, "rtol_later_steps": rtol_later_steps}
+    for r in group:
+        restamp(r, code, check)
+        archive_training(ctx, r)
+
+
+def untrained_rows(ctx: Context, rtol: float, dry_run: bool) -> list[dict]:
+    """Rows for the stale evaluations of models that are not trained (bilinear, OIDN: their evaluator
+    changed), each checked on its first sequence and re-stamped when adopted."""
+    rows = []
+    for evaluation in stale_untrained_evaluations(ctx):
         row = check_untrained(ctx, evaluation, rtol)
         log.info("adopt %s (evaluation %s): %s", row["label"], evaluation.hash, row["verdict"])
         if row["verdict"] == "adopted" and not dry_run:
@@ -270,11 +270,11 @@ def run(ctx: Context, name: str, steps: int, rtol: float, rtol_later_steps: floa
                     {k: v for k, v in row.items() if k.startswith(("eval ", "check", "scored"))} | {"rtol": rtol})
             archive_evaluation(ctx, evaluation)
         rows.append(row)
-    checked = time.strftime("%Y-%m-%dT%H:%M:%S%z")
-    table = pd.DataFrame([{**row, "checked": checked, "rtol": rtol, "rtol later steps": rtol_later_steps,
-                           "dry run": dry_run} for row in rows])
-    table = with_earlier_verdicts(table, ctx.results_dir / name / "table.csv")
-    write_table(table, ctx.results_dir / name, caption=(
+    return rows
+
+
+def caption(steps: int, rtol_rounded_weights: float) -> str:
+    return (
         f"Stale training runs checked against the current code (bench/experiments/adopt.py): per group (a "
         f"table row, every seed), the witness run's first {steps} training steps replayed, its whole "
         f"learning-rate schedule, and its weights through the evaluator on one sequence, as relative "
@@ -289,7 +289,32 @@ def run(ctx: Context, name: str, steps: int, rtol: float, rtol_later_steps: floa
         f"so only its training was checked. Rows whose witness is an evaluation (runs in group 1, no step "
         f"columns) are of models that are not trained (bilinear, OIDN) whose evaluator changed, checked on "
         f"their first sequence. One row per witness, its latest check: groups that earlier calls adopted are "
-        f"no longer stale and keep their row."))
+        f"no longer stale and keep their row.")
+
+
+def run(ctx: Context, name: str, steps: int, rtol: float, rtol_later_steps: float, rtol_rounded_weights: float,
+        dry_run: bool) -> pd.DataFrame:
+    """conf/experiment/adopt.yaml says what each argument is."""
+    log.info("adopt: %d archived runs restored into the store", restore_archive(ctx))
+    groups = stale_groups(ctx)
+    log.info("adopt: %d groups of stale training runs (%d runs)", len(groups), sum(map(len, groups.values())))
+    rows, adopted = [], set()
+    for group in groups.values():
+        row = check_group(ctx, group, steps, rtol, rtol_later_steps, rtol_rounded_weights)
+        if row["verdict"] == "adopted" and not dry_run:
+            adopt_group(ctx, group, row, rtol, rtol_later_steps)
+            adopted |= {r.hash for r in group}
+        rows.append(row)
+    for evaluation in [] if dry_run else evaluations_to_restamp(ctx, adopted):
+        restamp(evaluation, evaluation_code(ctx, evaluation),
+                {"trainings": evaluation.record["metrics"]["train_run"], "rtol": rtol})
+        archive_evaluation(ctx, evaluation)
+    rows += untrained_rows(ctx, rtol, dry_run)
+    checked = time.strftime("%Y-%m-%dT%H:%M:%S%z")
+    table = pd.DataFrame([{**row, "checked": checked, "rtol": rtol, "rtol later steps": rtol_later_steps,
+                           "dry run": dry_run} for row in rows])
+    table = with_earlier_verdicts(table, ctx.results_dir / name / "table.csv")
+    write_table(table, ctx.results_dir / name, caption=caption(steps, rtol_rounded_weights))
     log.info("adopt: %d of %d groups adopted%s; table in %s", sum(r["verdict"] == "adopted" for r in rows),
              len(rows), " (dry run)" if dry_run else "", ctx.results_dir / name)
     return table

@@ -330,20 +330,25 @@ def render_what_runs(ctx: Context, name: str, rows: list[dict], task: str, split
     return drawn
 
 
-def run(ctx: Context, name: str, rows: list[dict], caption: str = "", task: str = "srd",
-        split: str | None = None, paper: str | None = "auto", gmac_column: bool = False,
-        figure: bool = True, leave_out: list[str] | None = None) -> pd.DataFrame:
-    """`leave_out`: labels of rows this call does not compute, named in the caption (e.g. rows whose
-    trainings cannot be loaded or run here); the table has the others."""
+def selected_rows(ctx: Context, rows: list[dict], task: str, leave_out: list[str] | None) -> list[dict]:
+    """The table's rows, expanded, less those left out; a bad model, model argument or task name fails
+    here, before any rendering or training."""
     rows = expand_rows(rows, task)
     unknown = sorted(set(leave_out or []) - {r["label"] for r in rows})
     if unknown:
         raise UserError(f"experiment.leave_out: no row {unknown[0]!r} in this table "
                         f"(its rows: {', '.join(r['label'] for r in rows)})")
     rows = [r for r in rows if r["label"] not in (leave_out or [])]
-    for r in rows:  # fail on a bad model, model argument or task name before any rendering or training
+    for r in rows:
         build_model(model_config(ctx, r["model"], r.get("overrides")), get_task(r["task"]).scale)
-    scoring_ctx = evaluation_data(ctx)
+    return rows
+
+
+def ready_data(ctx: Context, scoring_ctx: Context, name: str, rows: list[dict], task: str, split: str | None,
+               figure: bool) -> bool:
+    """Render what the table's runs need (on the suite's data), or check the frames and the recorded
+    trainings it scores (another dataset: nothing is rendered or trained). Returns whether the crops
+    figure can be drawn."""
     # per (row, seed): the trainings its scoring uses, as recorded (force=true: every one runs)
     trainings = {} if ctx.force else {
         (r["label"], seed): training_records(with_training(ctx, r.get("train"), r["model"]),
@@ -351,37 +356,26 @@ def run(ctx: Context, name: str, rows: list[dict], caption: str = "", task: str 
                                              get_task(r["task"]), seed, r.get("cascade", False))
         for r in rows for seed in ctx.seeds}
     if scoring_ctx is ctx:
-        drawn = render_what_runs(ctx, name, rows, task, split, figure, trainings)
-    else:  # recorded models scored on another dataset: it is checked; the training data is not needed
-        drawn = figure
-        ensure_data(scoring_ctx, set())
-        whys = [f"{label} seed {seed}: {why}" for (label, seed), recorded in trainings.items()
-                for why in untrained(recorded)]
-        if whys:  # before anything is scored, every training that would be missing
-            raise scoring_only_error(whys)
-    if ctx.shard:  # compute this shard's runs only; a run without a shard assembles the table from them
-        index, count = ctx.shard
-        # a unit's lock is this table under this whole configuration, whichever process runs it
-        key = f"{name} {dataclasses.replace(ctx, shard=None, progress=False, workers=0)!r}"
-        units = compute_shard(
-            rows, ctx.seeds, index, count, ctx.runs_dir / "units", key,
-            take_others=not ctx.force,  # force recomputes: each shard its own units, once
-            compute=lambda r, seed: row(dataclasses.replace(ctx, seeds=[seed]), r["label"], r["model"], r.get("overrides"),
-                                r["task"], r.get("split", split), r.get("train"), r.get("cascade", False)))
-        log.info("%s: shard %d/%d computed or found %d of %d (row, seed) runs (the rest: left to other "
-                 "processes); run without shard= to write the table", name, index, count, len(units),
-                 len(rows) * len(ctx.seeds))
-        return pd.DataFrame()
-    table = pd.DataFrame([row(ctx, r["label"], r["model"], r.get("overrides"), r["task"],
-                              r.get("split", split), r.get("train"), r.get("cascade", False))
-                          for r in rows])
-    if table["task"].nunique() == 1:  # a single task goes in the caption, not a column
-        table = table.drop(columns=["task"])
-    if gmac_column:
-        after = "SSIM std" if "SSIM std" in table else "SSIM"
-        table.insert(table.columns.get_loc(after) + 1, "GMac", [gmac(ctx, r) for r in rows])
-    paper_table = (name if name in TABLES else None) if paper == "auto" else paper
-    table = with_paper(table, rows, paper_table)
+        return render_what_runs(ctx, name, rows, task, split, figure, trainings)
+    ensure_data(scoring_ctx, set())
+    whys = [f"{label} seed {seed}: {why}" for (label, seed), recorded in trainings.items()
+            for why in untrained(recorded)]
+    if whys:  # before anything is scored, every training that would be missing
+        raise scoring_only_error(whys)
+    return figure
+
+
+def row_of(ctx: Context, r: dict, split: str | None) -> dict:
+    """Table row `r` computed or reused (bench.experiments.row) with `ctx`'s seeds."""
+    return row(ctx, r["label"], r["model"], r.get("overrides"), r["task"], r.get("split", split), r.get("train"),
+               r.get("cascade", False))
+
+
+def caption_notes(ctx: Context, scoring_ctx: Context, table: pd.DataFrame, rows: list[dict], split: str | None,
+                  leave_out: list[str] | None, gmac_column: bool, paper_table: str | None) -> str:
+    """What the caption says after the experiment's own caption: task, metrics, data, recipe and seeds,
+    the paper's ordering, the references' check, renders, weights, VGG features, time columns. Takes the
+    columns it reports on (renders, rounded, stale, vgg) out of `table`."""
     loss = ctx.train.loss["final"]
     paper_terms = ("edge", "temporal", "spatial", "perceptual")
     extra = "".join(f" + {term} {w:g}" for term, w in loss.items() if term not in paper_terms and w)
@@ -415,6 +409,37 @@ def run(ctx: Context, name: str, rows: list[dict], caption: str = "", task: str 
               "with another table was computed once; a seed average for several seeds). last fifth (dB): "
               "what the validation PSNR (learning curve subset) gained over the last fifth of training, a "
               "seed average; near 0: the curve has flattened.")
+    return notes
+
+
+def run(ctx: Context, name: str, rows: list[dict], caption: str = "", task: str = "srd",
+        split: str | None = None, paper: str | None = "auto", gmac_column: bool = False,
+        figure: bool = True, leave_out: list[str] | None = None) -> pd.DataFrame:
+    """`leave_out`: labels of rows this call does not compute, named in the caption (e.g. rows whose
+    trainings cannot be loaded or run here); the table has the others."""
+    rows = selected_rows(ctx, rows, task, leave_out)
+    scoring_ctx = evaluation_data(ctx)
+    drawn = ready_data(ctx, scoring_ctx, name, rows, task, split, figure)
+    if ctx.shard:  # compute this shard's runs only; a run without a shard assembles the table from them
+        index, count = ctx.shard
+        # a unit's lock is this table under this whole configuration, whichever process runs it
+        key = f"{name} {dataclasses.replace(ctx, shard=None, progress=False, workers=0)!r}"
+        units = compute_shard(rows, ctx.seeds, index, count, ctx.runs_dir / "units", key,
+                              take_others=not ctx.force,  # force recomputes: each shard its own units, once
+                              compute=lambda r, seed: row_of(dataclasses.replace(ctx, seeds=[seed]), r, split))
+        log.info("%s: shard %d/%d computed or found %d of %d (row, seed) runs (the rest: left to other "
+                 "processes); run without shard= to write the table", name, index, count, len(units),
+                 len(rows) * len(ctx.seeds))
+        return pd.DataFrame()
+    table = pd.DataFrame([row_of(ctx, r, split) for r in rows])
+    if table["task"].nunique() == 1:  # a single task goes in the caption, not a column
+        table = table.drop(columns=["task"])
+    if gmac_column:
+        after = "SSIM std" if "SSIM std" in table else "SSIM"
+        table.insert(table.columns.get_loc(after) + 1, "GMac", [gmac(ctx, r) for r in rows])
+    paper_table = (name if name in TABLES else None) if paper == "auto" else paper
+    table = with_paper(table, rows, paper_table)
+    notes = caption_notes(ctx, scoring_ctx, table, rows, split, leave_out, gmac_column, paper_table)
     out_dir = ctx.results_dir / name
     curves = {label: hashes for label, hashes in zip(table["method"], table.pop("train runs")) if hashes}
     write_table(table.drop(columns=["reused"]), out_dir, caption=f"{caption} {notes}".strip(),
