@@ -132,34 +132,43 @@ def key_problem(args: list[str], chosen: set[tuple[str, str]]) -> str | None:
 
 
 PATH_KEYS = ("data_dir", "runs_dir", "results_dir")  # conf/config.yaml: relative to the working directory
+# Hydra's flags that run nothing, and those that bring a config of their own (which may set the paths)
+_NOTHING_RUNS = ("-h", "--help", "--hydra-help", "--info", "-i", "--version", "-c", "--cfg", "-sc",
+                 "--shell-completion", "-cd", "--config-dir", "-cn", "--config-name", "-cp", "--config-path")
 
 
 def working_dir_problem(args: list[str], cwd: Path | None = None) -> str | None:
     """Run from elsewhere than the project, the default data, run store and results folders would be new
-    ones there: the committed tables and their recorded runs unread, everything rendered and trained again
-    under that folder. One line instead, unless the command line gives all three paths."""
-    cwd = (cwd or Path.cwd()).resolve()
-    if cwd == ROOT or any(arg in ("--help", "-h", "--hydra-help", "--info") or arg.startswith("--cfg") for arg in args):
+    ones there: the committed tables and their recorded runs not found, so rendered and trained again
+    under that folder (or missing). One line instead, unless the command line gives all three paths."""
+    cwd = cwd or Path.cwd()
+    if os.path.samefile(cwd, ROOT) or any(arg.split("=", 1)[0] in _NOTHING_RUNS for arg in args):
         return None
     given = {arg.split("=", 1)[0].lstrip("+") for arg in args if "=" in arg}
     missing = [key for key in PATH_KEYS if key not in given]
     if not missing:
         return None
-    return (f"the working directory {cwd} is not the project's ({ROOT}): {', '.join(missing)} would be folders "
-            f"under it, so the committed tables' recorded runs would not be read and everything would be "
-            f"rendered and trained again there; cd {ROOT}, or give " + " ".join(f"{key}=..." for key in missing))
+    return (f"the working directory {cwd.resolve()} is not the project's ({ROOT}): {', '.join(missing)} would be "
+            f"folders under it, where the committed tables' recorded runs are not: they would be rendered and "
+            f"trained again there (or found missing); cd {ROOT}, or give " + " ".join(f"{key}=..." for key in missing))
 
 
 def hydra_dir_problem(args: list[str]) -> str | None:
-    """`hydra.run.dir=` or `hydra.sweep.dir=` where nothing can be written: Hydra would fail there with a
-    traceback before any of our code runs."""
+    """`hydra.run.dir=` (or with -m, `hydra.sweep.dir=`) where nothing can be written: Hydra would fail
+    there with a traceback before any of our code runs. Checked on the nearest folder that exists;
+    nothing is created."""
+    sweep = any(arg in ("-m", "--multirun", "hydra.mode=MULTIRUN") for arg in args)
     for arg in args:
-        match = re.fullmatch(r"\+{0,2}(hydra\.(?:run|sweep)\.dir)=([^$]+)", arg)
-        if match:
-            try:
-                ensure_writable(Path(match.group(2)), match.group(1))
-            except PermissionError as err:
-                return str(err)
+        match = re.fullmatch(r"\+{0,2}(hydra\.(run|sweep)\.dir)=([^$]+)", arg)
+        if not match or (match.group(2) == "sweep") != sweep:
+            continue
+        path = Path(match.group(3).strip("'\""))
+        existing = next(p for p in (path.absolute(), *path.absolute().parents) if p.exists())
+        try:  # a folder made and removed: permissions alone do not tell (root, /proc)
+            os.rmdir(tempfile.mkdtemp(dir=existing, prefix=".write_probe."))
+        except OSError as err:
+            return (f"{match.group(1)}={match.group(3)}: nothing can be written in {existing} ({err.strerror}), so "
+                    f"Hydra cannot write its log there; set {match.group(1)}=... to a writable place")
     return None
 
 

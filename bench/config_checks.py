@@ -119,7 +119,7 @@ def row_problems(plain: dict, data: dict | None) -> list[str]:
     for r in rows:
         where = "experiment" if kind == "one_model" else f"experiment.rows[{r['label']!r}]"
         problems += model_problems(r.get("overrides") or {}, f"{where}.overrides")
-        if r.get("cascade"):
+        if r.get("cascade") and r["model"] in (plain.get("models") or {}):  # an unknown one: model_config says
             problems += cascade_problems(deep_merge((plain.get("models") or {}).get(r["model"]) or {},
                                                    r.get("overrides")), where)
         if not isinstance(r.get("train") or {}, dict):

@@ -165,8 +165,8 @@ def choose_fast_path(model, x: torch.Tensor, g: torch.Tensor | None, device: str
             Path(cache).parent.mkdir(parents=True, exist_ok=True)
             Path(cache).write_text(json.dumps(cached, indent=1, sort_keys=True))
         except OSError as err:  # e.g. an unwritable HOME: the choice stands, it is only not remembered
-            print(f"note: the fast path chosen is not remembered in {cache} ({err.strerror}): it is measured again "
-                  f"next time; --fast-path {fastest} (or XDG_CACHE_HOME=<a writable folder>) avoids that",
+            print(f"note: the fast path chosen ({fastest}) is not remembered in {cache} ({err.strerror}): it is "
+                  "measured again next time, unless a fixed fast path is given or that folder is writable",
                   file=sys.stderr)
     return fastest, times
 

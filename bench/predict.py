@@ -159,7 +159,11 @@ def task_notice(task_name: str) -> str | None:
     """What outputs mean when the weights were not trained for predict's task (noisy LR in, clean HR out)."""
     if task_name == "srd":
         return None
-    task = get_task(task_name)
+    try:
+        task = get_task(task_name)
+    except KeyError:  # a newer suite's task, or an edited file
+        return (f"note: these weights were trained for the task {task_name!r}, which this version does not know; "
+                "predict gives them each frame's `noisy` layer as for srd")
     size = f"at {task.scale}x the input's size" if task.scale > 1 else "at the input's size, not super-resolved"
     trained_on = "noise-free" if task.x.endswith("_ref") else "noisy"
     target = "noisy" if task.y.endswith("_noisy") else "clean"

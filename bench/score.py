@@ -70,6 +70,8 @@ def read_output(path: Path, shape: tuple) -> np.ndarray:
     try:
         image = exrio.read_exr(path, [layer])[layer]
     except KeyError as err:  # channels `.R`, `.G`, `.B`: a layer with an empty name, which exrio does not read
+        if layer:
+            raise
         raise UserError(f"{path}: its channels are named like .{err.args[0]} (a layer with an empty name); "
                         "name them R, G, B or output.R, output.G, output.B") from err
     if image.shape != shape:

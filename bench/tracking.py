@@ -33,6 +33,7 @@ from contextlib import closing
 from datetime import datetime
 from pathlib import Path
 from urllib.parse import urlparse
+from urllib.request import getproxies, proxy_bypass
 
 import pandas as pd
 
@@ -56,8 +57,8 @@ def check_server(uri: str, timeout_s: float = 5.0) -> None:
     """A server URI that does not take a connection raises ConnectionError at once: MLflow's client would
     retry each request for minutes before giving up."""
     parsed = urlparse(uri)
-    if parsed.scheme not in ("http", "https"):
-        return
+    if parsed.scheme not in ("http", "https") or (parsed.scheme in getproxies() and not proxy_bypass(parsed.hostname)):
+        return  # through a proxy, only MLflow's own requests tell
     try:
         socket.create_connection((parsed.hostname, parsed.port or (443 if parsed.scheme == "https" else 80)),
                                  timeout=timeout_s).close()

@@ -452,6 +452,7 @@ def test_recorded_models_score_another_dataset_without_retraining(smoke_dirs):
 def test_an_unknown_study_is_one_line_listing_the_studies(monkeypatch, capsys):
     """`python -m bench +study=no_such_study` (bench.cli.entry, in this process: it stops before Hydra)."""
     monkeypatch.setattr(sys, "argv", ["bench", "+study=no_such_study", "preset=smoke"])
+    monkeypatch.chdir(REPO)                                   # elsewhere, the working folder is refused first
     with pytest.raises(SystemExit) as stop:
         entry()
     assert stop.value.code == 2
@@ -969,16 +970,22 @@ def test_run_from_another_folder_is_one_line_unless_every_path_is_given(tmp_path
     assert "results_dir=..." not in working_dir_problem(["results_dir=/x", "+experiment=sota"], cwd=tmp_path)
     assert working_dir_problem(["data_dir=/d", "runs_dir=/r", "++results_dir=/x"], cwd=tmp_path) is None
     assert working_dir_problem(["+experiment=sota"], cwd=REPO) is None
+    assert working_dir_problem(["--cfg", "job"], cwd=tmp_path) is None and working_dir_problem(["-c", "job"], cwd=tmp_path) is None
     out = bench("+experiment=sota", cwd=tmp_path, timeout=120)
     assert out.returncode == 2 and "is not the project's" in out.stderr and "Traceback" not in out.stderr
     assert not list(tmp_path.iterdir())
 
 
-def test_an_unwritable_hydra_dir_is_one_line():
+def test_an_unwritable_hydra_dir_is_one_line_and_nothing_is_created(tmp_path):
     from bench.cli import hydra_dir_problem
-    assert "hydra.run.dir directory /proc/x is not writable" in hydra_dir_problem(["hydra.run.dir=/proc/x"])
-    assert "hydra.sweep.dir directory /proc/y" in hydra_dir_problem(["+experiment=sota", "hydra.sweep.dir=/proc/y"])
-    assert hydra_dir_problem(["hydra.run.dir=${runs_dir}/x"]) is None      # Hydra's to resolve
+    said = hydra_dir_problem(["hydra.run.dir=/proc/x/y"])
+    assert said.startswith("hydra.run.dir=/proc/x/y: nothing can be written in /proc (") and said.endswith(
+        "), so Hydra cannot write its log there; set hydra.run.dir=... to a writable place")
+    assert hydra_dir_problem(["hydra.sweep.dir=/proc/y"]) is None                # used only with -m
+    assert "hydra.sweep.dir=/proc/y: nothing can be written in /proc" in hydra_dir_problem(["-m", "+experiment=sota", "hydra.sweep.dir=/proc/y"])
+    assert hydra_dir_problem(["hydra.run.dir=${runs_dir}/x"]) is None           # Hydra's to resolve
+    assert hydra_dir_problem([f"hydra.run.dir='{tmp_path}/a b/c'"]) is None     # quoted as Hydra takes it
+    assert not list(tmp_path.iterdir())
 
 
 @pytest.mark.parametrize("script", sorted(p.name for p in (REPO / "scripts").glob("*.py")))

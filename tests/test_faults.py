@@ -493,6 +493,17 @@ def test_a_bad_value_inside_a_model_or_a_row_is_one_line_before_anything_runs(tm
     assert not (tmp_path / "runs").exists()
 
 
+def test_a_cascade_row_of_an_unknown_model_gets_the_unknown_model_message_not_the_cascade_one():
+    from hydra import compose, initialize_config_dir
+    from omegaconf import OmegaConf
+    from bench.cli import CONF_DIR
+    from bench.config_checks import config_problems
+    with initialize_config_dir(config_dir=CONF_DIR, version_base=None):
+        cfg = compose("config", overrides=["+experiment=smoke", "preset=smoke",
+                                           "experiment.rows=[{label:a,model:sdr,cascade:true}]"])
+    assert config_problems(OmegaConf.to_container(cfg, resolve=True)) == []   # table.selected_rows names it
+
+
 def test_a_bad_model_width_on_the_command_line_exits_2_with_one_line_and_no_record(tmp_path):
     out, _ = _bench(tmp_path, "models.edsr.channels=-4").communicate(timeout=300)
     assert "Traceback" not in out and "error: bad config (nothing was run): models.edsr.channels=-4" in out, out[-2000:]
