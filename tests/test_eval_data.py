@@ -209,3 +209,26 @@ def test_frame_records_merge_splits_under_the_archives_lock(tmp_path):
     kept = json.loads(gzip.decompress(path.read_bytes()))
     assert sorted(f["split"] for f in kept["frames"]) == ["generalization", "test", "val"]
     assert frame_records(ctx, "test") == [frame("test")]
+
+
+def test_a_spec_changed_in_one_split_keeps_the_other_splits_frame_records(tmp_path):
+    """test's references got more samples (a new spec, so a new records file) on a machine holding only
+    test: val's records, of an unchanged part of the spec, come over from the earlier file; a split whose
+    part changed does not."""
+    import types
+    from bench.experiments.datasets import _frame_records_path, archive_frame_records
+
+    def frame(split, spp=4):
+        return {"split": split, "sequence": "s", "frame": 0, "ref_spp": spp, "ref_error": 0.1,
+                "files": {"hr": {"crc32": 1}}}
+    before = {"name": "tiny", "seq_len": 2, "splits": {"val": {"ref_spp": 4}, "test": {"ref_spp": 4}, "train": {"ref_spp": 4}}}
+    after = {**before, "splits": {**before["splits"], "test": {"ref_spp": 4, "sequence_ref_spp": {"s": 8}}}}
+    ctx = types.SimpleNamespace(runs_archive=tmp_path / "archive", render_data=True, data_spec=before,
+                                data_dir=tmp_path / "no data")
+    archive_frame_records(ctx, {"spec": before, "frames": [frame("val"), frame("test"), frame("train")]})
+    elsewhere = {**after, "splits": {**after["splits"], "train": {"ref_spp": 16}}}   # train changed too
+    ctx.data_spec = elsewhere
+    archive_frame_records(ctx, {"spec": elsewhere, "frames": [frame("test", 8)]})
+    assert _frame_records_path(ctx).exists()
+    assert frame_records(ctx, "test") == [frame("test", 8)] and frame_records(ctx, "val") == [frame("val")]
+    assert frame_records(ctx, "train") == []

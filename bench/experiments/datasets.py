@@ -209,6 +209,24 @@ def _read_gzipped_json(path: Path) -> dict:
     return json.loads(gzip.decompress(Path(path).read_bytes()))
 
 
+def _split_part(spec: dict, split: str) -> str:
+    """What decides a split's frames: the spec with only that split (as the data fingerprint counts it)."""
+    return _canonical({**spec, "splits": {split: (spec.get("splits") or {}).get(split)}})
+
+
+def _records_of_unchanged_splits(ctx: Context, path: Path) -> list[dict]:
+    """Frame records that the archive keeps under earlier specs, of the splits whose part of the spec is
+    still `ctx.data_spec`'s (e.g. val's and train's when only test's references got more samples): the
+    same frames, so a data_dir holding only the changed split does not lose the others' records."""
+    found = {}
+    for other in sorted(path.parent.glob("*.json.gz")):
+        card = runs.read_or_none(other, read=_read_gzipped_json) if other != path else None
+        for split in {f["split"] for f in (card or {}).get("frames", [])} - set(found):
+            if _split_part(card.get("spec") or {}, split) == _split_part(ctx.data_spec, split):
+                found[split] = [f for f in card["frames"] if f["split"] == split]
+    return [f for frames in found.values() for f in frames]
+
+
 def archive_frame_records(ctx: Context, manifest: dict) -> None:
     """Keep in the archive, beside the runs, what tables read of the rendered frames (each frame's
     reference spp and estimated reference error), with its files' CRC-32 stamps (which render they
@@ -224,7 +242,10 @@ def archive_frame_records(ctx: Context, manifest: dict) -> None:
               for f in manifest["frames"]]
 
     def merged(kept: dict | None) -> dict:
-        every = frames + [f for f in (kept or {}).get("frames", []) if f["split"] not in ours]
+        others = list((kept or {}).get("frames", []))
+        held = ours | {f["split"] for f in others}
+        others += [f for f in _records_of_unchanged_splits(ctx, path) if f["split"] not in held]
+        every = frames + [f for f in others if f["split"] not in ours]
         return {"spec": ctx.data_spec,
                 "frames": sorted(every, key=lambda f: (f["split"], str(f["sequence"]), f["frame"]))}
     kept = runs.read_or_none(path, read=_read_gzipped_json)
