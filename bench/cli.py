@@ -27,7 +27,8 @@ from bench.errors import UserError
 from bench.exrio import ExrError
 from bench.infer import keep_freed_memory
 from bench.measure import fused_kernels_on_cuda
-from bench.runs import COMMITTED_RESULTS, PATH_ERRORS, ROOT, ensure_writable, error_line, out_of_space
+from bench.runs import (COMMITTED_RESULTS, PATH_ERRORS, ROOT, committed_archive, ensure_writable, error_line,
+                        out_of_space, probe_write)
 from bench.train import TrainingInterrupted
 from bench.experiments import KINDS, RUNLESS_KINDS
 
@@ -164,8 +165,8 @@ def hydra_dir_problem(args: list[str]) -> str | None:
             continue
         path = Path(match.group(3).strip("'\""))
         existing = next(p for p in (path.absolute(), *path.absolute().parents) if p.exists())
-        try:  # a folder made and removed: permissions alone do not tell (root, /proc)
-            os.rmdir(tempfile.mkdtemp(dir=existing, prefix=".write_probe."))
+        try:
+            probe_write(existing)
         except OSError as err:
             return (f"{match.group(1)}={match.group(3)}: nothing can be written in {existing} ({err.strerror}), so "
                     f"Hydra cannot write its log there; set {match.group(1)}=... to a writable place")
@@ -401,11 +402,6 @@ def check_experiment_keys(experiment, keys: dict, kind: str, supplied: tuple[str
         parameter = signature.parameters.get(key)
         if parameter is not None and parameter.annotation in (bool, "bool") and not isinstance(value, bool):
             raise UserError(f"experiment.{key}={value!r}: expected true or false")
-
-
-def committed_archive(preset: str) -> Path:
-    """The preset's committed run archive (conf/config.yaml's runs_archive when results_dir is left as it is)."""
-    return COMMITTED_RESULTS / preset / "runs"
 
 
 def warn_if_committed_archive_unread(ctx, kind: str, preset: str) -> None:

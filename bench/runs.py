@@ -457,6 +457,18 @@ COMMITTED_RESULTS = ROOT / "results"  # the tables (and their run archives) comm
 PACKAGES = ("bench", "baselines")
 
 
+def committed_archive(preset: str) -> Path:
+    """The preset's committed run archive (conf/config.yaml's runs_archive when results_dir is left as it is)."""
+    return COMMITTED_RESULTS / preset / "runs"
+
+
+def committed_archives() -> list[Path]:
+    """Every preset's committed archive, and (an installed package, another checkout) the working
+    directory's `results/*/runs`, each once."""
+    found = {p.resolve(): p for p in [*sorted(COMMITTED_RESULTS.glob("*/runs")), *sorted(Path("results").glob("*/runs"))]}
+    return list(found.values())
+
+
 def code_fingerprint(modules) -> dict:
     """{path: hash} of the project source files that `modules` (dotted names, or `_target_` strings of
     a class) run: each module, its packages' `__init__`, and every project module they import,
@@ -675,13 +687,17 @@ def error_line(err: BaseException) -> str:
     return str(err)
 
 
+def probe_write(folder: Path) -> None:
+    """Make and remove a folder in `folder` (an OSError if it cannot): permissions alone do not tell (root,
+    /proc). A probe of its own name: processes started together on one store must not remove each other's."""
+    os.rmdir(tempfile.mkdtemp(dir=folder, prefix=".write_probe."))
+
+
 def ensure_writable(path: Path, setting: str = "runs_dir") -> None:
     """Create `path` and prove it writable, or raise PermissionError naming the setting to change."""
     try:
         path.mkdir(parents=True, exist_ok=True)
-        # a probe of its own: processes started together on one store must not delete each other's
-        with tempfile.NamedTemporaryFile(dir=path, prefix=".write_probe."):
-            pass
+        probe_write(path)
     except OSError as err:
         raise PermissionError(f"{setting.removesuffix('_dir')} directory {path} is not writable "
                               f"({err.strerror}); set {setting}=... to a writable place") from err

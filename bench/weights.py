@@ -28,23 +28,13 @@ FORMAT = "srd-bench-weights/2"
 READABLE_FORMATS = ("srd-bench-weights/1", FORMAT)
 COMPACT = "weights_float16_compact"  # instead of "state_dict" when the run's weights are float16-rounded
 
-ARCHIVES = "*/runs"  # under runs.COMMITTED_RESULTS: the tables' archived runs (conf/config.yaml runs_archive)
-
-
-def committed_archives() -> list[Path]:
-    """The tables' archives: the project's, and (an installed package, another checkout) the working
-    directory's `results/*/runs`, each once."""
-    found = {p.resolve(): p for p in [*sorted(runs.COMMITTED_RESULTS.glob(ARCHIVES)), *sorted(Path("results").glob(ARCHIVES))]}
-    return list(found.values())
-
-
 def training_record(run_hash: str, runs_dir: str | Path = "runs") -> Path:
     """The run.json of training run `run_hash`: in the run store, else in a committed archive (a fresh
     clone has no run store)."""
-    path, _ = runs.find_record("train", run_hash, runs_dir, committed_archives())
+    path, _ = runs.find_record("train", run_hash, runs_dir, runs.committed_archives())
     if path is None:
         raise UserError(f"no training run {run_hash} in {runs_dir} (runs are directories of "
-                        f"{Path(runs_dir) / 'train'}) or in {runs.COMMITTED_RESULTS / ARCHIVES}/train or results/{ARCHIVES}/train")
+                        f"{Path(runs_dir) / 'train'}) or in {runs.committed_archive('*')}/train or results/*/runs/train")
     return path
 
 

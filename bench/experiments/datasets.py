@@ -5,7 +5,6 @@ frames, and opening a split as a `SequenceDataset`.
 from __future__ import annotations
 
 import contextlib
-import copy
 import dataclasses
 import functools
 import gzip
@@ -30,13 +29,19 @@ def _canonical(value) -> str:
     return json.dumps(value, sort_keys=True, default=str)
 
 
+def _only_split(spec: dict, split: str) -> dict:
+    """The spec with only `split`'s part: what decides that split's frames (its plan, its data
+    fingerprint), whatever the other splits are."""
+    if not isinstance(spec.get("splits"), dict):
+        return spec
+    return {**spec, "splits": {split: spec["splits"].get(split)}}
+
+
 def _identity_hash(spec: dict | None, frames: list, split: str | None, files: str | None = None) -> str:
     """The data fingerprint of a spec and its frames' (split, sequence, frame, settings hash): with
     `split`, only that split's part of the spec counts."""
-    spec = copy.deepcopy(spec or {})  # your own renders may have none
-    if split is not None and isinstance(spec.get("splits"), dict):
-        spec["splits"] = {split: spec["splits"].get(split)}
-    identity = {"spec": spec, "frames": sorted(frames)}
+    spec = spec or {}  # your own renders may have none
+    identity = {"spec": spec if split is None else _only_split(spec, split), "frames": sorted(frames)}
     if files is not None:
         identity["files"] = files
     return runs.config_hash(identity)
@@ -65,8 +70,7 @@ def _planned_fingerprint(spec_json: str, split: str) -> str:
     if not (spec.get("splits") or {}).get(split):
         raise _no_split(f"data: the data spec {spec.get('name', '')!r} has no {split!r} split",
                         sorted(spec.get("splits") or {}))
-    part = {**spec, "splits": {split: spec["splits"][split]}}  # a split's plan does not depend on the others
-    frames = [(split, job["sequence"], frame, digest) for job, digest in planned_settings(part)
+    frames = [(split, job["sequence"], frame, digest) for job, digest in planned_settings(_only_split(spec, split))
               for frame in range(int(spec["seq_len"]))]
     return _identity_hash(spec, frames, split)
 
@@ -209,11 +213,6 @@ def _read_gzipped_json(path: Path) -> dict:
     return json.loads(gzip.decompress(Path(path).read_bytes()))
 
 
-def _split_part(spec: dict, split: str) -> str:
-    """What decides a split's frames: the spec with only that split (as the data fingerprint counts it)."""
-    return _canonical({**spec, "splits": {split: (spec.get("splits") or {}).get(split)}})
-
-
 def _records_of_unchanged_splits(ctx: Context, path: Path) -> list[dict]:
     """Frame records that the archive keeps under earlier specs, of the splits whose part of the spec is
     still `ctx.data_spec`'s (e.g. val's and train's when only test's references got more samples): the
@@ -222,7 +221,7 @@ def _records_of_unchanged_splits(ctx: Context, path: Path) -> list[dict]:
     for other in sorted(path.parent.glob("*.json.gz")):
         card = runs.read_or_none(other, read=_read_gzipped_json) if other != path else None
         for split in {f["split"] for f in (card or {}).get("frames", [])} - set(found):
-            if _split_part(card.get("spec") or {}, split) == _split_part(ctx.data_spec, split):
+            if _canonical(_only_split(card.get("spec") or {}, split)) == _canonical(_only_split(ctx.data_spec, split)):
                 found[split] = [f for f in card["frames"] if f["split"] == split]
     return [f for frames in found.values() for f in frames]
 
