@@ -1,7 +1,9 @@
 """References with more samples where they fall short (issue #43 item 4): a sequence's own ref_spp in the
 data spec re-renders that sequence alone, and `+experiment=references` proposes it from the recorded tables."""
 import copy
+import gzip
 import json
+import math
 import shutil
 import re
 from pathlib import Path
@@ -105,18 +107,18 @@ def _recorded_table(root: Path, name: str, best_relmse: float, other_relmse: flo
 
 def test_the_references_tool_proposes_more_samples_for_the_sequences_that_fall_short(tmp_path, monkeypatch):
     monkeypatch.setattr(references, "split_fingerprint", lambda ctx, split: "planned")
+    # s9 was given more samples before and is not scored by these tables: its count stays in the proposal
+    spec = {"splits": {"test": {"ref_spp": 1024, "sequence_ref_spp": {"s9": 2048}}}}
     (tmp_path / "data").mkdir()
-    (tmp_path / "data" / "manifest.json").write_text(json.dumps({"frames": _frames()}))
+    (tmp_path / "data" / "manifest.json").write_text(json.dumps({"spec": spec, "frames": _frames()}))
     _recorded_table(tmp_path, "loose", best_relmse=0.1)    # a tenth: 1e-2, both sequences pass
     _recorded_table(tmp_path, "strict", best_relmse=4e-3)  # a tenth: 4e-4: s1 falls short 2.5x, s0 passes (0.25)
     _recorded_table(tmp_path, "elsewhere", best_relmse=2e-3, render="0ther")  # another render's: an estimate
     _recorded_table(tmp_path, "unrecorded", best_relmse=1e-5)  # its runs in no store here: left out
     _recorded_table(tmp_path, "before", best_relmse=1e-5, settings="fewer samples")  # other settings: left out
     shutil.rmtree(tmp_path / "runs" / "eval" / "unrecorded-best")
-    # s9 was given more samples before and is not scored by these tables: its count stays in the proposal
-    spec = {"splits": {"test": {"ref_spp": 1024, "sequence_ref_spp": {"s9": 2048}}}}
     ctx = SimpleNamespace(results_dir=tmp_path / "results", runs_dir=tmp_path / "runs", runs_archive=None, archives=(),
-                          data_dir=tmp_path / "data", preset="cpu", data_spec=spec)
+                          data_dir=tmp_path / "data", preset="cpu", data_spec=spec, render_data=True)
     table = references.run(ctx, margin=0.8, max_ref_spp=8192).set_index("sequence")
     assert table.loc["s1", "worst shortfall"] == pytest.approx(5.0)  # 1e-3 over a tenth of 2e-3
     assert table.loc["s1", "worst in"] == "elsewhere (A)"
@@ -133,6 +135,28 @@ def test_the_references_tool_proposes_more_samples_for_the_sequences_that_fall_s
         in caption  # the caption names them
     assert "unrecorded." in caption.split("Left out (")[-1]
     assert "Left out (it scored split test rendered with other settings): before." in caption
+
+
+def test_without_the_split_on_disk_it_reads_the_archives_frame_records(tmp_path, monkeypatch):
+    """A clean clone holds no rendered data: the frame records the archive keeps beside the runs give
+    the reference errors (and render seconds, where the records kept them)."""
+    from bench.experiments import datasets
+    monkeypatch.setattr(references, "split_fingerprint", lambda ctx, split: "planned")
+    spec = {"name": "cpu", "splits": {"test": {"ref_spp": 1024}}}
+    ctx = SimpleNamespace(results_dir=tmp_path / "results", runs_dir=tmp_path / "runs", runs_archive=tmp_path / "archive",
+                          archives=(), data_dir=tmp_path / "nothing", preset="cpu", data_spec=spec, render_data=True)
+    frames = _frames()
+    for f in frames[:2]:
+        del f["time_s"]  # s0's records kept no times
+    records = datasets._frame_records_path(ctx)
+    records.parent.mkdir(parents=True)
+    records.write_bytes(gzip.compress(json.dumps({"spec": spec, "frames": frames}).encode()))
+    _recorded_table(tmp_path, "strict", best_relmse=4e-3)
+    table = references.run(ctx, margin=0.8, max_ref_spp=8192).set_index("sequence")
+    assert table.loc["s1", "worst shortfall"] == pytest.approx(2.5)
+    assert table.loc["s1", "ref render s"] == pytest.approx(25.0)
+    assert math.isnan(table.loc["s0", "ref render s"])  # not 0: unknown
+    assert "test 2 of 4 frames" in (tmp_path / "results" / "references" / "table.md").read_text()
 
 
 def test_reference_shortfall_is_the_error_over_a_tenth_of_the_best_rows_relmse_averaged_over_seeds():
@@ -232,5 +256,5 @@ def test_without_rendered_data_it_says_how_to_render_it(tmp_path):
     from bench.errors import UserError
     from bench.experiments import references
     from conftest import smoke_context
-    with pytest.raises(UserError, match=r"holds no rendered data .*`python -m bench \+experiment=data preset=smoke`"):
+    with pytest.raises(UserError, match=r"nor the run archive holds the frame records .*`python -m bench \+experiment=data preset=smoke`"):
         references.run(smoke_context(data_dir=tmp_path / "nothing", results_dir=tmp_path / "results"))

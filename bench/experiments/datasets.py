@@ -124,13 +124,17 @@ def render_digest(ctx: Context, split: str) -> str | None:
     None when a frame has none (your own data before `verify=true`). Not part of any identity: renders
     of the same settings on other hosts share the data fingerprint but differ in their noise, and
     tables use this to say when their rows were scored on different ones."""
+    return records_digest([rec for rec in load_manifest(ctx.data_dir)["frames"] if rec["split"] == split])
+
+
+def records_digest(frames: list[dict]) -> str | None:
+    """`render_digest` of these frame records (a manifest's or the archive's: both keep the stamps)."""
     crcs = []
-    for rec in load_manifest(ctx.data_dir)["frames"]:
-        if rec["split"] == split:
-            files = rec.get("files") or {}
-            if not (files.get("lr") and files.get("hr")):
-                return None
-            crcs.append((rec["sequence"], rec["frame"], files["lr"]["crc32"], files["hr"]["crc32"]))
+    for rec in frames:
+        files = rec.get("files") or {}
+        if not (files.get("lr") and files.get("hr")):
+            return None
+        crcs.append((rec["sequence"], rec["frame"], files["lr"]["crc32"], files["hr"]["crc32"]))
     return runs.config_hash({"render": sorted(crcs)})[:8]
 
 
@@ -200,7 +204,7 @@ def _render_missing(ctx: Context, passes: set[str], splits: list[str]) -> str:
     return data_fingerprint(ctx)
 
 
-FRAME_RECORD_KEYS = ("split", "sequence", "frame", "ref_spp", "ref_error")  # what tables read of a frame
+FRAME_RECORD_KEYS = ("split", "sequence", "frame", "ref_spp", "ref_error", "time_s")  # what tables read of a frame
 
 
 def _frame_records_path(ctx: Context) -> Path:

@@ -2,7 +2,7 @@
 
 A scored frame's reference passes when its estimated error (two half-sample renders) is below a tenth of
 the best row's relMSE on it (`table.reference_shortfall`). For every table in `results_dir` and in its split
-folders (results/cpu/val/...) that scored a split of `data_dir` with two-half references, each frame's
+folders (results/cpu/val/...) that scored a split with two-half references, each frame's
 shortfall against that table's best row; a frame's worst over the tables decides. More samples shrink
 the reference's error as 1/spp, and the best row's relMSE with it (the reference's error is part of it),
 so a sequence whose worst frame falls short by a factor f gets its ref spp times the power of two at or
@@ -15,7 +15,9 @@ Writes `<results_dir>/references/table.{csv,md,tex}` (per sequence: frames, fram
 shortfall and the table it comes from, spp now and proposed, the recorded reference render seconds and
 the seconds the proposal adds: more samples are added to a reference, not started over) and `sequence_ref_spp.yaml`: every sequence of a split whose count differs from the
 split's `ref_spp`, those already given more samples included, to replace the split's `sequence_ref_spp`.
-Renders and trains nothing. A table of a split `data_dir` does not hold, or that scored it rendered with
+Renders and trains nothing: the frames' records (reference spp, error estimate, render seconds) are data_dir's
+manifest's, or for a split it does not hold, the run archive's copy (`datasets.frame_records`), so a clean
+clone writes this table. A table of a split neither holds, or that scored it rendered with
 other settings (before its references got more samples), is left out; one whose evaluations scored another
 render of the split (same settings, other noise) is included as an estimate: its rows' per-frame errors
 with today's reference error estimates. The caption names both.
@@ -25,15 +27,13 @@ from __future__ import annotations
 import logging
 import math
 import re
-from pathlib import Path
 
 import pandas as pd
 import yaml
 
-from bench.datagen import load_manifest
 from bench.errors import UserError
 from bench.experiments.context import Context
-from bench.experiments.datasets import render_digest, split_fingerprint
+from bench.experiments.datasets import frame_records, records_digest, split_fingerprint
 from bench.experiments.table import (REFERENCE_SHARE, evaluation_records, per_image_of, reference_errors,
                                     reference_shortfall)
 from bench.table_writer import SCORED_ON_PATTERN, listed_evaluations, read_caption, read_table, write_table
@@ -66,7 +66,7 @@ def table_shortfalls(ctx: Context, frames: list[dict]) -> tuple[pd.DataFrame, di
             continue  # not a metrics table, or its references are not estimated (no two halves)
         split, name = match.group(2), path.parent.relative_to(ctx.results_dir).as_posix()
         if split not in held:
-            leave_out(name, f"{ctx.data_dir} holds no split {split}")
+            leave_out(name, f"neither {ctx.data_dir} nor the run archive holds the frame records of split {split}")
             continue
         best = table.loc[table["relMSE"].idxmin()]
         try:
@@ -79,7 +79,8 @@ def table_shortfalls(ctx: Context, frames: list[dict]) -> tuple[pd.DataFrame, di
             leave_out(name, f"it scored split {split} rendered with other settings")
             continue
         if {(record or {}).get("metrics", {}).get("render") for _, record in evaluations} \
-                != {render_digest(ctx, split)}:  # same settings, other noise: an estimate, said in the caption
+                != {records_digest([f for f in frames if f["split"] == split])}:  # same settings, other
+            # noise: an estimate, said in the caption
             log.info("references: %s scored another render of split %s: its rows' errors are taken with "
                      "today's reference errors", name, split)
             other_render.append(name)
@@ -107,11 +108,12 @@ def proposed_spp(ref_spp: int, shortfall: float, margin: float, max_ref_spp: int
 
 
 def run(ctx: Context, name: str = "references", margin: float = 0.8, max_ref_spp: int = 8192) -> pd.DataFrame:
-    if not (Path(ctx.data_dir) / "manifest.json").is_file():
-        raise UserError(f"references: {ctx.data_dir} holds no rendered data (its manifest.json gives the frames' "
-                        f"estimated reference errors and render times); `python -m bench +experiment=data "
-                        f"preset={ctx.preset}` renders it")
-    frames = load_manifest(ctx.data_dir)["frames"]  # the frames' estimated reference errors
+    # the frames' estimated reference errors and render times: data_dir's, else the archive's records
+    frames = [f for split in (ctx.data_spec.get("splits") or {}) for f in frame_records(ctx, split)]
+    if not frames:
+        raise UserError(f"references: neither {ctx.data_dir} nor the run archive holds the frame records of the "
+                        f"{ctx.preset} preset's data (their estimated reference errors); `python -m bench "
+                        f"+experiment=data preset={ctx.preset}` renders it")
     shortfalls, notes = table_shortfalls(ctx, frames)
     unknown = shortfalls["shortfall"].isna()
     if unknown.any():
@@ -128,7 +130,8 @@ def run(ctx: Context, name: str = "references", margin: float = 0.8, max_ref_spp
         recs = [records[(split, sequence, frame)] for frame in part["frame"]]
         now = int(recs[0]["ref_spp"])
         new = proposed_spp(now, float(top["shortfall"]), margin, max_ref_spp)
-        seconds = sum((r.get("time_s") or {}).get(f"{res}_ref_s", 0.0) for r in recs for res in ("lr", "hr"))
+        seconds = sum(r["time_s"].get(f"{res}_ref_s", 0.0) for r in recs for res in ("lr", "hr")) \
+            if all(r.get("time_s") for r in recs) else math.nan  # records archived before they kept times
         rows.append({"split": split, "sequence": sequence, "frames": len(part),
                      "frames passing": int((part["shortfall"] < 1).sum()),
                      "worst shortfall": float(top["shortfall"]), "worst in": f"{top['table']} ({top['best row']})",
@@ -150,7 +153,8 @@ def run(ctx: Context, name: str = "references", margin: float = 0.8, max_ref_spp
                            for split, p in table.groupby("split"))
                + ". Frames passing per table (its best row against today's references): "
                + ", ".join(f"{t} {int((p['shortfall'] < 1).sum())} of {len(p)}" for t, p in shortfalls.groupby("table"))
-               + ". ref render s: the recorded seconds of the sequence's reference renders (both resolutions); "
+               + ". ref render s: the recorded seconds of the sequence's reference renders (both resolutions; "
+               "empty where the archive's records of the split predate the times); "
                "ref render s added: what the proposal adds to them (its samples are added to the references, "
                "datagen.refine_reference). sequence_ref_spp.yaml beside this table holds, per split, the "
                "sequence_ref_spp to put in conf/data/<preset>.yaml."
