@@ -232,3 +232,25 @@ def test_a_spec_changed_in_one_split_keeps_the_other_splits_frame_records(tmp_pa
     assert _frame_records_path(ctx).exists()
     assert frame_records(ctx, "test") == [frame("test", 8)] and frame_records(ctx, "val") == [frame("val")]
     assert frame_records(ctx, "train") == []
+
+
+def test_a_split_whose_part_of_the_spec_is_unchanged_keeps_its_records_before_anything_renders(tmp_path):
+    """test's proposal is put in the spec but not rendered yet: val's records still come from data_dir's
+    manifest (of the earlier spec), or without it from the archive's earlier file; test's from neither."""
+    import types
+    from bench.experiments.datasets import archive_frame_records
+
+    def frame(split, crc=1):
+        return {"split": split, "sequence": "s", "frame": 0, "ref_spp": 4, "ref_error": 0.1,
+                "files": {"hr": {"crc32": crc}}}
+    before = {"name": "tiny", "seq_len": 2, "splits": {"val": {"ref_spp": 4}, "test": {"ref_spp": 4}}}
+    after = {**before, "splits": {**before["splits"], "test": {"ref_spp": 4, "sequence_ref_spp": {"s": 8}}}}
+    ctx = types.SimpleNamespace(runs_archive=tmp_path / "archive", render_data=True, data_spec=before,
+                                data_dir=tmp_path / "data")
+    archive_frame_records(ctx, {"spec": before, "frames": [frame("val"), frame("test")]})
+    ctx.data_spec = after
+    assert frame_records(ctx, "val") == [frame("val")] and frame_records(ctx, "test") == []
+    ctx.data_dir.mkdir()
+    (ctx.data_dir / "manifest.json").write_text(json.dumps({"spec": before, "frames": [frame("val", 2), frame("test", 2)]}))
+    assert frame_records(ctx, "val") == [frame("val", 2)]  # the frames on disk, not another render's
+    assert frame_records(ctx, "test") == []

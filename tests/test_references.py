@@ -257,4 +257,5 @@ def test_without_rendered_data_it_says_how_to_render_it(tmp_path):
     from bench.experiments import references
     from conftest import smoke_context
     with pytest.raises(UserError, match=r"nor the run archive holds the frame records .*`python -m bench \+experiment=data preset=smoke`"):
-        references.run(smoke_context(data_dir=tmp_path / "nothing", results_dir=tmp_path / "results"))
+        references.run(smoke_context(data_dir=tmp_path / "nothing", results_dir=tmp_path / "results",
+                                     runs_archive=tmp_path / "archive"))

@@ -37,6 +37,11 @@ def _only_split(spec: dict, split: str) -> dict:
     return {**spec, "splits": {split: spec["splits"].get(split)}}
 
 
+def _same_split_part(spec: dict, other: dict, split: str) -> bool:
+    """Whether two data specs render `split`'s frames alike (their parts for it are the same)."""
+    return _canonical(_only_split(spec, split)) == _canonical(_only_split(other, split))
+
+
 def _identity_hash(spec: dict | None, frames: list, split: str | None, files: str | None = None) -> str:
     """The data fingerprint of a spec and its frames' (split, sequence, frame, settings hash): with
     `split`, only that split's part of the spec counts."""
@@ -225,14 +230,14 @@ def _records_of_unchanged_splits(ctx: Context, path: Path) -> list[dict]:
     for other in sorted(path.parent.glob("*.json.gz")):
         card = runs.read_or_none(other, read=_read_gzipped_json) if other != path else None
         for split in {f["split"] for f in (card or {}).get("frames", [])} - set(found):
-            if _canonical(_only_split(card.get("spec") or {}, split)) == _canonical(_only_split(ctx.data_spec, split)):
+            if _same_split_part(card.get("spec") or {}, ctx.data_spec, split):
                 found[split] = [f for f in card["frames"] if f["split"] == split]
     return [f for frames in found.values() for f in frames]
 
 
 def archive_frame_records(ctx: Context, manifest: dict) -> None:
     """Keep in the archive, beside the runs, what tables read of the rendered frames (each frame's
-    reference spp and estimated reference error), with its files' CRC-32 stamps (which render they
+    reference spp, estimated reference error and render seconds), with its files' CRC-32 stamps (which render they
     describe): a table whose evaluations are all recorded is then written on a machine that has not
     rendered its split. Merged per split: a data_dir holding some splits replaces only theirs. The last
     host to find the data writes it: another host's render of the same settings differs in its noise."""
@@ -265,17 +270,21 @@ def archive_frame_records(ctx: Context, manifest: dict) -> None:
 
 def frame_records(ctx: Context, split: str) -> list[dict]:
     """The records of `split`'s frames (`load_manifest`'s, or the `FRAME_RECORD_KEYS` of them): from
-    data_dir's manifest when it holds the split as `ctx` specifies it, else from the archive's copy
-    (`archive_frame_records`); [] when neither has them."""
-    manifest = _manifest_here(ctx, as_specified=True)
-    if manifest is not None:
+    data_dir's manifest when it holds the split as `ctx` specifies it (the split's part of the spec: a
+    change to another split's does not touch its frames), else from the archive's copy
+    (`archive_frame_records`, or an earlier spec's whose part for the split is the same); [] when
+    neither has them."""
+    manifest = _manifest_here(ctx, as_specified=False)
+    if manifest is not None and (not ctx.render_data or _same_split_part(manifest.get("spec") or {}, ctx.data_spec, split)):
         frames = [f for f in manifest["frames"] if f["split"] == split]
         if frames or not ctx.render_data:
             return frames
     if ctx.runs_archive is None or not ctx.render_data:
         return []
-    kept = runs.read_or_none(_frame_records_path(ctx), read=_read_gzipped_json)
-    return [f for f in (kept or {}).get("frames", []) if f["split"] == split]
+    path = _frame_records_path(ctx)
+    kept = runs.read_or_none(path, read=_read_gzipped_json)
+    return [f for f in (kept or {}).get("frames", []) if f["split"] == split] \
+        or [f for f in _records_of_unchanged_splits(ctx, path) if f["split"] == split]
 
 
 def splits_on_disk(ctx: Context, as_specified: bool = False) -> set[str]:

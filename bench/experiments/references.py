@@ -154,7 +154,8 @@ def run(ctx: Context, name: str = "references", margin: float = 0.8, max_ref_spp
                + ". Frames passing per table (its best row against today's references): "
                + ", ".join(f"{t} {int((p['shortfall'] < 1).sum())} of {len(p)}" for t, p in shortfalls.groupby("table"))
                + ". ref render s: the recorded seconds of the sequence's reference renders (both resolutions; "
-               "empty where the archive's records of the split predate the times); "
+               "- (empty in the csv) where a frame's record holds none, as the archive's records made before "
+               "they kept times); "
                "ref render s added: what the proposal adds to them (its samples are added to the references, "
                "datagen.refine_reference). sequence_ref_spp.yaml beside this table holds, per split, the "
                "sequence_ref_spp to put in conf/data/<preset>.yaml."
