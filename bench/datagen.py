@@ -489,28 +489,10 @@ def render_sequence(root, job, spec, passes, variant=None):
     for frame, camera in enumerate(cameras):
         lr_path, hr_path, rec_path = frame_paths(root, job["split"], job["sequence"], frame)
         paths = {"lr": lr_path, "hr": hr_path}
-        record = _load_record(rec_path, digest)
-        stored_spp = None
-        if record is None:  # rendered with fewer reference samples on the same chain: refine, keep the rest
-            record = _earlier_on_chain(rec_path, settings)
-            stored_spp = record and int(record["ref_spp"])
-        # a file changed since it was written (an edit, NaN written into it) or of the wrong size is
-        # rendered again whole: every buffer its record holds at that resolution, not only this job's passes
-        changed = {res for res, path in paths.items() if record and os.path.exists(path) and not (
-            as_written(record, res, path) and _exr_size(path) in (None, tuple(sizes[res])))}
-        present = {res: _present_layers(path) if record and res not in changed else set()
-                   for res, path in paths.items()}
-        wanted = list(passes) + [b for b in (record or {}).get("buffers", []) if b[:2] in changed and b not in passes]
-        # a stored reference is refined only where its file is stamped as written with this record: a
-        # refinement cut off between the LR and HR files leaves one refined file beside the old record
-        refinable = {res: "ref" in layers and bool(((record or {}).get("files") or {}).get(res))
-                     for res, layers in present.items()}
-        if stored_spp:
-            wanted += [b for b in record["buffers"] if b.endswith("_ref") and b not in wanted]
-            present = {res: layers - {"ref"} for res, layers in present.items()}
-        missing = [b for b in wanted if not set(buffer_layers(b, gbuf_layers)) <= present[b[:2]]]
-        if not missing:
-            if stored_spp:  # it holds no reference to refine: only the record moves to the new settings
+        todo = _frame_todo(rec_path, paths, sizes, settings, digest, passes, gbuf_layers)
+        record = todo.record
+        if not todo.missing:
+            if todo.stored_spp:  # it holds no reference to refine: only the record moves to the new settings
                 record.update(ref_spp=settings["ref_spp"], settings_hash=digest)
                 _write_json(rec_path, record)
             records.append({**record, "resumed": True})
@@ -520,48 +502,97 @@ def render_sequence(root, job, spec, passes, variant=None):
         seeds = {res: {kind: derive_seed(spec["seed"], job["scene_seed"], job["view"], frame, res, code)
                        for kind, code in _BUFFER_CODES.items()} for res in ("lr", "hr")}
         if record is None:
-            record = {"split": job["split"], "family": job["family"],
-                      "scene": f"{job['family']}-{job['scene_seed']}",
-                      "scene_seed": job["scene_seed"], "sequence": job["sequence"], "view": job["view"],
-                      "frame": frame, "camera": camera, "seeds": seeds, "spp": settings["spp"],
-                      "ref_spp": settings["ref_spp"], "lr_size": list(sizes["lr"]), "hr_size": list(sizes["hr"]),
-                      "max_depth": settings["max_depth"], "variant": variant, "device": _device(variant),
-                      "host": socket.gethostname(),
-                      "features": {k: features[k] for k in ("bsdf_types", "object_kinds", "glossy",
-                                                            "transmissive", "specular_chain")},
-                      "left_out": features["left_out"], "settings_hash": digest, "buffers": [], "time_s": {},
-                      "nonfinite_repaired": 0, "channels": {}}
-        written = []
-        for res in ("lr", "hr"):
-            todo = [b for b in missing if b.startswith(res)]
-            if not todo:
-                continue
-            written.append(res)
-            (w, h), path = sizes[res], paths[res]
-            stored = (exrio.read_exr(path, ["ref"])["ref"], stored_spp) \
-                if stored_spp and refinable[res] and f"{res}_ref" in todo else None
-            layers, times, repaired, ref_error = render_resolution(
-                loaded, camera, w, h, settings["spp"], ReferencePlan.of(settings, stored), seeds[res], todo, res,
-                gbuf_layers, settings["max_depth"])
-            if stored is not None:  # the reference's time and repairs include the samples it had
-                times[f"{res}_ref_s"] += record["time_s"].get(f"{res}_ref_s", 0.0)
-                repaired[f"{res}_ref"] += (record.get("nonfinite_repaired_by_buffer") or {}).get(f"{res}_ref", 0)
-            if ref_error is not None:
-                record.setdefault("ref_error", {})[res] = ref_error
-            kept = exrio.read_exr(path, sorted(present[res] - set(layers))) if present[res] else {}
-            merged = {**kept, **layers}
-            half = [g for g in gbuf_layers if settings["half_gbuffer"]]
-            exrio.write_exr(path, merged, suffixes=SUFFIXES, half=half,
-                            attributes={"srd_sequence": job["sequence"], "srd_frame": frame})
-            record["time_s"].update(times)
-            _count_repaired(record, repaired)
-            record["channels"][res] = [f"{n}.{s}" for n in merged for s in SUFFIXES[n]]
+            record = _new_record(job, frame, camera, seeds, settings, sizes, variant, features, digest)
+        written = [res for res in ("lr", "hr") if any(b.startswith(res) for b in todo.missing)]
+        for res in written:
+            _render_into(record, res, paths[res], sizes[res], loaded, camera, settings, seeds[res], todo,
+                         gbuf_layers, job, frame)
         record.update(ref_spp=settings["ref_spp"], settings_hash=digest)  # every reference is at it now
-        record["buffers"] = sorted(set(record["buffers"]) | set(wanted))
+        record["buffers"] = sorted(set(record["buffers"]) | set(todo.wanted))
         record["files"] = {**(record.get("files") or {}), **{res: file_stamp(paths[res]) for res in written}}
         _write_json(rec_path, record)
         records.append({**record, "resumed": False})
     return records
+
+
+@dataclasses.dataclass
+class FrameTodo:
+    """What a frame on disk needs (`_frame_todo`): its record (None: nothing usable), the reference spp
+    it holds when its references are refined to more (else None), the layers each file holds, the
+    buffers it should hold, those of them missing, and which files hold a reference to refine."""
+    record: dict | None
+    stored_spp: int | None
+    present: dict
+    wanted: list
+    missing: list
+    refinable: dict
+
+
+def _frame_todo(rec_path, paths, sizes, settings, digest, passes, gbuf_layers) -> FrameTodo:
+    record = _load_record(rec_path, digest)
+    stored_spp = None
+    if record is None:  # rendered with fewer reference samples on the same chain: refine, keep the rest
+        record = _earlier_on_chain(rec_path, settings)
+        stored_spp = record and int(record["ref_spp"])
+    # a file changed since it was written (an edit, NaN written into it) or of the wrong size is
+    # rendered again whole: every buffer its record holds at that resolution, not only this job's passes
+    changed = {res for res, path in paths.items() if record and os.path.exists(path) and not (
+        as_written(record, res, path) and _exr_size(path) in (None, tuple(sizes[res])))}
+    present = {res: _present_layers(path) if record and res not in changed else set()
+               for res, path in paths.items()}
+    wanted = list(passes) + [b for b in (record or {}).get("buffers", []) if b[:2] in changed and b not in passes]
+    # a stored reference is refined only where its file is stamped as written with this record: a
+    # refinement cut off between the LR and HR files leaves one refined file beside the old record
+    refinable = {res: "ref" in layers and bool(((record or {}).get("files") or {}).get(res))
+                 for res, layers in present.items()}
+    if stored_spp:
+        wanted += [b for b in record["buffers"] if b.endswith("_ref") and b not in wanted]
+        present = {res: layers - {"ref"} for res, layers in present.items()}
+    missing = [b for b in wanted if not set(buffer_layers(b, gbuf_layers)) <= present[b[:2]]]
+    return FrameTodo(record, stored_spp, present, wanted, missing, refinable)
+
+
+def _new_record(job, frame, camera, seeds, settings, sizes, variant, features, digest) -> dict:
+    """The record of a frame about to be rendered for the first time (its buffers, times and files
+    are filled in as they are written)."""
+    return {"split": job["split"], "family": job["family"], "scene": f"{job['family']}-{job['scene_seed']}",
+            "scene_seed": job["scene_seed"], "sequence": job["sequence"], "view": job["view"],
+            "frame": frame, "camera": camera, "seeds": seeds, "spp": settings["spp"],
+            "ref_spp": settings["ref_spp"], "lr_size": list(sizes["lr"]), "hr_size": list(sizes["hr"]),
+            "max_depth": settings["max_depth"], "variant": variant, "device": _device(variant),
+            "host": socket.gethostname(),
+            "features": {k: features[k] for k in ("bsdf_types", "object_kinds", "glossy",
+                                                  "transmissive", "specular_chain")},
+            "left_out": features["left_out"], "settings_hash": digest, "buffers": [], "time_s": {},
+            "nonfinite_repaired": 0, "channels": {}}
+
+
+def _render_into(record, res, path, size, loaded, camera, settings, seeds, todo, gbuf_layers, job, frame):
+    """Render the frame's missing buffers at resolution `res` and merge them into its EXR (the layers
+    it keeps are read back and written with them); `record` gets the times, repairs, reference error
+    and channels."""
+    stored_spp = todo.stored_spp
+    todo_here = [b for b in todo.missing if b.startswith(res)]
+    (w, h) = size
+    stored = (exrio.read_exr(path, ["ref"])["ref"], stored_spp) \
+        if stored_spp and todo.refinable[res] and f"{res}_ref" in todo_here else None
+    layers, times, repaired, ref_error = render_resolution(
+        loaded, camera, w, h, settings["spp"], ReferencePlan.of(settings, stored), seeds, todo_here, res,
+        gbuf_layers, settings["max_depth"])
+    if stored is not None:  # the reference's time and repairs include the samples it had
+        times[f"{res}_ref_s"] += record["time_s"].get(f"{res}_ref_s", 0.0)
+        repaired[f"{res}_ref"] += (record.get("nonfinite_repaired_by_buffer") or {}).get(f"{res}_ref", 0)
+    if ref_error is not None:
+        record.setdefault("ref_error", {})[res] = ref_error
+    present = todo.present[res]
+    kept = exrio.read_exr(path, sorted(present - set(layers))) if present else {}
+    merged = {**kept, **layers}
+    half = [g for g in gbuf_layers if settings["half_gbuffer"]]
+    exrio.write_exr(path, merged, suffixes=SUFFIXES, half=half,
+                    attributes={"srd_sequence": job["sequence"], "srd_frame": frame})
+    record["time_s"].update(times)
+    _count_repaired(record, repaired)
+    record["channels"][res] = [f"{n}.{s}" for n in merged for s in SUFFIXES[n]]
 
 
 def _device(variant):
