@@ -504,9 +504,10 @@ def render_sequence(root, job, spec, passes, variant=None):
         if record is None:
             record = _new_record(job, frame, camera, seeds, settings, sizes, variant, features, digest)
         written = [res for res in ("lr", "hr") if any(b.startswith(res) for b in todo.missing)]
+        attributes = {"srd_sequence": job["sequence"], "srd_frame": frame}
         for res in written:
             _render_into(record, res, paths[res], sizes[res], loaded, camera, settings, seeds[res], todo,
-                         gbuf_layers, job, frame)
+                         gbuf_layers, attributes)
         record.update(ref_spp=settings["ref_spp"], settings_hash=digest)  # every reference is at it now
         record["buffers"] = sorted(set(record["buffers"]) | set(todo.wanted))
         record["files"] = {**(record.get("files") or {}), **{res: file_stamp(paths[res]) for res in written}}
@@ -567,17 +568,15 @@ def _new_record(job, frame, camera, seeds, settings, sizes, variant, features, d
             "nonfinite_repaired": 0, "channels": {}}
 
 
-def _render_into(record, res, path, size, loaded, camera, settings, seeds, todo, gbuf_layers, job, frame):
+def _render_into(record, res, path, size, loaded, camera, settings, seeds, todo, gbuf_layers, attributes):
     """Render the frame's missing buffers at resolution `res` and merge them into its EXR (the layers
-    it keeps are read back and written with them); `record` gets the times, repairs, reference error
-    and channels."""
-    stored_spp = todo.stored_spp
-    todo_here = [b for b in todo.missing if b.startswith(res)]
-    (w, h) = size
-    stored = (exrio.read_exr(path, ["ref"])["ref"], stored_spp) \
-        if stored_spp and todo.refinable[res] and f"{res}_ref" in todo_here else None
+    it keeps are read back and written with them, with the EXR `attributes`); `record` gets the times,
+    repairs, reference error and channels."""
+    missing = [b for b in todo.missing if b.startswith(res)]
+    stored = (exrio.read_exr(path, ["ref"])["ref"], todo.stored_spp) \
+        if todo.stored_spp and todo.refinable[res] and f"{res}_ref" in missing else None
     layers, times, repaired, ref_error = render_resolution(
-        loaded, camera, w, h, settings["spp"], ReferencePlan.of(settings, stored), seeds, todo_here, res,
+        loaded, camera, *size, settings["spp"], ReferencePlan.of(settings, stored), seeds, missing, res,
         gbuf_layers, settings["max_depth"])
     if stored is not None:  # the reference's time and repairs include the samples it had
         times[f"{res}_ref_s"] += record["time_s"].get(f"{res}_ref_s", 0.0)
@@ -588,8 +587,7 @@ def _render_into(record, res, path, size, loaded, camera, settings, seeds, todo,
     kept = exrio.read_exr(path, sorted(present - set(layers))) if present else {}
     merged = {**kept, **layers}
     half = [g for g in gbuf_layers if settings["half_gbuffer"]]
-    exrio.write_exr(path, merged, suffixes=SUFFIXES, half=half,
-                    attributes={"srd_sequence": job["sequence"], "srd_frame": frame})
+    exrio.write_exr(path, merged, suffixes=SUFFIXES, half=half, attributes=attributes)
     record["time_s"].update(times)
     _count_repaired(record, repaired)
     record["channels"][res] = [f"{n}.{s}" for n in merged for s in SUFFIXES[n]]
