@@ -81,6 +81,11 @@ class Run:
         text = json.dumps(_encode(self.record), indent=2, sort_keys=True, allow_nan=False, default=_json_default)
         write_atomic(self.dir / RECORD, lambda tmp: tmp.write_text(text))
 
+    def restart_clock(self) -> None:
+        """Its wall time counts from now: what ran before (another run's work, e.g. training the weights an
+        evaluation needs) is not this run's."""
+        self._t0 = time.perf_counter()
+
     def release(self) -> None:
         if self._lock is not None:
             self._lock.close()  # closing the file drops its flock

@@ -4,6 +4,7 @@ import os
 import shutil
 import subprocess
 import sys
+import time
 
 import pandas as pd
 import pytest
@@ -14,6 +15,7 @@ from omegaconf import OmegaConf
 from bench import archived, runs
 from bench.cli import CONF_DIR, run_experiment
 from bench.errors import UserError
+from bench.experiments import evaluation
 from bench.experiments.table import (compute_shard, expand_rows, paper_agreement, reference_check, shard_units,
                                     unit_lock)
 from bench.models.srd import SRDNet, SRDStage, load_stage
@@ -158,9 +160,22 @@ def test_weights_the_archive_left_out_are_trained_again_only_where_they_are_run(
     pd.testing.assert_frame_equal(first[["method", "runs", "PSNR", "SSIM"]], again[["method", "runs", "PSNR", "SSIM"]])
     seed1 = next(p.parent for p in (tmp_path / "fresh" / "eval").glob("*/run.json") if runs.read_record(p)["seed"] == 1)
     shutil.rmtree(seed1), shutil.rmtree(archive / "eval" / seed1.name)        # an evaluation neither has
+    trained_until = []
+
+    def slow_training(*args, **kwargs):  # a training long enough to show in the evaluation's time if counted
+        out = real_trained_model(*args, **kwargs)
+        time.sleep(2.0)
+        trained_until.append(time.perf_counter())
+        return out
+
+    real_trained_model = evaluation.trained_model
+    monkeypatch.setattr(evaluation, "trained_model", slow_training)
     log = rerun("++experiment.figure=false")
+    since_training = time.perf_counter() - trained_until[-1]
     assert log.count(f"has no checkpoint.pt or {archived.WEIGHTS}") == 1 and log.count("trained in") == 1
     assert (tmp_path / "fresh" / "eval" / seed1.name / "per_image.csv").exists()
+    # the evaluation's wall time is its own, not the training's it waited for
+    assert runs.read_record(tmp_path / "fresh" / "eval" / seed1.name / runs.RECORD)["wall_time_s"] < since_training
 
 
 def test_seeds_give_mean_and_std(dirs):

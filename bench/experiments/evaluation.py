@@ -48,6 +48,7 @@ def evaluated(ctx: Context, cfg: dict, task: Task, seed: int, split: str, label:
         return archive_evaluation(ctx, run)
     if model is None:  # a recorded training whose weights trained_model did not read (or that lacks them)
         model, train_run = trained_model(ctx, cfg, task, seed, label)
+        run.restart_clock()  # a training done here for the weights is the training run's time, not this one's
     try:
         _, metrics = evaluate(model, dataset(scoring_ctx, split, task, training=False), task, hdr=hdr,
                               device=ctx.device, out_dir=run.dir, save_exr=ctx.eval.save_exr,
