@@ -38,6 +38,18 @@ def rendered(tmp_path):
     return tmp_path, hr, exrio.read_exr(hr)
 
 
+def test_a_render_of_one_split_counts_its_own_frames_not_the_splits_already_there(tmp_path, caplog):
+    spec = {**SPEC, "splits": {**SPEC["splits"], "val": {"families": ["bathroom"], "sequences": 1}}}
+    ctx = dataclasses.replace(_ctx(tmp_path), data_spec=spec)
+    ensure_data(ctx, PASSES, {"train"})
+    with caplog.at_level("INFO", logger="bench"):
+        ensure_data(ctx, PASSES, {"val"})                    # the manifest lists train too
+    assert "data: 2 frames of val rendered, 0 were already complete" in caplog.text
+    record = next(json.loads(p.read_text()) for p in (tmp_path / "runs" / "data").glob("*/run.json")
+                  if json.loads(p.read_text())["identity"]["splits"] == ["val"])
+    assert record["metrics"]["frames"] == 2 and record["metrics"]["resumed_frames"] == 0
+
+
 def test_a_truncated_frame_is_rendered_again_to_the_same_pixels(rendered):
     root, hr, original = rendered
     hr.write_bytes(hr.read_bytes()[:100])                         # cut in its header

@@ -198,13 +198,14 @@ def _render_missing(ctx: Context, passes: set[str], splits: list[str]) -> str:
     except BaseException as err:  # the record says so, never "running" forever; rendered frames are kept
         runs.fail(run, f"{type(err).__name__}: {err}")
         raise
-    timing_cols = [c for c in manifest.columns if c.startswith("time_s.")]
-    complete = int(manifest["resumed"].sum())
-    runs.complete(run, {"frames": int(len(manifest)), "resumed_frames": complete,
-                        "render_time_s": float(manifest[timing_cols].fillna(0).to_numpy().sum()),
-                        "nonfinite_repaired": int(manifest.get("nonfinite_repaired", 0).sum())})
-    log.info("data: %d frames rendered, %d were already complete (%.1f min)", len(manifest) - complete, complete,
-             run.record["wall_time_s"] / 60)
+    job = manifest[manifest["split"].isin(splits)]  # the manifest also lists the other splits already there
+    timing_cols = [c for c in job.columns if c.startswith("time_s.")]
+    complete = int(job["resumed"].sum())
+    repaired = int(job["nonfinite_repaired"].sum()) if "nonfinite_repaired" in job else 0
+    runs.complete(run, {"frames": int(len(job)), "resumed_frames": complete, "nonfinite_repaired": repaired,
+                        "render_time_s": float(job[timing_cols].fillna(0).to_numpy().sum())})
+    log.info("data: %d frames of %s rendered, %d were already complete (%.1f min)", len(job) - complete,
+             ", ".join(splits), complete, run.record["wall_time_s"] / 60)
     archive_frame_records(ctx, load_manifest(ctx.data_dir))
     return data_fingerprint(ctx)
 
