@@ -1,6 +1,7 @@
 """`+experiment=time` (error against run time): the pure curve arithmetic on synthetic curves, and one tiny
 end-to-end run at the smoke preset (one view, spp up to 4, three methods, a 4-step training)."""
 import math
+from types import SimpleNamespace
 
 import numpy as np
 import pandas as pd
@@ -9,7 +10,7 @@ from hydra import compose, initialize_config_dir
 
 from bench.cli import CONF_DIR, run_experiment
 from bench.experiments.speed import device_tag
-from bench.experiments.timing import (BRUTE_FORCE, brute_force_spp, equal_time_table, fit_curve, hr_lr_ratio,
+from bench.experiments.timing import (BRUTE_FORCE, _reference_spp, brute_force_spp, equal_time_table, fit_curve, hr_lr_ratio,
                                       loglog_slope, paper_axis, paper_equal_time, pareto_front, reference_noise_slope,
                                       render_table, rising_steps, slope_ok, speed_ms, speedup_table)
 
@@ -226,3 +227,10 @@ def test_renders_recorded_under_the_old_run_kind_are_adopted(tmp_path):
     assert (tmp_path / RUN_KIND / "abc" / "run.json").exists() and not (tmp_path / "timing").exists()
     _move_legacy_render_runs(tmp_path)  # nothing left to move: a no-op
     assert (tmp_path / RUN_KIND / "abc" / "run.json").exists()
+
+
+def test_brute_force_stops_below_the_fewest_sample_reference_of_the_views():
+    """Views whose references have different spp (refined sequences): no view may score a brute-force render
+    with as many samples as its own reference, so the least-sampled reference decides, whichever view is first."""
+    views = [SimpleNamespace(frames=[{"ref_spp": n}]) for n in (4096, 8192, 1024, 2048)]
+    assert _reference_spp(views) == 1024 and brute_force_spp(_reference_spp(views))[-1] == 512

@@ -510,6 +510,12 @@ def _methods(ctx: Context, methods: list[dict]) -> list[dict]:
     return out
 
 
+def _reference_spp(views: list[View]) -> int:
+    """The fewest samples among the views' references: brute force stops at half of it, so that no view
+    scores a render with as many samples as its reference."""
+    return min(int(v.frames[-1]["ref_spp"]) for v in views)
+
+
 def _data_passes(methods: list[dict], train_missing: bool) -> set[str]:
     """The reference always; the tasks' training buffers only when networks may be trained here."""
     passes = {"hr_ref"}
@@ -521,7 +527,7 @@ def _data_passes(methods: list[dict], train_missing: bool) -> set[str]:
 
 def _slope_note(slope: float, flattened: float, ref_spp: int) -> str:
     text = (f"Brute-force MSE vs spp: log-log slope {slope:.2f} (expected about -1; {flattened:.2f} with the "
-            f"{ref_spp}-spp reference's own noise)")
+            f"fewest-sample reference's ({ref_spp} spp) own noise)")
     if not slope_ok(slope):
         text += (f", OUTSIDE [{EXPECTED_SLOPE[0]}, {EXPECTED_SLOPE[1]}]: fireflies or a render mismatch; "
                  f"the curves are suspect")
@@ -573,9 +579,10 @@ def cpu_size_tables(ctx: Context, name: str, caption: str, views: int, lr_spp: l
                     max_spp: int | None, operating_spp: int, repeats: int, train_missing: bool,
                     methods: list[dict]) -> pd.DataFrame:
     """Render, score and time at the preset's sizes; write table.*, speedup.*, equal_time.* and the figure."""
-    ensure_data(ctx, _data_passes(methods, train_missing))
+    # the views' split, and the splits a training reads where one may run here (not generalization's)
+    ensure_data(ctx, _data_passes(methods, train_missing), {"train", "val"} if train_missing else {"val"})
     chosen = pick_views(ctx, int(views))
-    ref_spp = int(chosen[0].frames[-1]["ref_spp"])
+    ref_spp = _reference_spp(chosen)
     bf_spp = brute_force_spp(ref_spp, max_spp)
     if len(bf_spp) < 2:
         raise UserError(f"time: the reference has {ref_spp} spp and max_spp={max_spp}: brute force needs at "
@@ -600,7 +607,7 @@ def report(ctx: Context, name: str, caption: str, table: pd.DataFrame, per_view:
            variant: str, skipped: list[str], operating_spp: int) -> None:
     """Check path tracing's curve (slope, monotone within noise), write table.*, speedup.*, equal_time.*
     and error_vs_time.png."""
-    ref_spp, train_spp = int(views[0].frames[-1]["ref_spp"]), views[0].frames[-1]["spp"]
+    ref_spp, train_spp = _reference_spp(views), views[0].frames[-1]["spp"]
     bf = table[table["method"] == BRUTE_FORCE]
     slope = loglog_slope(bf["spp"], bf["MSE"])
     if not slope_ok(slope):
