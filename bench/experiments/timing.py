@@ -541,11 +541,16 @@ def _skipped_note(skipped: list[str]) -> str:
             f"experiment.train_missing=true): {', '.join(skipped)}.")
 
 
+def _host() -> str:
+    """The machine every time here was measured on, its ISA named (bf16 is emulated without AVX512-BF16)."""
+    return f"host {socket.gethostname()} ({cpu_model().strip()}, {cpu_isa()}, {os.cpu_count()} CPUs)"
+
+
 def _caption(ctx, caption, views, variant, train_spp) -> str:
     return (f"{caption} Preset {ctx.preset}, {len(views)} val view(s) (last frame of "
-            f"{', '.join(v.sequence for v in views)}), host {socket.gethostname()} ({os.cpu_count()} CPUs), "
-            f"Mitsuba {variant}. Seconds per frame, averaged over views: render = render_view wall time "
-            f"(radiance + gBuffer in one pass, scene loaded, JIT warm), network = median of warm runs. "
+            f"{', '.join(v.sequence for v in views)}), {_host()}, Mitsuba {variant}. Seconds per frame, "
+            f"averaged over views: render = render_view wall time (radiance + gBuffer in one pass, scene "
+            f"loaded, JIT warm), network = median of warm runs. "
             f"{RELMSE_FORMULA}; PSNR/SSIM clamped to [0, 1]; all against the HR reference. Networks trained "
             f"at {train_spp} spp. se: standard error over views. speed-up (M): seconds brute-force HR path "
             f"tracing (PT) needs for the same M on its fitted curve (see speedup.*; extrapolated: outside its "
@@ -627,14 +632,14 @@ def report(ctx: Context, name: str, caption: str, table: pd.DataFrame, per_view:
     write_table(speedup_table(table, operating_spp), out, name="speedup", caption=(
         f"Equal quality and equal time against brute-force HR path tracing (PT) at the operating point "
         f"({operating_spp} spp; the paper's is LR 8 spp, where it implies about {PAPER_SPEEDUP}x), preset "
-        f"{ctx.preset}, {len(views)} view(s), host {socket.gethostname()}; seconds per frame; {RELMSE_FORMULA}. "
+        f"{ctx.preset}, {len(views)} view(s), {_host()}; seconds per frame; {RELMSE_FORMULA}. "
         f"speed-up at equal M: the seconds PT needs to reach the method's M, over the method's seconds; in "
         f"relMSE alone a blurred image can look fast, so PSNR and SSIM are given too. PT M at equal time: PT's "
         f"M after the method's seconds. {curve_text} {notes}"),
         lower_is_better=("relMSE",), higher_is_better=tuple(c for c in SPEEDUP_COLUMNS if c.startswith("speed-up")))
     write_table(equal_time_table(table, operating_spp), out, name="equal_time", caption=(
         f"Equal time: each SRD method at LR {operating_spp} spp against each denoiser of HR renders given the "
-        f"same seconds per frame (preset {ctx.preset}, {len(views)} view(s), host {socket.gethostname()}): the "
+        f"same seconds per frame (preset {ctx.preset}, {len(views)} view(s), {_host()}): the "
         f"denoiser's relMSE and PSNR read off its own curve (lines through its HR spp points, as PT's) at the "
         f"SRD method's total time; extrapolated: outside the denoiser's measured times. {RELMSE_FORMULA}."),
         lower_is_better=(), higher_is_better=("PSNR difference (dB)",))
@@ -882,8 +887,7 @@ def run_paper_resolution(ctx: Context, name: str, views: int, methods: list[dict
 def write_paper_tables(out: Path, renders, axis, equal, views, frames, variant, threads, cpu_table, operating_spp,
                        hr_size) -> None:
     tag = f"{hr_size[1]}p"
-    where = (f"host {socket.gethostname()} ({cpu_model().strip()}, {cpu_isa()}, {os.cpu_count()} CPUs, shared), "
-             f"Mitsuba {variant} on {threads} render threads")
+    where = f"{_host()}, Mitsuba {variant} on {threads} render threads"
     cpu_rows = cpu_table[cpu_table["spp"] == operating_spp].drop_duplicates("input").set_index("input")["render s"]
     ratio = (f"HR/LR render time at {operating_spp} spp: {hr_lr_ratio(renders, operating_spp, 'CPU s'):.2f} in CPU "
              f"time, {hr_lr_ratio(renders, operating_spp, 'wall s'):.2f} in wall time (the cpu preset's sizes: "
