@@ -83,8 +83,10 @@ class Run:
 
     def restart_clock(self) -> None:
         """Its wall time counts from now: what ran before (another run's work, e.g. training the weights an
-        evaluation needs) is not this run's."""
+        evaluation needs) is not this run's, nor after a kill -9 when it resumes (`part_started_s`)."""
         self._t0 = time.perf_counter()
+        self.record["part_started_s"] = time.time()
+        self.save()
 
     def release(self) -> None:
         if self._lock is not None:

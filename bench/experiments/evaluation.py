@@ -46,10 +46,10 @@ def evaluated(ctx: Context, cfg: dict, task: Task, seed: int, split: str, label:
     if run.reused:
         log.info("eval %s: reusing run %s", label, run.hash)
         return archive_evaluation(ctx, run)
-    if model is None:  # a recorded training whose weights trained_model did not read (or that lacks them)
-        model, train_run = trained_model(ctx, cfg, task, seed, label)
-        run.restart_clock()  # a training done here for the weights is the training run's time, not this one's
     try:
+        if model is None:  # a recorded training whose weights trained_model did not read (or that lacks them)
+            model, train_run = trained_model(ctx, cfg, task, seed, label)
+            run.restart_clock()  # a training done here for the weights is the training run's time, not this one's
         _, metrics = evaluate(model, dataset(scoring_ctx, split, task, training=False), task, hdr=hdr,
                               device=ctx.device, out_dir=run.dir, save_exr=ctx.eval.save_exr,
                               write_exr=write_exr, path=fast_path, tile=ctx.eval.tile)

@@ -58,7 +58,7 @@ import numpy as np
 import pandas as pd
 import torch
 
-from bench import archived, render, runs, scenes
+from bench import render, runs, scenes
 from bench.datagen import derive_seed, frame_view, plan_sequences, render_settings
 from bench.dataset import SequenceDataset
 from bench.errors import UserError
@@ -66,7 +66,7 @@ from bench.evaluate import predict
 from bench.experiments.context import Context, model_config, with_training
 from bench.experiments.datasets import ensure_data
 from bench.experiments.speed import LABELS, cpu_model, device_tag
-from bench.experiments.training import recorded_training, trained_model
+from bench.experiments.training import trained_model, training_records, untrained, working_split
 from bench.measure import cpu_isa, time_call
 from bench.metrics import HIGHER_IS_BETTER, LOWER_IS_BETTER, METRICS, RELMSE_FORMULA, mse
 from bench.models.factory import build_model, is_learned
@@ -296,11 +296,11 @@ def resolve_method(ctx: Context, method: dict, train_missing: bool):
     seed = ctx.seeds[0]
     if not is_learned(build_model(cfg, task.scale)):
         return build_model(cfg, task.scale)
-    recorded = recorded_training(ctx, cfg, task, seed)
-    if not train_missing and (recorded is None or not archived.has_weights(recorded.dir)):
-        log.warning("time: %s skipped: no recorded %s-task training run at preset %s%s (train it with its "
-                    "table, e.g. sota or sr_denoise, or set experiment.train_missing=true)", method["label"],
-                    task.name, ctx.preset, "" if recorded is None else " with its weights (its archive left them out)")
+    whys = untrained(training_records(ctx, cfg, task, seed))  # recorded, with weights, by this code?
+    if not train_missing and whys:
+        log.warning("time: %s skipped: its %s-task training at preset %s would run here (%s; train it with "
+                    "its table, e.g. sota or sr_denoise, or set experiment.train_missing=true)", method["label"],
+                    task.name, ctx.preset, "; ".join(whys))
         return None
     model, _ = trained_model(dataclasses.replace(ctx, force=False), cfg, task, seed, method["label"])
     return model.to(ctx.device).eval()
@@ -541,14 +541,16 @@ def _skipped_note(skipped: list[str]) -> str:
             f"experiment.train_missing=true): {', '.join(skipped)}.")
 
 
-def _host() -> str:
-    """The machine every time here was measured on, its ISA named (bf16 is emulated without AVX512-BF16)."""
-    return f"host {socket.gethostname()} ({cpu_model().strip()}, {cpu_isa()}, {os.cpu_count()} CPUs)"
+def _host(device: str = "cpu") -> str:
+    """The machine every time here was measured on, its ISA named (bf16 is emulated without AVX512-BF16),
+    and the GPU where the networks ran on one (renders and OIDN stay on the CPU)."""
+    gpu = f", networks on {torch.cuda.get_device_name(torch.device(device))}" if device.startswith("cuda") else ""
+    return f"host {socket.gethostname()} ({cpu_model().strip()}, {cpu_isa()}, {os.cpu_count()} CPUs{gpu})"
 
 
 def _caption(ctx, caption, views, variant, train_spp) -> str:
     return (f"{caption} Preset {ctx.preset}, {len(views)} val view(s) (last frame of "
-            f"{', '.join(v.sequence for v in views)}), {_host()}, Mitsuba {variant}. Seconds per frame, "
+            f"{', '.join(v.sequence for v in views)}), {_host(ctx.device)}, Mitsuba {variant}. Seconds per frame, "
             f"averaged over views: render = render_view wall time (radiance + gBuffer in one pass, scene "
             f"loaded, JIT warm), network = median of warm runs. "
             f"{RELMSE_FORMULA}; PSNR/SSIM clamped to [0, 1]; all against the HR reference. Networks trained "
@@ -584,8 +586,9 @@ def cpu_size_tables(ctx: Context, name: str, caption: str, views: int, lr_spp: l
                     max_spp: int | None, operating_spp: int, repeats: int, train_missing: bool,
                     methods: list[dict]) -> pd.DataFrame:
     """Render, score and time at the preset's sizes; write table.*, speedup.*, equal_time.* and the figure."""
-    # the views' split, and the splits a training reads where one may run here (not generalization's)
-    ensure_data(ctx, _data_passes(methods, train_missing), {"train", "val"} if train_missing else {"val"})
+    # the views' split, and where a training may run here the splits it reads (its curve's included)
+    splits = {"train", "val", working_split(ctx)} if train_missing else {"val"}
+    ensure_data(ctx, _data_passes(methods, train_missing), splits)
     chosen = pick_views(ctx, int(views))
     ref_spp = _reference_spp(chosen)
     bf_spp = brute_force_spp(ref_spp, max_spp)
@@ -632,14 +635,14 @@ def report(ctx: Context, name: str, caption: str, table: pd.DataFrame, per_view:
     write_table(speedup_table(table, operating_spp), out, name="speedup", caption=(
         f"Equal quality and equal time against brute-force HR path tracing (PT) at the operating point "
         f"({operating_spp} spp; the paper's is LR 8 spp, where it implies about {PAPER_SPEEDUP}x), preset "
-        f"{ctx.preset}, {len(views)} view(s), {_host()}; seconds per frame; {RELMSE_FORMULA}. "
+        f"{ctx.preset}, {len(views)} view(s), {_host(ctx.device)}; seconds per frame; {RELMSE_FORMULA}. "
         f"speed-up at equal M: the seconds PT needs to reach the method's M, over the method's seconds; in "
         f"relMSE alone a blurred image can look fast, so PSNR and SSIM are given too. PT M at equal time: PT's "
         f"M after the method's seconds. {curve_text} {notes}"),
         lower_is_better=("relMSE",), higher_is_better=tuple(c for c in SPEEDUP_COLUMNS if c.startswith("speed-up")))
     write_table(equal_time_table(table, operating_spp), out, name="equal_time", caption=(
         f"Equal time: each SRD method at LR {operating_spp} spp against each denoiser of HR renders given the "
-        f"same seconds per frame (preset {ctx.preset}, {len(views)} view(s), {_host()}): the "
+        f"same seconds per frame (preset {ctx.preset}, {len(views)} view(s), {_host(ctx.device)}): the "
         f"denoiser's relMSE and PSNR read off its own curve (lines through its HR spp points, as PT's) at the "
         f"SRD method's total time; extrapolated: outside the denoiser's measured times. {RELMSE_FORMULA}."),
         lower_is_better=(), higher_is_better=("PSNR difference (dB)",))
@@ -880,14 +883,15 @@ def run_paper_resolution(ctx: Context, name: str, views: int, methods: list[dict
     networks = network_seconds(ctx, listed, speed, speed_path, lr_size, hr_size, repeats)
     axis = paper_axis(cpu_table, renders, networks)
     equal = paper_equal_time(axis, cpu_table, operating_spp)
-    write_paper_tables(out, renders, axis, equal, chosen, frames, variant, threads, cpu_table, operating_spp, hr_size)
+    write_paper_tables(out, renders, axis, equal, chosen, frames, variant, threads, cpu_table, operating_spp, hr_size,
+                       ctx.device)
     return equal
 
 
 def write_paper_tables(out: Path, renders, axis, equal, views, frames, variant, threads, cpu_table, operating_spp,
-                       hr_size) -> None:
+                       hr_size, device: str = "cpu") -> None:
     tag = f"{hr_size[1]}p"
-    where = f"{_host()}, Mitsuba {variant} on {threads} render threads"
+    where = f"{_host(device)}, Mitsuba {variant} on {threads} render threads"
     cpu_rows = cpu_table[cpu_table["spp"] == operating_spp].drop_duplicates("input").set_index("input")["render s"]
     ratio = (f"HR/LR render time at {operating_spp} spp: {hr_lr_ratio(renders, operating_spp, 'CPU s'):.2f} in CPU "
              f"time, {hr_lr_ratio(renders, operating_spp, 'wall s'):.2f} in wall time (the cpu preset's sizes: "
