@@ -541,7 +541,7 @@ def _skipped_note(skipped: list[str]) -> str:
             f"experiment.train_missing=true): {', '.join(skipped)}.")
 
 
-def _host(device: str = "cpu") -> str:
+def _host(device: str) -> str:
     """The machine every time here was measured on, its ISA named (bf16 is emulated without AVX512-BF16),
     and the GPU where the networks ran on one (renders and OIDN stay on the CPU)."""
     gpu = f", networks on {torch.cuda.get_device_name(torch.device(device))}" if device.startswith("cuda") else ""
@@ -889,7 +889,7 @@ def run_paper_resolution(ctx: Context, name: str, views: int, methods: list[dict
 
 
 def write_paper_tables(out: Path, renders, axis, equal, views, frames, variant, threads, cpu_table, operating_spp,
-                       hr_size, device: str = "cpu") -> None:
+                       hr_size, device: str) -> None:
     tag = f"{hr_size[1]}p"
     where = f"{_host(device)}, Mitsuba {variant} on {threads} render threads"
     cpu_rows = cpu_table[cpu_table["spp"] == operating_spp].drop_duplicates("input").set_index("input")["render s"]
