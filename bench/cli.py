@@ -24,12 +24,8 @@ from omegaconf import DictConfig, OmegaConf
 
 from bench.config_checks import config_problems
 from bench.errors import UserError
-from bench.exrio import ExrError
-from bench.infer import keep_freed_memory
-from bench.measure import fused_kernels_on_cuda
 from bench.runs import (COMMITTED_RESULTS, PATH_ERRORS, ROOT, committed_archive, ensure_writable, error_line,
                         out_of_space, probe_write)
-from bench.train import TrainingInterrupted
 from bench.experiments import KINDS, RUNLESS_KINDS
 
 log = logging.getLogger("bench")
@@ -417,6 +413,7 @@ def warn_if_committed_archive_unread(ctx, kind: str, preset: str) -> None:
 
 
 def run_experiment(cfg: DictConfig) -> None:
+    from bench.train import TrainingInterrupted  # torch: imported once the command line is known to be good
     if "experiment" not in cfg:
         raise UserError("choose an experiment: python -m bench +experiment=NAME; available: "
                         + ", ".join(available_experiments()) + "; or a study, +study=NAME: "
@@ -520,6 +517,11 @@ def _terminate(signum, frame):
 
 @hydra.main(config_path=CONF_DIR, config_name="config", version_base=None)
 def main(cfg: DictConfig) -> None:
+    # torch's modules, imported once the command line is known to be good: an error in it is one line
+    # without them (2 s), and so are the render workers spawned processes start from this module
+    from bench.exrio import ExrError
+    from bench.infer import keep_freed_memory
+    from bench.measure import fused_kernels_on_cuda
     if cfg.keep_freed_memory:
         keep_freed_memory()
     on_main_thread = threading.current_thread() is threading.main_thread()  # (a launcher may run jobs in threads)
@@ -535,18 +537,20 @@ def main(cfg: DictConfig) -> None:
               "trainings from their checkpoints", file=sys.stderr)
         sys.exit(getattr(err, "exit_code", 130))
     except ExrError as err:  # a frame damaged after the last check (headers are checked at every start)
-        fix = (f"`python -m bench +experiment=data preset={cfg.preset.name} experiment.verify=true` reads every "
-               "frame and renders the damaged ones again" if cfg.render_data else
+        fix = (f"`python -m bench +experiment=data preset={cfg.preset.name} data_dir={cfg.data_dir} "
+               "experiment.verify=true` reads every frame and renders the damaged ones again" if cfg.render_data else
                f"the frames are yours to replace (render_data=false); `python -m bench +experiment=data "
                f"render_data=false data_dir={cfg.data_dir} experiment.verify=true` lists every damaged one")
         print(f"error: {err}; {fix}", file=sys.stderr)
         sys.exit(2)
     except (OSError, RuntimeError) as err:  # torch's own file writer says a full disk as a RuntimeError
-        if not out_of_space(err, Path(cfg.runs_dir)):
+        failed = Path(getattr(err, "filename", None) or cfg.runs_dir).resolve()
+        setting = "data_dir" if failed.is_relative_to(Path(cfg.data_dir).resolve()) else "runs_dir"
+        if not out_of_space(err, Path(cfg[setting])):
             raise
-        print(f"error: no space left on the device under runs_dir={cfg.runs_dir} ({err}); free some space, or "
-              "set runs_dir=... to another disk, and run the same command again: recorded runs are kept and "
-              "trainings resume from their last checkpoint", file=sys.stderr)
+        print(f"error: no space left on the device under {setting}={cfg[setting]} ({err}); free some space, or "
+              f"set {setting}=... to another disk, and run the same command again: recorded runs and rendered "
+              "frames are kept and trainings resume from their last checkpoint", file=sys.stderr)
         sys.exit(1)
     finally:  # the caller's handler again, so a SIGTERM while the interpreter shuts down (joining
         # workers) is no Terminated traceback
