@@ -249,6 +249,7 @@ def convert_evaluation(run_dir: Path) -> bool:
         return False
     write_evaluation(run_dir, run_dir)
     (run_dir / PER_IMAGE).unlink()
+    runs.list_files_in_record(run_dir)
     return True
 
 
@@ -267,6 +268,7 @@ def convert(run_dir: Path) -> bool:
     write(run_dir, run_dir, record)
     (run_dir / CHECKPOINT).unlink(missing_ok=True)
     (run_dir / CURVE).unlink(missing_ok=True)
+    runs.list_files_in_record(run_dir)
     return True
 
 
@@ -332,14 +334,76 @@ def archive_problem(archive: Path, results_dir: Path | None) -> str | None:
     return None
 
 
+def _reads(path: Path) -> bool:
+    """Whether a run's file reads whole: gzip's CRC, a checkpoint's zip CRCs, a CSV or JSON that parses."""
+    if path.suffix == ".gz":
+        return runs.read_or_none(path, lambda p: gzip.decompress(p.read_bytes())) is not None
+    return path.suffix not in (".pt", ".csv", ".json") or runs.read_or_none(path) is not None
+
+
+def verify(store: Path, list_unlisted: bool = False) -> tuple[list[str], dict[str, int]]:
+    """Every run of a run store or archive checked against its record: (one line per problem, counts).
+    A record that does not read, and a listed file that is missing or differs from its size and digest,
+    are problems; a complete run recorded before records listed their files is counted as unlisted
+    (trusted, as reads trust it). `list_unlisted`: such a run whose every file reads whole (`_reads`)
+    gets its list now, so later reads check it."""
+    problems, counts = [], {"runs": 0, "checked": 0, "unlisted": 0, "damaged": 0, "listed": 0}
+    for record_path in sorted(Path(store).glob(f"*/*/{runs.RECORD}")):
+        run_dir = record_path.parent
+        if run_dir.name.startswith(".") or run_dir.parent.name in ("hydra", runs.PARTIAL):
+            continue
+        counts["runs"] += 1
+        record = runs.read_json_or_none(record_path)
+        if record is None:
+            problems.append(f"{record_path}: does not read (the run is computed again when a table needs it)")
+            counts["damaged"] += 1
+            continue
+        if "files" not in record:
+            if record.get("status") != "complete":
+                continue
+            unreadable = [p for p in sorted(run_dir.rglob("*")) if p.is_file() and p.name != runs.RECORD and not _reads(p)]
+            problems += [f"{p}: does not read (recorded before file lists: not listed)" for p in unreadable]
+            counts["damaged"] += bool(unreadable)
+            if list_unlisted and not unreadable:
+                runs.list_files_in_record(run_dir)
+                counts["listed"] += 1
+            else:
+                counts["unlisted"] += 1
+            continue
+        counts["checked"] += 1
+        damaged = runs.damaged_files(run_dir, record)
+        counts["damaged"] += bool(damaged)
+        problems += [f"{run_dir / name}: {why}" for name, why in damaged.items()]
+    return problems, counts
+
+
 def main(argv=None) -> int:
     parser = argparse.ArgumentParser(prog="python -m bench.archived",
                                      description="Convert a run archive's trainings and evaluations in place to the compact form.")
-    parser.add_argument("archive", type=Path, help="an archive directory, e.g. results/cpu/runs")
+    parser.add_argument("archive", type=Path, help="an archive directory, e.g. results/cpu/runs (with --verify: "
+                                                   "a run store too, e.g. runs)")
     parser.add_argument("--drop-unlisted", type=Path, metavar="RESULTS_DIR",
                         help="instead: delete the evaluations no table under RESULTS_DIR (e.g. results/cpu) lists")
     parser.add_argument("--dry-run", action="store_true", help="with --drop-unlisted: name them, delete nothing")
+    parser.add_argument("--verify", action="store_true",
+                        help="instead: check every run's files against the sizes and digests its record lists; "
+                             "exit 1 if any is damaged (nothing is changed: a damaged run is computed again, or "
+                             "rebuilt, by the next command that needs it)")
+    parser.add_argument("--list-unlisted", action="store_true",
+                        help="with --verify: give each complete run recorded before file lists, whose every file "
+                             "reads whole, its list now (its record is rewritten)")
     args = parser.parse_args(argv)
+    if args.verify:
+        if not args.archive.is_dir():
+            print(f"error: {args.archive} is not a directory", file=sys.stderr)
+            return 2
+        problems, counts = verify(args.archive, args.list_unlisted)
+        for line in problems:
+            print(line)
+        print(f"{args.archive}: {counts['runs']} runs, {counts['checked']} with listed files checked, "
+              f"{counts['damaged']} damaged, {counts['listed']} listed now, {counts['unlisted']} complete runs "
+              "recorded before file lists (trusted)")
+        return 1 if counts["damaged"] else 0
     problem = archive_problem(args.archive, args.drop_unlisted)
     if problem:
         print(f"error: {problem}", file=sys.stderr)

@@ -22,6 +22,7 @@ layer exist is skipped; buffers it lacks (a later build asking for more) are ren
 into its EXRs. All files are written atomically, records last, so an interrupted build leaves only
 complete frames behind.
 """
+import contextlib
 import dataclasses
 import hashlib
 import json
@@ -30,6 +31,8 @@ import multiprocessing
 import os
 import signal
 import socket
+import sys
+import tempfile
 import time
 import zlib
 from concurrent.futures import ProcessPoolExecutor, as_completed
@@ -157,13 +160,17 @@ def buffer_layers(buffer, gbuf_layers=GBUF_LAYERS):
     return list(gbuf_layers) if kind == "gbuf" else [kind]
 
 
-def damaged_frames(root, frames, passes, decode=False, stamps=True):
+MAX_NONFINITE = 0.01  # share of a frame's pixels that may be non-finite (any channel) and be repaired (sanitize)
+
+
+def damaged_frames(root, frames, passes, decode=False, stamps=True, max_nonfinite=0.0):
     """(path, what is wrong) for every frame file that is missing, unreadable, lacks a layer its
     record's buffers need, has another size than its record's `lr_size`/`hr_size`, or (with `stamps`:
     rendered data) was changed since it was rendered (its size or bytes differ from the stamp its
     record took when it was written). Reads headers and file stats only, unless `decode` (every pixel:
     also finds a file cut inside its pixel data, and NaN/Inf values, at the cost of reading the whole
-    dataset). A record that names no buffers (your own data without `buffers` or `passes`) has its
+    dataset; `max_nonfinite`: the share of a layer's pixels that may be NaN/Inf, which the evaluator
+    repairs). A record that names no buffers (your own data without `buffers` or `passes`) has its
     files checked for whatever layers they hold."""
     problems = []
     for rec in frames:
@@ -194,9 +201,20 @@ def damaged_frames(root, frames, passes, decode=False, stamps=True):
                 problems.append((path, "{}x{} pixels; its record says {}x{}".format(*actual, *size)))
             elif stamps and not as_written(rec, res, path):
                 problems.append((path, "changed since it was rendered (size or bytes differ from its record)"))
-            elif decode and (why := _decode_problem(path, sorted(wanted or layers))):
+            elif decode and (why := _decode_problem(path, sorted(wanted or layers), max_nonfinite)):
                 problems.append((path, why))
     return problems
+
+
+def _write_frame(path, layers, **options):
+    """`exrio.write_exr`, then the mode any file gets from this process's umask (the frame JSONs' 644
+    under the usual 022): write_exr's temporary file is created private (0600) and renamed into place.
+    (Fixed here, not in exrio: an edit there makes every recorded run stale; it goes with the next change
+    that does.)"""
+    exrio.write_exr(path, layers, **options)
+    umask = os.umask(0)
+    os.umask(umask)
+    os.chmod(path, 0o666 & ~umask)
 
 
 def file_stamp(path):
@@ -226,16 +244,38 @@ def as_written(record, res, path):
     return st.st_size == stamp["size"] and (st.st_mtime_ns == stamp["mtime_ns"] or _crc32(path) == stamp["crc32"])
 
 
-def _decode_problem(path, layers):
-    """Why the pixels of `layers` in `path` are damaged (does not decode, or holds NaN/Inf), or None.
-    Rendered frames never hold NaN/Inf: the renderer repairs them before writing (repair_nonfinite)."""
+def _decode_problem(path, layers, max_nonfinite=0.0):
+    """Why the pixels of `layers` in `path` are damaged (does not decode, or holds NaN/Inf on more than
+    `max_nonfinite` of a layer's pixels), or None. Rendered frames never hold NaN/Inf: the renderer
+    repairs them before writing (repair_nonfinite)."""
     try:
-        pixels = exrio.read_exr(path, layers)
+        with _stderr_to_log():
+            pixels = exrio.read_exr(path, layers)
     except exrio.ExrError:
         return "does not decode (truncated or corrupt)"
-    bad = {name: int((~np.isfinite(a)).sum()) for name, a in pixels.items()}
-    bad = {name: n for name, n in bad.items() if n}
-    return f"non-finite pixel values (NaN/Inf) in {bad}" if bad else None
+    shares = {name: float((~np.isfinite(a)).reshape(a.shape[0], a.shape[1], -1).any(axis=2).mean())
+              for name, a in pixels.items()}
+    bad = {name: f"{share:.2%}" for name, share in shares.items() if share > max_nonfinite}
+    return f"non-finite pixel values (NaN/Inf) on {bad} of the pixels" if bad else None
+
+
+@contextlib.contextmanager
+def _stderr_to_log():
+    """OpenEXR's C++ library prints its own lines to the process's stderr when a file does not decode;
+    the caller names the file once, in its words, so those lines go to the debug log instead."""
+    sys.stderr.flush()
+    saved = os.dup(2)
+    with tempfile.TemporaryFile() as caught:
+        os.dup2(caught.fileno(), 2)
+        try:
+            yield
+        finally:
+            os.dup2(saved, 2)
+            os.close(saved)
+            caught.seek(0)
+            said = caught.read().decode(errors="replace").strip()
+            if said:
+                log.debug("OpenEXR: %s", said)
 
 
 def stamp_frames(root):
@@ -587,7 +627,7 @@ def _render_into(record, res, path, size, loaded, camera, settings, seeds, todo,
     kept = exrio.read_exr(path, sorted(present - set(layers))) if present else {}
     merged = {**kept, **layers}
     half = [g for g in gbuf_layers if settings["half_gbuffer"]]
-    exrio.write_exr(path, merged, suffixes=SUFFIXES, half=half, attributes=attributes)
+    _write_frame(path, merged, suffixes=SUFFIXES, half=half, attributes=attributes)
     record["time_s"].update(times)
     _count_repaired(record, repaired)
     record["channels"][res] = [f"{n}.{s}" for n in merged for s in SUFFIXES[n]]
@@ -767,7 +807,7 @@ def render_user_scene(xml_path, root, lr_width, lr_height, spp=8, ref_spp=256, s
             continue
         layers, times, repaired, _ = render_resolution(scene, None, w, h, spp, ReferencePlan(ref_spp), seeds[res],
                                                        passes, res, GBUF_LAYERS, max_depth)
-        exrio.write_exr(path, layers, suffixes=SUFFIXES)
+        _write_frame(path, layers, suffixes=SUFFIXES)
         record["time_s"].update(times)
         _count_repaired(record, repaired)
         record["channels"][res] = [f"{n}.{s}" for n in layers for s in SUFFIXES[n]]

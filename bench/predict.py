@@ -36,6 +36,7 @@ import torch
 
 from bench import exrio, score
 from bench.runs import PATH_ERRORS, error_line
+from bench.datagen import MAX_NONFINITE  # the share the table's eval.data_dir check allows too
 from bench.dataset import DEFAULT_ROUGHNESS, GBUF_SIZES
 from bench.errors import UserError
 from bench.evaluate import predict as predict_batch
@@ -77,7 +78,6 @@ def read_frame(path: str | Path) -> tuple[torch.Tensor, torch.Tensor]:
     return to_tensor(images["noisy"]), to_tensor(np.concatenate(planes, -1))
 
 
-MAX_NONFINITE = 0.01  # share of a frame's pixels that may be non-finite (any channel) and be repaired
 
 
 def output_name(frame: Path) -> str:

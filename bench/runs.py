@@ -139,17 +139,99 @@ def _read_json_object(path: Path) -> dict:
 _READERS = {".json": _read_json_object, ".csv": pd.read_csv, ".pt": _check_zip}
 
 
+_NAMED: set[str] = set()  # the damaged files this process has named: each is named once, however often read
+
+
+def name_damaged(path: str | Path, why: str, then: str = "treating it as missing") -> None:
+    """Log once per process that `path` is damaged, `why`, and what is done about it."""
+    if str(path) not in _NAMED:
+        _NAMED.add(str(path))
+        log.warning("%s is damaged (%s); %s", path, why, then)
+
+
 def read_or_none(path: str | Path, read=None):
     """`read(path)` (by default the reader of its suffix: a JSON object, a CSV as a DataFrame, a
     checkpoint's integrity), or None when the file is missing or damaged: a damaged file is treated as
-    missing, and the log names it."""
+    missing, and the log names it once. A file its run's record lists (`files`) is damaged too when its
+    size or digest differs from the listed ones: a CSV cut at a line end still parses."""
+    path = Path(path)
     try:
-        return (read or _READERS[Path(path).suffix])(path)
+        problem = listed_file_problem(path)
+        if problem is not None:
+            raise ValueError(problem)
+        return (read or _READERS[path.suffix])(path)
     except (FileNotFoundError, NotADirectoryError):
         return None
     except DAMAGED as err:
-        log.warning("%s is damaged (%s: %s); treating it as missing", path, type(err).__name__, err)
+        name_damaged(path, f"{type(err).__name__}: {err}")
         return None
+
+
+# ---------------------------------------------------------------- a run's files, listed in its record
+# A run's record lists every file of its directory with its size and digest (`files`), written with the
+# record when the run completes (one atomic write). Every read checks a file against its entry, so a file
+# cut short or overwritten since is named and never reused. Runs recorded before the list existed carry
+# none and are trusted, as runs recorded before code fingerprints are.
+
+_DIGESTS: dict[tuple, str] = {}  # (path, size, mtime_ns) -> sha256: a file read again is not hashed again
+
+
+def file_digest(path: Path) -> str:
+    stat = path.stat()
+    key = (str(path), stat.st_size, stat.st_mtime_ns)
+    if key not in _DIGESTS:
+        digest = hashlib.sha256()
+        with open(path, "rb") as f:
+            for chunk in iter(lambda: f.read(1 << 20), b""):
+                digest.update(chunk)
+        _DIGESTS[key] = digest.hexdigest()
+    return _DIGESTS[key]
+
+
+def list_files(run_dir: Path) -> dict:
+    """Every file of a run's directory, subfolders included, but its record and half-written temporaries:
+    relative path -> {"bytes", "sha256"}."""
+    run_dir = Path(run_dir)
+    return {p.relative_to(run_dir).as_posix(): {"bytes": p.stat().st_size, "sha256": file_digest(p)}
+            for p in sorted(run_dir.rglob("*")) if p.is_file() and p.name != RECORD and not p.name.endswith(".tmp")}
+
+
+def file_problem(path: Path, listed: dict) -> str | None:
+    """How the file at `path` differs from its entry in a record's `files`, or None when it matches."""
+    if not path.is_file():
+        return "missing"
+    size = path.stat().st_size
+    if size != listed["bytes"]:
+        return f"{size} bytes, recorded {listed['bytes']}"
+    if file_digest(path) != listed["sha256"]:
+        return "its digest differs from the recorded one"
+    return None
+
+
+def listed_file_problem(path: Path) -> str | None:
+    """`file_problem` of a file inside a run directory whose record lists it; None for any other file."""
+    if path.name == RECORD or not (path.parent / RECORD).exists():
+        return None
+    try:
+        listed = (_read_json_object(path.parent / RECORD).get("files") or {}).get(path.name)
+    except (OSError, *DAMAGED):  # a damaged record: whoever reads it names it
+        return None
+    return None if listed is None else file_problem(path, listed)
+
+
+def damaged_files(run_dir: Path, record: dict) -> dict[str, str]:
+    """The files `record` lists that are missing from `run_dir` or differ from their entries: name -> why."""
+    problems = {name: file_problem(Path(run_dir) / name, listed) for name, listed in (record.get("files") or {}).items()}
+    return {name: why for name, why in problems.items() if why is not None}
+
+
+def list_files_in_record(run_dir: Path) -> None:
+    """List the files of a recorded run again, after they were rewritten on purpose (an archive's run
+    converted to the compact form): its record names what is there now."""
+    record = _read_json_object(Path(run_dir) / RECORD)
+    record["files"] = list_files(run_dir)
+    text = json.dumps(record, indent=2, sort_keys=True)
+    write_atomic(Path(run_dir) / RECORD, lambda tmp: tmp.write_text(text))
 
 
 def read_json_or_none(path: str | Path) -> dict | None:
@@ -228,7 +310,7 @@ def trainings_of(evaluation: dict) -> list[str]:
 def begin(runs_dir: str | Path, kind: str, identity: dict, config: dict | None = None,
           seed: int | None = None, device: str = "cpu", label: str = "", force: bool = False,
           code: dict | None = None, reuse_stale: bool = False, archive: str | Path | None = None,
-          needs: tuple = (), every_call: bool = False) -> Run:
+          needs: tuple = (), every_call: bool = False, rebuild=None) -> Run:
     """Reuse a complete run, or open (or re-open, to resume) its directory for computing.
 
     Check `run.reused`: when True the caller must not recompute. With `force`, a run recorded before
@@ -240,8 +322,12 @@ def begin(runs_dir: str | Path, kind: str, identity: dict, config: dict | None =
     run the store lacks is restored from there first (`restore`), and then reused like any recorded run.
     `needs`: files the caller reads from the run's directory (a tuple of names: any one of them, e.g. a
     full checkpoint or the archive's weights); a complete run without one of them, or with one damaged
-    (`read_or_none`), is computed again from scratch, under its lock, so only one process does.
+    (`read_or_none`), is computed again from scratch, under its lock, so only one process does. So is a
+    complete run any of whose files differs from the list its record keeps, unless `rebuild(run_dir,
+    names)` writes the damaged ones again to their recorded bytes (a training's curves, from its
+    checkpoint); that is tried under the lock only.
     """
+    forced = force  # by the caller (force=true), not because the record asks for a fresh start
     if not force:
         done = _reusable(runs_dir, kind, identity, code, reuse_stale, label, quiet=True, needs=needs)
         if done is not None:
@@ -255,14 +341,21 @@ def begin(runs_dir: str | Path, kind: str, identity: dict, config: dict | None =
     if force:  # a forced run computed since this command started (here, or by a concurrent command)
         done = None if every_call else _computed_this_command(runs_dir, kind, identity, label)
     else:  # another process may have completed it while we waited for the lock
-        done = _reusable_locked(runs_dir, archive, kind, identity, code, reuse_stale, label, needs)
+        done = _reusable_locked(runs_dir, archive, kind, identity, code, reuse_stale, label, needs, rebuild)
     if done is not None:
         lock.close()
         return done
     remove_temporary_files(run_dir)  # a killed process's half-written files
     earlier = read_record(run_dir / RECORD) or {}
+    record_lost = not earlier and run_dir.is_dir() and any(p.name != RECORD for p in run_dir.iterdir())
     if earlier.get("status") == "complete":  # not reusable (code changed, or lacks what `needs` names)
         force = True
+    elif force and earlier.get("forced") and not every_call and not code_changes(earlier, code):
+        # an earlier force=true command started it and stopped: this command finishes what that one forced
+        log.info("%s %s: resuming run %s, which an earlier force=true command started and left %s: force=true "
+                 "computes each run once, and this one is not finished yet (delete %s to start it over)",
+                 kind, label, h, earlier.get("status"), run_dir)
+        force = False
     if earlier.get("status") == "running":  # we hold its lock, so the process that wrote this is gone
         log.info("%s %s: run %s was left running by process %s on %s, which is gone (abandoned); taking it over",
                  kind, label, h, earlier.get("pid", "?"), earlier.get("host", "?"))
@@ -278,10 +371,14 @@ def begin(runs_dir: str | Path, kind: str, identity: dict, config: dict | None =
         "started": earlier.get("started", time.strftime("%Y-%m-%dT%H:%M:%S%z")), "part_started_s": time.time(),
         **provenance(),
     }
+    if forced or earlier.get("forced"):  # a later force=true command resumes it rather than starting over
+        record["forced"] = True
     if code is not None:
         record["code"] = code
     if earlier:  # an interrupted, failed or killed run resumes: its earlier time still counts
         record["resumed_wall_time_s"] = _earlier_wall_s(earlier, run_dir)
+    elif record_lost and not force:  # files without a record that reads: what they cost is not known here
+        record["earlier_wall_time"] = "lost with its record"
     run = Run(kind, h, run_dir, record, _lock=lock)
     run.save()
     return run
@@ -301,11 +398,11 @@ def reusable(runs_dir: str | Path, kind: str, identity: dict, code: dict | None 
 
 
 def _reusable_locked(runs_dir, archive, kind: str, identity: dict, code, reuse_stale: bool, label: str,
-                     needs: tuple) -> Run | None:
+                     needs: tuple, rebuild=None) -> Run | None:
     """`_reusable` under the run's lock, after restoring the run from `archive` when the store lacks it."""
     if archive is not None:
         _restore_locked(runs_dir, archive, kind, config_hash(identity), code)
-    return _reusable(runs_dir, kind, identity, code, reuse_stale, label, needs=needs)
+    return _reusable(runs_dir, kind, identity, code, reuse_stale, label, needs=needs, rebuild=rebuild)
 
 
 def _computed_this_command(runs_dir, kind: str, identity: dict, label: str) -> Run | None:
@@ -331,10 +428,24 @@ def _earlier_wall_s(earlier: dict, run_dir: Path) -> float:
 
 
 def _reusable(runs_dir, kind: str, identity: dict, code: dict | None, reuse_stale: bool,
-              label: str, quiet: bool = False, needs: tuple = ()) -> Run | None:
-    """The complete run to reuse, or None; `quiet`: a first look before the lock, which logs nothing."""
+              label: str, quiet: bool = False, needs: tuple = (), rebuild=None) -> Run | None:
+    """The complete run to reuse, or None; `quiet`: a first look before the lock, which logs nothing but
+    a damaged file (named once per process). A run whose listed files are all sound is reusable; where
+    some are damaged, `rebuild(run_dir, names)` may write them again from the run's other files (True:
+    it did), and the run is reused if they now match their recorded digests, else computed again."""
     done = lookup(runs_dir, kind, identity)
     if done is None:
+        return None
+    damaged = damaged_files(done.dir, done.record)
+    if damaged and rebuild is not None and rebuild(done.dir, sorted(damaged)):
+        before, damaged = damaged, damaged_files(done.dir, done.record)  # rebuilt to the recorded bytes, or not
+        for name in sorted(set(before) - set(damaged)):
+            _NAMED.add(str(done.dir / name))
+            log.info("%s %s: %s was damaged (%s) and is rebuilt to its recorded bytes from the run's other files",
+                     kind, label, done.dir / name, before[name])
+    if damaged:
+        for name, why in damaged.items() if not quiet else ():  # (the look under the lock names them)
+            name_damaged(done.dir / name, why, f"run {kind}/{done.hash} is computed again, not reused")
         return None
     alternatives = [(need,) if isinstance(need, str) else tuple(need) for need in needs]
     missing = [" or ".join(names) for names in alternatives
@@ -384,8 +495,8 @@ def archive(run: Run, archive_dir: str | Path, files: tuple = (), write=None) ->
     if run.record.get("status") != "complete" or run.stale:
         return None
     dest = Path(archive_dir) / run.kind / run.hash
-    record = (run.dir / RECORD).read_bytes()
-    if (dest / RECORD).exists() and (dest / RECORD).read_bytes() == record:
+    record = _read_json_object(run.dir / RECORD)
+    if _without_files(read_json_or_none(dest / RECORD)) == _without_files(record):
         return dest
     partial = Path(archive_dir) / PARTIAL
     partial.mkdir(parents=True, exist_ok=True)
@@ -402,7 +513,8 @@ def archive(run: Run, archive_dir: str | Path, files: tuple = (), write=None) ->
                 log.info("runs: archiving %s/%s without %s (%.1f MiB, over the archive's %.1f MiB)", run.kind,
                          run.hash, path.name, path.stat().st_size / 2**20, ARCHIVED_FILE_MAX_BYTES / 2**20)
                 path.unlink()
-        (tmp / RECORD).write_bytes(record)
+        text = json.dumps({**record, "files": list_files(tmp)}, indent=2, sort_keys=True)  # the archive's own files
+        (tmp / RECORD).write_text(text)
         dest.parent.mkdir(parents=True, exist_ok=True)
         with contextlib.closing(acquire(partial / f"{run.kind}.{run.hash}.lock", f"archiving {run.kind}/{run.hash}")):
             if dest.exists():
@@ -412,6 +524,12 @@ def archive(run: Run, archive_dir: str | Path, files: tuple = (), write=None) ->
         shutil.rmtree(tmp, ignore_errors=True)
         shutil.rmtree(old, ignore_errors=True)
     return dest
+
+
+def _without_files(record: dict | None) -> dict | None:
+    """A record but for its list of files: the store's and the archive's copies of a run list different
+    files (the archive's compact forms) and are the same run."""
+    return None if record is None else {k: v for k, v in record.items() if k != "files"}
 
 
 def restore(runs_dir: str | Path, archive_dir: str | Path, kind: str, run_hash: str) -> bool:
@@ -622,6 +740,8 @@ def _close(run: Run, status: str) -> Run:
     run.record["status"] = status
     run.record["wall_time_s"] = run.record.get("resumed_wall_time_s", 0.0) + time.perf_counter() - run._t0
     remove_temporary_files(run.dir)
+    if status == "complete":  # what a reader checks it against (`damaged_files`)
+        run.record["files"] = list_files(run.dir)
     try:
         run.save()
     except OSError:

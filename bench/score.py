@@ -184,7 +184,8 @@ def compare(per_image: pd.DataFrame, scores: dict, run_dir: str | Path, rtol: fl
     if not lines:
         raise UserError(f"--against {run_dir}: its record holds none of the scores {list(SCORES)}")
     if frames is None:
-        lines.append(f"per frame: not compared ({run_dir} holds no per-frame scores); the aggregates only")
+        lines.append(f"per frame: not compared ({run_dir} holds no per-frame scores that read: missing, or "
+                     "damaged and named above); the aggregates only")
     ok = worst <= rtol
     lines.append(f"{'matches' if ok else 'DIFFERS from'} {run_dir} within rtol {rtol:g} (largest relative difference {worst:.2e})")
     return lines, ok

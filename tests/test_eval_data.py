@@ -9,6 +9,7 @@ import subprocess
 import sys
 from pathlib import Path
 
+import numpy as np
 import pandas as pd
 import pytest
 import yaml
@@ -254,3 +255,35 @@ def test_a_split_whose_part_of_the_spec_is_unchanged_keeps_its_records_before_an
     (ctx.data_dir / "manifest.json").write_text(json.dumps({"spec": before, "frames": [frame("val", 2), frame("test", 2)]}))
     assert frame_records(ctx, "val") == [frame("val", 2)]  # the frames on disk, not another render's
     assert frame_records(ctx, "test") == []
+
+
+def _eval_records(root: Path) -> list:
+    return list((root / "runs" / "eval").glob("*/run.json")) if (root / "runs" / "eval").exists() else []
+
+
+@pytest.mark.parametrize("damage", ["lr_all_nan", "hr_cut"])
+def test_your_damaged_frame_is_one_line_naming_it_and_eval_data_dir_before_anything_is_recorded(trained, tmp_path,
+                                                                                                 damage):
+    """eval.data_dir decodes every frame first: an LR frame that is all NaN (the evaluator would repair it
+    silently into another image) and an HR reference cut inside its pixels (OpenEXR would print its own
+    lines mid-evaluation) each end in one line naming the frame, the data_dir it is in and the fix, with
+    no evaluation recorded (a frame with at most 1% of its pixels NaN/Inf is scored: the evaluator repairs those)."""
+    from bench import datagen, exrio
+    mine = copy_of_split(trained / "data", "val", tmp_path / "mine")
+    frame = load_manifest(mine)["frames"][0]
+    lr, hr, _ = frame_paths(mine, "val", frame["sequence"], frame["frame"])
+    if damage == "lr_all_nan":
+        layers = exrio.read_exr(lr)
+        layers["noisy"][:] = np.nan
+        exrio.write_exr(lr, layers, suffixes=datagen.SUFFIXES)
+        bad = lr
+    else:
+        Path(hr).write_bytes(Path(hr).read_bytes()[:os.path.getsize(hr) * 2 // 3])  # header whole, pixels cut
+        bad = hr
+    out = bench(*store(tmp_path, trained / "archive", tmp_path / "nowhere"), f"eval.data_dir={mine}")
+    assert out.returncode == 2, out.stderr[-3000:]
+    lines = [x for x in out.stderr.splitlines() if x.strip()]
+    assert len(lines) == 1 and lines[0].startswith("error: data: 1 damaged frame files in eval.data_dir="), out.stderr
+    assert str(bad) in lines[0] and "experiment.verify=true" in lines[0] and f"data_dir={mine}" in lines[0]
+    assert "Traceback" not in out.stdout + out.stderr and not _eval_records(tmp_path)
+

@@ -4,6 +4,7 @@ bad values stop a command before anything runs, nothing computed is lost. (Signa
 bad train.* values: tests/test_cli.py; stale code and abandoned runs: tests/test_runs.py, and a real edit
 to a model file: tests/test_cli.py.)"""
 import dataclasses
+import io
 import json
 import os
 import shutil
@@ -13,9 +14,10 @@ import time
 from pathlib import Path
 
 import numpy as np
+import pandas as pd
 import pytest
 
-from bench import datagen, exrio
+from bench import datagen, exrio, runs
 from bench.atomic import write_atomic
 from bench.errors import UserError
 from bench.experiments.datasets import ensure_data
@@ -550,3 +552,129 @@ def test_a_training_killed_and_resumed_records_the_wall_time_of_both_parts(tmp_p
     time.sleep(0.2)
     done = runs.complete(run, {})
     assert done.record["wall_time_s"] >= run.record["resumed_wall_time_s"] + 0.2
+
+
+# ---------------------------------------------------------------- a run's files, checked on every read
+
+def _cut_at_a_line_end(path):
+    """Cut a CSV after half its lines: it still parses, as a file cut short by a full disk may."""
+    lines = path.read_bytes().splitlines(keepends=True)
+    path.write_bytes(b"".join(lines[:max(1, len(lines) // 2)]))
+
+
+@pytest.mark.parametrize("name", ["curve.csv", "val_curve.csv"])
+def test_a_cut_curve_that_still_parses_is_named_once_and_rebuilt_from_the_checkpoint(store, caplog, name):
+    """The record lists every file with its size and digest: a curve cut at a line end (which parses) is
+    named once, however many readers look at it, and written again from the sound checkpoint, byte for
+    byte; the table's curve columns and the figure read the whole curve, and nothing is trained."""
+    path = _run_dir(store, "train") / name
+    whole = path.read_bytes()
+    assert json.loads((path.parent / "run.json").read_text())["files"][name]["bytes"] == len(whole)
+    _cut_at_a_line_end(path)
+    with caplog.at_level("INFO", logger="bench"):
+        table = _table(_table_ctx(store), figure=True)
+    assert path.read_bytes() == whole and "trained in" not in caplog.text
+    assert caplog.text.count(str(path)) == 1 and f"{path} was damaged (" in caplog.text and "is rebuilt" in caplog.text
+    assert table["last fifth (dB)"].notna().all()
+
+
+def test_a_cut_curve_beside_a_damaged_checkpoint_is_trained_again(store, caplog):
+    run_dir = _run_dir(store, "train")
+    _cut_at_a_line_end(run_dir / "val_curve.csv")
+    _cut(run_dir / "checkpoint.pt")
+    with caplog.at_level("INFO", logger="bench"):
+        _table(_table_ctx(store))
+    assert "trained in" in caplog.text
+    record = json.loads((run_dir / "run.json").read_text())
+    assert not runs.damaged_files(run_dir, record)                  # its files listed again as they are now
+
+
+def test_a_cut_per_image_file_is_never_reused_its_evaluation_is_computed_again(store, caplog):
+    """The issue's case: per_image.csv cut at a line end parsed, and `score --against` blamed the outputs.
+    Readers now see no per-frame scores; a table computes the evaluation again, to the same bytes."""
+    from bench import archived
+    path = _run_dir(store, "eval") / "per_image.csv"
+    whole = path.read_bytes()
+    _cut_at_a_line_end(path)
+    with caplog.at_level("INFO", logger="bench"):
+        assert archived.read_per_image(path.parent) is None
+        _table(_table_ctx(store))
+    assert caplog.text.count(f"{path} is damaged") == 1 and "eval E: reusing" not in caplog.text
+    assert pd.read_csv(path).drop(columns="time_ms").equals(pd.read_csv(io.BytesIO(whole)).drop(columns="time_ms"))
+
+
+def test_the_verify_command_names_each_damaged_file_of_a_store_or_an_archive_and_exits_1(store, tmp_path):
+    """`python -m bench.archived DIR --verify`: one line per damaged file, a summary, exit 1; a sound store
+    exits 0. It changes nothing."""
+    def verify(folder):
+        return subprocess.run([sys.executable, "-m", "bench.archived", str(folder), "--verify"], cwd=REPO,
+                              capture_output=True, text=True, timeout=120)
+    ctx = _table_ctx(store, runs_archive=tmp_path / "archive")
+    _table(ctx)                                                      # archives the store's runs
+    sound = verify(store / "runs")
+    assert sound.returncode == 0 and "3 runs, 3 with listed files checked, 0 damaged" in sound.stdout, sound.stdout
+    weights = next((tmp_path / "archive" / "train").glob("*/weights.fp16.pt"))
+    weights.write_bytes(weights.read_bytes()[:-10] + b"0123456789")  # same size, other bytes
+    before = sorted((p, p.read_bytes()) for p in (tmp_path / "archive").rglob("*") if p.is_file())
+    out = verify(tmp_path / "archive")
+    assert out.returncode == 1 and out.stdout.splitlines()[0] == f"{weights}: its digest differs from the recorded one"
+    assert "1 damaged" in out.stdout.splitlines()[-1]
+    assert sorted((p, p.read_bytes()) for p in (tmp_path / "archive").rglob("*") if p.is_file()) == before
+
+
+def test_an_interrupted_forced_run_is_resumed_by_the_next_forced_command_and_says_so(tmp_path, caplog):
+    """force=true computes a run once per command; a forced command killed mid-run leaves a checkpoint,
+    which the next force=true command resumes (the log says so and how to start over), in a new process."""
+    child = subprocess.Popen([sys.executable, "-c", (
+        "from bench import runs\n"
+        f"run = runs.begin({str(tmp_path)!r}, 'train', {{'a': 1}}, force=True)\n"
+        "(run.dir / 'checkpoint.pt').write_bytes(b'step 1')\n"
+        "print('checkpointed', flush=True)\nimport time; time.sleep(60)")], cwd=REPO, stdout=subprocess.PIPE, text=True)
+    assert child.stdout.readline().strip() == "checkpointed"
+    child.kill()
+    child.wait()
+    with caplog.at_level("INFO", logger="bench"):
+        run = runs.begin(tmp_path, "train", {"a": 1}, force=True)
+    assert (run.dir / "checkpoint.pt").read_bytes() == b"step 1" and run.record["forced"]
+    assert "which an earlier force=true command started and left running" in caplog.text
+    assert f"delete {run.dir} to start it over" in caplog.text
+    runs.complete(run, {})
+    again = runs.begin(tmp_path, "train", {"a": 1}, force=True)  # complete since this command started: once
+    assert again.reused
+
+
+def test_a_record_rebuilt_from_a_checkpoint_keeps_the_checkpoints_training_time(store, caplog):
+    """A training's run.json cut in half: the finished checkpoint completes it again without a step; its
+    recorded time is the checkpoint's optimisation seconds, not the rebuild's, and the record says so."""
+    import torch
+    run_dir = _run_dir(store, "train")
+    elapsed = torch.load(run_dir / "checkpoint.pt", weights_only=False)["elapsed_s"]
+    _cut(run_dir / "run.json")
+    with caplog.at_level("INFO", logger="bench"):
+        _edsr_training(_table_ctx(store))
+    record = json.loads((run_dir / "run.json").read_text())
+    assert record["status"] == "complete" and record["metrics"]["resumed_from_step"] == 2
+    assert record["resumed_wall_time_s"] == elapsed and record["wall_time_s"] >= elapsed
+    assert record["earlier_wall_time"].startswith("lost with its record")
+    assert caplog.text.count(f"{run_dir / 'run.json'} is damaged") == 1
+
+
+def test_rendered_frames_take_the_umasks_mode_as_their_records_do(rendered):
+    root, hr, _ = rendered
+    umask = os.umask(0)
+    os.umask(umask)
+    modes = {p.suffix: p.stat().st_mode & 0o777 for p in (root / "data").rglob("*") if p.suffix in (".exr", ".json")}
+    assert modes == {".exr": 0o666 & ~umask, ".json": 0o666 & ~umask}
+
+
+def test_a_full_disk_under_data_dir_names_data_dir(tmp_path):
+    """ENOSPC while writing a frame: the line names data_dir (not runs_dir) and the advice sets data_dir."""
+    inject = tmp_path / "inject"
+    inject.mkdir()
+    (inject / "sitecustomize.py").write_text(
+        "import errno, os\nfrom bench import exrio\n"
+        "def full(path, *a, **k):\n    raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC), os.fspath(path))\n"
+        "exrio.write_exr = full\n")
+    out, _ = _bench(tmp_path, env={"PYTHONPATH": os.pathsep.join([str(inject), str(REPO)])}).communicate(timeout=300)
+    (line,) = [x for x in out.splitlines() if x.startswith("error:")]
+    assert f"no space left on the device under data_dir={tmp_path / 'data'}" in line and "set data_dir=..." in line

@@ -15,7 +15,7 @@ from pathlib import Path
 
 from bench import runs
 from bench.atomic import write_atomic
-from bench.datagen import (build_dataset, damaged_frames, frame_paths, load_manifest, manifest_problems,
+from bench.datagen import (MAX_NONFINITE, build_dataset, damaged_frames, frame_paths, load_manifest, manifest_problems,
                            planned_settings, rebuild_manifest)
 from bench.dataset import SequenceDataset
 from bench.errors import UserError
@@ -143,10 +143,12 @@ def records_digest(frames: list[dict]) -> str | None:
     return runs.config_hash({"render": sorted(crcs)})[:8]
 
 
-def ensure_data(ctx: Context, passes: set[str], splits: set[str] | None = None) -> str:
+def ensure_data(ctx: Context, passes: set[str], splits: set[str] | None = None, scoring: bool = False) -> str:
     """Make sure `data_dir` holds the preset's dataset (its `splits`; None: all) with at least `passes`,
     rendering only what is missing; returns the data fingerprint. With render_data=false the directory is
-    used as it is."""
+    used as it is. `scoring`: `ctx` is `evaluation_data`'s (eval.data_dir, frames scored as they are):
+    every frame is decoded first, so one that does not decode or is mostly NaN/Inf stops the command
+    before anything runs or is recorded."""
     if not ctx.render_data:
         problems = manifest_problems(ctx.data_dir)
         if problems:  # one problem (a damaged manifest) on one line
@@ -155,11 +157,14 @@ def ensure_data(ctx: Context, passes: set[str], splits: set[str] | None = None) 
                             f"{listed}")
         fingerprint = data_fingerprint(ctx)
         manifest = load_manifest(ctx.data_dir)
-        damaged = damaged_frames(ctx.data_dir, manifest["frames"], manifest.get("passes", []), stamps=False)
+        damaged = damaged_frames(ctx.data_dir, manifest["frames"], manifest.get("passes", []), stamps=False,
+                                 decode=scoring, max_nonfinite=MAX_NONFINITE)
         if damaged:
-            raise UserError(f"data: {len(damaged)} damaged frame files in {ctx.data_dir} ({_listed(damaged)}); "
-                            "with render_data=false they are yours to replace (or drop their records from "
-                            "manifest.json)")
+            setting = "eval.data_dir" if scoring else "data_dir"
+            raise UserError(f"data: {len(damaged)} damaged frame files in {setting}={ctx.data_dir} ({_listed(damaged)}); "
+                            f"they are yours to replace (or drop their records from {ctx.data_dir / 'manifest.json'}); "
+                            f"`python -m bench +experiment=data render_data=false data_dir={ctx.data_dir} "
+                            "experiment.verify=true` lists every damaged one")
         return fingerprint
     ctx.data_dir.mkdir(parents=True, exist_ok=True)
     # one process checks and renders a dataset at a time: two tables needing other buffers would

@@ -357,7 +357,7 @@ def ready_data(ctx: Context, scoring_ctx: Context, name: str, rows: list[dict], 
         for r in rows for seed in ctx.seeds}
     if scoring_ctx is ctx:
         return render_what_runs(ctx, name, rows, task, split, figure, trainings)
-    ensure_data(scoring_ctx, set())
+    ensure_data(scoring_ctx, set(), scoring=True)
     whys = [f"{label} seed {seed}: {why}" for (label, seed), recorded in trainings.items()
             for why in untrained(recorded)]
     if whys:  # before anything is scored, every training that would be missing

@@ -22,7 +22,9 @@ from bench.measure import fused_kernels_used
 from bench.models.factory import build_model, is_learned
 from bench.models.srd import SRDNet, SRDStage, load_stage
 from bench.tasks import CASCADE_STAGES, Task, get_task
-from bench.train import CHECKPOINT, TrainingDiverged, TrainingInterrupted, train
+# _State and _write_curves: the trainer's own writer of a checkpoint's curves, to rebuild them byte for byte
+# (public once bench/train.py changes anyway: an edit there makes every recorded training stale)
+from bench.train import CHECKPOINT, TrainingDiverged, TrainingInterrupted, _State, _write_curves, train
 
 log = logging.getLogger("bench")
 
@@ -201,7 +203,7 @@ def trained_model(ctx: Context, cfg: dict, task: Task, seed: int, label: str = "
     force = ctx.force and not scoring_only  # force=true recomputes the evaluations on your frames only
     run = runs.begin(ctx.runs_dir, "train", identity, seed=seed, device=ctx.device, label=label,
                      force=force, code=code, reuse_stale=ctx.reuse_stale, archive=ctx.runs_archive,
-                     needs=((CHECKPOINT, archived.WEIGHTS),) if load else ())
+                     needs=((CHECKPOINT, archived.WEIGHTS),) if load else (), rebuild=curves_from_checkpoint)
     # a run trained again for the weights its archive left out: the archive keeps the run it scored
     weights_only = None if force else archived_without_weights(ctx, run, code)
     if run.reused:
@@ -211,6 +213,12 @@ def trained_model(ctx: Context, cfg: dict, task: Task, seed: int, label: str = "
         return (archived.load_weights(model, run.dir, ctx.device) if load else None), run
     recipe = ctx.train
     _drop_damaged_checkpoint(run.dir / CHECKPOINT)
+    if run.record.get("earlier_wall_time") and (saved := _checkpoint(run.dir / CHECKPOINT)) is not None:
+        run.record["resumed_wall_time_s"] = float(saved.get("elapsed_s", 0.0))
+        run.record["earlier_wall_time"] = ("lost with its record; its checkpoint's optimisation seconds "
+                                           "(validation excluded) stand in")
+        log.info("train %s: run %s resumes from a checkpoint whose record was lost; its training time is the "
+                 "checkpoint's %.1f s of optimisation", label or cfg["_target_"], run.hash, saved.get("elapsed_s", 0.0))
     if distributed.rank_and_size()[1] > 1:  # the other torchrun ranks (serve_trainings) join this training
         distributed.share((ctx, cfg, task.name, seed, stage, str(run.dir)))
     try:
@@ -245,6 +253,26 @@ def trained_model(ctx: Context, cfg: dict, task: Task, seed: int, label: str = "
     log.info("train %s: trained in %.1f min (run %s)", label or cfg["_target_"], run.record["wall_time_s"] / 60,
              run.hash)
     return model, run
+
+
+def _checkpoint(path: Path) -> dict | None:
+    """A training's checkpoint as saved (weights, optimizer, step, curves, optimisation seconds), or None
+    when it is missing or damaged."""
+    if runs.read_or_none(path) is None:
+        return None
+    return torch.load(path, map_location="cpu", weights_only=False)
+
+
+def curves_from_checkpoint(run_dir: Path, names: list[str]) -> bool:
+    """`runs.begin`'s rebuild of a complete training: its curves (curve.csv, val_curve.csv) written again
+    from its checkpoint, which holds them whole; False where anything else is damaged or the checkpoint
+    is missing (an archived run keeps none) or damaged. The run store checks the result against the
+    recorded digests."""
+    if not set(names) <= {archived.CURVE, archived.VAL_CURVE} or (saved := _checkpoint(run_dir / CHECKPOINT)) is None:
+        return False
+    _write_curves(Path(run_dir), _State(saved["step"], saved["curve"], saved.get("val_curve", []),
+                                        saved.get("elapsed_s", 0.0)))
+    return True
 
 
 def _drop_damaged_checkpoint(path: Path) -> None:
