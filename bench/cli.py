@@ -453,6 +453,8 @@ def run_experiment(cfg: DictConfig) -> None:
     t0 = time.perf_counter()
     interrupted = False
     try:
+        if cfg.jobs > 1:
+            run_jobs(kind, cfg.jobs)
         experiment(ctx, **exp)
     except (KeyboardInterrupt, TrainingInterrupted):
         interrupted = True  # stop now: a scheduler's grace period is short; the next command mirrors them
@@ -461,6 +463,22 @@ def run_experiment(cfg: DictConfig) -> None:
         if not interrupted:
             mirror_runs(cfg.tracking, ctx.runs_dir, cfg.tracking_uri, ctx.results_dir)
     log.info("%s done in %.1f s", exp.get("name", kind), time.perf_counter() - t0)
+
+
+SHARDED_KINDS = ("table", "one_model")  # the kinds whose runs `shard=` divides (bench.experiments.table)
+
+
+def run_jobs(kind: str, jobs: int) -> None:
+    """`jobs=N`: the command's runs computed by N shards at once (bench.scheduler), before the command
+    itself writes the table from them."""
+    from hydra.core.hydra_config import HydraConfig
+    from bench import scheduler
+    if kind not in SHARDED_KINDS:
+        raise UserError(f"jobs: experiment kind {kind!r} computes its runs in one process; jobs=N is for "
+                        f"{' and '.join(SHARDED_KINDS)} experiments (the paper's tables, +experiment=train)")
+    log.info("jobs=%d: the runs are computed by %d shards at once, %d threads each on this CPU's cores; then "
+             "the table", jobs, jobs, scheduler.threads_per_job(jobs))
+    scheduler.run_shards(list(HydraConfig.get().overrides.task), jobs, Path.cwd())
 
 
 def run_or_serve(cfg: DictConfig) -> None:

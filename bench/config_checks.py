@@ -163,6 +163,10 @@ def config_problems(plain: dict) -> list[str]:
     problems = train_problems(plain["train"], data) + recipe_problems(plain["train"])
     if not (_is_int(plain.get("workers")) and plain["workers"] > 0):
         problems.append(f"workers={plain.get('workers')!r}: expected a positive integer")
+    if not (_is_int(plain.get("jobs")) and plain["jobs"] > 0):
+        problems.append(f"jobs={plain.get('jobs')!r}: expected a positive integer")
+    elif plain["jobs"] > 1 and plain.get("shard") is not None:
+        problems.append(f"jobs={plain['jobs']} with shard={plain['shard']}: jobs starts the shards itself; give one of them")
     for name, model in (plain.get("models") or {}).items():
         problems += model_problems(model or {}, f"models.{name}")
     problems += row_problems(plain, data)

@@ -543,6 +543,7 @@ def test_shard_parses_i_over_n_and_rejects_the_rest():
     ("train.val_every=-1", "train.val_every=-1: expected an integer >= 0"),
     ("train.lr=0", "train.lr=0: expected a positive number"),
     ("workers=0", "workers=0: expected a positive integer"),
+    ("jobs=0", "jobs=0: expected a positive integer"),
     ("seeds=0", "seeds=0: expected a non-empty list of integers"),
     ("seeds=[]", "seeds=[]: expected a non-empty list of integers"),
     ("seeds=[a]", "seeds=['a']: expected a non-empty list of integers"),
