@@ -45,3 +45,20 @@ def test_jobs_trains_each_seed_once_across_the_shards_then_writes_the_table(tmp_
     assert "smoke: 1 of 1 rows reused from the run store" in log
     table = pd.read_csv(tmp_path / "results" / "smoke" / "table.csv")
     assert list(table["method"]) == ["E"] and table["PSNR std"].notna().all()
+
+
+def test_a_sigterm_to_the_command_stops_every_shard_at_a_checkpoint_each_run_recorded_interrupted(tmp_path):
+    import signal
+    import time
+    command = [sys.executable, "-m", "bench", *TINY_CLI, "seeds=[0,1]", "jobs=2", "train.steps=100000",
+               f"runs_dir={tmp_path / 'runs'}", f"results_dir={tmp_path / 'results'}", f"data_dir={tmp_path / 'data'}"]
+    proc = subprocess.Popen(command, cwd=REPO, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+    deadline = time.time() + 120
+    while len(list((tmp_path / "runs").glob("train/*/checkpoint.pt"))) < 2 and time.time() < deadline:
+        time.sleep(0.2)
+    proc.send_signal(signal.SIGTERM)
+    out = proc.communicate(timeout=120)[0]
+    assert proc.returncode == 143, out[-3000:]
+    assert all(f"[shard {i}/2] error: training E stopped by SIGTERM" in out for i in (0, 1)), out[-3000:]
+    records = [p.read_text() for p in (tmp_path / "runs").glob("train/*/run.json")]
+    assert len(records) == 2 and all('"status": "interrupted"' in r for r in records)
