@@ -429,10 +429,10 @@ def _earlier_wall_s(earlier: dict, run_dir: Path) -> float:
 
 def _reusable(runs_dir, kind: str, identity: dict, code: dict | None, reuse_stale: bool,
               label: str, quiet: bool = False, needs: tuple = (), rebuild=None) -> Run | None:
-    """The complete run to reuse, or None; `quiet`: a first look before the lock, which logs nothing but
-    a damaged file (named once per process). A run whose listed files are all sound is reusable; where
-    some are damaged, `rebuild(run_dir, names)` may write them again from the run's other files (True:
-    it did), and the run is reused if they now match their recorded digests, else computed again."""
+    """The complete run to reuse, or None; `quiet`: a first look before the lock, which logs nothing. A
+    run whose listed files are all sound is reusable; where some are damaged, `rebuild(run_dir, names)`
+    may write them again from the run's other files (True: it did; given under the lock only), and the
+    run is reused if they now match their recorded digests, else computed again (each named once)."""
     done = lookup(runs_dir, kind, identity)
     if done is None:
         return None
