@@ -11,9 +11,9 @@ from pathlib import Path
 import pytest
 
 # One OpenMP thread per core among pytest-xdist's workers, set before torch loads its OpenMP runtime and
-# inherited by every `python -m bench` a test starts. Two workers of two threads each on 2 cores made
-# every torch process spin-wait for a core: a smoke training took 245 s beside a busy core, 29 s with one
-# thread (make test 8.4 -> see README). Tests that time or count threads set their own.
+# inherited by every `python -m bench` a test starts: two workers of two threads each on 2 cores made
+# every torch process spin-wait for a core, most of make test's time (figures: git log of this line).
+# Tests that time or count threads set their own.
 if os.environ.get("PYTEST_XDIST_WORKER_COUNT"):
     os.environ.setdefault("OMP_NUM_THREADS", str(max(1, (os.cpu_count() or 1)
                                                       // int(os.environ["PYTEST_XDIST_WORKER_COUNT"]))))
