@@ -8,7 +8,7 @@ import pytest
 from hydra import compose, initialize_config_dir
 
 from bench.cli import CONF_DIR, run_experiment
-from bench.experiments.stability import INPUT_CASES, caption, metric_rows, output_ceiling, write_tables
+from bench.experiments.stability import INPUT_CASES, SCALES, caption, metric_rows, output_ceiling, status, write_tables
 from conftest import smoke_overrides
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -85,3 +85,28 @@ def test_the_committed_caption_is_the_one_its_rows_give(tmp_path):
     committed = (folder / "table.md").read_text()
     assert (tmp_path / "table.md").read_text() == committed
     assert "saturates at radiance 100:" in committed and "clipped by construction" in committed
+
+
+def test_a_case_is_judged_against_its_scaled_reference_not_only_for_being_finite():
+    scaled = {"case": "HDR scale 1e4", "finite": True, "max |output|": 100.0}
+    assert status({**scaled, "relMSE at unit scale": 0.05}, clean_relmse=0.03) == "ok 100"
+    assert status({**scaled, "relMSE at unit scale": 0.9}, clean_relmse=0.03) == "FAIL (relMSE 0.9, unscaled 0.03)"
+    assert status(scaled, clean_relmse=0.03) == "not judged 100"          # a table.csv measured before the rule
+    assert status({**scaled, "relMSE at unit scale": 0.05, "energy above range": 0.85}, 0.03) == \
+        "FAIL (energy above range 85%)"
+    black = {"case": "all-black frame", "finite": True}
+    assert status({**black, "max |output|": 0.0}) == "ok 0" and status({**black, "max |output|": 1e-6}) == "ok 1e-06"
+    assert status({**black, "max |output|": 7e-3}) == "FAIL (black in, 0.007 out)"
+
+
+def test_linear_methods_pass_every_scale_and_the_capped_domain_fails_the_bright_one(stability_table):
+    """The rule's two sides at smoke: bilinear is linear, so every scale passes (its output divided by k
+    is the unscaled one), from 1e-6 to 1e4; the learned models' PU21 domain caps outputs at radiance
+    100, so the scene at 1e4 fails on its reference, with the reason in the cell."""
+    table, out = stability_table
+    rows = table.set_index(["model", "case"])
+    for case in SCALES:
+        assert rows.loc[("bilinear", case), "status"].startswith("ok"), rows.loc[("bilinear", case)].to_dict()
+    assert rows.loc[("srd", "HDR scale 1e4"), "status"].startswith("FAIL (relMSE ")
+    assert rows.loc[("srd", "HDR scale 1e4"), "energy above range"] < 0.9
+    assert "FAIL (relMSE " in (out / "table.md").read_text()
