@@ -242,14 +242,15 @@ def stability_section(results_dir: Path) -> list[str]:
     table = pd.read_csv(results_dir / "stability" / "table.csv")
     lines = ["### stability", "", "Every model on fireflies, NaN/Inf, broken gBuffers, odd sizes, long "
              f"sequences, bf16 and extreme offsets. Numbers: {_link(results_dir, 'stability/table.csv')}; "
-             "largest output: the largest |output| (linear radiance) over the cases that ran.", ""]
+             "largest output: the largest |output| (linear radiance) over the cases that ran; a case passes when "
+             "finite and right (its table's caption gives the rules); not judged: measured before a rule.", ""]
     rows = []
     for model, cases in table.groupby("model", sort=False):
         status = cases["status"].astype(str)
-        rows.append([model, str(len(cases)), str(int(status.str.startswith("ok").sum())),
-                     str(int(status.str.startswith("error").sum())), str(int(status.str.startswith("FAIL").sum())),
-                     _num(pd.to_numeric(cases["max |output|"], errors="coerce").max(), 1)])
-    return lines + _markdown_table(["model", "cases", "ok", "refused (clear error)", "FAIL", "largest output"], rows)
+        counts = [str(int(status.str.startswith(word).sum())) for word in ("ok", "error", "FAIL", "not judged")]
+        rows.append([model, str(len(cases)), *counts, _num(pd.to_numeric(cases["max |output|"], errors="coerce").max(), 1)])
+    return lines + _markdown_table(["model", "cases", "ok", "refused (clear error)", "FAIL", "not judged",
+                                    "largest output"], rows)
 
 
 def speed_section(results_dir: Path) -> list[str]:
