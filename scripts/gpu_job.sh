@@ -21,7 +21,8 @@
 # Everything comes back in $OUT as at most 8 files: log.txt, results.tar.gz (results/gpu), and
 # runs.tar.gz.part-* (the run store without rendered data, 15 MiB parts). Unpack them here with
 # scripts/gpu_unpack.sh. Environment: PYTHON (.venv/bin/python where `make` made one, else python3), DEVICE (cuda), PRESET (gpu), JOB_S, STEP_S,
-# SPEED_ARGS, SOTA_ARGS, PROFILE_ARGS. A dry run on a CPU (its records land in results/gpu: delete them after):
+# SPEED_ARGS, SOTA_ARGS, PROFILE_ARGS. tests/test_gpu_job.py (make test) dry-runs `tests sota` on a CPU at the
+# smoke preset in a copy of the project. A dry run by hand (its records land in results/gpu: delete them after):
 #     DEVICE=cpu PROFILE_ARGS="--batch 1 --frames 2 --crop 16 --channels 8 --no-compile" OUT=/tmp/x \
 #         bash scripts/gpu_job.sh tests profile
 set -uo pipefail
@@ -58,8 +59,11 @@ tag=$("$PYTHON" -c "from bench.experiments.speed import device_tag; print(device
     || { echo "gpu_job: bench does not import (missing packages? carry them as wheels)"; exit 1; }
 echo "gpu_job: $(date -u +%FT%TZ) on $tag, steps: $STEPS"
 tests_record=results/gpu/cuda_tests/$tag.txt
-# the record counts for these kernels only: a change to them is tested again before they are used
-kernels=$(cat bench/nn/triton_kernels.py bench/nn/fused.py bench/nn/deform.py bench/nn/cfm.py | sha256sum | cut -c1-16)
+# the record counts for these kernels only: a change to their code (not a comment or docstring: the
+# syntax tree, as run fingerprints hash it) is tested again before they are used
+kernels=$("$PYTHON" -c "from pathlib import Path; from bench.runs import source_hash
+print(''.join(source_hash(Path(p)) for p in ('bench/nn/triton_kernels.py', 'bench/nn/fused.py', 'bench/nn/deform.py', 'bench/nn/cfm.py')))" \
+    | sha256sum | cut -c1-16) || { echo "gpu_job: the kernels' sources do not parse"; exit 1; }
 tests_passed() { grep -q "^passed" "$tests_record" 2>/dev/null && grep -q "^kernels: $kernels" "$tests_record"; }
 
 step_tests() {

@@ -1,0 +1,74 @@
+"""scripts/gpu_job.sh, the GPU work as one resumable command, dry-run on this CPU at the smoke preset on
+tiny frames, in a copy of the project (it writes results/gpu and runs/ where it runs): what a GPU machine
+would run, but for the device."""
+import os
+import shutil
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+REPO = Path(__file__).resolve().parent.parent
+TINY = ("data.lr_width=8 data.lr_height=6 data.spp=1 data.ref_spp=4 data.seq_len=2 data.max_depth=4 "
+        "data.splits.train.sequences=1 data.splits.val.sequences=1 ~data.splits.generalization train.steps=2 "
+        "train.crop=4 train.seq_len=2 train.batch_size=1 train.val_sequences=1 workers=1 progress=false "
+        "results_dir=results/gpu")
+
+
+@pytest.fixture(scope="module")
+def project(tmp_path_factory):
+    root = tmp_path_factory.mktemp("gpu_job") / "project"
+    for part in ("bench", "baselines", "conf", "scripts"):
+        shutil.copytree(REPO / part, root / part, ignore=shutil.ignore_patterns("__pycache__", "*.so"))
+    (root / "tests").mkdir()
+    for name in ("conftest.py", "test_cuda.py", "test_fused_gpu.py"):
+        shutil.copy(REPO / "tests" / name, root / "tests" / name)
+    return root
+
+
+def job(project: Path, *steps: str, out: Path) -> subprocess.CompletedProcess:
+    env = dict(os.environ, PYTHON=sys.executable, DEVICE="cpu", PRESET="smoke", JOB_S="400", STEP_S="300",
+               OUT=str(out), SOTA_ARGS=TINY)
+    return subprocess.run(["bash", "scripts/gpu_job.sh", *steps], cwd=project, env=env, capture_output=True,
+                          text=True, timeout=600)
+
+
+@pytest.fixture(scope="module")
+def first(project, tmp_path_factory):
+    """The job's first call on a bare project: the kernel tests, then Table 5."""
+    out = tmp_path_factory.mktemp("first")
+    done = job(project, "tests", "sota", out=out)
+    assert done.returncode == 0, done.stdout[-3000:] + done.stderr[-2000:]
+    return out
+
+
+def test_the_job_tests_renders_trains_scores_and_packs_then_a_second_call_skips_what_is_done(project, first, tmp_path):
+    record = next((project / "results" / "gpu" / "cuda_tests").glob("*.txt")).read_text()
+    assert record.startswith("failed (no CUDA GPU")                      # never "passed" without a GPU
+    table = (project / "results" / "gpu" / "sota" / "table.md").read_text()
+    assert "| Ours |" in table and "| Input bilinear |" in table
+    back = sorted(p.name for p in first.iterdir())
+    assert {"log.txt", "results.tar.gz"} <= set(back) and any(n.startswith("runs.tar.gz.part-") for n in back)
+    assert len(back) <= 8 and all((first / n).stat().st_size <= 16 * 2**20 for n in back)
+    second = job(project, "sota", out=tmp_path / "second")
+    assert second.returncode == 0 and "gpu_job: sota table already there" in second.stdout, second.stdout[-3000:]
+
+
+def test_the_kernel_tests_run_again_for_a_code_change_not_for_a_comment(project, first, tmp_path):
+    """A record that the kernel tests passed counts for the kernels' code it names (their syntax trees):
+    a comment added to a kernel file keeps it, a statement makes the job test them again."""
+    project = shutil.copytree(project, tmp_path / "project", ignore=shutil.ignore_patterns("runs"))  # none to pack
+    (record,) = (project / "results" / "gpu" / "cuda_tests").glob("*.txt")   # the first call's (failed: no GPU)
+    kernels_line = next(line for line in record.read_text().splitlines() if line.startswith("kernels: "))
+    record.write_text(f"passed\n{kernels_line}\n")                     # as a GPU machine would have left it
+    kernels = project / "bench" / "nn" / "triton_kernels.py"
+    kernels.write_text(kernels.read_text() + "\n# a comment changes no kernel\n")
+    kept = job(project, "tests", out=tmp_path / "kept")
+    assert "gpu_job: tests already passed with these kernels" in kept.stdout, kept.stdout[-2000:]
+    kernels.write_text(kernels.read_text() + "\nKERNELS_EDITED = True\n")
+    for name in ("test_cuda.py", "test_fused_gpu.py"):  # what they check is the GPU's; here: that the job runs them
+        (project / "tests" / name).write_text("def test_ran():\n    pass\n")
+    record.write_text(f"passed\n{kernels_line}\n")
+    again = job(project, "tests", out=tmp_path / "again")
+    assert "already passed" not in again.stdout and record.read_text().startswith("failed (no CUDA GPU")
