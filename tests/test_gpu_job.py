@@ -22,8 +22,9 @@ def project(tmp_path_factory):
     for part in ("bench", "baselines", "conf", "scripts"):
         shutil.copytree(REPO / part, root / part, ignore=shutil.ignore_patterns("__pycache__", "*.so"))
     (root / "tests").mkdir()
-    for name in ("conftest.py", "test_cuda.py", "test_fused_gpu.py"):
-        shutil.copy(REPO / "tests" / name, root / "tests" / name)
+    shutil.copy(REPO / "tests" / "conftest.py", root / "tests" / "conftest.py")
+    for name in ("test_cuda.py", "test_fused_gpu.py"):  # what they check is the GPU's (and this suite runs them on
+        (root / "tests" / name).write_text("def test_ran():\n    pass\n")  # the CPU); here: that the job runs them
     return root
 
 
@@ -67,8 +68,6 @@ def test_the_kernel_tests_run_again_for_a_code_change_not_for_a_comment(project,
     kept = job(project, "tests", out=tmp_path / "kept")
     assert "gpu_job: tests already passed with these kernels" in kept.stdout, kept.stdout[-2000:]
     kernels.write_text(kernels.read_text() + "\nKERNELS_EDITED = True\n")
-    for name in ("test_cuda.py", "test_fused_gpu.py"):  # what they check is the GPU's; here: that the job runs them
-        (project / "tests" / name).write_text("def test_ran():\n    pass\n")
     record.write_text(f"passed\n{kernels_line}\n")
     again = job(project, "tests", out=tmp_path / "again")
     assert "already passed" not in again.stdout and record.read_text().startswith("failed (no CUDA GPU")
