@@ -535,18 +535,23 @@ def test_the_readmes_verify_command_is_one_hydra_accepts():
             assert compose("config", overrides=command.split()).experiment.verify is True
 
 
-def test_a_training_killed_and_resumed_records_the_wall_time_of_both_parts(tmp_path):
-    """kill -9 leaves the record "running" with no time of its own: the resumed run counts the killed
-    part from its start to its last write (its checkpoint), then its own."""
-    from bench import runs
+def _killed_after_a_checkpoint(runs_dir, sleep_s=0.0, force=False) -> None:
+    """Another process begins run {'a': 1} (with `force`), writes a checkpoint after `sleep_s` and is
+    killed (-9) there: what a kill leaves of a command."""
     child = subprocess.Popen([sys.executable, "-c", (
-        "import sys, time; from pathlib import Path; from bench import runs\n"
-        f"run = runs.begin({str(tmp_path)!r}, 'train', {{'a': 1}})\n"
-        "time.sleep(1.5); (run.dir / 'checkpoint.pt').write_bytes(b'step 1')\n"
+        "import time; from bench import runs\n"
+        f"run = runs.begin({str(runs_dir)!r}, 'train', {{'a': 1}}, force={force})\n"
+        f"time.sleep({sleep_s}); (run.dir / 'checkpoint.pt').write_bytes(b'step 1')\n"
         "print('checkpointed', flush=True); time.sleep(60)")], cwd=REPO, stdout=subprocess.PIPE, text=True)
     assert child.stdout.readline().strip() == "checkpointed"
     child.kill()
     child.wait()
+
+
+def test_a_training_killed_and_resumed_records_the_wall_time_of_both_parts(tmp_path):
+    """kill -9 leaves the record "running" with no time of its own: the resumed run counts the killed
+    part from its start to its last write (its checkpoint), then its own."""
+    _killed_after_a_checkpoint(tmp_path, sleep_s=1.5)
     run = runs.begin(tmp_path, "train", {"a": 1})
     assert 1.4 < run.record["resumed_wall_time_s"] < 5
     time.sleep(0.2)
@@ -625,14 +630,7 @@ def test_the_verify_command_names_each_damaged_file_of_a_store_or_an_archive_and
 def test_an_interrupted_forced_run_is_resumed_by_the_next_forced_command_and_says_so(tmp_path, caplog):
     """force=true computes a run once per command; a forced command killed mid-run leaves a checkpoint,
     which the next force=true command resumes (the log says so and how to start over), in a new process."""
-    child = subprocess.Popen([sys.executable, "-c", (
-        "from bench import runs\n"
-        f"run = runs.begin({str(tmp_path)!r}, 'train', {{'a': 1}}, force=True)\n"
-        "(run.dir / 'checkpoint.pt').write_bytes(b'step 1')\n"
-        "print('checkpointed', flush=True)\nimport time; time.sleep(60)")], cwd=REPO, stdout=subprocess.PIPE, text=True)
-    assert child.stdout.readline().strip() == "checkpointed"
-    child.kill()
-    child.wait()
+    _killed_after_a_checkpoint(tmp_path, force=True)
     with caplog.at_level("INFO", logger="bench"):
         run = runs.begin(tmp_path, "train", {"a": 1}, force=True)
     assert (run.dir / "checkpoint.pt").read_bytes() == b"step 1" and run.record["forced"]
