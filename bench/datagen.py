@@ -206,17 +206,6 @@ def damaged_frames(root, frames, passes, decode=False, stamps=True, max_nonfinit
     return problems
 
 
-def _write_frame(path, layers, **options):
-    """`exrio.write_exr`, then the mode any file gets from this process's umask (the frame JSONs' 644
-    under the usual 022): write_exr's temporary file is created private (0600) and renamed into place.
-    (Fixed here, not in exrio: an edit there makes every recorded run stale; it goes with the next change
-    that does.)"""
-    exrio.write_exr(path, layers, **options)
-    umask = os.umask(0)
-    os.umask(umask)
-    os.chmod(path, 0o666 & ~umask)
-
-
 def file_stamp(path):
     """What a frame file was when written: size, mtime and a CRC-32 of its bytes. The CRC is read only
     when the mtime differs, so copying a dataset without keeping mtimes (plain `cp`) costs one read of
@@ -627,7 +616,7 @@ def _render_into(record, res, path, size, loaded, camera, settings, seeds, todo,
     kept = exrio.read_exr(path, sorted(present - set(layers))) if present else {}
     merged = {**kept, **layers}
     half = [g for g in gbuf_layers if settings["half_gbuffer"]]
-    _write_frame(path, merged, suffixes=SUFFIXES, half=half, attributes=attributes)
+    exrio.write_exr(path, merged, suffixes=SUFFIXES, half=half, attributes=attributes)
     record["time_s"].update(times)
     _count_repaired(record, repaired)
     record["channels"][res] = [f"{n}.{s}" for n in merged for s in SUFFIXES[n]]
@@ -807,7 +796,7 @@ def render_user_scene(xml_path, root, lr_width, lr_height, spp=8, ref_spp=256, s
             continue
         layers, times, repaired, _ = render_resolution(scene, None, w, h, spp, ReferencePlan(ref_spp), seeds[res],
                                                        passes, res, GBUF_LAYERS, max_depth)
-        _write_frame(path, layers, suffixes=SUFFIXES)
+        exrio.write_exr(path, layers, suffixes=SUFFIXES)
         record["time_s"].update(times)
         _count_repaired(record, repaired)
         record["channels"][res] = [f"{n}.{s}" for n in layers for s in SUFFIXES[n]]

@@ -1,7 +1,7 @@
 """The one evaluator: full frames of a split, per-image metrics, aggregates and inference time.
 
-Metrics (bench.metrics): relMSE, robust relMSE and temporal relMSE on linear HDR radiance, PSNR/SSIM on
-images clamped to [0, 1]; each with its standard error over sequences.
+Metrics (bench.metrics): relMSE, robust relMSE, temporal relMSE and HDR-FLIP on linear HDR radiance,
+PSNR/SSIM and LDR-FLIP on images clamped to [0, 1]; each with its standard error over sequences.
 Methods with `linear_hdr = True` (OIDN, bilinear, bicubic) take and return linear radiance; every other model works in the
 network domain of `hdr` (bench.hdr) and its output is mapped back to linear before scoring.
 """
@@ -16,7 +16,7 @@ import pandas as pd
 import torch
 
 from bench.atomic import write_atomic
-from bench.hdr import from_network, to_network
+from bench.hdr import frame_exposure, from_network, to_network
 from bench.infer import REFERENCE, prepare, tiled_predict
 from bench.metrics import METRICS, SEQUENCE_METRICS, all_metrics
 from bench.sanitize import sanitize_inputs
@@ -34,7 +34,8 @@ def predict(model, x_lin: torch.Tensor, g: torch.Tensor, hdr: str, sanitize: boo
     forward = forward or model
     if getattr(model, "linear_hdr", False):
         return forward(x_lin, g)["final"]
-    return from_network(forward(to_network(x_lin, hdr), g)["final"], hdr)
+    exposure = frame_exposure(x_lin, hdr)
+    return from_network(forward(to_network(x_lin, hdr, exposure), g)["final"], hdr, exposure)
 
 
 def runner(model, path: str = REFERENCE, tile: int | None = None):
@@ -103,6 +104,10 @@ def evaluate(model, dataset, task: Task, *, hdr: str = "clamp", device: str = "c
 
 
 SCORES = (*METRICS, *SEQUENCE_METRICS)
+# scored since evaluations were first recorded: one recorded without them is still reused (its table
+# shows "-"; re-evaluating every recorded run would need every split rendered); force=true adds them
+LATER_SCORES = ("LDR-FLIP", "HDR-FLIP")
+REQUIRED_SCORES = tuple(s for s in SCORES if s not in LATER_SCORES)
 
 
 def aggregate(per_image: pd.DataFrame) -> dict:

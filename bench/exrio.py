@@ -61,6 +61,9 @@ def write_exr(path, layers, suffixes=None, half=False, attributes=None):
     try:
         with OpenEXR.File(header, channels) as f:
             f.write(tmp)
+        umask = os.umask(0)  # mkstemp made the file private (0600): give it the mode any new file gets here
+        os.umask(umask)
+        os.chmod(tmp, 0o666 & ~umask)
         os.replace(tmp, path)
     except Exception as err:
         if os.path.exists(tmp):

@@ -39,7 +39,6 @@ from typing import Callable
 import pandas as pd
 import torch
 import torch.nn as nn
-from torch.utils.flop_counter import FlopCounterMode
 
 _CONV = (nn.Conv1d, nn.Conv2d, nn.Conv3d)
 _CONV_T = (nn.ConvTranspose1d, nn.ConvTranspose2d, nn.ConvTranspose3d)
@@ -112,6 +111,7 @@ def _count(model: nn.Module, inputs: tuple, with_torch_counter: bool) -> tuple[p
         declared = callable(getattr(module, "macs", None)) or callable(getattr(module, "extra_macs", None))
         if counted or declared:
             handles.append(module.register_forward_hook(make_hook(name)))
+    from torch.utils.flop_counter import FlopCounterMode  # imports triton where installed: 0.3 s of every process
     counter = FlopCounterMode(display=False) if with_torch_counter else None
     try:
         with torch.no_grad():
@@ -149,6 +149,7 @@ def torch_counter_macs(model: nn.Module, inputs: tuple) -> int:
     It counts matmul/conv/bmm-like ops only: grid_sample, interpolation, gathers and elementwise
     products count zero.
     """
+    from torch.utils.flop_counter import FlopCounterMode
     with torch.no_grad(), FlopCounterMode(display=False) as counter:
         model(*inputs)
     return counter.get_total_flops() // 2

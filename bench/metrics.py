@@ -15,6 +15,11 @@
   SSIM is Wang et al. 2004: 11x11 Gaussian window (sigma 1.5), K1 = 0.01, K2 = 0.03, per channel, averaged
   over the valid (un-padded) region; it equals scikit-image's
   `structural_similarity(..., gaussian_weights=True, sigma=1.5, use_sample_covariance=False, data_range=1)`.
+- FLIP (Andersson et al. 2020, 2021), NVIDIA's perceptual error of an image against its reference, through
+  `flip-evaluator` at its defaults (67 pixels per degree): the mean of the per-pixel FLIP map, in [0, 1].
+  LDR-FLIP scores the images PSNR/SSIM see (clamped to [0, 1], taken as linear RGB: inputsRGB=False);
+  HDR-FLIP scores linear radiance (negatives set to 0) tone-mapped (ACES) at the exposures FLIP derives
+  from the reference, so highlights above 1 count.
 """
 from __future__ import annotations
 
@@ -109,13 +114,33 @@ def ssim(pred: torch.Tensor, ref: torch.Tensor, data_range: float = 1.0) -> torc
     return s.flatten(1).mean(1)
 
 
-METRICS = {"relMSE": relmse, "PSNR": psnr, "SSIM": ssim, "robust relMSE": robust_relmse}
+def _flip(pred: torch.Tensor, ref: torch.Tensor, dynamic_range: str) -> torch.Tensor:
+    import flip_evaluator  # only where images are scored (its import is not free)
+    pred, ref = _as_batch(pred).float(), _as_batch(ref).float()
+    means = [flip_evaluator.evaluate(r.permute(1, 2, 0).contiguous().numpy(), p.permute(1, 2, 0).contiguous().numpy(),
+                                     dynamic_range, inputsRGB=False, applyMagma=False)[1]
+             for p, r in zip(pred.cpu(), ref.cpu())]
+    return torch.tensor(means, dtype=torch.float64)
+
+
+def ldr_flip(pred: torch.Tensor, ref: torch.Tensor) -> torch.Tensor:
+    """Mean LDR-FLIP per image of clamp(pred, 0, 1) against clamp(ref, 0, 1) (see module docstring)."""
+    return _flip(_as_batch(pred).clamp(0, 1), _as_batch(ref).clamp(0, 1), "LDR")
+
+
+def hdr_flip(pred: torch.Tensor, ref: torch.Tensor) -> torch.Tensor:
+    """Mean HDR-FLIP per image of linear radiance pred against ref (see module docstring)."""
+    return _flip(_as_batch(pred).clamp_min(0), _as_batch(ref).clamp_min(0), "HDR")
+
+
+METRICS = {"relMSE": relmse, "PSNR": psnr, "SSIM": ssim, "LDR-FLIP": ldr_flip, "HDR-FLIP": hdr_flip,
+           "robust relMSE": robust_relmse}
 SEQUENCE_METRICS = {"temporal relMSE": temporal_relmse}
-LOWER_IS_BETTER = ("relMSE", "robust relMSE", "temporal relMSE")
+LOWER_IS_BETTER = ("relMSE", "robust relMSE", "temporal relMSE", "LDR-FLIP", "HDR-FLIP")
 HIGHER_IS_BETTER = ("PSNR", "SSIM")
 
 
 def all_metrics(pred: torch.Tensor, ref: torch.Tensor) -> dict[str, torch.Tensor]:
-    """Per frame of a sequence (T, C, H, W): relMSEs on the linear values given, PSNR/SSIM on them
-    clamped to [0, 1], and the temporal relMSE (NaN for the first frame)."""
+    """Per frame of a sequence (T, C, H, W): relMSEs and HDR-FLIP on the linear values given, PSNR/SSIM and
+    LDR-FLIP on them clamped to [0, 1], and the temporal relMSE (NaN for the first frame)."""
     return {name: fn(pred, ref) for name, fn in {**METRICS, **SEQUENCE_METRICS}.items()}

@@ -36,7 +36,7 @@ from tqdm import tqdm
 from bench import distributed
 from bench.atomic import write_atomic
 from bench.errors import UserError
-from bench.hdr import MODES, to_network, transforms
+from bench.hdr import MODES, frame_exposure, to_network, transforms
 from bench.infer import frames_channels_last
 from bench.losses import weighted_loss
 from bench.macs import count_params
@@ -45,10 +45,12 @@ from bench.tasks import Task
 
 CHECKPOINT = "checkpoint.pt"
 LOG_EVERY_S = 60.0   # without a terminal (logs, clusters) progress is a log line this often
+READ_BACK_EVERY = 25  # steps whose losses stay on the device before one transfer reads them (bench.train.read_back)
 
 log = logging.getLogger("bench")
 SCHEDULES = ("cosine", "halve", "constant", "range")
 PRECISIONS = ("fp32", "bf16")
+COMPILE_MODES = ("default", "reduce-overhead", "max-autotune")  # torch.compile's; reduce-overhead: CUDA graphs
 
 
 class TrainingInterrupted(UserError):
@@ -112,12 +114,15 @@ class Recipe:
     colour_permute: bool
     precision: str                    # one of PRECISIONS
     channels_last: bool
+    compile: str | None               # None: eager; else torch.compile's mode for forward, losses and backward
     checkpoint_every: int
     checkpoint_every_s: float
     val_every: int
     val_sequences: int
 
     NOT_IDENTITY = ("checkpoint_every", "checkpoint_every_s", "val_every", "val_sequences")
+    # options left out of the identity at this value: the recipe as recorded before the option existed
+    OMITTED_AT = {"compile": None}
 
     def __post_init__(self):
         if self.schedule not in SCHEDULES:
@@ -126,6 +131,8 @@ class Recipe:
             raise ValueError(f"train.hdr must be one of {MODES}, got {self.hdr!r}")
         if self.precision not in PRECISIONS:
             raise ValueError(f"train.precision must be one of {PRECISIONS}, got {self.precision!r}")
+        if self.compile not in (None, *COMPILE_MODES):
+            raise ValueError(f"train.compile must be null or one of {COMPILE_MODES}, got {self.compile!r}")
 
     @classmethod
     def from_config(cls, config: dict) -> "Recipe":
@@ -141,7 +148,8 @@ class Recipe:
     def identity(self) -> dict:
         """Every option that determines the weights; a loss term of weight 0 is left out, as it adds nothing
         (a recipe that sets a term to 0 is the recipe without it)."""
-        values = {k: v for k, v in asdict(self).items() if k not in self.NOT_IDENTITY}
+        values = {k: v for k, v in asdict(self).items() if k not in self.NOT_IDENTITY
+                  and not (k in self.OMITTED_AT and v == self.OMITTED_AT[k])}
         values["loss"] = without_zero_terms(values["loss"])
         return values
 
@@ -176,13 +184,14 @@ def collate(items: list[dict], keys: list[str]) -> dict[str, torch.Tensor]:
 def batch_loss(model, batch: dict, task: Task, loss_weights: dict, hdr: str, features=None):
     """Total loss and its named parts for one batch of (B, T, C, H, W) buffers."""
     x, g = sanitize_inputs(batch[task.x], batch[task.g])
-    out = model(to_network(x, hdr), g)
+    exposure = frame_exposure(x, hdr)  # every image of a frame shares its LR input's exposure
+    out = model(to_network(x, hdr, exposure), g)
     to_linear = transforms(hdr)[0]
-    total, parts = weighted_loss(out["final"], to_network(batch[task.y], hdr), loss_weights["final"], features,
-                                 to_linear)
+    total, parts = weighted_loss(out["final"], to_network(batch[task.y], hdr, exposure), loss_weights["final"],
+                                 features, to_linear)
     parts = {f"final.{k}": v for k, v in parts.items()}
     if task.mid and out.get("intermediate") is not None and any(loss_weights["intermediate"].values()):
-        mid, mid_parts = weighted_loss(out["intermediate"], to_network(batch[task.mid], hdr),
+        mid, mid_parts = weighted_loss(out["intermediate"], to_network(batch[task.mid], hdr, exposure),
                                        loss_weights["intermediate"], features, to_linear)
         total = total + mid
         parts.update({f"intermediate.{k}": v for k, v in mid_parts.items()})
@@ -201,14 +210,14 @@ def update_ema(ema_model, model, decay: float, step: int) -> None:
 
 
 @dataclass
-class _State:
+class TrainingState:
     step: int = 0
     curve: list = field(default_factory=list)       # per step: loss, lr, grad norm, loss parts
     val_curve: list = field(default_factory=list)   # per validation: step, train_s, loss, metrics
     train_s: float = 0.0                             # optimisation wall time so far (validation excluded)
 
 
-def save_checkpoint(path: Path, model, ema_model, optimizer, state: _State) -> None:
+def save_checkpoint(path: Path, model, ema_model, optimizer, state: TrainingState) -> None:
     saved = {"model": model.state_dict(), "ema": ema_model.state_dict() if ema_model is not None else None,
              "optimizer": optimizer.state_dict(), "step": state.step, "curve": state.curve,
              "val_curve": state.val_curve, "elapsed_s": state.train_s}
@@ -223,25 +232,46 @@ def load_weights(model, out_dir: str | Path, device: str = "cpu"):
     return model
 
 
-def _resume(path: Path, model, ema_model, optimizer, device) -> _State:
+def _resume(path: Path, model, ema_model, optimizer, device) -> TrainingState:
     if not path.exists():
-        return _State()
+        return TrainingState()
     saved = torch.load(path, map_location=device, weights_only=False)
     model.load_state_dict(saved["model"])
     if ema_model is not None:
         ema_model.load_state_dict(saved.get("ema") or saved["model"])
     optimizer.load_state_dict(saved["optimizer"])
-    return _State(saved["step"], saved["curve"], saved.get("val_curve", []), saved.get("elapsed_s", 0.0))
+    return TrainingState(saved["step"], saved["curve"], saved.get("val_curve", []), saved.get("elapsed_s", 0.0))
 
 
-def _write_curves(out_dir: Path, state: _State) -> None:
+def write_curves(out_dir: Path, state: TrainingState) -> None:
     """curve.csv and val_curve.csv, each replaced whole: a reader never sees half of one."""
     write_atomic(out_dir / "curve.csv", lambda tmp: pd.DataFrame(state.curve).to_csv(tmp, index=False))
     if state.val_curve:
         write_atomic(out_dir / "val_curve.csv", lambda tmp: pd.DataFrame(state.val_curve).to_csv(tmp, index=False))
 
 
-def _validation_point(state: _State, validate, model) -> dict:
+def read_back(unread: list, names: list[str], state: TrainingState, out_dir: Path | None, ckpt_path: Path) -> None:
+    """Move the steps' reported losses (`unread`: (step, lr, tensor of the `names` values and the gradient
+    norm)) to the host, in one transfer, onto `state.curve`, and empty `unread`. The first step whose loss
+    or gradient norm is not finite raises TrainingDiverged naming it, after writing the curves of the steps
+    before it to `out_dir` (None: another rank writes)."""
+    values = torch.stack([v for _, _, v in unread]).cpu().tolist()
+    taken = list(unread)
+    unread.clear()
+    for (step, lr, _), row in zip(taken, values):
+        *losses, grad_norm = row
+        if not (math.isfinite(losses[0]) and math.isfinite(grad_norm)):
+            if out_dir is not None:
+                write_curves(out_dir, state)
+            last = ckpt_path if ckpt_path.exists() else "none (diverged before the first)"
+            what = f"loss ({losses[0]})" if not math.isfinite(losses[0]) else "gradient"
+            raise TrainingDiverged(f"non-finite {what} at step {step - 1}; the last good checkpoint is {last}",
+                                   step - 1)
+        named = dict(zip(names, losses))
+        state.curve.append({"step": step, "loss": named.pop("loss"), "lr": lr, "grad_norm": grad_norm, **named})
+
+
+def _validation_point(state: TrainingState, validate, model) -> dict:
     since = [c["loss"] for c in state.curve if c["step"] > (state.val_curve[-1]["step"] if state.val_curve else 0)]
     was_training = model.training
     model.eval()
@@ -290,6 +320,9 @@ def train(model, dataset, task: Task, out_dir: str | Path, recipe: Recipe, *, fe
         state.val_curve.append(_validation_point(state, validate, scored))  # models with input_residual)
     # every rank resumed from the same checkpoint; unused parameters (a head without loss) get no gradient
     net = model if ranks == 1 else torch.nn.parallel.DistributedDataParallel(model, find_unused_parameters=True)
+    # compiled: forward over the frames and the losses as one traced graph, backward as its compiled
+    # gradient (Adam and the EMA stay eager: a few foreach kernels); compiled once per process
+    step_loss = batch_loss if recipe.compile is None else torch.compile(batch_loss, mode=recipe.compile)
     bar = tqdm(total=recipe.steps, initial=state.step, desc=f"train {type(model).__name__}",
                disable=None if progress else True, dynamic_ncols=True, leave=False, mininterval=1.0)
     log_lines = progress and bar.disable  # no bar (not a terminal): a log line every LOG_EVERY_S
@@ -298,6 +331,7 @@ def train(model, dataset, task: Task, out_dir: str | Path, recipe: Recipe, *, fe
     last_line = last_checkpoint = time.perf_counter()
     first_step, first_s = state.step, state.train_s
     data_s = 0.0  # of this process's steps: building and moving batches (the share the GPU may wait on)
+    unread = []  # (step, lr, device tensor of the reported losses and the gradient norm) not yet read back
     with _stop_requests() as stop:  # Ctrl-C or preemption: finish the step, checkpoint, stop
         while state.step < recipe.steps:
             t0 = time.perf_counter()
@@ -314,56 +348,56 @@ def train(model, dataset, task: Task, out_dir: str | Path, recipe: Recipe, *, fe
             data_s += time.perf_counter() - t0
             for group in optimizer.param_groups:
                 group["lr"] = lr_at(step, recipe)
+            if recipe.compile is not None:  # CUDA graphs: this step may reuse the previous step's buffers
+                torch.compiler.cudagraph_mark_step_begin()
             with torch.autocast(torch.device(device).type, dtype=torch.bfloat16, enabled=recipe.precision == "bf16"):
-                loss, parts = batch_loss(net, batch, task, recipe.loss, recipe.hdr, features)
-            reported = {"loss": loss.detach(), **{k: v.detach() for k, v in parts.items()}}
+                loss, parts = step_loss(net, batch, task, recipe.loss, recipe.hdr, features)
+            # copies: a CUDA graph's outputs are overwritten by its next replay, and these wait for read_back
+            reported = {"loss": loss.detach().clone(), **{k: v.detach().clone() for k, v in parts.items()}}
             stopping = bool(stop)  # decided here, once per step: with several ranks, the same on all
             if ranks > 1:  # the global batch's loss (a mean of equal shares), and a stop asked on any rank
                 means = distributed.mean_over_ranks(torch.stack([*reported.values(), loss.new_tensor(len(stop))]))
                 reported, stopping = dict(zip(reported, means[:-1])), bool(means[-1] > 0)
-            if not torch.isfinite(reported["loss"]):
-                if writes:
-                    _write_curves(out_dir, state)
-                last = ckpt_path if ckpt_path.exists() else "none (diverged before the first)"
-                raise TrainingDiverged(f"non-finite loss ({reported['loss'].item()}) at step {step}; the last good "
-                                       f"checkpoint is {last}", step)
             optimizer.zero_grad(set_to_none=True)
             loss.backward()
             grad_norm = torch.nn.utils.get_total_norm([p.grad for p in model.parameters() if p.grad is not None])
             if recipe.clip_grad_norm:
                 torch.nn.utils.clip_grads_with_norm_(model.parameters(), recipe.clip_grad_norm, grad_norm)
-            if not torch.isfinite(grad_norm):  # the same on every rank: DDP averaged the gradients
-                if writes:
-                    _write_curves(out_dir, state)
-                raise TrainingDiverged(f"non-finite gradient at step {step}; the last good checkpoint is "
-                                       f"{ckpt_path if ckpt_path.exists() else 'none'}", step)
+            # the losses stay on the device until `read_back` (no host sync per step): a non-finite step is
+            # found and named there, before any checkpoint or validation could take its weights
             optimizer.step()
             if ema_model is not None:
                 update_ema(ema_model, model, recipe.ema, step)
             state.step += 1
             state.train_s += time.perf_counter() - t0
-            reported = {k: v.item() for k, v in reported.items()}
-            state.curve.append({"step": state.step, "loss": reported.pop("loss"),
-                                "lr": optimizer.param_groups[0]["lr"], "grad_norm": grad_norm.item(), **reported})
+            unread.append((state.step, optimizer.param_groups[0]["lr"],
+                           torch.stack([v.float() for v in (*reported.values(), grad_norm)])))
+            names = list(reported)
             bar.update(1)
-            bar.set_postfix(loss=f"{state.curve[-1]['loss']:.4f}")
-            if log_lines and time.perf_counter() - last_line >= LOG_EVERY_S:
+            due_line = log_lines and time.perf_counter() - last_line >= LOG_EVERY_S
+            validating = validate is not None and (state.step == recipe.steps
+                                                   or (val_every and state.step % val_every == 0))
+            checkpointing = writes and (state.step % recipe.checkpoint_every == 0 or state.step == recipe.steps
+                                        or stopping or time.perf_counter() - last_checkpoint >= recipe.checkpoint_every_s)
+            if (len(unread) >= READ_BACK_EVERY or due_line or validating or checkpointing or stopping
+                    or state.step == recipe.steps):
+                read_back(unread, names, state, out_dir if writes else None, ckpt_path)
+                bar.set_postfix(loss=f"{state.curve[-1]['loss']:.4f}")
+            if due_line:
                 last_line = time.perf_counter()
                 rate = (state.train_s - first_s) / (state.step - first_step)
                 log.info("train %s: step %d/%d, %.2f s/step, loss %.4f, about %.0f min left",
                          type(model).__name__, state.step, recipe.steps, rate, state.curve[-1]["loss"],
                          rate * (recipe.steps - state.step) / 60)
-            if validate is not None and (state.step == recipe.steps
-                                         or (val_every and state.step % val_every == 0)):
+            if validating:
                 state.val_curve.append(_validation_point(state, validate, scored))
-            if writes and (state.step % recipe.checkpoint_every == 0 or state.step == recipe.steps or stopping
-                           or time.perf_counter() - last_checkpoint >= recipe.checkpoint_every_s):
+            if checkpointing:
                 save_checkpoint(ckpt_path, model, ema_model, optimizer, state)
                 last_checkpoint = time.perf_counter()
             if stopping and state.step < recipe.steps:
                 bar.close()
                 if writes:
-                    _write_curves(out_dir, state)
+                    write_curves(out_dir, state)
                 signum = stop[0] if stop else signal.SIGTERM  # (else another rank was stopped)
                 raise TrainingInterrupted(f"{signal.Signals(signum).name} at step {state.step} of {recipe.steps}: "
                                           f"checkpoint saved in {ckpt_path}; run the same command again to resume",
@@ -372,7 +406,7 @@ def train(model, dataset, task: Task, out_dir: str | Path, recipe: Recipe, *, fe
     if ema_model is not None:
         model.load_state_dict(ema_model.state_dict())
     if writes:
-        _write_curves(out_dir, state)
+        write_curves(out_dir, state)
     tail = [c["loss"] for c in state.curve[-max(1, len(state.curve) // 10):]]
     summary = {"steps": state.step, "resumed_from_step": resumed_from, "final_loss": sum(tail) / len(tail),
                "first_loss": state.curve[0]["loss"] if state.curve else float("nan"),

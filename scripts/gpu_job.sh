@@ -9,7 +9,8 @@
 # goes on where it stopped:
 #   tests    tests/test_cuda.py and tests/test_fused_gpu.py with the fused kernels on
 #            -> results/gpu/cuda_tests/<device>.txt
-#   speed    +experiment=speed preset=gpu device=cuda, with the fused kernels on only if `tests` passed
+#   speed    +experiment=speed preset=gpu device=cuda, with the fused kernels on only if `tests` passed, and
+#            the training step of Ours and the conv stack also CUDA-graphed (train.compile=reduce-overhead)
 #            -> results/gpu/speed/<device>/
 #   profile  (optional) Ours' training step under torch.profiler, eager and compiled
 #            (scripts/gpu_profile_step.py) -> results/gpu/profile/<device>.md
@@ -91,7 +92,7 @@ step_speed() {
     tests_passed && fused=1
     echo "gpu_job: speed with SRD_BENCH_FUSED_GPU=$fused"
     SRD_BENCH_FUSED_GPU=$fused timeout "$(step_limit)" "$PYTHON" -m bench +experiment=speed preset="$PRESET" device="$DEVICE" \
-        experiment.oidn=false $SPEED_ARGS
+        experiment.oidn=false experiment.train.compile=reduce-overhead $SPEED_ARGS
 }
 
 step_sota() {

@@ -11,6 +11,7 @@ fused kernels' bf16 path and the race-freedom of their input-gradient scatter ar
 (Triton's interpreter, which runs tests/test_fused_gpu.py in CI, cannot)."""
 import copy
 
+import pandas as pd
 import pytest
 import torch
 import torch.nn.functional as F
@@ -21,7 +22,7 @@ from bench.nn import CFM, DeformConv2d, deform_conv2d, fused
 from bench.tasks import get_task
 from bench.train import load_weights, train
 from conftest import SMALL, inputs
-from test_train import SyntheticSequences, _model, _recipe
+from test_train import TASK, SyntheticSequences, _model, _recipe
 
 pytestmark = pytest.mark.skipif(not torch.cuda.is_available(),
                                 reason="no CUDA GPU here (the GPU path runs where there is one: pytest tests/test_cuda.py)")
@@ -165,6 +166,22 @@ def _run_deform(t, dtype=torch.float32, grad_out=None):
 
 def _relative(got, want):
     return ((got.double() - want.double()).norm() / want.double().norm()).item()
+
+
+def test_a_cuda_graphed_training_step_equals_eager(tmp_path):
+    """train.compile=reduce-overhead (forward, losses and backward as CUDA graphs, bench/train.py): the
+    same per-step losses as eager on the GPU within test_train's COMPILED_RTOL, and the copies of the
+    reported losses survive the graphs' next replays (every step's value differs)."""
+    from test_train import COMPILED_RTOL
+    curves = {}
+    for mode in (None, "reduce-overhead"):
+        train(_model(), SyntheticSequences(), TASK, tmp_path / str(mode), _recipe(6, compile=mode, val_every=0),
+              device="cuda", progress=False)
+        curves[mode] = pd.read_csv(tmp_path / str(mode) / "curve.csv")
+    for column in ("loss", "grad_norm"):
+        assert curves["reduce-overhead"][column].tolist() == pytest.approx(curves[None][column].tolist(),
+                                                                          rel=COMPILED_RTOL)
+    assert curves["reduce-overhead"]["loss"].nunique() == 6
 
 
 @pytest.mark.parametrize("shape", [(2, 32, 67, 121, 32), (1, 64, 33, 40, 16), (3, 16, 17, 9, 72)])

@@ -32,3 +32,73 @@ def test_bounded_domains_invert_any_network_output_to_a_finite_radiance(mode):
     assert torch.isfinite(from_network(y, mode)).all()
     top = from_network(torch.tensor([1e9, float("inf")]), mode)
     assert top.tolist() == pytest.approx([100.0, 100.0] if mode == "pu" else [1.0, 1.0])
+
+
+# ---------------------------------------------------------------- the exposure domain (the default)
+
+from bench.evaluate import predict  # noqa: E402  (the one inference path: training, evaluation and predict)
+from bench.hdr import BLACK_EXPOSURE, frame_exposure, transforms  # noqa: E402
+from bench.models.srd import SRDNet  # noqa: E402
+from conftest import SMALL, inputs  # noqa: E402
+
+LEARNED = {**SMALL, "srd": (SRDNet, dict(channels=8, sr_blocks=1, dn_levels=2, dn_deform_blocks=1))}
+EXPOSURE_RTOL = 1e-4  # f(kx) = k f(x) up to float32 rounding (the network sees the same values)
+
+
+def _learned(name):
+    cls, kwargs = LEARNED[name]
+    torch.manual_seed(0)
+    model = cls(**kwargs).eval()
+    with torch.no_grad():  # zero-initialised layers (CFM, deform offsets) would hide part of the network
+        for p in model.parameters():
+            p.add_(0.05 * torch.randn_like(p))
+    return model
+
+
+def _scene(seed=0):
+    """LR radiance with a dark half, a highlight of 3000 and exact zeros; a gBuffer."""
+    x, g = inputs(b=1, t=2, h=16, w=24, seed=seed)
+    x = x ** 3
+    x[..., :8, :] *= 1e-3
+    x[..., 2, 3] = 3000.0
+    x[..., 10:, :4] = 0.0
+    return x, g
+
+
+def test_frame_exposure_scales_with_the_frame_and_is_black_exposure_for_a_black_frame():
+    x, _ = _scene()
+    e = frame_exposure(x, "exposure")
+    assert e.shape == (1, 2, 1, 1, 1) and (e > 0).all()
+    for k in (1e-4, 1e-2, 1e2, 1e4):
+        assert torch.allclose(frame_exposure(k * x, "exposure"), k * e, rtol=1e-5)
+    assert frame_exposure(torch.zeros(1, 1, 3, 8, 8), "exposure").item() == pytest.approx(BLACK_EXPOSURE)
+    assert frame_exposure(x, "pu") is None
+
+
+def test_the_exposure_domain_inverts_without_a_ceiling():
+    x = torch.logspace(-8, 6, 300, dtype=torch.float64).reshape(1, 1, 3, 10, 10)
+    e = frame_exposure(x, "exposure")
+    assert torch.allclose(from_network(to_network(x, "exposure", e), "exposure", e), x, rtol=1e-9)
+    with pytest.raises(ValueError, match="needs the frame's exposure"):
+        to_network(x, "exposure")
+    to_linear, from_linear = transforms("exposure")  # the models' linear base: radiance / exposure
+    y = torch.rand(5, dtype=torch.float64) * 3
+    assert torch.allclose(to_linear(from_linear(y)), y)
+
+
+@pytest.mark.parametrize("name", sorted(LEARNED))
+def test_a_learned_model_in_the_exposure_domain_scales_with_the_input_and_keeps_black_black(name):
+    """f(k x) = k f(x) for k from 1e-4 to 1e4 (within EXPOSURE_RTOL of the output's peak), so a bright
+    frame comes out above PU21's ceiling of 100, and an all-black frame gives at most 1e-6. (Random
+    weights: whether a trained model reproduces a highlight is the stability table's energy rule.)"""
+    model = _learned(name)
+    x, g = _scene()
+    out = predict(model, x, g, "exposure")
+    for k in (1e-4, 1e-2, 1e2, 1e4):
+        scaled = predict(model, k * x, g, "exposure")
+        assert (scaled - k * out).abs().max() <= EXPOSURE_RTOL * k * out.abs().max(), k
+    assert predict(model, 1e4 * x, g, "exposure").max() > 100
+    assert predict(model, 1e4 * x, g, "pu").max() <= 100  # the ceiling the old domain has
+    black = predict(model, torch.zeros_like(x), g, "exposure")
+    assert black.abs().max() <= 1e-6
+    assert predict(model, torch.zeros_like(x), g, "pu").abs().max() > 1e-6  # the floor the old domain has

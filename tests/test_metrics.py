@@ -5,7 +5,8 @@ import pytest
 import torch
 from skimage.metrics import peak_signal_noise_ratio, structural_similarity
 
-from bench.metrics import psnr, reference_error, relmse, robust_relmse, ssim, temporal_relmse
+from bench.metrics import (HIGHER_IS_BETTER, LOWER_IS_BETTER, METRICS, hdr_flip, ldr_flip, psnr, reference_error, relmse,
+                           robust_relmse, ssim, temporal_relmse)
 
 
 def _pair(seed, shape=(3, 40, 33)):
@@ -103,3 +104,45 @@ def test_reference_error_estimates_the_mean_of_two_halves_against_the_truth(nois
     estimate, actual = reference_error(a, b), relmse((a + b) / 2, truth)
     torch.testing.assert_close(estimate, actual, rtol=0.05, atol=0)
     assert (reference_error(truth, truth) == 0).all()
+
+
+# ---------------------------------------------------------------- FLIP
+
+def _flip_fixture():
+    """A reference with a highlight of 50 and a prediction that halves it and adds noise elsewhere."""
+    gen = torch.Generator().manual_seed(3)
+    ref = torch.rand(2, 3, 40, 56, generator=gen) ** 2
+    ref[:, :, 10:14, 20:26] = 50.0
+    pred = (ref + 0.05 * torch.randn(ref.shape, generator=gen)).clamp_min(0)
+    pred[:, :, 10:14, 20:26] = 25.0
+    return pred, ref
+
+
+def test_flip_equals_flip_evaluators_own_api_on_each_image():
+    """The suite's LDR- and HDR-FLIP against flip_evaluator.evaluate called directly on (H, W, C) arrays:
+    the same layout, clamping and dynamic range, image by image."""
+    import flip_evaluator
+    pred, ref = _flip_fixture()
+    ldr, hdr = ldr_flip(pred, ref), hdr_flip(pred, ref)
+    for i in range(2):
+        p, r = (t[i].permute(1, 2, 0).numpy() for t in (pred, ref))
+        assert ldr[i].item() == pytest.approx(flip_evaluator.evaluate(
+            r.clip(0, 1), p.clip(0, 1), "LDR", inputsRGB=False, applyMagma=False)[1], rel=1e-6)
+        assert hdr[i].item() == pytest.approx(flip_evaluator.evaluate(
+            r, p, "HDR", inputsRGB=False, applyMagma=False)[1], rel=1e-6)
+    assert ldr_flip(ref, ref).tolist() == [0.0, 0.0] and hdr_flip(ref, ref).tolist() == [0.0, 0.0]
+
+
+def test_hdr_flip_sees_a_highlight_that_ldr_metrics_cannot():
+    """Halving a highlight of 50 moves nothing in [0, 1] (PSNR, SSIM, LDR-FLIP unchanged) and raises HDR-FLIP."""
+    pred, ref = _flip_fixture()
+    intact = pred.clone()
+    intact[:, :, 10:14, 20:26] = 50.0
+    assert psnr(pred, ref).tolist() == psnr(intact, ref).tolist()
+    assert ldr_flip(pred, ref).tolist() == pytest.approx(ldr_flip(intact, ref).tolist())
+    assert (hdr_flip(pred, ref) > hdr_flip(intact, ref) + 1e-3).all()
+
+
+def test_every_metric_is_in_the_evaluators_scores_with_its_direction():
+    assert {"LDR-FLIP", "HDR-FLIP"} <= set(METRICS)
+    assert set(METRICS) | {"temporal relMSE"} == set(LOWER_IS_BETTER) | set(HIGHER_IS_BETTER)

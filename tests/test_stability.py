@@ -14,17 +14,27 @@ from conftest import smoke_overrides
 ROOT = Path(__file__).resolve().parents[1]
 
 
-@pytest.fixture(scope="module")
-def stability_table(tmp_path_factory, smoke_data):
-    root = tmp_path_factory.mktemp("stability")
+def _stability(root, smoke_data, *overrides):
     smoke_data(root / "data")
-    overrides = smoke_overrides(root) + ["experiment.models=[srd,rae,kpcn,bilinear,oidn_lr]",
-                                         "experiment.long_frames=12"]
     with initialize_config_dir(config_dir=CONF_DIR, version_base=None):
-        cfg = compose("config", overrides=["+experiment=stability", *overrides])
+        cfg = compose("config", overrides=["+experiment=stability", *smoke_overrides(root), *overrides])
     run_experiment(cfg)
     out = root / "results" / "stability"
     return pd.read_csv(out / "table.csv"), out
+
+
+@pytest.fixture(scope="module")
+def stability_table(tmp_path_factory, smoke_data):
+    """The experiment as configured: learned models in the exposure domain."""
+    return _stability(tmp_path_factory.mktemp("stability"), smoke_data,
+                      "experiment.models=[srd,rae,kpcn,bilinear,oidn_lr]", "experiment.long_frames=12")
+
+
+@pytest.fixture(scope="module")
+def pu_table(tmp_path_factory, smoke_data):
+    """Ours trained in PU21, the cpu preset's recorded domain (capped at radiance 100)."""
+    return _stability(tmp_path_factory.mktemp("stability_pu"), smoke_data, "train.hdr=pu",
+                      "experiment.models=[srd,bilinear]", "experiment.long_frames=4")
 
 
 def test_every_case_is_finite_or_a_clear_error(stability_table):
@@ -99,14 +109,26 @@ def test_a_case_is_judged_against_its_scaled_reference_not_only_for_being_finite
     assert status({**black, "max |output|": 7e-3}) == "FAIL (black in, 0.007 out)"
 
 
-def test_linear_methods_pass_every_scale_and_the_capped_domain_fails_the_bright_one(stability_table):
+def test_the_exposure_domain_passes_every_scale_and_black_for_every_learned_model(stability_table):
+    """In the default domain a learned model's output scales with its input, so each scaled case is
+    within 2x of the unscaled relMSE, from 1e-6 to 1e4, and an all-black frame gives at most 1e-6."""
+    table, _ = stability_table
+    rows = table.set_index(["model", "case"])
+    for model in ("srd", "rae", "kpcn", "bilinear"):
+        for case in (*SCALES, "all-black frame"):
+            assert rows.loc[(model, case), "status"].startswith("ok"), (model, rows.loc[(model, case)].to_dict())
+    assert rows.loc[("srd", "all-black frame"), "max |output|"] <= 1e-6
+
+
+def test_linear_methods_pass_every_scale_and_the_capped_domain_fails_the_bright_one(pu_table):
     """The rule's two sides at smoke: bilinear is linear, so every scale passes (its output divided by k
-    is the unscaled one), from 1e-6 to 1e4; the learned models' PU21 domain caps outputs at radiance
-    100, so the scene at 1e4 fails on its reference, with the reason in the cell."""
-    table, out = stability_table
+    is the unscaled one), from 1e-6 to 1e4; the PU21 domain caps outputs at radiance 100, so the scene
+    at 1e4 fails on its reference, with the reason in the cell, and so does the black frame."""
+    table, out = pu_table
     rows = table.set_index(["model", "case"])
     for case in SCALES:
         assert rows.loc[("bilinear", case), "status"].startswith("ok"), rows.loc[("bilinear", case)].to_dict()
     assert rows.loc[("srd", "HDR scale 1e4"), "status"].startswith("FAIL (relMSE ")
     assert rows.loc[("srd", "HDR scale 1e4"), "energy above range"] < 0.9
     assert "FAIL (relMSE " in (out / "table.md").read_text()
+    assert rows.loc[("srd", "all-black frame"), "status"].startswith("FAIL (black in")

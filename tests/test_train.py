@@ -71,7 +71,8 @@ def test_cosine_schedule_warms_up_linearly_then_decays_to_zero():
 
 def test_the_identity_names_every_option_but_loss_terms_of_weight_zero():
     base = config_recipe(loss=WEIGHTS)
-    assert set(base.identity()) == {f for f in Recipe.__dataclass_fields__} - set(Recipe.NOT_IDENTITY)
+    assert set(base.identity()) == {f for f in Recipe.__dataclass_fields__} - set(Recipe.NOT_IDENTITY) - {"compile"}
+    assert base.compile is None  # eager: left out (Recipe.OMITTED_AT), so runs recorded before the option keep their hash
     assert base.identity()["colour_permute"] is False and config_recipe(colour_permute=True).identity()["colour_permute"]
     assert "perceptual" not in base.identity()["loss"]["final"]
     # a term set to 0 (conf/pin/studies.yaml takes out a term the preset has since added) is the recipe without it
@@ -375,3 +376,49 @@ def test_last_fifth_gain_reads_the_learning_curve(tmp_path):
     pd.DataFrame({"step": [0, 100, 200, 300, 400, 500], "PSNR": [20.0, 25, 27, 28, 28.5, 28.6]}).to_csv(curve)
     assert last_fifth_gain(tmp_path) == pytest.approx(0.1)       # 500 vs the point at step 400
     assert last_fifth_gain(tmp_path / "missing") is None
+
+
+def test_losses_are_read_back_every_25_steps_not_every_step(tmp_path, monkeypatch):
+    """The step leaves its losses on the device (no host sync per step): one read-back per READ_BACK_EVERY
+    steps, one at the end, and the curve still has every step's loss, learning rate and gradient norm."""
+    import bench.train as trainer
+    calls = []
+    real = trainer.read_back
+    monkeypatch.setattr(trainer, "read_back", lambda unread, *a: calls.append(len(unread)) or real(unread, *a))
+    _train(SyntheticSequences(), tmp_path, steps=60, checkpoint_every=1000, val_every=0)
+    assert trainer.READ_BACK_EVERY == 25 and calls == [25, 25, 10]
+    curve = pd.read_csv(tmp_path / "curve.csv")
+    assert curve["step"].tolist() == list(range(1, 61)) and curve[["loss", "grad_norm", "lr"]].notna().all().all()
+
+
+def test_a_divergence_between_read_backs_is_named_by_its_step_and_never_checkpointed(tmp_path):
+    """A NaN at step 30 is found at the next read-back, which comes before step 40's checkpoint: the error
+    names step 30, curve.csv ends at the step before it, and the checkpoint stays step 20's."""
+    with pytest.raises(TrainingDiverged, match=r"non-finite loss \(nan\) at step 30; the last good checkpoint is "
+                                                r".*checkpoint.pt") as err:
+        _train(SyntheticSequences(nan_at_draw=30 * 2), tmp_path, steps=60, checkpoint_every=20, val_every=0)
+    assert err.value.step == 30
+    assert pd.read_csv(tmp_path / "curve.csv")["step"].tolist() == list(range(1, 31))
+    state = torch.load(tmp_path / CHECKPOINT, weights_only=False)
+    assert state["step"] == 20 and all(torch.isfinite(v).all() for v in state["model"].values())
+
+
+COMPILED_RTOL = 1e-5  # torch.compile fuses ops (another rounding order): the step's losses agree to this
+
+
+def test_a_compiled_training_step_equals_eager_within_its_tolerance(tmp_path):
+    """train.compile=default (Inductor on the CPU) traces forward, losses and backward: the same losses
+    and gradient norms per step as eager within COMPILED_RTOL, the same final weights within 1e-4, and
+    its identity names the option (eager's leaves it out, so recorded runs keep their hashes)."""
+    curves, weights = {}, {}
+    for mode in (None, "default"):
+        model = _model()
+        train(model, SyntheticSequences(), TASK, tmp_path / str(mode), _recipe(3, compile=mode, val_every=0),
+              progress=False)
+        curves[mode] = pd.read_csv(tmp_path / str(mode) / "curve.csv")
+        weights[mode] = model.state_dict()
+    for column in ("loss", "grad_norm"):
+        assert curves["default"][column].tolist() == pytest.approx(curves[None][column].tolist(), rel=COMPILED_RTOL)
+    for name, value in weights[None].items():
+        assert torch.allclose(weights["default"][name], value, rtol=1e-4, atol=1e-6), name
+    assert "compile" not in _recipe(3).identity() and _recipe(3, compile="default").identity()["compile"] == "default"

@@ -39,7 +39,7 @@ from bench.table_writer import SCORED_ON, listed_evaluations, read_table, write_
 
 log = logging.getLogger("bench")
 
-METRICS = {"PSNR": 1, "SSIM": 1, "relMSE": -1}   # +1: higher is better
+METRICS = {"PSNR": 1, "SSIM": 1, "relMSE": -1, "LDR-FLIP": -1, "HDR-FLIP": -1}   # +1: higher is better
 NOT_RUN = "not run"   # the verdict of a claim with a row missing from the recorded tables
 ALPHA = 0.05          # family-wise error over the table's distinct comparisons (Holm)
 
@@ -115,7 +115,8 @@ def _per_sequence_means(ctx: Context, eval_hash: str, cache: dict) -> pd.DataFra
         if frames is None:
             raise UserError(f"claims: evaluation run {eval_hash} has no per-frame scores in {ctx.runs_dir}; "
                             "rerun its table with this runs_dir")
-        cache[eval_hash] = frames.groupby("sequence")[list(METRICS)].mean()
+        recorded = [m for m in METRICS if m in frames]  # FLIP: not in evaluations recorded before it was scored
+        cache[eval_hash] = frames.groupby("sequence")[recorded].mean().reindex(columns=list(METRICS))
     return cache[eval_hash]
 
 
@@ -158,7 +159,7 @@ def two_se(ctx: Context, better: pd.Series, worse: pd.Series, metric: str, cache
     """The earlier test, kept beside the new one: the tables' difference against twice its SE, over seeds
     (unpaired, from the std columns) when both rows have several, else over one seed's per-sequence
     paired differences."""
-    diff = METRICS[metric] * (float(better[metric]) - float(worse[metric]))
+    diff = METRICS[metric] * (float(better.get(metric, math.nan)) - float(worse.get(metric, math.nan)))
     runs_b, runs_w = listed_evaluations(better["runs"]), listed_evaluations(worse["runs"])
     std = f"{metric} std"
     if len(runs_b) > 1 and len(runs_w) > 1 and std in better and not pd.isna(better[std]):
@@ -274,7 +275,9 @@ def _caption(ctx: Context, metric: str, tables: list[str] | None) -> str:
         f"{ALPHA:g}: holds or reversed by the sign of diff, else within noise. verdict (the claim, on {metric}): "
         f"holds when every pair holds, reversed when any is reversed, else within noise; {NOT_RUN}: a row is "
         f"missing from the recorded tables (basis says which and the command that records it) and no "
-        f"recorded pair is reversed. The other metrics: their intervals only. rests on: the scene families "
+        f"recorded pair is reversed. The other metrics (PSNR, SSIM, relMSE, LDR-FLIP, HDR-FLIP; FLIP is lower-is-"
+        f"better, so its d is worse minus better): their intervals only, blank where a row was evaluated before "
+        f"the suite scored FLIP. rests on: the scene families "
         f"whose leaving out (Holm again over the table) changes the verdict, and what it changes to; the "
         f"CSV has each pair's mean difference per family and the variance components. 2SE, 2SE verdict "
         f"and verdict (2SE): the earlier test, |diff| < twice the SE over seeds (unpaired, from the tables' "
@@ -311,6 +314,14 @@ def run(ctx: Context, name: str, claims: list[dict], metric: str, tables: list[s
                 keys.append(None)
                 continue
             columns, d = judge_pair(ctx, better, worse, metric, cache)
+            if d.isna().all().all():  # a row evaluated before the suite scored `metric` (FLIP)
+                unscored = (f"{metric} not recorded for {better['method']!r} or {worse['method']!r} (evaluated "
+                            f"before it was scored): rerun their tables with force=true")
+                log.warning("claims: %r not judged: %s", claim["claim"], unscored)
+                rows.append({**row, **columns, f"{metric} 2SE verdict": NOT_RUN, "basis": unscored})
+                differences.append(None)
+                keys.append(None)
+                continue
             rows.append({**row, **columns})
             differences.append(d)
             keys.append(comparison_key(better, worse))

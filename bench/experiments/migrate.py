@@ -68,7 +68,7 @@ def train_identity(old: dict) -> dict:
         except ValueError as err:
             raise NotRepresentable(f"train.loss.{head}: {err}") from None
     recipe_options = {f.name for f in dataclasses.fields(Recipe)} - set(Recipe.NOT_IDENTITY)
-    values = {**IMPLIED_V1, **train}
+    values = {**IMPLIED_V1, **Recipe.OMITTED_AT, **train}
     for option in set(values) - recipe_options:
         if option not in RETIRED_OPTIONS:
             raise NotRepresentable(f"train.{option}: not an option of the current recipe")

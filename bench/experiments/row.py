@@ -53,13 +53,13 @@ def row(ctx: Context, label: str, model: str, overrides: dict | None = None, tas
     split = split or ctx.eval.split
     results = [evaluated(ctx, cfg, t, seed, split, label, cascade) for seed in ctx.seeds]
     out = {"method": label, "task": task}
-    for metric in (*SCORES, "time_ms"):
-        values = np.array([r.metrics[metric] for r in results], dtype=float)
+    for metric in (*SCORES, "time_ms"):  # NaN: a seed's evaluation was recorded without it (LATER_SCORES)
+        values = np.array([r.metrics.get(metric, np.nan) for r in results], dtype=float)
         out[metric] = float(values.mean())
         if len(values) > 1:
             out[f"{metric} std"] = float(values.std(ddof=1))
     for metric in SCORES:  # uncertainty over the split's sequences (a seed average for several seeds)
-        out[f"{metric} se"] = float(np.mean([r.metrics[f"{metric} se"] for r in results]))
+        out[f"{metric} se"] = float(np.mean([r.metrics.get(f"{metric} se", np.nan) for r in results]))
     out["params"] = results[0].metrics.get("params", 0)
     # what this row cost to compute, whenever it was computed (a reused run keeps its recorded time)
     out["train (min)"] = float(np.mean([sum(runs.recorded_wall_s("train", h, ctx.runs_dir, ctx.archives) or 0.0

@@ -276,6 +276,9 @@ def training_rows(label: str, model, train: dict, loss_weights: dict, lr: float,
     the fused kernels, the entry points' default) and, for models that have deformable convs, with
     the grid_sample sampler and, on CUDA, the fused Triton kernels (deformable conv and CFM)."""
     rows = [training_row(label, model, train, loss_weights, lr, device, repeats, warmup)]
+    if train.get("compile") and label in train.get("compiled", ()):  # the trainer's train.compile
+        rows.append(training_row(label, model, train, loss_weights, lr, device, repeats, warmup,
+                                 path=f"fp32, compiled ({train['compile']})", compile=train["compile"]))
     deform = next((m for m in model.modules() if isinstance(m, DeformConv2d)), None)
     if deform is None:
         return rows
@@ -298,9 +301,10 @@ def training_rows(label: str, model, train: dict, loss_weights: dict, lr: float,
 
 def training_row(label: str, model, train: dict, loss_weights: dict, lr: float, device, repeats, warmup,
                  in_channels: int = 3, out_channels: int = 3, scale: int = 2, path: str = "fp32",
-                 bf16: bool = False, channels_last: bool = False) -> dict:
+                 bf16: bool = False, channels_last: bool = False, compile: str | None = None) -> dict:
     """Time of one optimisation step (forward, loss, backward, Adam) on a random batch of the training
-    crop, fp32 (or as the trainer's train.precision=bf16 and train.channels_last=true do). The loss is
+    crop, fp32 (or as the trainer's train.precision=bf16, train.channels_last=true and train.compile=<mode>
+    do: forward and loss under torch.compile, its first call, the compilation, timed apart). The loss is
     the trainer's weighted loss without the perceptual term (no VGG here)."""
     model = copy.deepcopy(model).train()
     batch, frames, crop = train["batch"], train["frames"], train["crop"]
@@ -312,19 +316,31 @@ def training_row(label: str, model, train: dict, loss_weights: dict, lr: float, 
     optimizer = torch.optim.Adam(model.parameters(), lr=lr)
     weights = {name: {**w, "perceptual": 0} for name, w in loss_weights.items()}
 
+    def forward_loss(x, g):
+        out = model(x, g)
+        loss, _ = weighted_loss(out["final"], target, weights["final"])
+        if out.get("intermediate") is not None and any(weights["intermediate"].values()):
+            loss = loss + weighted_loss(out["intermediate"], target, weights["intermediate"])[0]
+        return loss
+
+    traced = forward_loss if compile is None else torch.compile(forward_loss, mode=compile)
+
     def step():
         optimizer.zero_grad(set_to_none=True)
+        if compile is not None:
+            torch.compiler.cudagraph_mark_step_begin()
         with torch.autocast(torch.device(device).type, dtype=torch.bfloat16, enabled=bf16):
-            out = model(x, g)
-            loss, _ = weighted_loss(out["final"], target, weights["final"])
-            if out.get("intermediate") is not None and any(weights["intermediate"].values()):
-                loss = loss + weighted_loss(out["intermediate"], target, weights["intermediate"])[0]
+            loss = traced(x, g)
         loss.backward()
         optimizer.step()
 
+    note = "Adam, trainer loss without perceptual"
+    if compile is not None:
+        compile_s = time_call(step, device, 1, 0)["ms"] / 1000  # the first call compiles
+        note += f"; first call (compile) {compile_s:.0f} s"
     timing = time_call(step, device, repeats, warmup)
     return _row("training step", label, path, f"{batch}x{frames} frames of {crop}x{crop} LR", "step", timing,
-                **{"peak MiB": peak_memory_mib(step, device), "note": "Adam, trainer loss without perceptual"})
+                **{"peak MiB": peak_memory_mib(step, device), "note": note})
 
 
 def oidn_row(out_hw, device, repeats, warmup) -> dict | None:
@@ -359,6 +375,10 @@ def conv_stack_rows(target_macs: int, hw, channels: int, paths, device, repeats,
     if train:
         rows.append(training_row(label, stack, train, {"final": {"spatial": 1}}, 6e-4, device, repeats, warmup,
                                  in_channels=channels, out_channels=channels, scale=1))
+        if train.get("compile"):  # the same path as Ours' compiled row, for their ratio
+            rows.append(training_row(label, stack, train, {"final": {"spatial": 1}}, 6e-4, device, repeats, warmup,
+                                     in_channels=channels, out_channels=channels, scale=1,
+                                     path=f"fp32, compiled ({train['compile']})", compile=train["compile"]))
     return rows
 
 
@@ -496,7 +516,8 @@ def profile_rows(label: str, model, macs_table: pd.DataFrame, x, g, path: str, d
 # ------------------------------------------------------------------------------ the experiment
 
 def _ratios(table: pd.DataFrame) -> pd.DataFrame:
-    """time / OIDN for every per-frame inference row; GMac/s / conv stack per fast path."""
+    """time / OIDN for every per-frame inference row; GMac/s / conv stack per fast path; a training step
+    against the conv stack's step on the same path (compiled against compiled), else its fp32 one."""
     oidn = table.loc[table["method"].str.startswith("OIDN"), "ms"]
     if len(oidn):
         frames = table["section"].isin(["inference", "tiled"])
@@ -507,9 +528,11 @@ def _ratios(table: pd.DataFrame) -> pd.DataFrame:
     table.loc[inference, "GMac/s / conv stack"] = [
         gmacs / stack.get(path, float("nan")) for gmacs, path in table.loc[inference, ["GMac/s", "fast path"]].to_numpy()]
     steps = table["section"] == "training step"
-    stack_step = table.loc[steps & table["method"].str.startswith("3x3 conv stack"), "ms"]
-    if len(stack_step):
-        table.loc[steps, "step / conv stack step"] = table.loc[steps, "ms"] / float(stack_step.iloc[0])
+    stack_steps = table[steps & table["method"].str.startswith("3x3 conv stack")].set_index("fast path")["ms"]
+    if len(stack_steps):  # against the stack's step on the same path (compiled), else its eager fp32 one
+        eager = stack_steps.get("fp32", float("nan"))
+        table.loc[steps, "step / conv stack step"] = [
+            ms / stack_steps.get(path, eager) for ms, path in table.loc[steps, ["ms", "fast path"]].to_numpy()]
     return table
 
 

@@ -28,7 +28,7 @@ from bench.evaluate import predict
 from bench.experiments.context import Context, model_config, with_training, working_split
 from bench.experiments.datasets import dataset, ensure_data
 from bench.experiments.training import trained_model
-from bench.hdr import from_network, to_network
+from bench.hdr import EXPOSED, NAMES, frame_exposure, from_network, to_network
 from bench.measure import time_call
 from bench.metrics import psnr, relmse, ssim
 from bench.models.factory import is_learned
@@ -154,7 +154,7 @@ def _deform_rows(model, x, g, hdr) -> list[dict]:
         with torch.no_grad():
             for layer in layers:
                 layer.offset_conv.bias.fill_(value)
-        out = m(to_network(x, hdr), g)["final"]
+        out = m(to_network(x, hdr, frame_exposure(x, hdr)), g)["final"]
         out.square().mean().backward()
         grads = all(p.grad is None or _finite(p.grad) for p in m.parameters())
         offset_grads = all(_finite(layer.offset_conv.bias.grad) for layer in layers if layer.offset_conv.bias.grad is not None)
@@ -291,11 +291,11 @@ def statuses(table: pd.DataFrame) -> list[str]:
 def output_ceiling(hdr: str) -> float:
     """The largest linear radiance a learned model can output through the network domain `hdr`: what the
     inverse transform gives for the brightest input (inf where nothing saturates)."""
-    top = float(from_network(to_network(torch.tensor([1e30], dtype=torch.float64), hdr), hdr)[0])
+    exposure = torch.tensor(1.0, dtype=torch.float64) if hdr in EXPOSED else None  # the ceiling at any exposure
+    top = float(from_network(to_network(torch.tensor([1e30], dtype=torch.float64), hdr, exposure), hdr, exposure)[0])
     return top if top < 1e29 else math.inf
 
 
-DOMAIN_NAMES = {"pu": "PU21"}  # train.hdr's value -> the transform's name in prose
 
 
 def _firefly_level(case: str) -> float:
@@ -306,7 +306,7 @@ def range_note(table: pd.DataFrame, hdr: str) -> str:
     """What the network domain's ceiling clips, told from the table's rows: each learned model's output on the
     brightest firefly case (learned: the models with a training-step row) against the methods that work on
     linear radiance."""
-    ceiling, domain = output_ceiling(hdr), f"{DOMAIN_NAMES.get(hdr, hdr)} network domain (train.hdr={hdr}"
+    ceiling, domain = output_ceiling(hdr), f"{NAMES[hdr]} network domain (train.hdr={hdr}"
     if math.isinf(ceiling):
         return f"Learned models work in the {domain}), which has no ceiling."
     fireflies = [c for c in table["case"].unique() if str(c).startswith("firefly ")]

@@ -36,6 +36,7 @@ from bench.experiments.macs import frame_inputs
 from bench.experiments.row import row
 from bench.experiments.training import scoring_only_error, training_records, untrained
 from bench.macs import count_macs, on_meta
+from bench.hdr import NAMES
 from bench.metrics import HIGHER_IS_BETTER, LOWER_IS_BETTER, RELMSE_FORMULA
 from bench.models.factory import build_model, is_learned
 from bench.paper import TABLES, paper_values
@@ -383,10 +384,13 @@ def caption_notes(ctx: Context, scoring_ctx: Context, table: pd.DataFrame, rows:
     scored_on = SCORED_ON.format(preset=ctx.preset, split=split or ctx.eval.split)
     notes = (f"Task {tasks}. {RELMSE_FORMULA}; robust relMSE leaves out the 0.1% of pixels with the highest "
              f"error; temporal relMSE scores the frame-to-frame change against the reference's; PSNR/SSIM on "
-             f"images clamped to [0, 1]; (se ...): standard error over the split's sequences. "
+             f"images clamped to [0, 1]; LDR-FLIP of those images, HDR-FLIP of the linear radiance (NVIDIA FLIP, "
+             f"flip-evaluator; '-': evaluated before the suite scored FLIP); (se ...): standard error over the "
+             f"split's sequences. "
              f"{scored_on[0].upper()}{scored_on[1:]}, {ctx.train.steps} training steps, loss g:t:s:p = "
              f"{loss['edge']}:{loss['temporal']}:{loss['spatial']}:{loss['perceptual']}{extra} (unless a row says "
-             f"otherwise), seeds {list(ctx.seeds)} (mean +- std over seeds when several); time_ms: "
+             f"otherwise), network domain {NAMES[ctx.train.hdr]} (train.hdr={ctx.train.hdr}, bench/hdr.py), "
+             f"seeds {list(ctx.seeds)} (mean +- std over seeds when several); time_ms: "
              f"inference per frame on {ctx.device}.")
     notes += split_note(ctx, split or ctx.eval.split)
     if leave_out:
