@@ -20,7 +20,7 @@
 #            interrupted at its limit and resumed from its checkpoints by the next call (carry `runs`)
 #            -> results/gpu/sota/, runs/{train,eval}
 # Everything comes back in $OUT as at most 8 files: log.txt, results.tar.gz (results/gpu), and
-# runs.tar.gz.part-* (the run store without rendered data, 15 MiB parts). Unpack them here with
+# runs.tar.gz.part-* (the unfinished trainings' run folders, 15 MiB parts). Unpack them here with
 # scripts/gpu_unpack.sh. Environment: PYTHON (.venv/bin/python where `make` made one, else python3), DEVICE (cuda), PRESET (gpu), JOB_S, STEP_S,
 # SPEED_ARGS, SOTA_ARGS, PROFILE_ARGS. tests/test_gpu_job.py (make test) dry-runs `tests sota` on a CPU at the
 # smoke preset in a copy of the project. A dry run by hand (its records land in results/gpu: delete them after):
@@ -133,10 +133,23 @@ for step in $STEPS; do
     "step_$step"
 done
 
-# what comes back: results/gpu and the run store without rendered data, in parts under 16 MiB
+# what comes back: results/gpu (with its run archive, every finished run in compact form) and the
+# trainings that did not finish (their checkpoints, to resume), in parts under 16 MiB
 [ -d results/gpu ] && tar czf "$OUT/results.tar.gz" results/gpu
-if [ -d runs ]; then
-    rm -f "$OUT"/runs.tar.gz.part-*
-    tar czf - --exclude=runs/data runs | split -b 15m -a 1 - "$OUT/runs.tar.gz.part-"
+rm -f "$OUT"/runs.tar.gz.part-*
+unfinished=$("$PYTHON" - <<'PY'
+import json, pathlib
+for run in sorted(pathlib.Path("runs/train").glob("*/")):
+    try:
+        status = json.loads((run / "run.json").read_text()).get("status")
+    except (OSError, ValueError):
+        status = None
+    if status != "complete" and (run / "checkpoint.pt").exists():
+        print(run)
+PY
+)
+if [ -n "$unfinished" ]; then
+    echo "gpu_job: packing unfinished trainings: $(echo $unfinished | wc -w)"
+    tar czf - $unfinished | split -b 15m -a 1 - "$OUT/runs.tar.gz.part-"
 fi
 ls -l "$OUT"

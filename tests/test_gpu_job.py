@@ -1,10 +1,12 @@
 """scripts/gpu_job.sh, the GPU work as one resumable command, dry-run on this CPU at the smoke preset on
 tiny frames, in a copy of the project (it writes results/gpu and runs/ where it runs): what a GPU machine
 would run, but for the device."""
+import io
 import os
 import shutil
 import subprocess
 import sys
+import tarfile
 from pathlib import Path
 
 import pytest
@@ -13,7 +15,7 @@ REPO = Path(__file__).resolve().parent.parent
 TINY = ("data.lr_width=8 data.lr_height=6 data.spp=1 data.ref_spp=4 data.seq_len=2 data.max_depth=4 "
         "data.splits.train.sequences=1 data.splits.val.sequences=1 ~data.splits.generalization train.steps=2 "
         "train.crop=4 train.seq_len=2 train.batch_size=1 train.val_sequences=1 workers=1 progress=false "
-        "results_dir=results/gpu")
+        "results_dir=results/gpu runs_archive=results/gpu/runs")  # the gpu preset's archive, as the job packs it
 
 
 @pytest.fixture(scope="module")
@@ -50,10 +52,21 @@ def test_the_job_tests_renders_trains_scores_and_packs_then_a_second_call_skips_
     table = (project / "results" / "gpu" / "sota" / "table.md").read_text()
     assert "| Ours |" in table and "| Input bilinear |" in table
     back = sorted(p.name for p in first.iterdir())
-    assert {"log.txt", "results.tar.gz"} <= set(back) and any(n.startswith("runs.tar.gz.part-") for n in back)
+    assert {"log.txt", "results.tar.gz"} <= set(back)  # every training finished: in the archive, no runs part
+    assert not any(n.startswith("runs.tar.gz.part-") for n in back)
     assert len(back) <= 8 and all((first / n).stat().st_size <= 16 * 2**20 for n in back)
+    with tarfile.open(first / "results.tar.gz") as packed:
+        assert any(n.startswith("results/gpu/runs/train/") and n.endswith("run.json") for n in packed.getnames())
+    unfinished = project / "runs" / "train" / "0123456789abcdef"   # a training stopped at its limit
+    unfinished.mkdir(parents=True)
+    (unfinished / "run.json").write_text('{"status": "interrupted"}')
+    (unfinished / "checkpoint.pt").write_bytes(b"weights")
     second = job(project, "sota", out=tmp_path / "second")
     assert second.returncode == 0 and "gpu_job: sota table already there" in second.stdout, second.stdout[-3000:]
+    parts = sorted((tmp_path / "second").glob("runs.tar.gz.part-*"))
+    with tarfile.open(fileobj=io.BytesIO(b"".join(p.read_bytes() for p in parts))) as packed:
+        folder = f"runs/train/{unfinished.name}"
+        assert sorted(packed.getnames()) == [folder, f"{folder}/checkpoint.pt", f"{folder}/run.json"]
 
 
 def test_the_kernel_tests_run_again_for_a_code_change_not_for_a_comment(project, first, tmp_path):
