@@ -105,3 +105,38 @@ def inputs(b=2, t=3, h=13, w=17, g=7, seed=0):
     """Noisy LR frames (b, t, 3, h, w) and a gBuffer (b, t, g, h, w), uniform in [0, 1)."""
     gen = torch.Generator().manual_seed(seed)
     return torch.rand(b, t, 3, h, w, generator=gen), torch.rand(b, t, g, h, w, generator=gen)
+
+
+# ---------------------------------------------------------------- the command line, and a smoke run store
+
+REPO = Path(__file__).resolve().parents[1]
+
+
+def bench(*args, cwd=REPO, timeout=600):
+    env = dict(os.environ, HYDRA_FULL_ERROR="0", PYTHONUNBUFFERED="1")
+    return subprocess.run([sys.executable, "-m", "bench", *args], cwd=cwd, capture_output=True,
+                          text=True, timeout=timeout, env=env)
+
+
+@pytest.fixture(scope="module")
+def smoke_dirs(tmp_path_factory, smoke_data):
+    """`make run`, shorter, run once for the module; the tests below read its store in any order."""
+    root = tmp_path_factory.mktemp("smoke")
+    smoke_data(root / "data")
+    args = [f"runs_dir={root / 'runs'}", f"results_dir={root / 'results'}", f"data_dir={root / 'data'}",
+            "progress=false", "train.steps=12", "data.splits.train.sequences=4"]  # adopt replays 10 steps
+    first = bench("+experiment=smoke", *args)
+    assert first.returncode == 0, first.stderr[-3000:]
+    return args, root
+
+
+def copy_of_project_and_store(smoke_dirs, tmp_path):
+    """A copy of the project's code (to edit) and of the smoke run store, and the overrides that run the
+    copy against the copied store and the smoke data."""
+    args, root = smoke_dirs
+    project = tmp_path / "project"
+    for part in ("bench", "baselines", "conf"):
+        shutil.copytree(REPO / part, project / part, ignore=shutil.ignore_patterns("__pycache__", "*.so"))
+    shutil.copytree(root / "runs", tmp_path / "runs", ignore=shutil.ignore_patterns("mlflow*", "hydra"))
+    return project, [a for a in args if not a.startswith(("runs_dir=", "results_dir="))] + [
+        f"runs_dir={tmp_path / 'runs'}", f"results_dir={tmp_path / 'results'}"]
