@@ -110,7 +110,6 @@ def built_for(march: str):
         _march = previous
 
 
-@torch.compiler.assume_constant_result  # torch.compile: a constant of the trace, not a graph break (os.stat)
 def kernels_available() -> bool:
     """The kernels the ops call are built (not switched off, a compiler, no build error)."""
     return cpu_kernels(_march) is not None
