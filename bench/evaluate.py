@@ -3,7 +3,7 @@
 Metrics (bench.metrics): relMSE, robust relMSE, temporal relMSE and HDR-FLIP on linear HDR radiance,
 PSNR/SSIM and LDR-FLIP on images clamped to [0, 1]; each with its standard error over sequences.
 Methods with `linear_hdr = True` (OIDN, bilinear, bicubic) take and return linear radiance; every other model works in the
-network domain of `hdr` (bench.hdr) and its output is mapped back to linear before scoring.
+network domain of `hdr` (bench.exposure) and its output is mapped back to linear before scoring.
 """
 from __future__ import annotations
 
@@ -16,7 +16,7 @@ import pandas as pd
 import torch
 
 from bench.atomic import write_atomic
-from bench.hdr import frame_exposure, from_network, to_network
+from bench.exposure import decode, encode, frame_exposure
 from bench.infer import REFERENCE, prepare, tiled_predict
 from bench.metrics import METRICS, SEQUENCE_METRICS, all_metrics
 from bench.sanitize import sanitize_inputs
@@ -35,7 +35,7 @@ def predict(model, x_lin: torch.Tensor, g: torch.Tensor, hdr: str, sanitize: boo
     if getattr(model, "linear_hdr", False):
         return forward(x_lin, g)["final"]
     exposure = frame_exposure(x_lin, hdr)
-    return from_network(forward(to_network(x_lin, hdr, exposure), g)["final"], hdr, exposure)
+    return decode(forward(encode(x_lin, hdr, exposure), g)["final"], hdr, exposure)
 
 
 def runner(model, path: str = REFERENCE, tile: int | None = None):

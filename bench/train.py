@@ -36,7 +36,8 @@ from tqdm import tqdm
 from bench import distributed
 from bench.atomic import write_atomic
 from bench.errors import UserError
-from bench.hdr import MODES, frame_exposure, to_network, transforms
+from bench.exposure import DOMAINS, encode, frame_exposure, transfer
+from bench.hdr import transforms
 from bench.infer import frames_channels_last
 from bench.losses import weighted_loss
 from bench.macs import count_params
@@ -110,7 +111,7 @@ class Recipe:
     halve_every: float
     clip_grad_norm: float | None
     ema: float | None
-    hdr: str                          # network domain, one of bench.hdr.MODES
+    hdr: str                          # network domain, one of bench.exposure.DOMAINS
     colour_permute: bool
     precision: str                    # one of PRECISIONS
     channels_last: bool
@@ -127,8 +128,8 @@ class Recipe:
     def __post_init__(self):
         if self.schedule not in SCHEDULES:
             raise ValueError(f"train.schedule must be one of {SCHEDULES}, got {self.schedule!r}")
-        if self.hdr not in MODES:
-            raise ValueError(f"train.hdr must be one of {MODES}, got {self.hdr!r}")
+        if self.hdr not in DOMAINS:
+            raise ValueError(f"train.hdr must be one of {DOMAINS}, got {self.hdr!r}")
         if self.precision not in PRECISIONS:
             raise ValueError(f"train.precision must be one of {PRECISIONS}, got {self.precision!r}")
         if self.compile not in (None, *COMPILE_MODES):
@@ -185,13 +186,13 @@ def batch_loss(model, batch: dict, task: Task, loss_weights: dict, hdr: str, fea
     """Total loss and its named parts for one batch of (B, T, C, H, W) buffers."""
     x, g = sanitize_inputs(batch[task.x], batch[task.g])
     exposure = frame_exposure(x, hdr)  # every image of a frame shares its LR input's exposure
-    out = model(to_network(x, hdr, exposure), g)
-    to_linear = transforms(hdr)[0]
-    total, parts = weighted_loss(out["final"], to_network(batch[task.y], hdr, exposure), loss_weights["final"],
+    out = model(encode(x, hdr, exposure), g)
+    to_linear = transforms(transfer(hdr))[0]
+    total, parts = weighted_loss(out["final"], encode(batch[task.y], hdr, exposure), loss_weights["final"],
                                  features, to_linear)
     parts = {f"final.{k}": v for k, v in parts.items()}
     if task.mid and out.get("intermediate") is not None and any(loss_weights["intermediate"].values()):
-        mid, mid_parts = weighted_loss(out["intermediate"], to_network(batch[task.mid], hdr, exposure),
+        mid, mid_parts = weighted_loss(out["intermediate"], encode(batch[task.mid], hdr, exposure),
                                        loss_weights["intermediate"], features, to_linear)
         total = total + mid
         parts.update({f"intermediate.{k}": v for k, v in mid_parts.items()})
@@ -210,14 +211,14 @@ def update_ema(ema_model, model, decay: float, step: int) -> None:
 
 
 @dataclass
-class TrainingState:
+class _State:
     step: int = 0
     curve: list = field(default_factory=list)       # per step: loss, lr, grad norm, loss parts
     val_curve: list = field(default_factory=list)   # per validation: step, train_s, loss, metrics
     train_s: float = 0.0                             # optimisation wall time so far (validation excluded)
 
 
-def save_checkpoint(path: Path, model, ema_model, optimizer, state: TrainingState) -> None:
+def save_checkpoint(path: Path, model, ema_model, optimizer, state: _State) -> None:
     saved = {"model": model.state_dict(), "ema": ema_model.state_dict() if ema_model is not None else None,
              "optimizer": optimizer.state_dict(), "step": state.step, "curve": state.curve,
              "val_curve": state.val_curve, "elapsed_s": state.train_s}
@@ -232,25 +233,25 @@ def load_weights(model, out_dir: str | Path, device: str = "cpu"):
     return model
 
 
-def _resume(path: Path, model, ema_model, optimizer, device) -> TrainingState:
+def _resume(path: Path, model, ema_model, optimizer, device) -> _State:
     if not path.exists():
-        return TrainingState()
+        return _State()
     saved = torch.load(path, map_location=device, weights_only=False)
     model.load_state_dict(saved["model"])
     if ema_model is not None:
         ema_model.load_state_dict(saved.get("ema") or saved["model"])
     optimizer.load_state_dict(saved["optimizer"])
-    return TrainingState(saved["step"], saved["curve"], saved.get("val_curve", []), saved.get("elapsed_s", 0.0))
+    return _State(saved["step"], saved["curve"], saved.get("val_curve", []), saved.get("elapsed_s", 0.0))
 
 
-def write_curves(out_dir: Path, state: TrainingState) -> None:
+def _write_curves(out_dir: Path, state: _State) -> None:
     """curve.csv and val_curve.csv, each replaced whole: a reader never sees half of one."""
     write_atomic(out_dir / "curve.csv", lambda tmp: pd.DataFrame(state.curve).to_csv(tmp, index=False))
     if state.val_curve:
         write_atomic(out_dir / "val_curve.csv", lambda tmp: pd.DataFrame(state.val_curve).to_csv(tmp, index=False))
 
 
-def read_back(unread: list, names: list[str], state: TrainingState, out_dir: Path | None, ckpt_path: Path) -> None:
+def read_back(unread: list, names: list[str], state: _State, out_dir: Path | None, ckpt_path: Path) -> None:
     """Move the steps' reported losses (`unread`: (step, lr, tensor of the `names` values and the gradient
     norm)) to the host, in one transfer, onto `state.curve`, and empty `unread`. The first step whose loss
     or gradient norm is not finite raises TrainingDiverged naming it, after writing the curves of the steps
@@ -262,7 +263,7 @@ def read_back(unread: list, names: list[str], state: TrainingState, out_dir: Pat
         *losses, grad_norm = row
         if not (math.isfinite(losses[0]) and math.isfinite(grad_norm)):
             if out_dir is not None:
-                write_curves(out_dir, state)
+                _write_curves(out_dir, state)
             last = ckpt_path if ckpt_path.exists() else "none (diverged before the first)"
             what = f"loss ({losses[0]})" if not math.isfinite(losses[0]) else "gradient"
             raise TrainingDiverged(f"non-finite {what} at step {step - 1}; the last good checkpoint is {last}",
@@ -271,7 +272,7 @@ def read_back(unread: list, names: list[str], state: TrainingState, out_dir: Pat
         state.curve.append({"step": step, "loss": named.pop("loss"), "lr": lr, "grad_norm": grad_norm, **named})
 
 
-def _validation_point(state: TrainingState, validate, model) -> dict:
+def _validation_point(state: _State, validate, model) -> dict:
     since = [c["loss"] for c in state.curve if c["step"] > (state.val_curve[-1]["step"] if state.val_curve else 0)]
     was_training = model.training
     model.eval()
@@ -397,7 +398,7 @@ def train(model, dataset, task: Task, out_dir: str | Path, recipe: Recipe, *, fe
             if stopping and state.step < recipe.steps:
                 bar.close()
                 if writes:
-                    write_curves(out_dir, state)
+                    _write_curves(out_dir, state)
                 signum = stop[0] if stop else signal.SIGTERM  # (else another rank was stopped)
                 raise TrainingInterrupted(f"{signal.Signals(signum).name} at step {state.step} of {recipe.steps}: "
                                           f"checkpoint saved in {ckpt_path}; run the same command again to resume",
@@ -406,7 +407,7 @@ def train(model, dataset, task: Task, out_dir: str | Path, recipe: Recipe, *, fe
     if ema_model is not None:
         model.load_state_dict(ema_model.state_dict())
     if writes:
-        write_curves(out_dir, state)
+        _write_curves(out_dir, state)
     tail = [c["loss"] for c in state.curve[-max(1, len(state.curve) // 10):]]
     summary = {"steps": state.step, "resumed_from_step": resumed_from, "final_loss": sum(tail) / len(tail),
                "first_loss": state.curve[0]["loss"] if state.curve else float("nan"),

@@ -17,7 +17,7 @@ from pathlib import Path
 
 import torch
 
-from bench import archived, hdr, runs
+from bench import archived, exposure, runs
 from bench.errors import UserError
 from bench.models.factory import build_model
 from bench.tasks import get_task
@@ -151,9 +151,9 @@ def load_exported(path: str | Path):
     if lacking or not ({COMPACT, "state_dict"} & set(saved)):
         raise UserError(f"{path}: an SRD-Bench weights file without its {', '.join(lacking) or 'weights'}: "
                         "damaged or not written by `srd-bench export`; export it again")
-    if saved["hdr"] not in hdr.MODES:
-        raise UserError(f"{path}: its network domain hdr={saved['hdr']!r} is none of {', '.join(hdr.MODES)} "
-                        "(bench.hdr): damaged or not written by `srd-bench export`; export it again")
+    if saved["hdr"] not in exposure.DOMAINS:
+        raise UserError(f"{path}: its network domain hdr={saved['hdr']!r} is none of {', '.join(exposure.DOMAINS)} "
+                        "(bench.exposure): damaged or not written by `srd-bench export`; export it again")
     try:
         state = archived.decode(saved[COMPACT]) if COMPACT in saved else saved["state_dict"]
     except (KeyError, ValueError, RuntimeError, EOFError, lzma.LZMAError) as err:

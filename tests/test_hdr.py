@@ -37,7 +37,8 @@ def test_bounded_domains_invert_any_network_output_to_a_finite_radiance(mode):
 # ---------------------------------------------------------------- the exposure domain (the default)
 
 from bench.evaluate import predict  # noqa: E402  (the one inference path: training, evaluation and predict)
-from bench.hdr import BLACK_EXPOSURE, frame_exposure, transforms  # noqa: E402
+from bench.exposure import BLACK_EXPOSURE, decode, encode, frame_exposure  # noqa: E402
+from bench.hdr import transforms  # noqa: E402
 from bench.models.srd import SRDNet  # noqa: E402
 from conftest import SMALL, inputs  # noqa: E402
 
@@ -78,9 +79,9 @@ def test_frame_exposure_scales_with_the_frame_and_is_black_exposure_for_a_black_
 def test_the_exposure_domain_inverts_without_a_ceiling():
     x = torch.logspace(-8, 6, 300, dtype=torch.float64).reshape(1, 1, 3, 10, 10)
     e = frame_exposure(x, "exposure")
-    assert torch.allclose(from_network(to_network(x, "exposure", e), "exposure", e), x, rtol=1e-9)
-    with pytest.raises(ValueError, match="needs the frame's exposure"):
-        to_network(x, "exposure")
+    assert torch.allclose(decode(encode(x, "exposure", e), "exposure", e), x, rtol=1e-9)
+    assert torch.equal(encode(x, "pu", None), to_network(x, "pu"))  # the pixelwise domains: bench.hdr as it was
+    assert torch.equal(decode(x, "pu", None), from_network(x, "pu"))
     to_linear, from_linear = transforms("exposure")  # the models' linear base: radiance / exposure
     y = torch.rand(5, dtype=torch.float64) * 3
     assert torch.allclose(to_linear(from_linear(y)), y)

@@ -119,7 +119,7 @@ def test_an_unwritable_cache_folder_only_means_the_fast_path_is_measured_again(r
     ("not weights", "is not an SRD-Bench weights file"),
     ("newer format", "of a newer format (srd-bench-weights/99): update SRD-Bench"),
     ("unknown run", "no training run"),
-    ("bogus hdr", "its network domain hdr='bogus' is none of clamp, log1p, pu"),
+    ("bogus hdr", "its network domain hdr='bogus' is none of clamp, log1p, pu, exposure"),
     ("a folder", "is a folder: give a weights file in it (edsr.pt)"),
 ])
 def test_each_bad_input_gets_its_message(recorded, tmp_path, capsys, case, message):

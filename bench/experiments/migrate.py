@@ -38,6 +38,9 @@ log = logging.getLogger("bench")
 
 # the values the version-1 identity implied for the options it left out at their defaults
 IMPLIED_V1 = {"colour_permute": False, "precision": "fp32", "channels_last": False}
+# options added since, at the value a recipe recorded before them had (bench.train.Recipe.OMITTED_AT: the
+# identity leaves them out there); here too, because a replay of recorded code has that code's Recipe
+IMPLIED = {**IMPLIED_V1, "compile": None}
 # options that are gone: a run recorded with one set otherwise than this cannot be represented
 RETIRED_OPTIONS = {"train_sequences": None}
 RETIRED_LOSS_TERMS = ("ssim_linear",)
@@ -68,7 +71,7 @@ def train_identity(old: dict) -> dict:
         except ValueError as err:
             raise NotRepresentable(f"train.loss.{head}: {err}") from None
     recipe_options = {f.name for f in dataclasses.fields(Recipe)} - set(Recipe.NOT_IDENTITY)
-    values = {**IMPLIED_V1, **Recipe.OMITTED_AT, **train}
+    values = {**IMPLIED, **train}
     for option in set(values) - recipe_options:
         if option not in RETIRED_OPTIONS:
             raise NotRepresentable(f"train.{option}: not an option of the current recipe")

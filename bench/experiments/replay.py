@@ -23,7 +23,7 @@ from bench.evaluate import evaluate
 from bench.experiments import recorded_code
 from bench.experiments.context import Context, recipe_from
 from bench.experiments.datasets import dataset, evaluation_data
-from bench.experiments.migrate import IMPLIED_V1
+from bench.experiments.migrate import IMPLIED
 from bench.experiments.training import cascade_net, perceptual_features
 from bench.models.factory import build_model
 from bench.models.srd import SRDStage
@@ -113,11 +113,11 @@ def replayed_curve(ctx: Context, record: dict, run_dir: Path, steps: int) -> pd.
 
 def recipe_of_this_code(train: dict) -> Recipe:
     """The recipe of `train` as this code's `Recipe` takes it: an option it lacks (the recorded code,
-    rebuilt, predates it) is allowed only at the value the code before it implied (migrate.IMPLIED_V1),
+    rebuilt, predates it) is allowed only at the value the code before it implied (migrate.IMPLIED),
     and set as a plain attribute, for today's experiment code that reads it."""
     known = {f.name for f in dataclasses.fields(Recipe)}
     for option in set(train) - known:
-        if option not in IMPLIED_V1 or train[option] != IMPLIED_V1[option]:
+        if option not in IMPLIED or train[option] != IMPLIED[option]:
             raise UserError(f"train.{option}={train[option]!r}: the code replayed has no such option")
     recipe = recipe_from({k: v for k, v in train.items() if k in known})
     for option in set(train) - known:

@@ -28,7 +28,7 @@ from bench.evaluate import predict
 from bench.experiments.context import Context, model_config, with_training, working_split
 from bench.experiments.datasets import dataset, ensure_data
 from bench.experiments.training import trained_model
-from bench.hdr import EXPOSED, NAMES, frame_exposure, from_network, to_network
+from bench.exposure import NAMES, decode, encode, frame_exposure
 from bench.measure import time_call
 from bench.metrics import psnr, relmse, ssim
 from bench.models.factory import is_learned
@@ -154,7 +154,7 @@ def _deform_rows(model, x, g, hdr) -> list[dict]:
         with torch.no_grad():
             for layer in layers:
                 layer.offset_conv.bias.fill_(value)
-        out = m(to_network(x, hdr, frame_exposure(x, hdr)), g)["final"]
+        out = m(encode(x, hdr, frame_exposure(x, hdr)), g)["final"]
         out.square().mean().backward()
         grads = all(p.grad is None or _finite(p.grad) for p in m.parameters())
         offset_grads = all(_finite(layer.offset_conv.bias.grad) for layer in layers if layer.offset_conv.bias.grad is not None)
@@ -291,8 +291,9 @@ def statuses(table: pd.DataFrame) -> list[str]:
 def output_ceiling(hdr: str) -> float:
     """The largest linear radiance a learned model can output through the network domain `hdr`: what the
     inverse transform gives for the brightest input (inf where nothing saturates)."""
-    exposure = torch.tensor(1.0, dtype=torch.float64) if hdr in EXPOSED else None  # the ceiling at any exposure
-    top = float(from_network(to_network(torch.tensor([1e30], dtype=torch.float64), hdr, exposure), hdr, exposure)[0])
+    if frame_exposure(torch.ones(1, 3, 1, 1), hdr) is not None:  # the output scales with the frame's exposure
+        return math.inf
+    top = float(decode(encode(torch.tensor([1e30], dtype=torch.float64), hdr, None), hdr, None)[0])
     return top if top < 1e29 else math.inf
 
 

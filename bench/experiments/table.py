@@ -36,7 +36,7 @@ from bench.experiments.macs import frame_inputs
 from bench.experiments.row import row
 from bench.experiments.training import scoring_only_error, training_records, untrained
 from bench.macs import count_macs, on_meta
-from bench.hdr import NAMES
+from bench.exposure import NAMES
 from bench.metrics import HIGHER_IS_BETTER, LOWER_IS_BETTER, RELMSE_FORMULA
 from bench.models.factory import build_model, is_learned
 from bench.paper import TABLES, paper_values

@@ -22,9 +22,9 @@ from bench.measure import fused_kernels_used
 from bench.models.factory import build_model, is_learned
 from bench.models.srd import SRDNet, SRDStage, load_stage
 from bench.tasks import CASCADE_STAGES, Task, get_task
-# TrainingState and write_curves: the trainer's own writer of a checkpoint's curves, to rebuild them byte for byte
+# _State and _write_curves: the trainer's own writer of a checkpoint's curves, to rebuild them byte for byte
 # (public once bench/train.py changes anyway: an edit there makes every recorded training stale)
-from bench.train import CHECKPOINT, TrainingDiverged, TrainingInterrupted, TrainingState, write_curves, train
+from bench.train import CHECKPOINT, TrainingDiverged, TrainingInterrupted, _State, _write_curves, train
 
 log = logging.getLogger("bench")
 
@@ -270,7 +270,7 @@ def curves_from_checkpoint(run_dir: Path, names: list[str]) -> bool:
     recorded digests."""
     if not set(names) <= {archived.CURVE, archived.VAL_CURVE} or (saved := _checkpoint(run_dir / CHECKPOINT)) is None:
         return False
-    write_curves(Path(run_dir), TrainingState(saved["step"], saved["curve"], saved.get("val_curve", []),
+    _write_curves(Path(run_dir), _State(saved["step"], saved["curve"], saved.get("val_curve", []),
                                         saved.get("elapsed_s", 0.0)))
     return True
 
