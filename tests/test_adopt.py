@@ -370,3 +370,13 @@ def test_adopt_after_a_call_with_nothing_stale_reads_its_empty_table(tmp_path):
     pd.DataFrame().to_csv(empty, index=False)
     table = pd.DataFrame({"witness": ["t1"], "verdict": ["adopted"]})
     assert with_earlier_verdicts(table, empty).equals(table)
+
+
+def test_the_recorded_code_of_an_adopted_run_is_taken_at_its_adoption_not_at_its_training():
+    """A run adopted since it trained holds the fingerprint of the adopting commit: the rebuilt tree's
+    other model definitions come from there (a training's own commit can predate names today's
+    harness imports, e.g. bench.nn.load_old_names, removed before the cpu archive's last adoption)."""
+    from bench.experiments.adopt import fingerprinted_at
+    trained = {"git_commit": "a" * 40}
+    assert fingerprinted_at(trained) == "a" * 40
+    assert fingerprinted_at({**trained, "code_adopted": {"git_commit": "b" * 40}}) == "b" * 40

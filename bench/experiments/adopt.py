@@ -343,14 +343,21 @@ def against_recorded_code(ctx: Context, witness: runs.Run, steps: int, weights: 
     trained_with = witness.record["code"]
     scored_with = (evaluation.record.get("code") or {}) if evaluation is not None else {}
     row = {"check": "recorded code"}
-    trained_at = witness.record.get("git_commit")
+    trained_at = fingerprinted_at(witness.record)
     if fingerprints_agree(trained_with, scored_with):  # one rebuilt tree ran both
         return row | check_against_recorded_code(ctx, {**scored_with, **trained_with}, modules, steps, witness,
                                                  scoring, trained_at)
     # the evaluation ran later code than the training: each is replayed by its own
     return (row | check_against_recorded_code(ctx, trained_with, modules, steps, witness, None, trained_at)
             | check_against_recorded_code(ctx, scored_with, modules, 0, None, scoring,
-                                          evaluation.record.get("git_commit")))
+                                          fingerprinted_at(evaluation.record)))
+
+
+def fingerprinted_at(record: dict) -> str | None:
+    """The git commit whose code a run's fingerprint names: its last adoption's (adopt re-stamps the
+    fingerprint with the code of that commit), else the commit it ran at. The recorded code's other
+    model definitions are taken there (recorded_code.rebuild), so that they import what it defined."""
+    return (record.get("code_adopted") or {}).get("git_commit") or record.get("git_commit")
 
 
 def verdict(row: dict, rtol: float, eval_rtol: float, rtol_later_steps: float) -> str:
@@ -401,7 +408,7 @@ def check_untrained(ctx: Context, evaluation: runs.Run, rtol: float) -> dict:
             row |= check_against_recorded_code(ctx, evaluation.record["code"],
                                                [identity["trained"]["model"]["_target_"], *EVALUATION_CODE], 0,
                                                None, differential_scoring(ctx, evaluation, None),
-                                               evaluation.record.get("git_commit"))
+                                               fingerprinted_at(evaluation.record))
         row["eval rtol"] = rtol
         row["verdict"] = verdict(row, rtol, rtol, 0.0)
     except TrainingInterrupted:
