@@ -389,7 +389,7 @@ def caption_notes(ctx: Context, scoring_ctx: Context, table: pd.DataFrame, rows:
              f"split's sequences. "
              f"{scored_on[0].upper()}{scored_on[1:]}, {ctx.train.steps} training steps, loss g:t:s:p = "
              f"{loss['edge']}:{loss['temporal']}:{loss['spatial']}:{loss['perceptual']}{extra} (unless a row says "
-             f"otherwise), network domain {NAMES[ctx.train.hdr]} (train.hdr={ctx.train.hdr}, bench/hdr.py), "
+             f"otherwise), network domain {NAMES[ctx.train.hdr]} (train.hdr={ctx.train.hdr}, bench/exposure.py), "
              f"seeds {list(ctx.seeds)} (mean +- std over seeds when several); time_ms: "
              f"inference per frame on {ctx.device}.")
     notes += split_note(ctx, split or ctx.eval.split)
