@@ -107,3 +107,28 @@ def test_a_tables_caption_names_rows_left_out_scored_with_rounded_weights_or_tra
     assert table._weights_note(["Input bilinear"], [0], [0], seeds=3) == ""
     with pytest.raises(UserError, match="experiment.leave_out: no row 'RAE'"):
         table.run(smoke_context(), "t", rows=[{"label": "Input bilinear", "model": "bilinear"}], leave_out=["RAE"])
+
+
+class _Rendering(Exception):
+    """Stops an experiment at its first render, once the splits it asked for are known."""
+
+
+@pytest.mark.parametrize("name", ["stability", "lr_range"])
+def test_an_experiment_that_only_trains_renders_train_and_val_never_test(name, tmp_path, monkeypatch):
+    """At the cpu preset the test split's references are hours of rendering: stability and the range
+    test train and read val, so they ask for those two splits only."""
+    from bench.cli import run_experiment
+    import bench.experiments.lr_range
+    import bench.experiments.stability
+    asked = []
+
+    def ensure_data(ctx, passes, splits=None, scoring=False):
+        asked.append(splits)
+        raise _Rendering
+
+    monkeypatch.setattr(getattr(bench.experiments, name), "ensure_data", ensure_data)
+    cfg = composed("preset=cpu", f"data_dir={tmp_path / 'data'}", f"runs_dir={tmp_path / 'runs'}",
+                   f"results_dir={tmp_path / 'results'}", name=name)
+    with pytest.raises(_Rendering):
+        run_experiment(cfg)
+    assert asked == [{"train", "val"}]

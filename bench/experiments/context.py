@@ -30,6 +30,12 @@ def working_split(ctx: "Context") -> str:
     return TUNING_SPLIT if ctx.eval.split == FROZEN_SPLIT else ctx.eval.split
 
 
+def training_splits(ctx: "Context") -> set[str]:
+    """The splits a training reads: its frames, and the working split its learning curve is scored on.
+    An experiment that only trains renders these, never the test split's expensive references."""
+    return {"train", working_split(ctx)} & set(ctx.data_spec["splits"])
+
+
 def split_note(ctx: "Context", split: str) -> str:
     """A caption's sentence on what the scored `split` is for."""
     if split == FROZEN_SPLIT:

@@ -21,7 +21,7 @@ import pandas as pd
 
 from bench import archived
 from bench.errors import UserError
-from bench.experiments.context import Context, model_config, with_training
+from bench.experiments.context import Context, model_config, training_splits, with_training
 from bench.experiments.datasets import ensure_data
 from bench.experiments.training import trained_model
 from bench.table_writer import write_table
@@ -51,7 +51,7 @@ def run(ctx: Context, name: str = "lr_range", models: list[str] | None = None, s
     import matplotlib.pyplot as plt
 
     t = get_task(task)
-    ensure_data(ctx, set(t.buffers(with_mid=True)))
+    ensure_data(ctx, set(t.buffers(with_mid=True)), training_splits(ctx))
     test_ctx = with_training(ctx, {"schedule": "range", "lr": lr_max, "steps": steps, "ema": None,
                                    "val_sequences": 0})
     rows, fig = [], plt.figure(figsize=(6, 4))

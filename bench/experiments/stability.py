@@ -25,7 +25,7 @@ import torch
 import torch.nn.functional as F
 
 from bench.evaluate import predict
-from bench.experiments.context import Context, model_config, with_training, working_split
+from bench.experiments.context import Context, model_config, training_splits, with_training, working_split
 from bench.experiments.datasets import dataset, ensure_data
 from bench.experiments.training import trained_model
 from bench.exposure import NAMES, decode, encode, frame_exposure
@@ -356,7 +356,7 @@ def run(ctx: Context, name: str = "stability", models: list[str] = (), frames: i
         write_tables(table, out_dir, ctx.preset, ctx.device, ctx.train.hdr)
         log.info("stability: table.md/.tex and the verdicts rewritten from the recorded %s", out_dir / "table.csv")
         return table
-    ensure_data(ctx, set(get_task("srd").buffers(with_mid=True)))
+    ensure_data(ctx, set(get_task("srd").buffers(with_mid=True)), training_splits(ctx))
     rows = []
     for model_name in models:
         log.info("stability: %s", model_name)

@@ -28,7 +28,7 @@ import pandas as pd
 
 from bench import archived, runs
 from bench.errors import UserError
-from bench.experiments.context import Context, model_config, split_note, with_training, working_split
+from bench.experiments.context import Context, model_config, split_note, training_splits, with_training
 from bench.experiments.datasets import ensure_data, evaluation_data, frame_records, splits_on_disk
 from bench.experiments.evaluation import evaluation_recorded
 from bench.experiments.figure import crop_figure, curve_figure
@@ -323,7 +323,7 @@ def render_what_runs(ctx: Context, name: str, rows: list[dict], task: str, split
     loading = {(r["label"], seed) for r in pending for seed in ctx.seeds} | (
         {(r["label"], ctx.seeds[0]) for r in rows} if drawn else set())  # the figure shows the first seed
     if ctx.force or any(untrained(trainings[key]) for key in loading):
-        needed |= {"train", working_split(ctx)} & set(ctx.data_spec["splits"])
+        needed |= training_splits(ctx)
     if needed:
         ensure_data(ctx, passes_for(rows, task), needed)
     else:
