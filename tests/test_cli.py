@@ -4,6 +4,7 @@ import os
 import shutil
 import subprocess
 import sys
+import time
 from pathlib import Path
 
 import pandas as pd
@@ -159,6 +160,38 @@ def test_smoke_end_to_end_then_reuse(smoke_dirs):
     again = pd.read_csv(table_dir / "smoke" / "table.csv")
     pd.testing.assert_frame_equal(table[["method", "relMSE", "PSNR", "SSIM"]],
                                   again[["method", "relMSE", "PSNR", "SSIM"]])
+
+
+def test_an_evaluation_recorded_before_flip_is_reused_without_it_and_scored_again_when_asked(smoke_dirs, tmp_path,
+                                                                                           caplog, monkeypatch):
+    """Evaluations recorded before FLIP existed (evaluate.LATER_SCORES) are reused as they are, their FLIP
+    cells blank; eval.rescore_missing=true scores them again from the recorded training, which is not retrained,
+    and the other scores come out as recorded."""
+    from bench import runs
+    from bench.cli import run_experiment
+    from bench.evaluate import LATER_SCORES
+    monkeypatch.setattr(runs, "COMMAND_STARTED_S", time.time())   # a new command, after the store was made
+    args, root = smoke_dirs
+    shutil.copytree(root / "runs", tmp_path / "runs", ignore=shutil.ignore_patterns("mlflow*", "hydra"))
+    for path in (tmp_path / "runs" / "eval").glob("*/run.json"):   # as recorded before FLIP
+        record = json.loads(path.read_text())
+        record["metrics"] = {k: v for k, v in record["metrics"].items() if not k.startswith(LATER_SCORES)}
+        path.write_text(json.dumps(record))
+    ours = [a for a in args if not a.startswith(("runs_dir=", "results_dir="))] + [
+        f"runs_dir={tmp_path / 'runs'}", f"results_dir={tmp_path / 'results'}"]
+    flip = list(LATER_SCORES)
+    with caplog.at_level("INFO", logger="bench"):
+        run_experiment(compose_experiment("smoke", *ours))
+    table = pd.read_csv(tmp_path / "results" / "smoke" / "table.csv")
+    assert table[flip].isna().all().all() and "re-evaluating" not in caplog.text
+    caplog.clear()
+    with caplog.at_level("INFO", logger="bench"):
+        run_experiment(compose_experiment("smoke", *ours, "eval.rescore_missing=true"))
+    rescored = pd.read_csv(tmp_path / "results" / "smoke" / "table.csv")
+    assert rescored[flip].notna().all().all()
+    assert caplog.text.count("recorded without LDR-FLIP, HDR-FLIP") == 2          # both rows
+    assert "train Ours: reusing run" in caplog.text and "trained in" not in caplog.text
+    pd.testing.assert_frame_equal(table[["method", "relMSE", "PSNR", "SSIM"]], rescored[["method", "relMSE", "PSNR", "SSIM"]])
 
 
 @pytest.mark.slow  # two torchrun processes and a one-process run of the smoke table (~1-2 min on 2 cores); make test-slow

@@ -8,7 +8,7 @@ import pytest
 from hydra import compose, initialize_config_dir
 
 from bench.cli import CONF_DIR, run_experiment
-from bench.experiments.stability import INPUT_CASES, SCALES, caption, metric_rows, output_ceiling, status, write_tables
+from bench.experiments.stability import INPUT_CASES, LAMPS, SCALES, caption, metric_rows, output_ceiling, status, write_tables
 from conftest import smoke_overrides
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -51,7 +51,7 @@ def test_every_case_ran_for_every_model(stability_table):
     table, _ = stability_table
     for model in ("srd", "rae", "kpcn", "bilinear", "oidn_lr"):
         cases = set(table.loc[table["model"] == model, "case"])
-        assert set(INPUT_CASES) <= cases, model
+        assert set(INPUT_CASES) | set(LAMPS) <= cases, model
         assert {"size 1x1", "sequence of 12 frames", "bf16 autocast (CPU)"} <= cases, model
     srd = set(table.loc[table["model"] == "srd", "case"])
     assert {"deform offsets +1e+03", "deform offsets -1e+03", "train at 10x lr"} <= srd
@@ -89,12 +89,13 @@ def test_the_caption_states_the_network_domains_ceiling_from_the_rows():
 
 
 def test_the_committed_caption_is_the_one_its_rows_give(tmp_path):
-    """`python -m bench +experiment=stability preset=cpu experiment.from_csv=true` rewrites it (cpu: train.hdr=pu)."""
+    """`python -m bench +experiment=stability preset=cpu experiment.from_csv=true` rewrites it (the experiment
+    trains in the exposure domain at every preset)."""
     folder = ROOT / "results" / "cpu" / "stability"
-    write_tables(pd.read_csv(folder / "table.csv"), tmp_path, "cpu", "cpu", "pu")
+    write_tables(pd.read_csv(folder / "table.csv"), tmp_path, "cpu", "cpu", "exposure")
     committed = (folder / "table.md").read_text()
     assert (tmp_path / "table.md").read_text() == committed
-    assert "saturates at radiance 100:" in committed and "clipped by construction" in committed
+    assert "which has no ceiling" in committed and "'lamp kx the exposure'" in committed
 
 
 def test_a_case_is_judged_against_its_scaled_reference_not_only_for_being_finite():
@@ -107,6 +108,9 @@ def test_a_case_is_judged_against_its_scaled_reference_not_only_for_being_finite
     black = {"case": "all-black frame", "finite": True}
     assert status({**black, "max |output|": 0.0}) == "ok 0" and status({**black, "max |output|": 1e-6}) == "ok 1e-06"
     assert status({**black, "max |output|": 7e-3}) == "FAIL (black in, 0.007 out)"
+    lamp = {"case": "lamp 1e4x the exposure", "finite": True, "max |output|": 50.0}
+    assert status({**lamp, "lamp energy": 1.05}) == "ok 50" and status({**lamp, "lamp energy": 1.29}) == \
+        "FAIL (lamp energy 129%)"
 
 
 def test_the_exposure_domain_passes_every_scale_and_black_for_every_learned_model(stability_table):
@@ -132,3 +136,19 @@ def test_linear_methods_pass_every_scale_and_the_capped_domain_fails_the_bright_
     assert rows.loc[("srd", "HDR scale 1e4"), "energy above range"] < 0.9
     assert "FAIL (relMSE " in (out / "table.md").read_text()
     assert rows.loc[("srd", "all-black frame"), "status"].startswith("FAIL (black in")
+
+
+def test_a_lamp_far_above_the_frames_exposure_is_judged_on_its_energy_for_every_model(stability_table, pu_table):
+    """The lamp cases put a noise-free emitter block at 1e2x and 1e4x the frame's exposure into the input and
+    the reference. A method on linear radiance (bilinear) returns its energy within 10% (only the block's
+    rim blurs); every model's row measures it; PU21 caps the lamp at radiance 100 and fails it, with the
+    reason in the cell."""
+    for table, models in ((stability_table[0], ("srd", "rae", "kpcn", "bilinear", "oidn_lr")), (pu_table[0], ("srd", "bilinear"))):
+        rows = table.set_index(["model", "case"])
+        for model in models:
+            for case in LAMPS:
+                assert rows.loc[(model, case), "lamp energy"] > 0, (model, case)
+        for case in LAMPS:
+            assert rows.loc[("bilinear", case), "status"].startswith("ok"), rows.loc[("bilinear", case)].to_dict()
+    lamp = pu_table[0].set_index(["model", "case"]).loc[("srd", "lamp 1e4x the exposure")]
+    assert lamp["status"].startswith("FAIL (lamp energy ") and lamp["max |output|"] <= 100.0

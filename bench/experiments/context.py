@@ -58,6 +58,7 @@ class EvalSpec:
     save_exr: bool
     fast_path: str
     tile: int | None
+    rescore_missing: bool        # score again an evaluation recorded before evaluate.LATER_SCORES (FLIP) existed
 
 
 @dataclass(frozen=True)

@@ -7,7 +7,7 @@ from __future__ import annotations
 import logging
 
 from bench import archived, runs
-from bench.evaluate import REQUIRED_SCORES, evaluate
+from bench.evaluate import LATER_SCORES, REQUIRED_SCORES, evaluate
 from bench.experiments.context import EVALUATION_CODE, TRAINING_CODE, Context, code_of
 from bench.experiments.datasets import dataset, evaluation_data, render_digest, split_fingerprint
 from bench.experiments.training import RecordedTraining, cascade_model, reused_trainings, trained_model
@@ -38,7 +38,7 @@ def evaluated(ctx: Context, cfg: dict, task: Task, seed: int, split: str, label:
                                      learned=train_run is not None or cascade)
     run = runs.begin(ctx.runs_dir, "eval", identity, seed=seed, device=ctx.device, label=label,
                      force=ctx.force, code=code, reuse_stale=ctx.reuse_stale, archive=ctx.runs_archive)
-    missing = [m for m in REQUIRED_SCORES if f"{m} se" not in run.metrics] if run.reused else []
+    missing = [m for m in required_scores(ctx) if f"{m} se" not in run.metrics] if run.reused else []
     if missing:  # recorded before the evaluator scored these: evaluating again is cheap, training is not
         log.info("eval %s: re-evaluating run %s, recorded without %s", label, run.hash, ", ".join(missing))
         run = runs.begin(ctx.runs_dir, "eval", identity, seed=seed, device=ctx.device, label=label,
@@ -80,7 +80,13 @@ def evaluation_recorded(ctx: Context, cfg: dict, task: Task, seed: int, split: s
     identity, code = _evaluation_key(ctx, evaluation_data(ctx), cfg, trained, split, ctx.eval.fast_path,
                                      learned=bool(hashes))
     run = runs.reusable(ctx.runs_dir, "eval", identity, code, ctx.reuse_stale, ctx.runs_archive)
-    return run is not None and all(f"{m} se" in run.metrics for m in REQUIRED_SCORES)
+    return run is not None and all(f"{m} se" in run.metrics for m in required_scores(ctx))
+
+
+def required_scores(ctx: Context) -> tuple[str, ...]:
+    """The scores a recorded evaluation must hold to be reused: those added since it was recorded
+    (FLIP) only when eval.rescore_missing asks."""
+    return REQUIRED_SCORES + (LATER_SCORES if ctx.eval.rescore_missing else ())
 
 
 def _evaluation_key(ctx: Context, scoring_ctx: Context, cfg: dict, trained, split: str, fast_path: str,

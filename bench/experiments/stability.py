@@ -4,7 +4,8 @@ Each named case perturbs a clean validation sequence (or replaces it) and is run
 (proposed, baselines, non-learned rows) in evaluation, with and without the input sanitation
 (bench.sanitize, which the trainer and evaluator always apply), and, for learned models, through one
 training step (gradients and updated weights must be finite). A case passes when the output is finite
-or the model refuses the input with a clear error. Special cases: sizes, 1- and 100-frame sequences
+or the model refuses the input with a clear error, and, where a case has a reference to judge it by, right
+(`status`: scaled scenes, a lamp far above the frame's exposure, black frames). Special cases: sizes, 1- and 100-frame sequences
 (recurrent state must not drift or blow up), bf16 autocast (fp16 on GPU), deformable offsets driven to
 +-1e3, a few training steps at 10x the learning rate (divergence must be detected, never silent NaN
 weights), and the metrics' own edge cases.
@@ -88,12 +89,32 @@ INPUT_CASES = {
 SCALES = {"HDR scale 1e-6": 1e-6, "HDR scale 1e-4": 1e-4, "HDR scale 1e-2": 1e-2, "HDR scale 1e2": 1e2,
           "HDR scale 1e4": 1e4}
 INPUT_CASES.update({case: (lambda k: lambda x, g: (x * k, g))(k) for case, k in SCALES.items()})
+# An emitter seen directly: a noise-free block (a quarter of the frame's height and width, on the LR grid)
+# at k times the exposure of the frame without it, in the input and the reference alike. The scaled scenes
+# above move the whole frame, which the exposure domain divides out; a lamp raises the exposure a few times
+# at most (it is a few of the blocks averaged), so the network sees radiance far above what it trained on.
+# Judged, for every model, by the energy it returns on the lamp's pixels ("lamp energy").
+LAMPS = {"lamp 1e2x the exposure": 1e2, "lamp 1e4x the exposure": 1e4}
 RELMSE_FACTOR = 2.0      # a scaled case passes within this factor of the unscaled case's relMSE to its reference
 ENERGY_TOLERANCE = 0.10  # a learned model returns the energy above the domain's training range within 10%
 BLACK_MAX = 1e-6         # an all-black input gives at most this radiance
 
 SIZES = {"size 1x1": (1, 1), "size 13x7 (odd)": (13, 7), "size 33x17 (not a multiple of 32)": (33, 17),
          "size 4x200 (wide strip)": (4, 200)}
+
+
+def _lamp(x, ref, k, scale):
+    """(x, ref, the lamp's pixels in ref, its radiance): LAMPS' emitter at k times the exposure of x's
+    first frame, on LR rows h/4..h/2 and columns w/2..3w/4 and the HR pixels they cover."""
+    level = k * float(frame_exposure(x[:, :1], "exposure").flatten()[0])
+    h, w = x.shape[-2:]
+    rows, cols = slice(h // 4, h // 2), slice(w // 2, 3 * w // 4)
+    hr_rows, hr_cols = slice(scale * rows.start, scale * rows.stop), slice(scale * cols.start, scale * cols.stop)
+    x, ref, on_lamp = x.clone(), ref.clone(), torch.zeros_like(ref, dtype=torch.bool)
+    x[..., rows, cols] = level
+    ref[..., hr_rows, hr_cols] = level
+    on_lamp[..., hr_rows, hr_cols] = True
+    return x, ref, on_lamp, level
 
 
 def _resize(t, hw):
@@ -104,13 +125,15 @@ def _finite(t) -> bool:
     return bool(torch.isfinite(t).all())
 
 
-def _eval_row(model, x, g, hdr, ref=None, clean=None, sanitize=True, above=math.inf, scale=None) -> dict:
+def _eval_row(model, x, g, hdr, ref=None, clean=None, sanitize=True, above=math.inf, scale=None,
+              on_lamp=None) -> dict:
     """A case through the model: finite, its largest output, time, and its relMSE against `ref` and
     against the clean case's output; where `ref` holds radiance over `above` (the network domain's
     ceiling), the share of that energy the output returns on those pixels. `scale`: the case is the
     scene times `scale` (and `ref` too): also the relMSE of the output divided by `scale` against the
     unscaled reference, which the unscaled case's relMSE is compared with (relMSE's epsilon is not
-    scale-free: on the scaled images themselves a linear method's relMSE grows with the scale)."""
+    scale-free: on the scaled images themselves a linear method's relMSE grows with the scale).
+    `on_lamp`: the pixels of a lamp case's emitter; the share of its energy the output returns."""
     try:
         timed = time_call(lambda: predict(model, x, g, hdr, sanitize=sanitize), "cpu", repeats=1, warmup=0)
         out, ms = timed["result"], timed["ms"]
@@ -126,6 +149,8 @@ def _eval_row(model, x, g, hdr, ref=None, clean=None, sanitize=True, above=math.
     if row["finite"] and ref is not None and ref.shape == out.shape and bool((ref > above).any()):
         bright = ref > above
         row["energy above range"] = float(out[bright].sum() / ref[bright].sum())
+    if row["finite"] and on_lamp is not None and on_lamp.shape == out.shape:
+        row["lamp energy"] = float(out[on_lamp].sum() / ref[on_lamp].sum())
     return row
 
 
@@ -220,6 +245,10 @@ def model_rows(ctx: Context, name: str, seed: int, frames: int, long_frames: int
             batch = {"lr_noisy": x, "lr_gbuf": g, "hr_ref": scale_ref, "hr_noisy": mid}
             row.update(_train_step_row(model, batch, task, hdr, stability_loss(ctx), ctx.train.lr))
         rows.append(row)
+    for case, k in LAMPS.items():   # every model: a method on linear radiance returns the lamp too
+        x, lamp_ref, on_lamp, level = _lamp(x0, ref, k, task.scale)
+        rows.append({"case": case, **_eval_row(model, x, g0, hdr, lamp_ref, on_lamp=on_lamp),
+                     "note": f"lamp radiance {level:.3g}"})
     for case, hw in SIZES.items():
         x, g = _resize(x0[:, :2], hw), _resize(g0[:, :2], hw)
         row = {"case": case, **_eval_row(model, x, g, hdr)}
@@ -262,15 +291,16 @@ def status(row, clean_relmse: float | None = None) -> str:
     """The Markdown cell of a row: "ok" + max |output|, "error (clear)", or FAIL with its reason. Finite is
     necessary, not sufficient: a case of the scene scaled by k passes when its relMSE to the reference
     scaled by k is within RELMSE_FACTOR of the unscaled case's (`clean_relmse`), and a learned model's
-    output returns the energy above its domain's ceiling within ENERGY_TOLERANCE; an all-black input
-    gives at most BLACK_MAX."""
+    output returns the energy above its domain's ceiling within ENERGY_TOLERANCE, as every model does the
+    energy of a lamp case's emitter; an all-black input gives at most BLACK_MAX."""
     if isinstance(row.get("error"), str):
         return "error (clear)"
     train = row.get("train step")
     bad_train = isinstance(train, str) and not (train == "ok" or train.startswith("divergence detected"))
     if not row.get("finite") or bad_train:
         return "FAIL" + (f" ({train})" if bad_train else "")
-    value, relmse_k, energy = (_number(row, k) for k in ("max |output|", "relMSE at unit scale", "energy above range"))
+    value, relmse_k, energy, lamp = (_number(row, k) for k in ("max |output|", "relMSE at unit scale",
+                                                               "energy above range", "lamp energy"))
     if row.get("case") == "all-black frame" and value is not None and value > BLACK_MAX:
         return f"FAIL (black in, {value:.2g} out)"
     if row.get("case") in SCALES and (relmse_k is None or clean_relmse is None):
@@ -279,6 +309,8 @@ def status(row, clean_relmse: float | None = None) -> str:
         return f"FAIL (relMSE {relmse_k:.3g}, unscaled {clean_relmse:.3g})"
     if energy is not None and abs(energy - 1) > ENERGY_TOLERANCE:
         return f"FAIL (energy above range {energy:.0%})"
+    if lamp is not None and abs(lamp - 1) > ENERGY_TOLERANCE:
+        return f"FAIL (lamp energy {lamp:.0%})"
     return "ok" + (f" {value:.3g}" if value is not None else "")
 
 
@@ -327,15 +359,18 @@ def range_note(table: pd.DataFrame, hdr: str) -> str:
 def caption(table: pd.DataFrame, preset: str, device: str, hdr: str) -> str:
     energy = ("" if "relMSE at unit scale" in table else " ('not judged': this table.csv was measured before "
               "these two rules, and the next run of the experiment measures what they need)")
+    lamps = (f"'lamp kx the exposure' (a noise-free emitter block at k times the exposure of the frame without "
+             f"it, in the input and the reference) passes when the model returns the lamp's energy within "
+             f"{ENERGY_TOLERANCE:.0%} (every model), " if table["case"].isin(list(LAMPS)).any() else "")
     return (f"Stability at preset {preset} on {device}: each case through each model (trained at this "
             f"preset), inputs sanitized (bench.sanitize). 'ok' + max |output| (linear radiance); 'error "
             f"(clear)': the model refused with a message; FAIL: non-finite output, gradients or weights, or a "
             f"case judged against its reference: 'HDR scale k' passes when its output divided by k has a relMSE "
             f"to the reference within {RELMSE_FACTOR:g}x the unscaled case's, a learned model's output returns the energy "
-            f"above its network domain's ceiling within {ENERGY_TOLERANCE:.0%}{energy}, and an all-black "
+            f"above its network domain's ceiling within {ENERGY_TOLERANCE:.0%}{energy}, {lamps}and an all-black "
             f"input gives at most {BLACK_MAX:g}. {range_note(table, hdr)} Per-row details (relMSE vs reference "
-            f"and vs the clean case, energy above range, time, the same case without sanitation, training "
-            f"step) in table.csv.")
+            f"and vs the clean case, energy above range, lamp energy, time, the same case without sanitation, "
+            f"training step) in table.csv.")
 
 
 def write_tables(table: pd.DataFrame, out_dir, preset: str, device: str, hdr: str) -> None:

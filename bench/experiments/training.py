@@ -112,6 +112,12 @@ def _trainings(ctx: Context, cfg: dict, task: Task, seed: int, cascade: bool):
             yield stage, _train_identity(ctx, cfg, stage_task, seed, _loss_features(ctx)[1], stage)
 
 
+def planned_trainings(ctx: Context, cfg: dict, task: Task, seed: int, cascade: bool = False) -> list[str]:
+    """The run hashes of the trainings that scoring (cfg, task, seed) uses, from the configuration alone
+    (the data fingerprint is planned from the spec): reads no record and needs no rendered frame."""
+    return [runs.config_hash(identity) for _, identity in _trainings(ctx, cfg, task, seed, cascade)]
+
+
 @dataclasses.dataclass(frozen=True)
 class RecordedTraining:
     """A training that scoring a row uses, as the records say (`training_records`)."""
