@@ -59,7 +59,8 @@ def test_a_preset_without_a_test_split_reports_val(preset):
     assert cfg.eval.split == "val" and cfg.results_dir == f"results/{preset}"
 
 
-@pytest.mark.parametrize("group, name", [("experiment", "lr_range"), ("study", "dark_bias"), ("study", "lr_range_ssim")])
+@pytest.mark.parametrize("group, name", [("experiment", "lr_range"), ("study", "dark_bias"), ("study", "lr_range_ssim"),
+                                         ("study", "domain")])
 def test_what_tunes_reads_val_at_cpu_and_refuses_test(group, name):
     cfg = composed("preset=cpu", group=group, name=name)
     assert cfg.eval.split == "val" and not cfg.results_dir.endswith("/val")   # val is its own split

@@ -46,6 +46,8 @@ KEPT_STUDIES = [
     ("dark_bias", "A dark scene's colour: a linear bilinear base, a relative-MSE term, permuted colour channels."),
     ("lr_range_ssim", "The learning-rate range test with the SSIM term in the loss; its suggestions are the "
                       "cpu preset's `model_lr`."),
+    ("domain", "The learned models' network domain: PU21 against per-frame exposure + log1p, on Table 5's "
+               "learned rows (its caption gives the seeds)."),
 ]
 # studies whose conclusion is now the preset: their configs are in git history (docs/studies.md)
 RETIRED_STUDIES = [
