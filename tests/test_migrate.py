@@ -46,7 +46,7 @@ def stores(tmp_path):
     (results / "sota" / "table.csv").write_text(
         f"method,PSNR,runs\nOurs,33.1,{OURS_EVAL}\nCascade,32.0,{CASCADE_EVAL}\nlinear SSIM,32.5,{SSIM_LINEAR_EVAL}\n")
     (results / "weights").mkdir()
-    shutil.copy(ROOT / "results/cpu/weights/ours.pt.json", results / "weights" / "ours.pt.json")
+    shutil.copy(V1 / "ours.pt.json", results / "weights" / "ours.pt.json")  # the sidecar results/cpu/weights had then
     return store, archive, results
 
 
