@@ -38,7 +38,7 @@ def evaluated(ctx: Context, cfg: dict, task: Task, seed: int, split: str, label:
                                      learned=train_run is not None or cascade)
     run = runs.begin(ctx.runs_dir, "eval", identity, seed=seed, device=ctx.device, label=label,
                      force=ctx.force, code=code, reuse_stale=ctx.reuse_stale, archive=ctx.runs_archive)
-    missing = [m for m in required_scores(ctx) if f"{m} se" not in run.metrics] if run.reused else []
+    missing = missing_scores(ctx, run.metrics) if run.reused else []
     if missing:  # recorded before the evaluator scored these: evaluating again is cheap, training is not
         log.info("eval %s: re-evaluating run %s, recorded without %s", label, run.hash, ", ".join(missing))
         run = runs.begin(ctx.runs_dir, "eval", identity, seed=seed, device=ctx.device, label=label,
@@ -80,13 +80,14 @@ def evaluation_recorded(ctx: Context, cfg: dict, task: Task, seed: int, split: s
     identity, code = _evaluation_key(ctx, evaluation_data(ctx), cfg, trained, split, ctx.eval.fast_path,
                                      learned=bool(hashes))
     run = runs.reusable(ctx.runs_dir, "eval", identity, code, ctx.reuse_stale, ctx.runs_archive)
-    return run is not None and all(f"{m} se" in run.metrics for m in required_scores(ctx))
+    return run is not None and not missing_scores(ctx, run.metrics)
 
 
-def required_scores(ctx: Context) -> tuple[str, ...]:
-    """The scores a recorded evaluation must hold to be reused: those added since it was recorded
-    (FLIP) only when eval.rescore_missing asks."""
-    return REQUIRED_SCORES + (LATER_SCORES if ctx.eval.rescore_missing else ())
+def missing_scores(ctx: Context, metrics: dict) -> list[str]:
+    """The scores a recorded evaluation's `metrics` lack but must hold to be reused: those added since it
+    was recorded (FLIP) only when eval.rescore_missing asks."""
+    required = REQUIRED_SCORES + (LATER_SCORES if ctx.eval.rescore_missing else ())
+    return [m for m in required if f"{m} se" not in metrics]
 
 
 def _evaluation_key(ctx: Context, scoring_ctx: Context, cfg: dict, trained, split: str, fast_path: str,
