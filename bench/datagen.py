@@ -654,8 +654,9 @@ def build_dataset(root, spec, passes=BUFFERS, workers=1, progress=True, variant=
     passes: buffers to produce (subset of BUFFERS); buffers rendered by earlier builds are kept.
     splits: the splits to render (None: all); the manifest also lists the other splits whose every
     frame is already there (`complete_splits`), so it only ever holds whole splits.
-    workers: processes rendering sequences in parallel (each sets its own Mitsuba variant and a share of
-    the cores; 'spawn' start, so no JIT state is forked). variant: Mitsuba variant (None: pick_variant).
+    workers: at most this many processes render sequences in parallel, no more than there are sequences
+    (one: this process renders it); each sets its own Mitsuba variant and a share of the cores; 'spawn'
+    start, so no JIT state is forked. variant: Mitsuba variant (None: pick_variant).
     Returns the manifest as a DataFrame with one row per frame (column 'resumed': it was already complete).
     """
     passes = [p for p in passes if p]
@@ -670,6 +671,9 @@ def build_dataset(root, spec, passes=BUFFERS, workers=1, progress=True, variant=
                  multiprocessing.get_start_method())
         workers = 1
     plan = [job for job in plan_sequences(spec) if splits is None or job["split"] in splits]
+    # no more processes than sequences, and none for one: a spawned worker starts Python, Mitsuba and its
+    # JIT again (about 2 s), ten times the render of a small sequence (tests/test_faults.py's)
+    workers = min(workers, len(plan))
     start = time.perf_counter()
     threads = max(1, (os.cpu_count() or 1) // workers) if workers > 1 else 0
     jobs = [(os.fspath(root), job, spec, passes, variant, threads) for job in plan]

@@ -114,6 +114,7 @@ def test_a_lost_run_store_is_rebuilt_from_the_archive_without_training(dirs, tmp
     assert {p.name for p in weights[0].parent.iterdir()} == set(archived.FILES)  # compact: float16 EMA, thinned curve
     assert {p.name for p in evaluations[0].parent.iterdir()} == set(archived.EVALUATION_FILES)  # scores gzipped
     (tmp_path / "results" / "ipt" / "crops.png").unlink()
+    caplog.clear()  # the first command's lines are captured too where an earlier test left the logger at INFO
     with caplog.at_level("INFO", logger="bench"):
         run_experiment(compose_experiment("ipt", mine + [f"runs_dir={tmp_path / 'fresh'}"]))
     assert f"{n} of {n} rows reused" in caplog.text and "trained in" not in caplog.text
