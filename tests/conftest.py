@@ -35,14 +35,15 @@ os.environ.setdefault("SRD_TRACKING", "none")
 os.environ["XDG_CACHE_HOME"] = tempfile.mkdtemp(prefix="srd-bench-test-cache-")
 
 
-SMOKE_DATA = ["preset=smoke", "data.splits.train.sequences=4"]  # the dataset the smoke tests share (`smoke_data`)
+# the dataset the smoke tests share (`smoke_data`): references at 64 spp, not 256, render in half the time
+SMOKE_DATA = ["preset=smoke", "data.splits.train.sequences=4", "data.ref_spp=64"]
 
 
 def smoke_overrides(root, steps=4):
     """Hydra overrides for a fast smoke-preset run whose runs, results and data stay under `root`."""
     return [*SMOKE_DATA, f"runs_dir={root / 'runs'}", f"results_dir={root / 'results'}",
             f"data_dir={root / 'data'}", "progress=false", f"train.steps={steps}",
-            f"train.checkpoint_every={steps}"]
+            f"train.checkpoint_every={steps}", "train.val_sequences=1"]  # a curve of 1 sequence: half the scoring
 
 
 @pytest.fixture(scope="session")
@@ -124,7 +125,7 @@ def smoke_dirs(tmp_path_factory, smoke_data):
     root = tmp_path_factory.mktemp("smoke")
     smoke_data(root / "data")
     args = [f"runs_dir={root / 'runs'}", f"results_dir={root / 'results'}", f"data_dir={root / 'data'}",
-            "progress=false", "train.steps=12", "data.splits.train.sequences=4"]  # adopt replays 10 steps
+            "progress=false", "train.steps=12", *SMOKE_DATA]  # adopt replays 10 steps
     first = bench("+experiment=smoke", *args)
     assert first.returncode == 0, first.stderr[-3000:]
     return args, root

@@ -19,7 +19,7 @@ from bench.cli import (CONF_DIR, apply_pin, available_experiments, available_stu
                        make_context)
 from bench.experiments import KINDS
 from bench.experiments.results_page import CONTROLS, PAPER_TABLES
-from conftest import REPO, bench
+from conftest import REPO, SMOKE_DATA, bench
 
 PRESETS = sorted(p.stem for p in (Path(CONF_DIR) / "preset").glob("*.yaml"))
 
@@ -200,7 +200,7 @@ def test_torchrun_two_processes_train_as_one_and_only_rank_0_records(smoke_dirs,
     curve is the one-process run's with the same global batch, and the table written once."""
     args, _ = smoke_dirs
     data = [a for a in args if a.startswith("data_dir=")]
-    common = ["+experiment=smoke", *data, "progress=false", "train.steps=4", "data.splits.train.sequences=4"]
+    common = ["+experiment=smoke", *data, "progress=false", "train.steps=4", *SMOKE_DATA]
     env = dict(os.environ, HYDRA_FULL_ERROR="0", OMP_NUM_THREADS="1")
     curves = {}
     for name, launcher in (("one", []), ("two", ["-m", "torch.distributed.run", "--standalone", "--nproc_per_node", "2"])):

@@ -1,9 +1,11 @@
-"""`srd-bench predict` on real folders (issue 44, item 4), with real files and real processes: folders are
-sequences whose outputs mirror the input tree, a recurrent state never runs from one sequence into the
-next, two frames never write one file, mostly non-finite frames are refused and every repair is printed,
-outputs follow the umask, and damaged or foreign weights and a bad --tile are one line."""
+"""`srd-bench predict` on real folders (issue 44, item 4), with real files, its console script's function
+called in this process (a process of its own for the umask): folders are sequences whose outputs mirror
+the input tree, a recurrent state never runs from one sequence into the next, two frames never write
+one file, mostly non-finite frames are refused and every repair is printed, outputs follow the umask,
+and damaged or foreign weights and a bad --tile are one line."""
 import contextlib
 import hashlib
+import io
 import json
 import os
 import subprocess
@@ -60,11 +62,22 @@ def views(root, n=2, frames=2):
 
 
 def predict(*args, umask=None):
-    """`srd-bench predict` in its own process (fp32: the reference path, nothing measured)."""
-    env = dict(os.environ, PYTHONPATH=str(REPO))
-    command = [sys.executable, "-m", "bench.predict", "predict", "--fast-path", "fp32", *map(str, args)]
-    return subprocess.run(command, cwd=REPO, capture_output=True, text=True, timeout=120, env=env,
-                          preexec_fn=(lambda: os.umask(umask)) if umask is not None else None)
+    """`srd-bench predict` (fp32: the reference path, nothing measured) as its console script runs it,
+    `bench.predict.main` in this process; in a process of its own where `umask` is given (a new process's
+    umask is what that test checks), which also runs the module as a program."""
+    from bench.predict import main
+    argv = ["predict", "--fast-path", "fp32", *map(str, args)]
+    if umask is not None:
+        return subprocess.run([sys.executable, "-m", "bench.predict", *argv], cwd=REPO, capture_output=True,
+                              text=True, timeout=120, env=dict(os.environ, PYTHONPATH=str(REPO)),
+                              preexec_fn=lambda: os.umask(umask))
+    stdout, stderr = io.StringIO(), io.StringIO()
+    with contextlib.redirect_stdout(stdout), contextlib.redirect_stderr(stderr):
+        try:
+            code = main(argv)
+        except SystemExit as stop:  # argparse's exit on a bad argument
+            code = stop.code
+    return subprocess.CompletedProcess(argv, code, stdout.getvalue(), stderr.getvalue())
 
 
 def one_line_error(out, *fragments):

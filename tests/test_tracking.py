@@ -12,6 +12,7 @@ import pytest
 from mlflow.tracking import MlflowClient
 
 from bench import runs, tracking
+from conftest import SMOKE_DATA
 
 REPO = Path(__file__).resolve().parent.parent
 
@@ -29,7 +30,7 @@ def store(tmp_path_factory, smoke_data):
     root = tmp_path_factory.mktemp("tracked")
     smoke_data(root / "data", root / "runs")
     args = ["+experiment=smoke", f"runs_dir={root / 'runs'}", f"results_dir={root / 'results'}",
-            f"data_dir={root / 'data'}", "progress=false", "train.steps=20", "data.splits.train.sequences=4"]
+            f"data_dir={root / 'data'}", "progress=false", "train.steps=6", *SMOKE_DATA]
     sweep = bench("-m", "hydra/launcher=joblib", "shard=0/2,1/2", *args)
     assert sweep.returncode == 0, sweep.stderr[-3000:]
     assert not (root / "runs" / "mlflow.db").exists()  # tracking=none: no MLflow store
@@ -69,14 +70,14 @@ def test_every_recorded_run_is_listed_by_mlflow_with_params_metrics_tags_and_art
     run = {r.data.tags["srd.hash"]: r for r in mirrored(client, "train")}[train["hash"]]
     assert run.info.status == "FINISHED" and run.info.run_name == "Ours seed 0"
     assert run.data.params["model._target_"] == "bench.models.srd.SRDNet"
-    assert run.data.params["train.steps"] == "20"
+    assert run.data.params["train.steps"] == "6"
     assert run.data.tags["mlflow.source.git.commit"] == train["git_commit"]
     assert run.data.tags["srd.tables"] == "smoke"  # through the evaluation that fed the table
     record = json.loads((Path(train["dir"]) / "run.json").read_text())
     assert run.data.tags["srd.code"] == runs.config_hash(record["code"])
     assert run.data.metrics["val.PSNR"] == pytest.approx(record["metrics"]["val"]["PSNR"])
     history = client.get_metric_history(run.info.run_id, "train.loss")
-    assert sorted(m.step for m in history) == list(range(1, 21))  # the whole curve, by step
+    assert sorted(m.step for m in history) == list(range(1, 7))  # the whole curve, by step
     curve = pd.read_csv(Path(train["dir"]) / "val_curve.csv")
     assert {m.step for m in client.get_metric_history(run.info.run_id, "val.PSNR")} == set(curve["step"])
     artifacts = {a.path for a in client.list_artifacts(run.info.run_id)}
