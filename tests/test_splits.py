@@ -86,6 +86,20 @@ def test_learning_curves_and_captions_never_lean_on_test():
     assert "no test split" in split_note(ctx, "val")
 
 
+@pytest.mark.parametrize("asked, in_split, scored", [(4, 2, [0, 1]), (4, 10, [0, 3, 6, 9]), (1, 10, [0]),
+                                                     (3, 3, [0, 1, 2])])
+def test_the_learning_curve_scores_the_sequences_it_asks_for_spread_over_the_working_split(
+        monkeypatch, asked, in_split, scored):
+    """train.val_sequences=4 on a val split of 2 scored only its first (the spread divided by 3, not 1)."""
+    from bench.experiments import training
+    seen = []
+    monkeypatch.setattr(training, "dataset", lambda ctx, split, task, training: list(range(in_split)))
+    monkeypatch.setattr(training, "evaluate", lambda model, subset, task, **_: (
+        seen.append(list(subset)), {"relMSE": 0.0, "PSNR": 0.0, "SSIM": 0.0}))
+    training.validation(smoke_context(), None, asked)(model=None)
+    assert seen == [scored]
+
+
 def test_claims_never_mix_the_rows_of_two_splits(tmp_path):
     """A claims table at eval.split=test refuses an evaluation that scored val (a table left from before)."""
     ctx = smoke_context(runs_dir=tmp_path / "runs", runs_archive=None)

@@ -41,7 +41,8 @@ def validation(ctx: Context, task: Task, sequences: int):
     except ValueError:  # no such split in this dataset: no curve, the final table still scores it
         log.warning("no %r split for the learning curve; training without one", split)
         return None
-    chosen = sorted({round(i * (len(full) - 1) / max(1, sequences - 1)) for i in range(min(sequences, len(full)))})
+    n = min(sequences, len(full))  # spread over the split; all of it when it has no more than asked
+    chosen = sorted({round(i * (len(full) - 1) / max(1, n - 1)) for i in range(n)})
     subset = torch.utils.data.Subset(full, chosen)
     hdr = ctx.train.hdr
 
