@@ -515,11 +515,11 @@ def test_an_experiment_flag_that_is_not_true_or_false_is_refused():
 @pytest.mark.parametrize("override, said", [("experiment.input_hw=[0,0]", "expected [height, width]"),
                                             ("experiment.repeats=0", "experiment.repeats=0: expected an integer >= 1"),
                                             ("experiment.fast_paths=[bogus]", "experiment.fast_paths: 'bogus'")])
-def test_a_bad_speed_option_is_one_line_before_anything_is_timed(tmp_path, override, said):
-    out = bench("+experiment=speed", "experiment.models=[srd]", override, "preset=smoke", "tracking=none",
-                f"results_dir={tmp_path / 'results'}", f"runs_dir={tmp_path / 'runs'}", timeout=120)
-    text = out.stdout + out.stderr
-    assert out.returncode == 2 and said in text and "Traceback" not in text, text[-2000:]
+def test_a_bad_speed_option_is_one_line_before_anything_is_timed(monkeypatch, capsys, tmp_path, override, said):
+    code, text = bench_here(monkeypatch, capsys, "+experiment=speed", "experiment.models=[srd]", override,
+                            "preset=smoke", "tracking=none", f"results_dir={tmp_path / 'results'}",
+                            f"runs_dir={tmp_path / 'runs'}")
+    assert code == 2 and said in text and "Traceback" not in text, text[-2000:]
     assert not list((tmp_path / "results").rglob("table.csv"))
 
 
