@@ -22,9 +22,9 @@ run: setup
 	$(PY) -m bench +experiment=smoke
 
 # two processes, each test file whole on one (module fixtures run once; files that share a path do not
-# overlap in time); pytest alone runs them on one
+# overlap in time), the longest files first (tests/conftest.py); pytest alone runs them on one
 test: setup
-	$(PY) -m pytest -q -n 2 --dist loadfile
+	$(PY) -m pytest -q -n 2 --dist loadfile --no-loadscope-reorder
 
 test-slow: setup
 	$(PY) -m pytest -q -m slow

@@ -35,6 +35,20 @@ os.environ.setdefault("SRD_TRACKING", "none")
 os.environ["XDG_CACHE_HOME"] = tempfile.mkdtemp(prefix="srd-bench-test-cache-")
 
 
+# The files that take longest, first (`make test --durations`, in this order): pytest-xdist hands whole
+# files to its workers in the order collected (make test passes --no-loadscope-reorder; its default orders
+# files by their number of tests, which left files of two to six tests and half a minute each to the end,
+# one worker idle). An order only: a stale list costs balance, never a test.
+LONGEST_FIRST = ["test_cli.py", "test_experiments.py", "test_adopt.py", "test_faults.py", "test_train.py",
+                 "test_eval_data.py", "test_distributed.py", "test_gpu_job.py", "test_tracking.py",
+                 "test_stability.py", "test_scheduler.py", "test_fused_gpu.py", "test_layers.py"]
+
+
+def pytest_collection_modifyitems(items):
+    rank = {name: i for i, name in enumerate(LONGEST_FIRST)}
+    items.sort(key=lambda item: rank.get(item.path.name, len(rank)))  # stable: the rest keep their order
+
+
 # the dataset the smoke tests share (`smoke_data`): references at 64 spp, not 256, render in half the time
 SMOKE_DATA = ["preset=smoke", "data.splits.train.sequences=4", "data.ref_spp=64"]
 
