@@ -164,7 +164,7 @@ def sota_seed_0_trainings(preset: str) -> dict[str, str]:
     `preset`, as configured today (domain, recipe, data spec), planned from the config alone."""
     from omegaconf import OmegaConf
     from bench.cli import apply_pin, apply_split, make_context
-    from bench.experiments.context import model_config, with_training
+    from bench.experiments.context import row_setting
     from bench.experiments.table import expand_rows
     from bench.experiments.training import planned_trainings
     with initialize_config_dir(config_dir=CONF_DIR, version_base=None):
@@ -173,10 +173,8 @@ def sota_seed_0_trainings(preset: str) -> dict[str, str]:
     apply_split(cfg)
     ctx = make_context(cfg)
     rows = expand_rows(OmegaConf.to_container(cfg.experiment.rows, resolve=True))
-    return {h: r["label"] for r in rows
-            for h in planned_trainings(with_training(ctx, r.get("train"), r["model"]),
-                                       model_config(ctx, r["model"], r.get("overrides")), get_task(r["task"]), 0,
-                                       r.get("cascade", False))}
+    settings = {r["label"]: row_setting(ctx, r) for r in rows}
+    return {h: label for label, s in settings.items() for h in planned_trainings(s.ctx, s.cfg, s.task, 0, s.cascade)}
 
 
 @pytest.mark.parametrize("path", COMMITTED_WEIGHTS, ids=committed_id)

@@ -14,9 +14,11 @@ import copy
 import dataclasses
 from dataclasses import dataclass
 from pathlib import Path
+from typing import NamedTuple
 
 from bench import runs
 from bench.errors import UserError
+from bench.tasks import Task, get_task
 from bench.train import Recipe
 
 
@@ -126,6 +128,20 @@ def with_training(ctx: Context, overrides: dict | None, model: str | None = None
         overrides = deep_merge({"lr": ctx.model_lr[model]}, overrides)
     return dataclasses.replace(ctx, train=recipe_from(deep_merge(dataclasses.asdict(ctx.train), overrides))) \
         if overrides else ctx
+
+
+class RowSetting(NamedTuple):
+    """What a table row's runs are computed with."""
+    ctx: Context     # with the row's training recipe (`with_training`)
+    cfg: dict        # its model's config (`model_config`, the row's overrides in)
+    task: Task
+    cascade: bool    # the stages trained separately (paper Table 3 "Cascade")
+
+
+def row_setting(ctx: Context, r: dict) -> RowSetting:
+    """The setting of an expanded table row (`bench.experiments.table.expand_rows`)."""
+    return RowSetting(with_training(ctx, r.get("train"), r["model"]), model_config(ctx, r["model"], r.get("overrides")),
+                      get_task(r["task"]), r.get("cascade", False))
 
 
 def recipe_from(config: dict) -> Recipe:

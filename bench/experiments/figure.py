@@ -16,7 +16,7 @@ import torch.nn.functional as F
 
 from bench import archived
 from bench.evaluate import predict
-from bench.experiments.context import Context, model_config, with_training
+from bench.experiments.context import Context, row_setting
 from bench.experiments.datasets import dataset, evaluation_data
 from bench.experiments.training import cascade_model, trained_model
 from bench.metrics import relmse
@@ -41,10 +41,8 @@ def tonemap(img: torch.Tensor) -> np.ndarray:
 
 
 def _row_output(ctx: Context, r: dict, x, g, seed: int) -> torch.Tensor:
-    rctx = with_training(ctx, r.get("train"), r["model"])
-    cfg = model_config(ctx, r["model"], r.get("overrides"))
-    task = get_task(r["task"])
-    if r.get("cascade"):
+    rctx, cfg, task, cascade = row_setting(ctx, r)
+    if cascade:
         model, _ = cascade_model(rctx, cfg, seed, r["label"])
     else:
         model, _ = trained_model(rctx, cfg, task, seed, r["label"])

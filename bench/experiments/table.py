@@ -28,7 +28,7 @@ import pandas as pd
 
 from bench import archived, runs
 from bench.errors import UserError
-from bench.experiments.context import Context, model_config, split_note, training_splits, with_training
+from bench.experiments.context import Context, model_config, row_setting, split_note, training_splits
 from bench.experiments.datasets import ensure_data, evaluation_data, frame_records, splits_on_disk
 from bench.experiments.evaluation import evaluation_recorded
 from bench.experiments.figure import crop_figure, curve_figure
@@ -297,10 +297,9 @@ def unrecorded_rows(ctx: Context, rows: list[dict], split: str | None, trainings
     training's weights), decided from records alone (`evaluation_recorded`; `trainings`: (label, seed) ->
     its `training_records`)."""
     def recorded(r: dict, seed: int) -> bool:
-        return evaluation_recorded(with_training(ctx, r.get("train"), r["model"]),
-                                   model_config(ctx, r["model"], r.get("overrides")), get_task(r["task"]), seed,
-                                   r.get("split", split) or ctx.eval.split, trainings[r["label"], seed],
-                                   r.get("cascade", False))
+        rctx, cfg, task, cascade = row_setting(ctx, r)
+        return evaluation_recorded(rctx, cfg, task, seed, r.get("split", split) or ctx.eval.split,
+                                   trainings[r["label"], seed], cascade)
     return [r for r in rows if ctx.force or not all(recorded(r, seed) for seed in ctx.seeds)]
 
 
@@ -351,11 +350,9 @@ def ready_data(ctx: Context, scoring_ctx: Context, name: str, rows: list[dict], 
     trainings it scores (another dataset: nothing is rendered or trained). Returns whether the crops
     figure can be drawn."""
     # per (row, seed): the trainings its scoring uses, as recorded (force=true: every one runs)
-    trainings = {} if ctx.force else {
-        (r["label"], seed): training_records(with_training(ctx, r.get("train"), r["model"]),
-                                             model_config(ctx, r["model"], r.get("overrides")),
-                                             get_task(r["task"]), seed, r.get("cascade", False))
-        for r in rows for seed in ctx.seeds}
+    settings = {r["label"]: row_setting(ctx, r) for r in rows}
+    trainings = {} if ctx.force else {(label, seed): training_records(s.ctx, s.cfg, s.task, seed, s.cascade)
+                                      for label, s in settings.items() for seed in ctx.seeds}
     if scoring_ctx is ctx:
         return render_what_runs(ctx, name, rows, task, split, figure, trainings)
     ensure_data(scoring_ctx, set(), scoring=True)
