@@ -1,4 +1,5 @@
 """Helpers shared by the tests: smoke-preset experiments, small models and their inputs."""
+import atexit
 import dataclasses
 import fcntl
 import os
@@ -31,8 +32,10 @@ from baselines.kpcn import KPCN  # noqa: E402
 from baselines.rae import RAE  # noqa: E402
 # Mirroring to MLflow costs seconds per command; the tests that check it turn it on (tracking=mlflow).
 os.environ.setdefault("SRD_TRACKING", "none")
-# What the suite caches per machine (predict's measured fast path) stays out of the user's home.
+# What the suite caches per machine (predict's measured fast path) stays out of the user's home, and goes
+# with the process (each pytest process, xdist's workers included, left one behind in /tmp before).
 os.environ["XDG_CACHE_HOME"] = tempfile.mkdtemp(prefix="srd-bench-test-cache-")
+atexit.register(shutil.rmtree, os.environ["XDG_CACHE_HOME"], ignore_errors=True)
 
 
 # The files that take longest, first (`make test --durations`, in this order): pytest-xdist hands whole

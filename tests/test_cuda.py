@@ -146,6 +146,31 @@ def test_trainer_on_cuda_matches_cpu_and_resumes(tmp_path):
     _close(on_cpu(x, g)["final"], cuda_model.cpu()(x, g)["final"].detach())
 
 
+def test_training_frames_held_on_the_gpu_are_the_host_items_and_train_alike(tmp_path):
+    """At device=cuda the trainer's split is held in GPU memory (bench.device_frames): every item of
+    every draw is the host's, bit for bit, and a training on it takes the host path's steps."""
+    from bench.dataset import SequenceDataset
+    from bench.device_frames import DeviceFrames, training_frames
+    from test_dataset import ALL, _write_synthetic
+    _write_synthetic(tmp_path / "data")
+    options = dict(seq_len=2, crop=4, augment=True, seed=3, permute_colours=True)
+    host = SequenceDataset(tmp_path / "data", "train", ALL, **options)
+    held = training_frames(tmp_path / "data", "train", ALL, device="cuda", **options)
+    assert isinstance(held, DeviceFrames) and held.nbytes() > 0
+    for index in range(len(host)):
+        for draw in range(8):
+            want, got = host.item(index, draw), held.item(index, draw)
+            for key in ALL:
+                assert got[key].is_cuda and torch.equal(got[key].cpu(), want[key]), (index, draw, key)
+    recipe = _recipe(steps=4, crop=4, val_every=0)
+    curves = {}
+    for name, data in (("host", host), ("held", held)):
+        summary = train(_model(), data, TASK, tmp_path / name, recipe, device="cuda", progress=False)
+        assert 0 <= summary["data_share"] < 1
+        curves[name] = pd.read_csv(tmp_path / name / "curve.csv")
+    assert curves["held"]["loss"].tolist() == pytest.approx(curves["host"]["loss"].tolist(), rel=1e-5)
+
+
 # ---- the fused Triton kernels at sizes and in dtypes the interpreter cannot run ---------------------
 
 def _deform_inputs(b, c, h, w, o, seed=0, offset_scale=2.0, device="cuda"):

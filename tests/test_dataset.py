@@ -169,3 +169,27 @@ def test_decoded_frames_are_cached_and_items_do_not_alias_the_cache(tmp_path):
     uncached = SequenceDataset(tmp_path, "train", ALL, seq_len=2, crop=4, cache_bytes=0)
     with pytest.raises(Exception):
         uncached.item(0, 5)                                   # without the cache the broken files are read
+
+
+@pytest.mark.parametrize("with_roughness", [True, False])
+def test_frames_held_on_a_device_give_the_host_items_bit_for_bit(tmp_path, with_roughness):
+    """DeviceFrames (bench.device_frames) decodes the split once, when built, and serves every item of
+    every draw as SequenceDataset does (crops, flips, turns, colour orders); tests/test_cuda.py checks the
+    same on a GPU. Its items are copies, and the store is what split_bytes plans for."""
+    from bench.device_frames import DeviceFrames, split_bytes, training_frames
+    _write_synthetic(tmp_path, with_roughness)
+    options = dict(seq_len=2, crop=4, augment=True, seed=3, permute_colours=True)
+    host = SequenceDataset(tmp_path, "train", ALL, **options)
+    held = DeviceFrames(tmp_path, "train", ALL, device="cpu", **options)
+    assert held.nbytes() == split_bytes(host) == T * (LR_H * LR_W + 4 * LR_H * LR_W) * (3 + 7 + 3) * 4
+    wanted = {(index, draw): host.item(index, draw) for index in range(len(host)) for draw in range(8)}
+    for path in tmp_path.glob("train/seq0/*.exr"):  # decoded when built: the files are not read again
+        path.write_bytes(b"")
+    for (index, draw), want in wanted.items():
+        got = held.item(index, draw)
+        assert got["meta"] == want["meta"]
+        for key in ALL:
+            assert got[key].dtype == want[key].dtype and torch.equal(got[key], want[key]), (index, draw, key)
+    held.item(0, 0)["hr_ref"].add_(1.0)
+    assert torch.equal(held.item(0, 0)["hr_ref"], wanted[0, 0]["hr_ref"])
+    assert type(training_frames(tmp_path, "train", ALL, device="cpu", **options)) is SequenceDataset  # host: its cache

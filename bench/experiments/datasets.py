@@ -18,6 +18,7 @@ from bench.atomic import write_atomic
 from bench.datagen import (MAX_NONFINITE, build_dataset, damaged_frames, frame_paths, load_manifest, manifest_problems,
                            planned_settings, rebuild_manifest)
 from bench.dataset import SequenceDataset
+from bench.device_frames import training_frames
 from bench.errors import UserError
 from bench.experiments.context import Context
 from bench.tasks import Task
@@ -351,7 +352,8 @@ def dataset(ctx: Context, split: str, task: Task, training: bool, seed: int = 0)
     check_training_frames(ctx, split, manifest)
     # an option added later is passed only when set: adopt's replay runs dataset code that predates it
     later = {"permute_colours": True} if recipe.colour_permute else {}
-    return SequenceDataset(ctx.data_dir, split, buffers, seq_len=recipe.seq_len, crop=recipe.crop,
+    # on a GPU the split is held in its memory where it fits (the same items, bit for bit)
+    return training_frames(ctx.data_dir, split, buffers, device=ctx.device, seq_len=recipe.seq_len, crop=recipe.crop,
                            augment=True, seed=seed, **later)
 
 
