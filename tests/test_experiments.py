@@ -398,6 +398,9 @@ def test_claim_verdicts_pair_seeds_and_sequences_with_holm_and_scene_robustness(
     assert ab["relMSE diff"] > 0 and ab["SSIM diff"] > 0   # relMSE oriented: worse minus better
     assert by_claim.loc["A beats C", "basis"] == "seeds 3 vs 1 (deterministic row broadcast), 6 sequences"
     assert ab["basis"] == "seeds 3 vs 3 (paired by index), 6 sequences"
+    assert (ctx.results_dir / "claims" / "table.md").read_text().startswith("The paper's claims at ")
+    claims.run(ctx, "studies/s", claim_list[:1], "PSNR", tables=None, subject="A study's comparisons")  # +study=domain_verdicts
+    assert (ctx.results_dir / "studies" / "s" / "table.md").read_text().startswith("A study's comparisons at ")
     # Holm over the 4 distinct comparisons (A-B twice counts once): p Holm = 4 x p for the smallest
     distinct = table.drop_duplicates("PSNR p")["PSNR p"].sort_values()
     assert len(distinct) == 4 and table["PSNR p Holm"].min() == pytest.approx(4 * distinct.iloc[0])

@@ -259,9 +259,9 @@ def judge_pair(ctx: Context, better: pd.Series, worse: pd.Series, metric: str,
     return row, d
 
 
-def _caption(ctx: Context, metric: str, tables: list[str] | None) -> str:
+def _caption(ctx: Context, metric: str, tables: list[str] | None, subject: str) -> str:
     return (
-        f"The paper's claims at {SCORED_ON.format(preset=ctx.preset, split=ctx.eval.split)}, from the recorded tables and their "
+        f"{subject} at {SCORED_ON.format(preset=ctx.preset, split=ctx.eval.split)}, from the recorded tables and their "
         f"evaluation runs.{split_note(ctx, ctx.eval.split)} "
         f"Method (bench/stats.py, docs/claims_statistics.md): per pair, d[seed, sequence] = the better row "
         f"minus the worse one as the paper orders them, signed so that > 0 supports the claim (relMSE: worse "
@@ -286,9 +286,11 @@ def _caption(ctx: Context, metric: str, tables: list[str] | None) -> str:
         + (f" Judged: the claims made of rows of {', '.join(tables)} only." if tables is not None else ""))
 
 
-def run(ctx: Context, name: str, claims: list[dict], metric: str, tables: list[str] | None) -> pd.DataFrame:
+def run(ctx: Context, name: str, claims: list[dict], metric: str, tables: list[str] | None,
+        subject: str = "The paper's claims") -> pd.DataFrame:
     """`tables`: judge only the claims whose rows all come from these tables (e.g. the ones rerun with
-    the current recipe); None: every claim."""
+    the current recipe); None: every claim. `subject`: what the comparisons are, the caption's first words
+    (a study's own comparisons: conf/study/domain_verdicts.yaml)."""
     if metric not in METRICS:
         raise UserError(f"experiment.metric={metric}: the claims are decided on one of {', '.join(METRICS)}")
     if tables is not None:
@@ -346,7 +348,8 @@ def run(ctx: Context, name: str, claims: list[dict], metric: str, tables: list[s
     table.insert(table.columns.get_loc(f"{metric} verdict") + 1, f"{metric} rests on",
                  rests_on(pair, {f: pd.Series(v) for f, v in left_out.items()}))
     detail = [f"{metric} diff {f}" for f in families] + [f"{metric} sd {k}" for k in ("seed", "sequence", "residual")]
-    paths = write_table(table.drop(columns=detail), ctx.results_dir / name, caption=_caption(ctx, metric, tables))
+    paths = write_table(table.drop(columns=detail), ctx.results_dir / name,
+                        caption=_caption(ctx, metric, tables, subject))
     table.to_csv(paths["csv"], index=False)   # the CSV keeps the per-family differences and components
     log.info("%s: %d comparisons, %s", name, len(table),
              ", ".join(f"{c}: {v}" for c, v in table.drop_duplicates("claim")[["claim", "verdict"]].values))
