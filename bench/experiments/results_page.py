@@ -48,6 +48,8 @@ KEPT_STUDIES = [
                       "cpu preset's `model_lr`."),
     ("domain", "The learned models' network domain: PU21 against per-frame exposure + log1p, on Table 5's "
                "learned rows (its caption gives the seeds)."),
+    ("domain_verdicts", "The domain study's pairs, judged: each learned model's exposure row against its PU21 "
+                        "row (exposure is the 'better' side: a reversed verdict would say PU21 wins)."),
 ]
 # studies whose conclusion is now the preset: their configs are in git history (docs/studies.md)
 RETIRED_STUDIES = [
@@ -157,14 +159,19 @@ def claims_section(results_dir: Path, claims: pd.DataFrame | None) -> list[str]:
     if claims is None:
         return lines + ["Not judged at this preset: there is no `claims/table.csv` "
                         "(`python -m bench +experiment=claims`, after the tables).", ""]
+    return lines + comparisons(results_dir, "claims", claims)
+
+
+def comparisons(results_dir: Path, name: str, claims: pd.DataFrame) -> list[str]:
+    """A claims-kind table (`<results_dir>/<name>/table.csv`): its verdicts, one line per compared pair."""
     metric = _verdict_metric(claims)
     unit = " (dB)" if metric == "PSNR" else ""
-    lines += [f"From {_link(results_dir, 'claims/table.csv')}. Each claim compares rows of the tables; the "
-              f"verdict is taken on {metric}, from the difference per (seed, sequence), with Holm's correction "
-              f"over the table (method: [`docs/claims_statistics.md`](../../docs/claims_statistics.md)). "
-              f"diff: better minus worse as the paper orders them (> 0 supports the claim); interval: 95%; "
-              f"p: Holm-adjusted; 2SE: the earlier verdict, kept to show the change; rests on: the scene "
-              f"families whose leaving out changes the verdict.", ""]
+    lines = [f"From {_link(results_dir, f'{name}/table.csv')}. Each claim compares rows of the tables; the "
+             f"verdict is taken on {metric}, from the difference per (seed, sequence), with Holm's correction "
+             f"over the table (method: [`docs/claims_statistics.md`](../../docs/claims_statistics.md)). "
+             f"diff: better minus worse as the paper orders them (> 0 supports the claim); interval: 95%; "
+             f"p: Holm-adjusted; 2SE: the earlier verdict, kept to show the change; rests on: the scene "
+             f"families whose leaving out changes the verdict.", ""]
     header = ["claim", "verdict", "pair (better vs worse)", f"{metric} diff{unit}", "95% interval",
               "p (Holm)", "pair verdict", "2SE verdict", "rests on"]
     digits = dict(METRICS).get(metric, 3)
@@ -437,9 +444,13 @@ def studies_section(results_dir: Path, claims: pd.DataFrame | None) -> list[str]
             continue
         lines += [f"## {title}", "", intro, ""]
         for name, what in recorded:
-            metrics = _is_metrics_table(results_dir / name / "table.csv")   # else a range test's table
-            lines += (metrics_section(results_dir, name, what, claims) if metrics
-                      else lr_range_section(results_dir, name, what))
+            path = results_dir / name / "table.csv"
+            if _is_metrics_table(path):
+                lines += metrics_section(results_dir, name, what, claims)
+            elif "verdict" in pd.read_csv(path, nrows=0).columns:   # a study's own comparisons (kind claims)
+                lines += [f"### {name}", "", what, ""] + comparisons(results_dir, name, read_table(path))
+            else:
+                lines += lr_range_section(results_dir, name, what)
     return lines
 
 
