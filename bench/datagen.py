@@ -90,6 +90,15 @@ def plan_sequences(spec):
     return plan
 
 
+def sequence_samples(spec, job):
+    """Samples per pixel a sequence of `plan_sequences` renders over its frames (input and reference): the
+    measure of its cost that the progress line's time left counts in (a split's sequences differ by up
+    to 16x in their references, so frames are not)."""
+    part = spec["splits"][job["split"]]
+    reference = (part.get("sequence_ref_spp") or {}).get(job["sequence"]) or part.get("ref_spp") or spec["ref_spp"]
+    return int(spec["seq_len"]) * (int(spec["spp"]) + int(reference))
+
+
 def _on_chain(base, count):
     """Whether `count` samples are `base` doubled zero or more times."""
     try:
@@ -681,16 +690,22 @@ def build_dataset(root, spec, passes=BUFFERS, workers=1, progress=True, variant=
     bar = tqdm(total=len(plan) * int(spec["seq_len"]), desc=f"render {spec.get('name', root)}", unit="frame",
                disable=None if progress else True)
     logged = [start]
+    samples = {job["sequence"]: sequence_samples(spec, job) for job in plan}
+    left, rendered = [sum(samples.values())], [0.0]  # samples not yet done; samples rendered by this call
 
     def advance(done):
         records.extend(done)
         bar.update(len(done))
+        work = samples[done[0]["sequence"]] if done else 0
+        left[0] -= work
+        rendered[0] += work * sum(not r.get("resumed") for r in done) / max(1, len(done))  # resumed frames: free
         now = time.perf_counter()
         if progress and bar.disable and now - logged[0] >= PROGRESS_LOG_S:  # no terminal: a line now and then
             logged[0] = now
-            rate = len(records) / (now - start)
-            log.info("render: %d/%d frames, %.2f frames/s, about %.0f min left", len(records), bar.total, rate,
-                     (bar.total - len(records)) / max(rate, 1e-9) / 60)
+            rate = rendered[0] / (now - start)  # samples/s
+            log.info("render: %d/%d frames, %.2f frames/s, about %.0f min left (counted in samples: the "
+                     "sequences' references differ)", len(records), bar.total, len(records) / (now - start),
+                     left[0] / max(rate, 1e-9) / 60)
 
     if workers <= 1:
         for job in jobs:

@@ -331,3 +331,15 @@ def test_a_build_of_some_splits_renders_only_them_and_its_manifest_holds_whole_s
     test_frame.unlink()                                             # a split missing a frame's record ...
     (tmp_path / "manifest.json").write_text("{")                    # ... is left out of a rebuilt manifest
     assert [f["split"] for f in datagen.rebuild_manifest(tmp_path, spec)["frames"]] == ["train", "train"]
+
+
+def test_the_render_progress_counts_samples_not_frames():
+    """The progress line's time left counts each sequence's samples (input and reference): a split's
+    sequences differ by up to 16x in their references (sequence_ref_spp), so a count of frames misleads."""
+    spec = {"seed": 0, "seq_len": 7, "spp": 8, "ref_spp": 256,
+            "splits": {"train": {"families": ["living_room"], "sequences": 1},
+                       "test": {"families": ["kitchen"], "sequences": 2, "ref_spp": 1024}}}
+    train, first, second = datagen.plan_sequences(spec)
+    spec["splits"]["test"]["sequence_ref_spp"] = {second["sequence"]: 16384}
+    assert [datagen.sequence_samples(spec, job) for job in (train, first, second)] == \
+        [7 * (8 + 256), 7 * (8 + 1024), 7 * (8 + 16384)]
