@@ -18,6 +18,11 @@ import pytest
 if os.environ.get("PYTEST_XDIST_WORKER_COUNT"):
     os.environ.setdefault("OMP_NUM_THREADS", str(max(1, (os.cpu_count() or 1)
                                                       // int(os.environ["PYTEST_XDIST_WORKER_COUNT"]))))
+# Inductor compiles its C++ kernels in a pool of one process per core; on 2 cores the pool's start-up costs
+# more than it saves: test_train's compiled-step test took 64 s with it and 37 s in one thread (plain
+# pytest, a render running beside both). Measured on 2 cores only, so set there only.
+if (os.cpu_count() or 1) <= 2:
+    os.environ.setdefault("TORCHINDUCTOR_COMPILE_THREADS", "1")
 import torch  # noqa: E402
 
 # Without a GPU the fused Triton kernels run in Triton's interpreter (read when bench.nn.triton_kernels

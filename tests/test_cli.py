@@ -470,34 +470,34 @@ def test_all_counts_every_seed_and_each_shared_run_once(tmp_path, caplog):
     assert minutes == {"eval/h0": pytest.approx(0.1), "train/t0": pytest.approx(10.0), "train/t_gone": None}
 
 
-def test_a_results_dir_elsewhere_says_the_committed_archive_is_not_read(tmp_path):
+def test_a_results_dir_elsewhere_says_the_committed_archive_is_not_read(tmp_path, monkeypatch, capsys, caplog):
     """runs_archive follows results_dir: moved elsewhere, the committed runs are not read and every
     recorded run would be computed again; the first line says so and how to read them."""
-    out = bench("+experiment=train", "experiment.model=nosuch", "preset=cpu", "tracking=none",
-                f"results_dir={tmp_path / 'results'}", f"runs_dir={tmp_path / 'runs'}",
-                f"data_dir={tmp_path / 'data'}", timeout=120)
-    said = out.stdout + out.stderr
-    assert "the committed archive results/cpu/runs is not read" in said
+    code, said = bench_here(monkeypatch, capsys, "+experiment=train", "experiment.model=nosuch", "preset=cpu",
+                            "tracking=none", f"results_dir={tmp_path / 'results'}", f"runs_dir={tmp_path / 'runs'}",
+                            f"data_dir={tmp_path / 'data'}")
+    said += caplog.text  # the line is a warning of the bench logger
+    assert code == 2 and "the committed archive results/cpu/runs is not read" in said, said[-2000:]
     assert f"runs_archive={REPO / 'results' / 'cpu' / 'runs'} reads it" in said
     assert not (tmp_path / "data").exists()
     for yours in ("render_data=false", f"eval.data_dir={tmp_path / 'yours'}"):  # your frames: never in it
-        out = bench("+experiment=train", "experiment.model=nosuch", "preset=cpu", "tracking=none", yours,
-                    f"results_dir={tmp_path / 'results'}", f"runs_dir={tmp_path / 'runs'}",
-                    f"data_dir={tmp_path / 'data'}", timeout=120)
-        assert "committed archive" not in out.stdout + out.stderr, yours
+        caplog.clear()
+        code, said = bench_here(monkeypatch, capsys, "+experiment=train", "experiment.model=nosuch", "preset=cpu",
+                                "tracking=none", yours, f"results_dir={tmp_path / 'results'}",
+                                f"runs_dir={tmp_path / 'runs'}", f"data_dir={tmp_path / 'data'}")
+        assert code == 2 and "committed archive" not in said + caplog.text, yours
 
 
-def test_your_frames_never_replace_the_committed_tables(tmp_path):
+def test_your_frames_never_replace_the_committed_tables(tmp_path, monkeypatch, capsys):
     """Scoring or training on your frames with results_dir left at the preset's committed folder is one
     line naming results_dir=, before anything is read or written."""
     table = REPO / "results" / "cpu" / "sota" / "table.csv"
     before = table.stat().st_mtime_ns
     for yours in ([f"eval.data_dir={tmp_path / 'yours'}", "eval.split=holdout"],
                   ["render_data=false", f"data_dir={tmp_path / 'yours'}"]):
-        out = bench("+experiment=sota", "preset=cpu", "tracking=none", *yours, f"runs_dir={tmp_path / 'runs'}",
-                    timeout=120)
-        said = out.stdout + out.stderr
-        assert out.returncode == 2 and "Traceback" not in said, said[-2000:]
+        code, said = bench_here(monkeypatch, capsys, "+experiment=sota", "preset=cpu", "tracking=none", *yours,
+                                f"runs_dir={tmp_path / 'runs'}")
+        assert code == 2 and "Traceback" not in said, said[-2000:]
         assert "would replace the committed ones" in said and "results_dir=/tmp/mine" in said, said[-2000:]
     assert table.stat().st_mtime_ns == before
     assert [p.name for p in (tmp_path / "runs").iterdir()] == ["hydra"]  # Hydra's log folder, no run
