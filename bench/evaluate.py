@@ -59,12 +59,14 @@ def sync(device: str) -> None:
 @torch.no_grad()
 def evaluate(model, dataset, task: Task, *, hdr: str = "clamp", device: str = "cpu",
              out_dir: str | Path | None = None, save_exr: bool = False,
-             write_exr=None, path: str = REFERENCE, tile: int | None = None) -> tuple[pd.DataFrame, dict]:
+             write_exr=None, path: str = REFERENCE, tile: int | None = None,
+             scores: tuple[str, ...] | None = None) -> tuple[pd.DataFrame, dict]:
     """Score `model` on every frame of `dataset` (items: full-frame sequences).
 
     Returns (per-image rows, aggregate metrics). With `save_exr`, `write_exr(path, {name: HxWxC array})`
     writes each output frame beside the metrics in `out_dir/frames/`. `path` and `tile` choose how the
     model runs (see `runner`): fp32 untiled is the reference every table uses unless told otherwise.
+    `scores`: the metrics computed (None: every one, SCORES); a learning curve needs three, not FLIP's cost.
     """
     if hasattr(model, "eval"):
         model.to(device).eval()
@@ -84,13 +86,13 @@ def evaluate(model, dataset, task: Task, *, hdr: str = "clamp", device: str = "c
                               for t in range(x.shape[1])], 1)
         sync(device)
         per_frame_ms = 1000 * (time.perf_counter() - t0) / x.shape[1]
-        scores = all_metrics(pred[0].cpu(), y[0].cpu())
+        scored = all_metrics(pred[0].cpu(), y[0].cpu(), scores)
         meta = item.get("meta", {})
         frames = meta.get("frames", list(range(x.shape[1])))
         for t in range(x.shape[1]):
             rows.append({"scene": meta.get("scene", index), "sequence": meta.get("sequence", index),
                          "frame": frames[t], "time_ms": per_frame_ms,
-                         **{k: float(v[t]) for k, v in scores.items()}})
+                         **{k: float(v[t]) for k, v in scored.items()}})
             if save_exr and out_dir is not None and write_exr is not None:
                 frame_dir = Path(out_dir) / "frames"
                 frame_dir.mkdir(parents=True, exist_ok=True)

@@ -140,7 +140,9 @@ LOWER_IS_BETTER = ("relMSE", "robust relMSE", "temporal relMSE", "LDR-FLIP", "HD
 HIGHER_IS_BETTER = ("PSNR", "SSIM")
 
 
-def all_metrics(pred: torch.Tensor, ref: torch.Tensor) -> dict[str, torch.Tensor]:
+def all_metrics(pred: torch.Tensor, ref: torch.Tensor, names=None) -> dict[str, torch.Tensor]:
     """Per frame of a sequence (T, C, H, W): relMSEs and HDR-FLIP on the linear values given, PSNR/SSIM and
-    LDR-FLIP on them clamped to [0, 1], and the temporal relMSE (NaN for the first frame)."""
-    return {name: fn(pred, ref) for name, fn in {**METRICS, **SEQUENCE_METRICS}.items()}
+    LDR-FLIP on them clamped to [0, 1], and the temporal relMSE (NaN for the first frame); `names`: only
+    these (None: every one)."""
+    return {name: fn(pred, ref) for name, fn in {**METRICS, **SEQUENCE_METRICS}.items()
+            if names is None or name in names}

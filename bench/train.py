@@ -35,6 +35,7 @@ from tqdm import tqdm
 
 from bench import distributed
 from bench.atomic import write_atomic
+from bench.emitters import with_emitter
 from bench.errors import UserError
 from bench.exposure import DOMAINS, encode, frame_exposure, transfer
 from bench.hdr import transforms
@@ -113,6 +114,7 @@ class Recipe:
     ema: float | None
     hdr: str                          # network domain, one of bench.exposure.DOMAINS
     colour_permute: bool
+    emitters: float                   # share of training items given a lamp far above their exposure (bench.emitters)
     precision: str                    # one of PRECISIONS
     channels_last: bool
     compile: str | None               # None: eager; else torch.compile's mode for forward, losses and backward
@@ -123,7 +125,7 @@ class Recipe:
 
     NOT_IDENTITY = ("checkpoint_every", "checkpoint_every_s", "val_every", "val_sequences")
     # options left out of the identity at this value: the recipe as recorded before the option existed
-    OMITTED_AT = {"compile": None}
+    OMITTED_AT = {"compile": None, "emitters": 0.0}
 
     def __post_init__(self):
         if self.schedule not in SCHEDULES:
@@ -132,6 +134,8 @@ class Recipe:
             raise ValueError(f"train.hdr must be one of {DOMAINS}, got {self.hdr!r}")
         if self.precision not in PRECISIONS:
             raise ValueError(f"train.precision must be one of {PRECISIONS}, got {self.precision!r}")
+        if not 0.0 <= self.emitters <= 1.0:
+            raise ValueError(f"train.emitters is a share of the training items, in [0, 1], got {self.emitters!r}")
         if self.compile not in (None, *COMPILE_MODES):
             raise ValueError(f"train.compile must be null or one of {COMPILE_MODES}, got {self.compile!r}")
 
@@ -176,6 +180,13 @@ def lr_at(step: int, recipe: Recipe) -> float:
         return lr * (step + 1) / warmup
     progress = (step - warmup) / max(1, steps - warmup)
     return lr * 0.5 * (1 + math.cos(math.pi * progress))
+
+
+def _with_emitter_or_not(item: dict, task: Task, share: float, seed: int, draw: int) -> dict:
+    """The item with a lamp (bench.emitters) in `share` of the draws; each slot of each step draws from its
+    own RNG, seeded by (seed, draw), so a resumed run and any split of the batch over ranks paste the same."""
+    rng = random.Random(f"emitter {seed} {draw}")
+    return with_emitter(item, task, rng) if rng.random() < share else item
 
 
 def collate(items: list[dict], keys: list[str]) -> dict[str, torch.Tensor]:
@@ -343,6 +354,9 @@ def train(model, dataset, task: Task, out_dir: str | Path, recipe: Recipe, *, fe
             indices = [rng.randrange(len(dataset)) for _ in range(recipe.batch_size)]
             items = [dataset.item(indices[slot], step * recipe.batch_size + slot)
                      for slot in range(rank, recipe.batch_size, ranks)]  # this rank's slots of the batch
+            if recipe.emitters:
+                items = [_with_emitter_or_not(item, task, recipe.emitters, seed, step * recipe.batch_size + slot)
+                         for item, slot in zip(items, range(rank, recipe.batch_size, ranks))]
             batch = {k: v.to(device, non_blocking=True) for k, v in collate(items, keys).items()}
             if recipe.channels_last:
                 batch = {k: frames_channels_last(v) for k, v in batch.items()}

@@ -82,3 +82,14 @@ def test_every_score_is_reported_per_frame():
     for name in SCORES:
         assert name in per_image and f"{name} se" in metrics
     assert per_image["temporal relMSE"].isna().sum() == 2       # the first frame of each sequence
+
+
+def test_scores_asked_for_are_the_ones_computed_with_the_same_values():
+    """`evaluate(scores=...)` (the learning curve's three) computes only those, each equal to the full run's."""
+    model = _nonzero(EDSR(channels=8, blocks=2))
+    every, every_mean = evaluate(model, Frames(h=16, w=24), TASK)
+    some, some_mean = evaluate(model, Frames(h=16, w=24), TASK, scores=("relMSE", "PSNR", "SSIM"))
+    assert {"LDR-FLIP", "HDR-FLIP", "temporal relMSE"} <= set(every) and not {"LDR-FLIP", "HDR-FLIP"} & set(some)
+    for name in ("relMSE", "PSNR", "SSIM"):
+        assert some[name].tolist() == every[name].tolist() and some_mean[name] == every_mean[name]
+        assert some_mean[f"{name} se"] == every_mean[f"{name} se"]

@@ -181,3 +181,12 @@ def test_the_sota_ours_row_migrated_is_what_the_current_config_computes(tmp_path
     assert json.loads(json.dumps(train)) == recorded_train["identity"]
     assert runs.config_hash(train) == recorded_train["hash"]
     assert evaluation == recorded_eval["identity"] and runs.config_hash(evaluation) == recorded_eval["hash"]
+
+
+def test_every_option_the_identity_leaves_out_is_implied_at_that_value():
+    """migrate.IMPLIED restates Recipe.OMITTED_AT (a replay of recorded code has that code's Recipe, so it
+    cannot read today's): an option added to the one and not the other would leave adopt's replays of
+    older code unchecked ("the code replayed has no such option")."""
+    from bench.experiments.migrate import IMPLIED
+    from bench.train import Recipe
+    assert {k: IMPLIED.get(k, "missing") for k in Recipe.OMITTED_AT} == Recipe.OMITTED_AT

@@ -1,5 +1,6 @@
 """The shared trainer and the run identities that decide reuse, on synthetic data (no rendering)."""
 import dataclasses
+import math
 import time
 import json
 
@@ -71,8 +72,10 @@ def test_cosine_schedule_warms_up_linearly_then_decays_to_zero():
 
 def test_the_identity_names_every_option_but_loss_terms_of_weight_zero():
     base = config_recipe(loss=WEIGHTS)
-    assert set(base.identity()) == {f for f in Recipe.__dataclass_fields__} - set(Recipe.NOT_IDENTITY) - {"compile"}
-    assert base.compile is None  # eager: left out (Recipe.OMITTED_AT), so runs recorded before the option keep their hash
+    assert set(base.identity()) == {f for f in Recipe.__dataclass_fields__} - set(Recipe.NOT_IDENTITY) - {"compile", "emitters"}
+    # eager and no pasted emitters: left out (Recipe.OMITTED_AT), so runs recorded before the options keep their hash
+    assert base.compile is None and base.emitters == 0.0
+    assert config_recipe(emitters=0.25).identity()["emitters"] == 0.25
     assert base.identity()["colour_permute"] is False and config_recipe(colour_permute=True).identity()["colour_permute"]
     assert "perceptual" not in base.identity()["loss"]["final"]
     # a term set to 0 (conf/pin/studies.yaml takes out a term the preset has since added) is the recipe without it
@@ -422,3 +425,61 @@ def test_a_compiled_training_step_equals_eager_within_its_tolerance(tmp_path):
     for name, value in weights[None].items():
         assert torch.allclose(weights["default"][name], value, rtol=1e-4, atol=1e-6), name
     assert "compile" not in _recipe(3).identity() and _recipe(3, compile="default").identity()["compile"] == "default"
+
+
+def _item(t=3, c=8, seed=0):
+    """An srd training item: LR input and gBuffer (c x c), HR target and intermediate target (2c x 2c)."""
+    g = torch.Generator().manual_seed(seed)
+    return {"lr_noisy": torch.rand(t, 3, c, c, generator=g), "lr_gbuf": torch.rand(t, 7, c, c, generator=g),
+            "hr_ref": torch.rand(t, 3, 2 * c, 2 * c, generator=g), "hr_noisy": torch.rand(t, 3, 2 * c, 2 * c, generator=g)}
+
+
+def test_an_emitter_is_one_noise_free_level_over_the_same_area_of_the_input_and_both_targets():
+    """bench.emitters: a rectangle of one radiance, 1e1-1e4x the first frame's exposure, in every frame of
+    the input and of the HR target and intermediate target over the pixels it covers; the gBuffer and
+    every other pixel as they were, and the item given in left untouched."""
+    import random
+    from bench.emitters import LOG10_LEVEL, with_emitter
+    from bench.exposure import frame_exposure
+    for n in range(20):
+        item = _item(seed=n)
+        before = {k: v.clone() for k, v in item.items()}
+        out = with_emitter(item, TASK, random.Random(n))
+        assert all(torch.equal(item[k], before[k]) for k in item) and out["lr_gbuf"] is item["lr_gbuf"]
+        lit = out["lr_noisy"] != item["lr_noisy"]
+        level = out["lr_noisy"][lit].unique()
+        assert level.numel() == 1 and lit.any(), n                       # one level, no noise on it
+        ratio = float(level) / float(frame_exposure(item["lr_noisy"][:1], "exposure").flatten()[0])
+        assert 10 ** LOG10_LEVEL[0] * (1 - 1e-5) <= ratio <= 10 ** LOG10_LEVEL[1] * (1 + 1e-5), n
+        area = lit[0, 0]                                                  # the same pixels in every frame and channel
+        assert torch.equal(lit, area.expand_as(lit))
+        rows, cols = area.any(1).nonzero()[:, 0], area.any(0).nonzero()[:, 0]
+        assert area.sum() == len(rows) * len(cols) >= 4                  # a rectangle, at least 2x2
+        hr_area = area.repeat_interleave(2, 0).repeat_interleave(2, 1)   # the HR pixels it covers
+        for name in ("hr_ref", "hr_noisy"):
+            assert (out[name][..., hr_area] == level).all(), name
+            assert torch.equal(out[name][..., ~hr_area], item[name][..., ~hr_area]), name
+
+
+def test_a_share_of_emitters_pastes_that_share_of_the_draws_and_the_same_ones_each_time():
+    from bench.train import _with_emitter_or_not
+    item = _item(t=1, c=4)
+    pasted = [_with_emitter_or_not(item, TASK, 0.25, seed=0, draw=d) is not item for d in range(2000)]
+    assert 0.22 <= sum(pasted) / len(pasted) <= 0.28
+    again = [_with_emitter_or_not(item, TASK, 0.25, seed=0, draw=d) is not item for d in range(2000)]
+    other_seed = [_with_emitter_or_not(item, TASK, 0.25, seed=1, draw=d) is not item for d in range(2000)]
+    assert pasted == again and pasted != other_seed
+    assert not any(_with_emitter_or_not(item, TASK, 0.0, seed=0, draw=d) is not item for d in range(100))
+    one, two = (_with_emitter_or_not(item, TASK, 1.0, seed=0, draw=7) for _ in range(2))
+    assert all(torch.equal(one[k], two[k]) for k in item)
+
+
+def test_a_training_with_emitters_trains_on_them(tmp_path):
+    """train.emitters=1: every item of every step holds a lamp; the losses differ from the training
+    without, stay finite, and a second run gives the same curve."""
+    curves = {}
+    for name, share in (("none", 0.0), ("all", 1.0), ("all again", 1.0)):
+        _train(SyntheticSequences(), tmp_path / name, steps=3, emitters=share, val_every=0)
+        curves[name] = pd.read_csv(tmp_path / name / "curve.csv")["loss"].tolist()
+    assert curves["all"] == curves["all again"] and curves["all"] != curves["none"]
+    assert all(map(math.isfinite, curves["all"]))

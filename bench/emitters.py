@@ -1,0 +1,42 @@
+"""Emitters seen directly, pasted into training items (`train.emitters`): a lamp far above the frame's exposure.
+
+The renders hold few emitters in view and none far brighter than the room they light, so the networks
+never see radiance of 1e2-1e4 times a frame's exposure and, given one, return it 10-30% too bright
+(results/cpu/stability, the "lamp" cases; tests/test_predict.py's lamp room). `with_emitter` pastes one
+such lamp into a training item, in the input and in every target alike: a noise-free rectangle of constant
+radiance (a light seen directly has no Monte Carlo noise), static over the item's frames, its gBuffer
+left as the surface it covers. Its level is k times the exposure of the item's first frame without it
+(`bench.exposure.frame_exposure`), log10 k uniform in LOG10_LEVEL, as the stability cases place theirs.
+"""
+from __future__ import annotations
+
+import random
+
+import torch
+
+from bench.exposure import frame_exposure
+from bench.tasks import Task
+
+# the lamp's radiance: 10x to 3e4x the exposure of the item's first frame (the stability cases' lamps are 1e2x
+# and 1e4x; tests/test_predict.py's lamp room's, radiance 3000 in a room of exposure 0.26, 1.2e4x)
+LOG10_LEVEL = (1.0, 4.5)
+SIDE = (2, 0.5)            # its height and width on the input's grid: 2 pixels to half the crop's side
+
+
+def with_emitter(item: dict, task: Task, draw: random.Random) -> dict:
+    """`item` (buffer -> (T, C, H, W)) with a lamp pasted into task.x, task.y and task.mid where the item
+    holds them (the same area: the targets' pixels cover the input's); the other buffers are the item's.
+    `draw` fixes its place, size and level."""
+    x = item[task.x]
+    h, w = x.shape[-2:]
+    rows = draw.randint(SIDE[0], max(SIDE[0], int(SIDE[1] * h)))
+    cols = draw.randint(SIDE[0], max(SIDE[0], int(SIDE[1] * w)))
+    top, left = draw.randint(0, max(0, h - rows)), draw.randint(0, max(0, w - cols))
+    k = 10 ** draw.uniform(*LOG10_LEVEL)
+    level = k * float(frame_exposure(x[:1, :3], "exposure").flatten()[0])
+    out = dict(item)
+    for name in dict.fromkeys(b for b in (task.x, task.y, task.mid) if b and b in item):
+        s = item[name].shape[-1] // w   # 1 at the input's size, the task's scale at the targets'
+        out[name] = item[name].clone()
+        out[name][..., :3, s * top:s * (top + rows), s * left:s * (left + cols)] = level
+    return out
