@@ -216,3 +216,13 @@ def test_input_residual_starts_at_bilinear(stage_order, channel_aug):
         torch.testing.assert_close(out[key][0], bilinear, atol=1e-6, rtol=0)
     plain = SRDNet(stage_order=stage_order, channel_aug=channel_aug, input_residual=False, **TINY)(x, g)
     assert (plain["final"][0] - bilinear).abs().max() > 1e-2
+
+
+def test_torch_compile_traces_the_whole_model_in_one_graph():
+    """train.compile: Dynamo traces the proposed model (deformable blocks, CFM, recurrence) without a
+    graph break. The CPU kernels are ctypes calls it cannot trace; kernels_available() said True while it
+    traced, and each call broke the graph (24 breaks), each piece recompiled per feature size until
+    Dynamo's limit sent it back to eager (docs/speed.md)."""
+    torch._dynamo.reset()
+    explained = torch._dynamo.explain(SRDNet(**TINY))(*_inputs(h=16, w=16))
+    assert explained.graph_break_count == 0, [b.reason[:200] for b in explained.break_reasons]

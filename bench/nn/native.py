@@ -111,7 +111,11 @@ def built_for(march: str):
 
 
 def kernels_available() -> bool:
-    """The kernels the ops call are built (not switched off, a compiler, no build error)."""
+    """The kernels the ops call are built (not switched off, a compiler, no build error); False while
+    torch.compile traces: they are ctypes calls it cannot put in a graph (each broke it: 24 breaks in the
+    proposed model's forward), so compiled code takes the ops' pure-torch path."""
+    if torch.compiler.is_compiling():
+        return False
     return cpu_kernels(_march) is not None
 
 
