@@ -61,8 +61,9 @@ def pytest_collection_modifyitems(items):
 SMOKE_DATA = ["preset=smoke", "data.splits.train.sequences=4", "data.ref_spp=64"]
 
 
-def smoke_overrides(root, steps=4):
-    """Hydra overrides for a fast smoke-preset run whose runs, results and data stay under `root`."""
+def smoke_overrides(root, steps=2):
+    """Hydra overrides for a fast smoke-preset run whose runs, results and data stay under `root`: plumbing,
+    so 2 training steps (the tables fixture of tests/test_experiments.py trains 40 runs with it)."""
     return [*SMOKE_DATA, f"runs_dir={root / 'runs'}", f"results_dir={root / 'results'}",
             f"data_dir={root / 'data'}", "progress=false", f"train.steps={steps}",
             f"train.checkpoint_every={steps}", "train.val_sequences=1"]  # a curve of 1 sequence: half the scoring

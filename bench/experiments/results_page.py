@@ -50,6 +50,10 @@ KEPT_STUDIES = [
                "learned rows (its caption gives the seeds)."),
     ("domain_verdicts", "The domain study's pairs, judged: each learned model's exposure row against its PU21 "
                         "row (exposure is the 'better' side: a reversed verdict would say PU21 wins)."),
+    ("emitters", "Lamps pasted into a quarter of the training items against none, on Table 5's learned rows "
+                 "(its caption gives the seeds; seeds 1 and 2 may still be training)."),
+    ("emitters_stability", "The stability cases through the emitters study's seed-0 'lamps' trainings: the "
+                           "lamp cases pass, the firefly cases show the cost."),
 ]
 # studies whose conclusion is now the preset: their configs are in git history (docs/studies.md)
 RETIRED_STUDIES = [
