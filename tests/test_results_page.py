@@ -50,6 +50,22 @@ def test_the_page_copies_its_numbers_from_the_tables_and_names_them(tmp_path):
     assert "Not judged at this preset" in text and "`deform`" in text   # no claims; the missing tables named
 
 
+def test_a_study_of_kind_stability_is_counted_as_the_stability_table_is(tmp_path, monkeypatch):
+    """A stability study (+study=emitters_stability) gets the stability table's counts, under its own name."""
+    table = pd.DataFrame({"model": ["srd", "srd", "kpcn"], "case": ["clean", "lamp", "clean"],
+                          "status": ["ok 2.7", "FAIL (lamp energy 113%)", "ok 3.4"], "max |output|": [2.7, 7e3, 3.4]})
+    for name in ("stability", "studies/lamps"):
+        (tmp_path / name).mkdir(parents=True)
+        table.to_csv(tmp_path / name / "table.csv", index=False)
+    monkeypatch.setattr(results_page, "KEPT_STUDIES", [("lamps", "Lamps in training.")])
+    text = results_page.page(tmp_path, "mine", shown_as="results/mine")
+    study = text[text.index("### studies/lamps"):]
+    assert study.startswith("### studies/lamps\n\nLamps in training.\n\nEvery model on fireflies")
+    assert "[`results/mine/studies/lamps/table.csv`](studies/lamps/table.csv)" in study
+    assert "| srd | 2 | 1 | 0 | 1 | 0 | 7000.0 |" in study and "| kpcn | 1 | 1 | 0 | 0 | 0 | 3.4 |" in study
+    assert text.count("### stability\n") == 1                    # the experiment's own section is still there
+
+
 def test_readme_is_short_and_quotes_no_result():
     readme = (ROOT / "README.md").read_text()
     assert len(readme.splitlines()) <= 300

@@ -251,10 +251,11 @@ def paper_axis_lines(results_dir: Path, path: Path) -> list[str]:
                                     "same, wall time", "cpu-size axis", "sign differs", "extrapolated"], rows)
 
 
-def stability_section(results_dir: Path) -> list[str]:
-    table = pd.read_csv(results_dir / "stability" / "table.csv")
-    lines = ["### stability", "", "Every model on fireflies, NaN/Inf, broken gBuffers, odd sizes, long "
-             f"sequences, bf16 and extreme offsets. Numbers: {_link(results_dir, 'stability/table.csv')}; "
+def stability_section(results_dir: Path, name: str = "stability", what: str = "") -> list[str]:
+    table = pd.read_csv(results_dir / name / "table.csv")
+    lines = [f"### {name}", "", *([what, ""] if what else []), "Every model on fireflies, NaN/Inf, broken "
+             "gBuffers, odd sizes, long sequences, bf16 and extreme offsets. Numbers: "
+             f"{_link(results_dir, f'{name}/table.csv')}; "
              "largest output: the largest |output| (linear radiance) over the cases that ran; a case passes when "
              "finite and right (its table's caption gives the rules); not judged: measured before a rule.", ""]
     rows = []
@@ -453,6 +454,8 @@ def studies_section(results_dir: Path, claims: pd.DataFrame | None) -> list[str]
                 lines += metrics_section(results_dir, name, what, claims)
             elif "verdict" in pd.read_csv(path, nrows=0).columns:   # a study's own comparisons (kind claims)
                 lines += [f"### {name}", "", what, ""] + comparisons(results_dir, name, read_table(path))
+            elif {"case", "status"} <= set(pd.read_csv(path, nrows=0).columns):   # kind stability
+                lines += stability_section(results_dir, name, what)
             else:
                 lines += lr_range_section(results_dir, name, what)
     return lines
