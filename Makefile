@@ -14,14 +14,8 @@ $(STAMP): pyproject.toml
 	@$(PYTHON) -c 'import sys; assert sys.version_info[:2] == (3, 11), sys.version' 2>/dev/null || \
 		{ echo "SRD-Bench needs Python 3.11 (torch==2.13.0 CPU wheel); set PYTHON=/path/to/python3.11"; exit 1; }
 	@test -x $(PY) || $(PYTHON) -m venv $(VENV)
-	@# uv installs the wheels in parallel from its cache and compiles their bytecode on every core; pip goes
-	@# one package at a time and this registry's answers are not cached for it. Clean-clone make test, minus
-	@# pytest's time, on 2 AVX-512 cores: pip 89 s, uv 40 s (warm uv cache). The bytecode matters: where
-	@# PYTHONDONTWRITEBYTECODE=1 (CI here), every process would compile every import. uv reads no pip.conf,
-	@# so pip's find-links (the torch CPU wheel) go along; where uv cannot resolve, pip installs.
-	$(PY) -m pip install -q uv==0.13.9
-	UV_FIND_LINKS="$${UV_FIND_LINKS:-$$(echo $${PIP_FIND_LINKS:-} | tr ' ' ',')}" $(VENV)/bin/uv pip install \
-		--python $(PY) -q --compile-bytecode -e '.[test]' || $(PY) -m pip install -q -e '.[test]'
+	@# uv where it can (parallel, cached, bytecode on every core), else pip: scripts/install_deps.sh
+	bash scripts/install_deps.sh $(PY)
 	@touch $(STAMP)
 
 run: setup

@@ -51,7 +51,9 @@ KEPT_STUDIES = [
     ("domain_verdicts", "The domain study's pairs, judged: each learned model's exposure row against its PU21 "
                         "row (exposure is the 'better' side: a reversed verdict would say PU21 wins)."),
     ("emitters", "Lamps pasted into a quarter of the training items against none, on Table 5's learned rows "
-                 "(its caption gives the seeds; seeds 1 and 2 may still be training)."),
+                 "(its caption gives the seeds)."),
+    ("emitters_verdicts", "The emitters study's pairs, judged: each learned model trained with lamps against "
+                          "its row without."),
     ("emitters_stability", "The stability cases through the emitters study's seed-0 'lamps' trainings: the "
                            "lamp cases pass, the firefly cases show the cost."),
 ]
