@@ -20,6 +20,7 @@ _TRAIN_RANGES = (  # (key, what is allowed, check)
      lambda v: isinstance(v, list) and len(v) == 2 and all(_is_number(b) and 0 <= b < 1 for b in v)),
     ("colour_permute", "true or false", lambda v: isinstance(v, bool)),
     ("emitters", "a share of the training items in [0, 1]", lambda v: _is_number(v) and 0 <= v <= 1),
+    ("fireflies", "a share of the training items in [0, 1]", lambda v: _is_number(v) and 0 <= v <= 1),
     ("channels_last", "true or false", lambda v: isinstance(v, bool)))
 # model arguments that are widths or counts (channels, blocks, layers, kernel sizes, ...): integers >= 1,
 # or >= 0 for the optional parts (deformable blocks, gBuffer channels)

@@ -35,7 +35,7 @@ from tqdm import tqdm
 
 from bench import distributed
 from bench.atomic import write_atomic
-from bench.emitters import with_emitter
+from bench.emitters import with_emitter, with_fireflies
 from bench.errors import UserError
 from bench.exposure import DOMAINS, encode, frame_exposure, transfer
 from bench.hdr import transforms
@@ -115,6 +115,7 @@ class Recipe:
     hdr: str                          # network domain, one of bench.exposure.DOMAINS
     colour_permute: bool
     emitters: float                   # share of training items given a lamp far above their exposure (bench.emitters)
+    fireflies: float                  # share of training items given fireflies in their input only (bench.emitters)
     precision: str                    # one of PRECISIONS
     channels_last: bool
     compile: str | None               # None: eager; else torch.compile's mode for forward, losses and backward
@@ -125,7 +126,7 @@ class Recipe:
 
     NOT_IDENTITY = ("checkpoint_every", "checkpoint_every_s", "val_every", "val_sequences")
     # options left out of the identity at this value: the recipe as recorded before the option existed
-    OMITTED_AT = {"compile": None, "emitters": 0.0}
+    OMITTED_AT = {"compile": None, "emitters": 0.0, "fireflies": 0.0}
 
     def __post_init__(self):
         if self.schedule not in SCHEDULES:
@@ -134,8 +135,9 @@ class Recipe:
             raise ValueError(f"train.hdr must be one of {DOMAINS}, got {self.hdr!r}")
         if self.precision not in PRECISIONS:
             raise ValueError(f"train.precision must be one of {PRECISIONS}, got {self.precision!r}")
-        if not 0.0 <= self.emitters <= 1.0:
-            raise ValueError(f"train.emitters is a share of the training items, in [0, 1], got {self.emitters!r}")
+        for share in ("emitters", "fireflies"):
+            if not 0.0 <= getattr(self, share) <= 1.0:
+                raise ValueError(f"train.{share} is a share of the training items, in [0, 1], got {getattr(self, share)!r}")
         if self.compile not in (None, *COMPILE_MODES):
             raise ValueError(f"train.compile must be null or one of {COMPILE_MODES}, got {self.compile!r}")
 
@@ -182,11 +184,17 @@ def lr_at(step: int, recipe: Recipe) -> float:
     return lr * 0.5 * (1 + math.cos(math.pi * progress))
 
 
-def _with_emitter_or_not(item: dict, task: Task, share: float, seed: int, draw: int) -> dict:
-    """The item with a lamp (bench.emitters) in `share` of the draws; each slot of each step draws from its
-    own RNG, seeded by (seed, draw), so a resumed run and any split of the batch over ranks paste the same."""
-    rng = random.Random(f"emitter {seed} {draw}")
-    return with_emitter(item, task, rng) if rng.random() < share else item
+def augmented(item: dict, task: Task, recipe: Recipe, seed: int, draw: int) -> dict:
+    """The item with a lamp in `recipe.emitters` of the draws and fireflies in `recipe.fireflies` of them
+    (bench.emitters), each decided apart; each slot of each step draws from its own RNGs, seeded by
+    (seed, draw), so a resumed run and any split of the batch over ranks paste the same."""
+    lamp = random.Random(f"emitter {seed} {draw}")
+    if lamp.random() < recipe.emitters:
+        item = with_emitter(item, task, lamp)
+    fireflies = random.Random(f"fireflies {seed} {draw}")
+    if fireflies.random() < recipe.fireflies:
+        item = with_fireflies(item, task, fireflies)
+    return item
 
 
 def collate(items: list[dict], keys: list[str]) -> dict[str, torch.Tensor]:
@@ -354,8 +362,8 @@ def train(model, dataset, task: Task, out_dir: str | Path, recipe: Recipe, *, fe
             indices = [rng.randrange(len(dataset)) for _ in range(recipe.batch_size)]
             items = [dataset.item(indices[slot], step * recipe.batch_size + slot)
                      for slot in range(rank, recipe.batch_size, ranks)]  # this rank's slots of the batch
-            if recipe.emitters:
-                items = [_with_emitter_or_not(item, task, recipe.emitters, seed, step * recipe.batch_size + slot)
+            if recipe.emitters or recipe.fireflies:
+                items = [augmented(item, task, recipe, seed, step * recipe.batch_size + slot)
                          for item, slot in zip(items, range(rank, recipe.batch_size, ranks))]
             batch = {k: v.to(device, non_blocking=True) for k, v in collate(items, keys).items()}
             if recipe.channels_last:

@@ -72,10 +72,12 @@ def test_cosine_schedule_warms_up_linearly_then_decays_to_zero():
 
 def test_the_identity_names_every_option_but_loss_terms_of_weight_zero():
     base = config_recipe(loss=WEIGHTS)
-    assert set(base.identity()) == {f for f in Recipe.__dataclass_fields__} - set(Recipe.NOT_IDENTITY) - {"compile", "emitters"}
-    # eager and no pasted emitters: left out (Recipe.OMITTED_AT), so runs recorded before the options keep their hash
-    assert base.compile is None and base.emitters == 0.0
+    assert set(base.identity()) == ({f for f in Recipe.__dataclass_fields__} - set(Recipe.NOT_IDENTITY)
+                                    - {"compile", "emitters", "fireflies"})
+    # eager, no pasted emitters or fireflies: left out (Recipe.OMITTED_AT), so runs recorded before the options keep their hash
+    assert base.compile is None and base.emitters == 0.0 and base.fireflies == 0.0
     assert config_recipe(emitters=0.25).identity()["emitters"] == 0.25
+    assert config_recipe(fireflies=0.25).identity()["fireflies"] == 0.25
     assert base.identity()["colour_permute"] is False and config_recipe(colour_permute=True).identity()["colour_permute"]
     assert "perceptual" not in base.identity()["loss"]["final"]
     # a term set to 0 (conf/pin/studies.yaml takes out a term the preset has since added) is the recipe without it
@@ -461,25 +463,66 @@ def test_an_emitter_is_one_noise_free_level_over_the_same_area_of_the_input_and_
             assert torch.equal(out[name][..., ~hr_area], item[name][..., ~hr_area]), name
 
 
-def test_a_share_of_emitters_pastes_that_share_of_the_draws_and_the_same_ones_each_time():
-    from bench.train import _with_emitter_or_not
-    item = _item(t=1, c=4)
-    pasted = [_with_emitter_or_not(item, TASK, 0.25, seed=0, draw=d) is not item for d in range(2000)]
+@pytest.mark.parametrize("share", ["emitters", "fireflies"])
+def test_a_share_of_emitters_or_fireflies_pastes_that_share_of_the_draws_and_the_same_ones_each_time(share):
+    from bench.train import augmented
+    item, quarter = _item(t=1, c=4), config_recipe(**{share: 0.25})
+    pasted = [augmented(item, TASK, quarter, seed=0, draw=d) is not item for d in range(2000)]
     assert 0.22 <= sum(pasted) / len(pasted) <= 0.28
-    again = [_with_emitter_or_not(item, TASK, 0.25, seed=0, draw=d) is not item for d in range(2000)]
-    other_seed = [_with_emitter_or_not(item, TASK, 0.25, seed=1, draw=d) is not item for d in range(2000)]
+    again = [augmented(item, TASK, quarter, seed=0, draw=d) is not item for d in range(2000)]
+    other_seed = [augmented(item, TASK, quarter, seed=1, draw=d) is not item for d in range(2000)]
     assert pasted == again and pasted != other_seed
-    assert not any(_with_emitter_or_not(item, TASK, 0.0, seed=0, draw=d) is not item for d in range(100))
-    one, two = (_with_emitter_or_not(item, TASK, 1.0, seed=0, draw=7) for _ in range(2))
+    assert not any(augmented(item, TASK, config_recipe(), seed=0, draw=d) is not item for d in range(100))
+    one, two = (augmented(item, TASK, config_recipe(**{share: 1.0}), seed=0, draw=7) for _ in range(2))
     assert all(torch.equal(one[k], two[k]) for k in item)
 
 
-def test_a_training_with_emitters_trains_on_them(tmp_path):
-    """train.emitters=1: every item of every step holds a lamp; the losses differ from the training
-    without, stay finite, and a second run gives the same curve."""
+def test_lamps_and_fireflies_are_drawn_apart_and_adding_fireflies_moves_no_lamp():
+    """The lamps a recipe with fireflies pastes are those of the same recipe without (their own RNG): a run
+    with emitters recorded before fireflies existed trains on the same lamps."""
+    from bench.train import augmented
+    item = _item(t=2, c=8)
+    lamps, both = config_recipe(emitters=0.5), config_recipe(emitters=0.5, fireflies=0.5)
+    for draw in range(200):
+        a, b = augmented(item, TASK, lamps, seed=3, draw=draw), augmented(item, TASK, both, seed=3, draw=draw)
+        for name in (TASK.y, TASK.mid):                     # the targets hold the lamps only
+            assert torch.equal(a[name], b[name]), draw
+        changed = b[TASK.x] != a[TASK.x]                     # fireflies: the input only, a few pixels
+        assert changed.any(dim=1).sum() <= 4 * item[TASK.x].shape[0], draw
+
+
+def test_fireflies_are_single_pixels_of_one_frame_in_the_input_only():
+    """bench.emitters.with_fireflies: in each frame 1-4 pixels of all three channels at 1e1-3e4x the first
+    frame's exposure, placed per frame; the targets and the gBuffer as they were, the item given untouched."""
+    import random
+    from bench.emitters import FIREFLIES_PER_FRAME, LOG10_LEVEL, with_fireflies
+    from bench.exposure import frame_exposure
+    places = []
+    for n in range(20):
+        item = _item(t=3, c=16, seed=n)
+        before = {k: v.clone() for k, v in item.items()}
+        out = with_fireflies(item, TASK, random.Random(n))
+        assert all(torch.equal(item[k], before[k]) for k in item)
+        assert all(out[k] is item[k] for k in item if k != TASK.x)
+        hit = out[TASK.x] != item[TASK.x]
+        assert torch.equal(hit[:, :3].all(1), hit.any(1)) and not hit[:, 3:].any()   # all three channels
+        exposure = float(frame_exposure(item[TASK.x][:1, :3], "exposure").flatten()[0])
+        for frame in range(3):
+            pixels = hit[frame].any(0).nonzero()
+            assert 1 <= len(pixels) <= FIREFLIES_PER_FRAME[1], (n, frame)
+            levels = out[TASK.x][frame, 0][hit[frame, 0]] / exposure
+            assert ((levels >= 10 ** LOG10_LEVEL[0] * (1 - 1e-5)) & (levels <= 10 ** LOG10_LEVEL[1] * (1 + 1e-5))).all()
+            places.append({tuple(p.tolist()) for p in pixels})
+    assert sum(a != b for a, b in zip(places[::3], places[1::3])) >= 18    # each frame its own
+
+
+@pytest.mark.parametrize("share", ["emitters", "fireflies"])
+def test_a_training_with_emitters_or_fireflies_trains_on_them(tmp_path, share):
+    """train.emitters=1 (fireflies=1): every item of every step holds a lamp (fireflies); the losses differ
+    from the training without, stay finite, and a second run gives the same curve."""
     curves = {}
-    for name, share in (("none", 0.0), ("all", 1.0), ("all again", 1.0)):
-        _train(SyntheticSequences(), tmp_path / name, steps=3, emitters=share, val_every=0)
+    for name, value in (("none", 0.0), ("all", 1.0), ("all again", 1.0)):
+        _train(SyntheticSequences(), tmp_path / name, steps=3, val_every=0, **{share: value})
         curves[name] = pd.read_csv(tmp_path / name / "curve.csv")["loss"].tolist()
     assert curves["all"] == curves["all again"] and curves["all"] != curves["none"]
     assert all(map(math.isfinite, curves["all"]))
