@@ -48,17 +48,20 @@ def with_emitter(item: dict, task: Task, draw: random.Random) -> dict:
     return out
 
 
-def with_fireflies(item: dict, task: Task, draw: random.Random) -> dict:
+def with_fireflies(item: dict, task: Task, draw: random.Random, exposure: float | None = None) -> dict:
     """`item` with fireflies pasted into task.x only: in each frame, its own FIREFLIES_PER_FRAME single
-    pixels, each of all three channels at k times the exposure of the item's first frame, log10 k uniform
-    in LOG10_LEVEL (the lamps' levels: the level does not tell the two apart). `draw` fixes them all."""
+    pixels, each of all three channels raised to k times `exposure` (default: that of the item's first frame),
+    log10 k uniform in LOG10_LEVEL (the lamps' levels: the level does not tell the two apart); a pixel
+    already brighter keeps its value. `draw` fixes them all."""
     x = item[task.x]
     t, h, w = x.shape[0], *x.shape[-2:]
-    exposure = float(frame_exposure(x[:1, :3], "exposure").flatten()[0])
+    if exposure is None:
+        exposure = float(frame_exposure(x[:1, :3], "exposure").flatten()[0])
     out = dict(item)
     out[task.x] = x.clone()
     for frame in range(t):
         for _ in range(draw.randint(*FIREFLIES_PER_FRAME)):
             row, col = draw.randrange(h), draw.randrange(w)
-            out[task.x][frame, :3, row, col] = 10 ** draw.uniform(*LOG10_LEVEL) * exposure
+            pixel = out[task.x][frame, :3, row, col]
+            pixel.clamp_(min=10 ** draw.uniform(*LOG10_LEVEL) * exposure)
     return out

@@ -188,12 +188,12 @@ def augmented(item: dict, task: Task, recipe: Recipe, seed: int, draw: int) -> d
     """The item with a lamp in `recipe.emitters` of the draws and fireflies in `recipe.fireflies` of them
     (bench.emitters), each decided apart; each slot of each step draws from its own RNGs, seeded by
     (seed, draw), so a resumed run and any split of the batch over ranks paste the same."""
-    lamp = random.Random(f"emitter {seed} {draw}")
+    original, lamp, fireflies = item, random.Random(f"emitter {seed} {draw}"), random.Random(f"fireflies {seed} {draw}")
     if lamp.random() < recipe.emitters:
         item = with_emitter(item, task, lamp)
-    fireflies = random.Random(f"fireflies {seed} {draw}")
-    if fireflies.random() < recipe.fireflies:
-        item = with_fireflies(item, task, fireflies)
+    if fireflies.random() < recipe.fireflies:   # at the levels of the item without its lamp, which would set them
+        exposure = float(frame_exposure(original[task.x][:1, :3], "exposure").flatten()[0])
+        item = with_fireflies(item, task, fireflies, exposure)
     return item
 
 

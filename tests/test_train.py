@@ -477,18 +477,35 @@ def test_a_share_of_emitters_or_fireflies_pastes_that_share_of_the_draws_and_the
     assert all(torch.equal(one[k], two[k]) for k in item)
 
 
-def test_lamps_and_fireflies_are_drawn_apart_and_adding_fireflies_moves_no_lamp():
-    """The lamps a recipe with fireflies pastes are those of the same recipe without (their own RNG): a run
-    with emitters recorded before fireflies existed trains on the same lamps."""
+def test_the_lamps_are_those_recorded_before_fireflies_and_fireflies_take_the_level_of_the_item_without_its_lamp():
+    """A recipe's lamps are drawn as the trainings recorded with `emitters` before fireflies existed drew
+    them (the RNG seeded "emitter {seed} {draw}": its first number decides, the rest place the lamp), with or
+    without fireflies, which draw from their own RNG; where both land, the fireflies' levels are those of the
+    item without its lamp (a lamp would raise the exposure they are measured against)."""
+    import random
+    from bench.emitters import LOG10_LEVEL, with_emitter
+    from bench.exposure import frame_exposure
     from bench.train import augmented
     item = _item(t=2, c=8)
+    exposure = float(frame_exposure(item[TASK.x][:1, :3], "exposure").flatten()[0])
     lamps, both = config_recipe(emitters=0.5), config_recipe(emitters=0.5, fireflies=0.5)
+    seen = set()
     for draw in range(200):
+        recorded = random.Random(f"emitter 3 {draw}")
+        expected = with_emitter(item, TASK, recorded) if recorded.random() < 0.5 else item
         a, b = augmented(item, TASK, lamps, seed=3, draw=draw), augmented(item, TASK, both, seed=3, draw=draw)
-        for name in (TASK.y, TASK.mid):                     # the targets hold the lamps only
-            assert torch.equal(a[name], b[name]), draw
-        changed = b[TASK.x] != a[TASK.x]                     # fireflies: the input only, a few pixels
-        assert changed.any(dim=1).sum() <= 4 * item[TASK.x].shape[0], draw
+        for name in (TASK.x, TASK.y, TASK.mid):
+            assert torch.equal(a[name], expected[name]), (draw, name)
+        for name in (TASK.y, TASK.mid):                      # the targets hold the lamps only
+            assert torch.equal(b[name], expected[name]), (draw, name)
+        fireflies = b[TASK.x] != a[TASK.x]
+        lamp = a[TASK.x] is not item[TASK.x]
+        seen.add((lamp, bool(fireflies.any())))
+        if fireflies.any():
+            levels = b[TASK.x][fireflies] / exposure
+            assert (levels <= 10 ** LOG10_LEVEL[1] * (1 + 1e-5)).all(), draw        # not the lamp's exposure
+            assert (levels >= 10 ** LOG10_LEVEL[0] * (1 - 1e-5)).all(), draw
+    assert seen == {(False, False), (False, True), (True, False), (True, True)}      # decided apart
 
 
 def test_fireflies_are_single_pixels_of_one_frame_in_the_input_only():
@@ -505,7 +522,7 @@ def test_fireflies_are_single_pixels_of_one_frame_in_the_input_only():
         assert all(torch.equal(item[k], before[k]) for k in item)
         assert all(out[k] is item[k] for k in item if k != TASK.x)
         hit = out[TASK.x] != item[TASK.x]
-        assert torch.equal(hit[:, :3].all(1), hit.any(1)) and not hit[:, 3:].any()   # all three channels
+        assert hit.shape[1] == 3 and torch.equal(hit.all(1), hit.any(1))         # all three channels of a pixel
         exposure = float(frame_exposure(item[TASK.x][:1, :3], "exposure").flatten()[0])
         for frame in range(3):
             pixels = hit[frame].any(0).nonzero()

@@ -54,6 +54,12 @@ KEPT_STUDIES = [
                  "(its caption gives the seeds)."),
     ("emitters_verdicts", "The emitters study's pairs, judged: each learned model trained with lamps against "
                           "its row without."),
+    ("fireflies", "Fireflies pasted into the input of a quarter of the training items beside the lamps, against "
+                  "lamps alone and against neither, on Table 5's learned rows (its caption gives the seeds)."),
+    ("fireflies_verdicts", "The fireflies study's pairs, judged: lamps and fireflies against neither, and "
+                           "against lamps alone."),
+    ("fireflies_stability", "The stability cases through the fireflies study's seed-0 'lamps and fireflies' "
+                            "trainings."),
     ("emitters_stability", "The stability cases through the emitters study's seed-0 'lamps' trainings: the "
                            "lamp cases pass, the firefly cases show the cost."),
 ]
