@@ -2,6 +2,9 @@
 picks the fastest of the rest, and measures once per machine and model."""
 import inspect
 import os
+import re
+import subprocess
+import sys
 import time
 from pathlib import Path
 
@@ -134,3 +137,26 @@ def test_both_entry_points_enter_the_fused_kernels_default():
     from bench import cli, predict
     assert "with fused_kernels_on_cuda():" in inspect.getsource(cli.main)
     assert "with fused_kernels_on_cuda():" in inspect.getsource(predict.main)
+
+
+def test_scripts_as_avx2_runs_a_command_as_on_a_cpu_with_avx2_only():
+    """scripts/as_avx2.sh, with which the README's AVX2 figure for `make test` was timed on an AVX-512 host:
+    the suite's ISA check, ATen's kernels and every -march=native C++ build see AVX2 only."""
+    flags = measure.cpu_flags()
+    if "avx512f" not in flags:
+        pytest.skip("this CPU has no AVX-512 to hide: the script has nothing to emulate here")
+    script = Path(__file__).resolve().parent.parent / "scripts" / "as_avx2.sh"
+    probe = ("import torch, os, subprocess; from bench import measure; "
+             "print(measure.cpu_isa()); print(torch.backends.cpu.get_cpu_capability()); "
+             "print(subprocess.run([os.environ['CXX'], '-march=native', '-Q', '--help=target'], "
+             "capture_output=True, text=True).stdout)")
+    done = subprocess.run(["bash", str(script), sys.executable, "-c", probe], capture_output=True, text=True,
+                          timeout=120)
+    if done.returncode != 0 and "unshare" in done.stderr:
+        pytest.skip(f"no private mount namespace here: {done.stderr.strip()[:200]}")
+    assert done.returncode == 0, done.stderr[-2000:]
+    isa, capability, target = done.stdout.split("\n", 2)
+    assert isa == "AVX2 only (bf16 emulated)" and capability == "AVX2"
+    march = re.search(r"^\s*-march=\s*(\S+)", target, re.MULTILINE)
+    assert march and march.group(1) == "haswell", target[:2000]
+    assert "avx512f" in measure.cpu_flags()      # the mount was the command's own: this process still sees AVX-512
