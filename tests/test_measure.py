@@ -3,6 +3,7 @@ picks the fastest of the rest, and measures once per machine and model."""
 import inspect
 import os
 import re
+import shutil
 import subprocess
 import sys
 import time
@@ -144,7 +145,6 @@ def test_scripts_as_avx2_runs_a_command_as_on_a_cpu_with_avx2_only(tmp_path):
     the suite's ISA check, Inductor's vector ISA and every -march=native C++ build see AVX2 only, and the
     compiler wrapper still reads as gcc to Inductor (named otherwise, Inductor compiles another way and
     the suite took 25% longer)."""
-    import shutil
     if "avx512f" not in measure.cpu_flags():
         pytest.skip("this CPU has no AVX-512 to hide: the script has nothing to emulate here")
     if os.environ.get("CXX") or not shutil.which("g++"):
