@@ -21,6 +21,8 @@ _TRAIN_RANGES = (  # (key, what is allowed, check)
     ("colour_permute", "true or false", lambda v: isinstance(v, bool)),
     ("emitters", "a share of the training items in [0, 1]", lambda v: _is_number(v) and 0 <= v <= 1),
     ("fireflies", "a share of the training items in [0, 1]", lambda v: _is_number(v) and 0 <= v <= 1),
+    ("emitters_exposure", "with or without", lambda v: v in ("with", "without")),
+    ("loss_knee", "null or a number > 0", lambda v: v is None or (_is_number(v) and v > 0)),
     ("channels_last", "true or false", lambda v: isinstance(v, bool)))
 # model arguments that are widths or counts (channels, blocks, layers, kernel sizes, ...): integers >= 1,
 # or >= 0 for the optional parts (deformable blocks, gBuffer channels)

@@ -29,6 +29,12 @@ SIDE = (2, 0.5)            # its height and width on the input's grid: 2 pixels 
 FIREFLIES_PER_FRAME = (1, 4)   # fireflies in each frame of the input (the stability cases': 0.2% of the pixels)
 
 
+def first_frame_exposure(x) -> float:
+    """The exposure of an item's first frame (`bench.exposure.frame_exposure` of its (T, C, H, W) input `x`):
+    what the lamps' and the fireflies' levels are multiples of."""
+    return float(frame_exposure(x[:1, :3], "exposure").flatten()[0])
+
+
 def with_emitter(item: dict, task: Task, draw: random.Random) -> dict:
     """`item` (buffer -> (T, C, H, W)) with a lamp pasted into task.x, task.y and task.mid where the item
     holds them (the same area: the targets' pixels cover the input's); the other buffers are the item's.
@@ -39,7 +45,7 @@ def with_emitter(item: dict, task: Task, draw: random.Random) -> dict:
     cols = draw.randint(SIDE[0], max(SIDE[0], int(SIDE[1] * w)))
     top, left = draw.randint(0, max(0, h - rows)), draw.randint(0, max(0, w - cols))
     k = 10 ** draw.uniform(*LOG10_LEVEL)
-    level = k * float(frame_exposure(x[:1, :3], "exposure").flatten()[0])
+    level = k * first_frame_exposure(x)
     out = dict(item)
     for name in dict.fromkeys(b for b in (task.x, task.y, task.mid) if b and b in item):
         s = item[name].shape[-1] // w   # 1 at the input's size, the task's scale at the targets'
@@ -56,7 +62,7 @@ def with_fireflies(item: dict, task: Task, draw: random.Random, exposure: float 
     x = item[task.x]
     t, h, w = x.shape[0], *x.shape[-2:]
     if exposure is None:
-        exposure = float(frame_exposure(x[:1, :3], "exposure").flatten()[0])
+        exposure = first_frame_exposure(x)
     out = dict(item)
     out[task.x] = x.clone()
     for frame in range(t):

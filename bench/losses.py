@@ -155,6 +155,14 @@ def perceptual(pred, target, features):
     return (features(pred) - target_features).pow(2).mean()
 
 
+def soft_knee(x, knee):
+    """x up to `knee`, knee + log1p(x - knee) above it: continuous, slope 1 at the knee, 1 / (1 + x - knee)
+    beyond. What the losses see with `train.loss_knee` (the network domain's values above it compressed
+    again), so that a lamp pasted into a training item (2.4-10.3 in the exposure domain, a room about 0.7)
+    pulls the fit less per pixel; the minimum of every term stays at pred == target."""
+    return torch.where(x > knee, knee + torch.log1p((x - knee).clamp_min(0)), x)
+
+
 def absolute_weights(weights):
     """Ratios {edge, temporal, spatial, perceptual[, ssim, relmse]} -> absolute weights, normalized by
     edge+temporal+spatial."""
@@ -167,14 +175,16 @@ def absolute_weights(weights):
     return {name: ratio / norm for name, ratio in weights.items()}
 
 
-def weighted_loss(pred, target, weights, features=None, to_linear=None):
+def weighted_loss(pred, target, weights, features=None, to_linear=None, knee=None):
     """Weighted sum of the loss terms named in `weights` (ratios, see absolute_weights).
 
     Returns (total, parts): parts maps each term with a nonzero weight to its UNweighted value, so
     total = sum(absolute_weight[name] * parts[name]). Terms with weight 0 are not computed.
     The temporal term needs (B, T, ...) input with T >= 2; on (N, C, H, W) input it is skipped.
-    `to_linear` maps the network domain back to linear radiance, for `relmse`.
+    `to_linear` maps the network domain back to linear radiance, for `relmse`. With `knee`, every term but
+    `relmse` (which is on linear radiance) sees soft_knee(pred) and soft_knee(target).
     """
+    seen = (pred, target) if knee is None else (soft_knee(pred, knee), soft_knee(target, knee))
     terms = {"spatial": spatial_l1, "edge": hfen, "temporal": temporal_l1, "ssim": ssim_loss,
              "perceptual": lambda p, t: perceptual(p, t, features),
              "relmse": lambda p, t: relmse_loss(to_linear(p), to_linear(t))}
@@ -186,6 +196,6 @@ def weighted_loss(pred, target, weights, features=None, to_linear=None):
     for name, weight in absolute_weights(weights).items():
         if weight == 0 or (name == "temporal" and pred.dim() != 5):
             continue
-        parts[name] = terms[name](pred, target)
+        parts[name] = terms[name](*((pred, target) if name == "relmse" else seen))
         total = total + weight * parts[name]
     return total, parts

@@ -35,7 +35,7 @@ from tqdm import tqdm
 
 from bench import distributed
 from bench.atomic import write_atomic
-from bench.emitters import with_emitter, with_fireflies
+from bench.emitters import first_frame_exposure, with_emitter, with_fireflies
 from bench.errors import UserError
 from bench.exposure import DOMAINS, encode, frame_exposure, transfer
 from bench.hdr import transforms
@@ -53,6 +53,12 @@ log = logging.getLogger("bench")
 SCHEDULES = ("cosine", "halve", "constant", "range")
 PRECISIONS = ("fp32", "bf16")
 COMPILE_MODES = ("default", "reduce-overhead", "max-autotune")  # torch.compile's; reduce-overhead: CUDA graphs
+# the exposure a lamp item is encoded at (train.emitters_exposure): "with" its lamp, as predict computes it
+# on any frame; "without", that of the item as rendered. A lamp raises a training crop's exposure far more
+# than a whole frame's (docs/studies.md, emitters_causes), so "with" encodes the rest of a lamp item darker
+# than the frames the network meets at inference.
+EMITTERS_EXPOSURES = ("with", "without")
+EXPOSURE = "exposure"   # the batch key of the per-frame exposures that "without" hands to batch_loss
 
 
 class TrainingInterrupted(UserError):
@@ -116,6 +122,8 @@ class Recipe:
     colour_permute: bool
     emitters: float                   # share of training items given a lamp far above their exposure (bench.emitters)
     fireflies: float                  # share of training items given fireflies in their input only (bench.emitters)
+    emitters_exposure: str            # one of EMITTERS_EXPOSURES: the exposure a lamp item is encoded at
+    loss_knee: float | None           # None: the losses see the network domain as it is; else bench.losses.soft_knee
     precision: str                    # one of PRECISIONS
     channels_last: bool
     compile: str | None               # None: eager; else torch.compile's mode for forward, losses and backward
@@ -126,7 +134,7 @@ class Recipe:
 
     NOT_IDENTITY = ("checkpoint_every", "checkpoint_every_s", "val_every", "val_sequences")
     # options left out of the identity at this value: the recipe as recorded before the option existed
-    OMITTED_AT = {"compile": None, "emitters": 0.0, "fireflies": 0.0}
+    OMITTED_AT = {"compile": None, "emitters": 0.0, "fireflies": 0.0, "emitters_exposure": "with", "loss_knee": None}
 
     def __post_init__(self):
         if self.schedule not in SCHEDULES:
@@ -138,6 +146,13 @@ class Recipe:
         for share in ("emitters", "fireflies"):
             if not 0.0 <= getattr(self, share) <= 1.0:
                 raise ValueError(f"train.{share} is a share of the training items, in [0, 1], got {getattr(self, share)!r}")
+        if self.emitters_exposure not in EMITTERS_EXPOSURES:
+            raise ValueError(f"train.emitters_exposure must be one of {EMITTERS_EXPOSURES}, got {self.emitters_exposure!r}")
+        if self.emitters_exposure == "without" and not (self.emitters and self.hdr == "exposure"):
+            raise ValueError("train.emitters_exposure=without sets the exposure of lamp items: it needs "
+                             f"train.emitters > 0 and train.hdr=exposure (got {self.emitters}, {self.hdr!r})")
+        if self.loss_knee is not None and not self.loss_knee > 0:
+            raise ValueError(f"train.loss_knee must be null or a number > 0, got {self.loss_knee!r}")
         if self.compile not in (None, *COMPILE_MODES):
             raise ValueError(f"train.compile must be null or one of {COMPILE_MODES}, got {self.compile!r}")
 
@@ -186,14 +201,16 @@ def lr_at(step: int, recipe: Recipe) -> float:
 
 def augmented(item: dict, task: Task, recipe: Recipe, seed: int, draw: int) -> dict:
     """The item with a lamp in `recipe.emitters` of the draws and fireflies in `recipe.fireflies` of them
-    (bench.emitters), each decided apart; each slot of each step draws from its own RNGs, seeded by
+    (bench.emitters), each decided apart, and with `train.emitters_exposure=without` the exposure of each
+    of its frames as rendered under EXPOSURE; each slot of each step draws from its own RNGs, seeded by
     (seed, draw), so a resumed run and any split of the batch over ranks paste the same."""
     original, lamp, fireflies = item, random.Random(f"emitter {seed} {draw}"), random.Random(f"fireflies {seed} {draw}")
     if lamp.random() < recipe.emitters:
         item = with_emitter(item, task, lamp)
     if fireflies.random() < recipe.fireflies:   # at the levels of the item without its lamp, which would set them
-        exposure = float(frame_exposure(original[task.x][:1, :3], "exposure").flatten()[0])
-        item = with_fireflies(item, task, fireflies, exposure)
+        item = with_fireflies(item, task, fireflies, first_frame_exposure(original[task.x]))
+    if recipe.emitters_exposure == "without":   # every item carries its exposure, so that a batch stacks
+        item = {**item, EXPOSURE: frame_exposure(sanitize_inputs(original[task.x], None)[0], recipe.hdr)}
     return item
 
 
@@ -201,18 +218,19 @@ def collate(items: list[dict], keys: list[str]) -> dict[str, torch.Tensor]:
     return {k: torch.stack([it[k] for it in items]) for k in keys}
 
 
-def batch_loss(model, batch: dict, task: Task, loss_weights: dict, hdr: str, features=None):
-    """Total loss and its named parts for one batch of (B, T, C, H, W) buffers."""
+def batch_loss(model, batch: dict, task: Task, loss_weights: dict, hdr: str, features=None, knee=None):
+    """Total loss and its named parts for one batch of (B, T, C, H, W) buffers (`knee`: train.loss_knee)."""
     x, g = sanitize_inputs(batch[task.x], batch[task.g])
-    exposure = frame_exposure(x, hdr)  # every image of a frame shares its LR input's exposure
+    # every image of a frame shares its LR input's exposure (or the one `augmented` recorded)
+    exposure = batch[EXPOSURE] if EXPOSURE in batch else frame_exposure(x, hdr)
     out = model(encode(x, hdr, exposure), g)
     to_linear = transforms(transfer(hdr))[0]
     total, parts = weighted_loss(out["final"], encode(batch[task.y], hdr, exposure), loss_weights["final"],
-                                 features, to_linear)
+                                 features, to_linear, knee)
     parts = {f"final.{k}": v for k, v in parts.items()}
     if task.mid and out.get("intermediate") is not None and any(loss_weights["intermediate"].values()):
         mid, mid_parts = weighted_loss(out["intermediate"], encode(batch[task.mid], hdr, exposure),
-                                       loss_weights["intermediate"], features, to_linear)
+                                       loss_weights["intermediate"], features, to_linear, knee)
         total = total + mid
         parts.update({f"intermediate.{k}": v for k, v in mid_parts.items()})
     return total, parts
@@ -333,7 +351,7 @@ def train(model, dataset, task: Task, out_dir: str | Path, recipe: Recipe, *, fe
     if ranks > 1 and distributed.mean_over_ranks(torch.tensor([float(state.step)])).item() != state.step:
         raise UserError(f"the {ranks} processes resumed {out_dir} from different steps (this one from {state.step}): "
                         "the run store must be on a filesystem every process sees")
-    keys = task.buffers(with_mid=True)
+    keys = task.buffers(with_mid=True) + ([EXPOSURE] if recipe.emitters_exposure == "without" else [])
     scored = ema_model if ema_model is not None else model
     val_every = recipe.val_every if validate is not None else 0
     if validate is not None and not state.val_curve:  # step 0: where training starts (input bilinear for
@@ -374,7 +392,7 @@ def train(model, dataset, task: Task, out_dir: str | Path, recipe: Recipe, *, fe
             if recipe.compile is not None:  # CUDA graphs: this step may reuse the previous step's buffers
                 torch.compiler.cudagraph_mark_step_begin()
             with torch.autocast(torch.device(device).type, dtype=torch.bfloat16, enabled=recipe.precision == "bf16"):
-                loss, parts = step_loss(net, batch, task, recipe.loss, recipe.hdr, features)
+                loss, parts = step_loss(net, batch, task, recipe.loss, recipe.hdr, features, recipe.loss_knee)
             # copies: a CUDA graph's outputs are overwritten by its next replay, and these wait for read_back
             reported = {"loss": loss.detach().clone(), **{k: v.detach().clone() for k, v in parts.items()}}
             stopping = bool(stop)  # decided here, once per step: with several ranks, the same on all

@@ -392,6 +392,8 @@ def test_shard_parses_i_over_n_and_rejects_the_rest():
     ("train.colour_permute=maybe", "train.colour_permute='maybe': expected true or false"),
     ("train.emitters=2", "train.emitters=2: expected a share of the training items in [0, 1]"),
     ("train.fireflies=-0.1", "train.fireflies=-0.1: expected a share of the training items in [0, 1]"),
+    ("train.emitters_exposure=room", "train.emitters_exposure='room': expected with or without"),
+    ("train.loss_knee=0", "train.loss_knee=0: expected null or a number > 0"),
     ("train.loss.final.edge=-1", "train.loss.final.edge=-1: expected a number >= 0"),
     ("+train.loss.final.ssmi=1", "train.loss.final: unknown loss terms ['ssmi']"),
     ("force=maybe", "force='maybe': expected true or false"),

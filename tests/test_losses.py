@@ -1,5 +1,6 @@
 """Tests for bench.losses against independent NumPy/SciPy computations and the paper's numbers."""
 import functools
+import math
 import os
 import re
 from pathlib import Path
@@ -12,8 +13,8 @@ import torch
 from skimage.metrics import structural_similarity
 
 from bench.losses import (HFEN_KERNEL_SIZE, HFEN_SIGMA, PAPER_WEIGHTS, absolute_weights, hfen,
-                          laplacian_of_gaussian, perceptual, relmse_loss, separable_filter, spatial_l1,
-                          ssim_loss, temporal_l1, weighted_loss)
+                          laplacian_of_gaussian, perceptual, relmse_loss, separable_filter, soft_knee,
+                          spatial_l1, ssim_loss, temporal_l1, weighted_loss)
 
 PAPER = os.environ.get("SRD_PAPER_TEXT")  # the paper's full text, where a machine has it (not shipped)
 
@@ -187,3 +188,36 @@ def test_relmse_term_is_the_relmse_metric_on_linear_radiance_and_learns_the_mean
     weights = 1 / (draws ** 2 + 0.01)                      # its minimiser: the mean weighted by 1 / (r^2 + eps)
     assert abs(constants[rel.argmin()] - (weights * draws).sum() / weights.sum()) <= 1e-4
     assert constants[rel.argmin()] > 0.9 * draws.mean() and constants[l1.argmin()] == 0
+
+
+def test_soft_knee_is_the_identity_below_the_knee_and_log1p_above_it():
+    """bench.losses.soft_knee: x up to the knee; knee + log1p(x - knee) above (checked against NumPy), so
+    continuous with slope 1 at the knee and slope 1 / (1 + x - knee) beyond."""
+    x = torch.linspace(-1.0, 12.0, 1301, dtype=torch.float64, requires_grad=True)
+    out = soft_knee(x, 2.0)
+    v = x.detach().numpy()
+    np.testing.assert_allclose(out.detach().numpy(), np.where(v > 2.0, 2.0 + np.log1p(np.clip(v - 2.0, 0, None)), v),
+                               rtol=0, atol=1e-12)
+    out.sum().backward()
+    np.testing.assert_allclose(x.grad.numpy(), np.where(v > 2.0, 1 / (1 + np.clip(v - 2.0, 0, None)), 1.0), rtol=1e-12)
+    assert soft_knee(torch.tensor([10.3], dtype=torch.float64), 2.0).item() == pytest.approx(2 + math.log1p(8.3))
+
+
+def test_the_loss_knee_compresses_what_every_term_but_relmse_sees():
+    """weighted_loss(knee=k): every term is that of soft_knee(pred), soft_knee(target), except `relmse`,
+    which decodes the values as given; without a knee nothing changes, and with a knee above every value
+    neither does the total."""
+    from bench.hdr import from_network
+    torch.manual_seed(4)
+    pred, target = torch.rand(1, 3, 3, 16, 16) * 6, torch.rand(1, 3, 3, 16, 16) * 6
+    weights = {"edge": 1, "temporal": 1, "spatial": 8, "perceptual": 0, "ssim": 8, "relmse": 1}
+    to_linear = functools.partial(from_network, mode="log1p")
+    kneed, kneed_parts = weighted_loss(pred, target, weights, to_linear=to_linear, knee=2.0)
+    seen, seen_parts = weighted_loss(soft_knee(pred, 2.0), soft_knee(target, 2.0), weights, to_linear=to_linear)
+    plain, plain_parts = weighted_loss(pred, target, weights, to_linear=to_linear)
+    for name in ("edge", "temporal", "spatial", "ssim"):
+        torch.testing.assert_close(kneed_parts[name], seen_parts[name])
+    assert kneed_parts["spatial"] < plain_parts["spatial"]    # 1-Lipschitz: values above 2 differ less
+    torch.testing.assert_close(kneed_parts["relmse"], plain_parts["relmse"])
+    assert weighted_loss(pred, target, weights, to_linear=to_linear, knee=None)[0] == plain
+    torch.testing.assert_close(weighted_loss(pred, target, weights, to_linear=to_linear, knee=7.0)[0], plain)

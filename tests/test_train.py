@@ -73,11 +73,14 @@ def test_cosine_schedule_warms_up_linearly_then_decays_to_zero():
 def test_the_identity_names_every_option_but_loss_terms_of_weight_zero():
     base = config_recipe(loss=WEIGHTS)
     assert set(base.identity()) == ({f for f in Recipe.__dataclass_fields__} - set(Recipe.NOT_IDENTITY)
-                                    - {"compile", "emitters", "fireflies"})
-    # eager, no pasted emitters or fireflies: left out (Recipe.OMITTED_AT), so runs recorded before the options keep their hash
-    assert base.compile is None and base.emitters == 0.0 and base.fireflies == 0.0
+                                    - {"compile", "emitters", "fireflies", "emitters_exposure", "loss_knee"})
+    # eager, no pasted emitters or fireflies, lamp items at their own exposure, no loss knee: left out
+    # (Recipe.OMITTED_AT), so runs recorded before the options keep their hash
+    assert (base.compile, base.emitters, base.fireflies, base.emitters_exposure, base.loss_knee) == (None, 0.0, 0.0, "with", None)
     assert config_recipe(emitters=0.25).identity()["emitters"] == 0.25
     assert config_recipe(fireflies=0.25).identity()["fireflies"] == 0.25
+    assert config_recipe(emitters=0.25, emitters_exposure="without").identity()["emitters_exposure"] == "without"
+    assert config_recipe(loss_knee=2.0).identity()["loss_knee"] == 2.0
     assert base.identity()["colour_permute"] is False and config_recipe(colour_permute=True).identity()["colour_permute"]
     assert "perceptual" not in base.identity()["loss"]["final"]
     # a term set to 0 (conf/pin/studies.yaml takes out a term the preset has since added) is the recipe without it
@@ -531,6 +534,56 @@ def test_fireflies_are_single_pixels_of_one_frame_in_the_input_only():
             assert ((levels >= 10 ** LOG10_LEVEL[0] * (1 - 1e-5)) & (levels <= 10 ** LOG10_LEVEL[1] * (1 + 1e-5))).all()
             places.append({tuple(p.tolist()) for p in pixels})
     assert sum(a != b for a, b in zip(places[::3], places[1::3])) >= 18    # each frame its own
+
+
+def test_lamp_items_without_their_lamp_carry_the_exposure_they_had_as_rendered():
+    """train.emitters_exposure=without: `augmented` hands every item (lamp or not) the per-frame exposure of
+    its input as rendered, under bench.train.EXPOSURE; batch_loss encodes at it. A lamp raises the item's
+    own exposure, and an exposure equal to the item's own gives batch_loss's loss without the key."""
+    from bench.exposure import frame_exposure
+    from bench.train import EXPOSURE, augmented, batch_loss, collate
+    recipe = config_recipe(emitters=0.5, emitters_exposure="without", hdr="exposure")
+    items = [_item(t=2, c=16, seed=n) for n in range(2)]
+    out = [augmented(item, TASK, recipe, seed=0, draw=d) for d, item in enumerate(items * 8)]
+    lamps = 0
+    for item, aug in zip(items * 8, out):
+        assert torch.equal(aug[EXPOSURE], frame_exposure(item[TASK.x], "exposure"))
+        if not torch.equal(aug[TASK.x], item[TASK.x]):   # a lamp: brighter than the exposure recorded
+            lamps += 1
+            assert (frame_exposure(aug[TASK.x], "exposure") > aug[EXPOSURE]).all()
+    assert 0 < lamps < len(out)
+    assert EXPOSURE not in augmented(items[0], TASK, config_recipe(emitters=0.5, hdr="exposure"), seed=0, draw=0)
+    batch = collate(items, TASK.buffers(with_mid=True))
+    own = {**batch, EXPOSURE: frame_exposure(batch[TASK.x], "exposure")}
+    model = _model()
+    assert batch_loss(model, own, TASK, WEIGHTS, "exposure")[0] == batch_loss(model, batch, TASK, WEIGHTS, "exposure")[0]
+    half = {**batch, EXPOSURE: own[EXPOSURE] / 2}
+    assert batch_loss(model, half, TASK, WEIGHTS, "exposure")[0] != batch_loss(model, batch, TASK, WEIGHTS, "exposure")[0]
+
+
+def test_the_lamp_options_refuse_recipes_they_do_nothing_in():
+    with pytest.raises(ValueError, match="emitters_exposure=without"):
+        config_recipe(emitters_exposure="without", hdr="exposure")                # no lamps
+    with pytest.raises(ValueError, match="emitters_exposure=without"):
+        config_recipe(emitters=0.25, emitters_exposure="without", hdr="pu")       # no exposure
+    with pytest.raises(ValueError, match="emitters_exposure must be one of"):
+        config_recipe(emitters=0.25, emitters_exposure="room")
+    with pytest.raises(ValueError, match="loss_knee"):
+        config_recipe(loss_knee=0)
+
+
+def test_a_training_with_lamps_at_their_room_exposure_or_a_loss_knee_trains_on_them(tmp_path):
+    """Lamps in every item (train.emitters=1), encoded at the exposure without them, or with the losses
+    behind a knee: each curve differs from plain lamps', stays finite, and a second run repeats it."""
+    options = {"plain": {}, "without": {"emitters_exposure": "without"}, "without again": {"emitters_exposure": "without"},
+               "knee": {"loss_knee": 0.5}}
+    curves = {}
+    for name, changes in options.items():
+        _train(SyntheticSequences(t=2, c=16), tmp_path / name, steps=3, val_every=0, emitters=1.0, hdr="exposure", **changes)
+        curves[name] = pd.read_csv(tmp_path / name / "curve.csv")["loss"].tolist()
+    assert curves["without"] == curves["without again"]
+    assert curves["without"] != curves["plain"] and curves["knee"] != curves["plain"]
+    assert all(map(math.isfinite, curves["without"] + curves["knee"]))
 
 
 @pytest.mark.parametrize("share", ["emitters", "fireflies"])

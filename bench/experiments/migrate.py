@@ -41,7 +41,8 @@ IMPLIED_V1 = {"colour_permute": False, "precision": "fp32", "channels_last": Fal
 # options added since, at the value a recipe recorded before them had (bench.train.Recipe.OMITTED_AT: the
 # identity leaves them out there); here too, not read from it, because a replay of recorded code has that
 # code's Recipe (tests/test_migrate.py checks the two agree)
-IMPLIED = {**IMPLIED_V1, "compile": None, "emitters": 0.0, "fireflies": 0.0}
+IMPLIED = {**IMPLIED_V1, "compile": None, "emitters": 0.0, "fireflies": 0.0, "emitters_exposure": "with",
+           "loss_knee": None}
 # options that are gone: a run recorded with one set otherwise than this cannot be represented
 RETIRED_OPTIONS = {"train_sequences": None}
 RETIRED_LOSS_TERMS = ("ssim_linear",)
