@@ -208,11 +208,19 @@ def damaged_frames(root, frames, passes, decode=False, stamps=True, max_nonfinit
                 problems.append((path, f"lacks layers {sorted(lacking)}"))
             elif size and actual != tuple(size):
                 problems.append((path, "{}x{} pixels; its record says {}x{}".format(*actual, *size)))
-            elif stamps and not as_written(rec, res, path):
+            elif stamps and not (as_written(rec, res, path) or _rendered_again(paths[2], rec, res, path)):
                 problems.append((path, "changed since it was rendered (size or bytes differ from its record)"))
             elif decode and (why := _decode_problem(path, sorted(wanted or layers), max_nonfinite)):
                 problems.append((path, why))
     return problems
+
+
+def _rendered_again(rec_path, record, res, path):
+    """True when the frame's own record (`rec_path`, beside it) holds a stamp of `path` that matches and the
+    settings of `record` (the manifest's): a render with those settings wrote the file again after the
+    manifest was written, and stopped before writing the next one (an interrupted render's frames)."""
+    own = _load_record(rec_path, record.get("settings_hash"))
+    return bool(own) and (own.get("files") or {}).get(res) is not None and as_written(own, res, path)
 
 
 def file_stamp(path):

@@ -153,6 +153,26 @@ def test_nan_written_into_a_rendered_frame_is_found_at_start_and_rendered_again(
     assert datagen.damaged_frames(root / "data", _frames(root), sorted(PASSES)) == []
 
 
+def test_a_frame_rendered_again_after_the_manifest_is_not_damaged(rendered):
+    """A render stopped before it wrote the manifest leaves frames whose own records (beside them) are newer
+    than the manifest's: their files match the own record's stamp, not the manifest's, and are not
+    damaged. A file that matches neither still is."""
+    root, hr, original = rendered
+    rec_path = hr.with_name("0001.json")
+    record = json.loads(rec_path.read_text())
+    exrio.write_exr(hr, {name: a * 0.5 for name, a in original.items()}, suffixes=datagen.SUFFIXES)
+    record["files"]["hr"] = datagen.file_stamp(hr)                 # what the render writes after the frame
+    rec_path.write_text(json.dumps(record))
+    assert datagen.damaged_frames(root / "data", _frames(root), sorted(PASSES)) == []
+    exrio.write_exr(hr, original, suffixes=datagen.SUFFIXES)         # changed again, no record of it
+    assert datagen.damaged_frames(root / "data", _frames(root), sorted(PASSES)) == [
+        (str(hr), "changed since it was rendered (size or bytes differ from its record)")]
+    record["settings_hash"] = "other settings"                     # a record of other settings does not vouch
+    record["files"]["hr"] = datagen.file_stamp(hr)
+    rec_path.write_text(json.dumps(record))
+    assert [p for p, _ in datagen.damaged_frames(root / "data", _frames(root), sorted(PASSES))] == [str(hr)]
+
+
 def test_verify_finds_nan_in_frames_without_stamps_repairs_and_stamps_them(rendered):
     """Frames rendered before stamps existed: only decoding finds NaN; `verify=true` renders them again
     and stamps every frame, so a later edit is found by the header check."""
