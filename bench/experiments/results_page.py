@@ -62,6 +62,10 @@ KEPT_STUDIES = [
                             "trainings."),
     ("emitters_stability", "The stability cases through the emitters study's seed-0 'lamps' trainings: the "
                            "lamp cases pass, the firefly cases show the cost."),
+    ("emitters_causes", "Candidate causes of the lamps' cost (lamp items encoded at the exposure without their "
+                        "lamp; the losses behind a knee; the share of lamp items), on Ours, EDSR and CFM, seed 0."),
+    ("emitters_causes_stability", "The stability cases through the emitters_causes study's seed-0 'lamps in a "
+                                  "tenth' trainings."),
 ]
 # studies whose conclusion is now the preset: their configs are in git history (docs/studies.md)
 RETIRED_STUDIES = [
