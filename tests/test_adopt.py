@@ -108,7 +108,7 @@ def test_adopt_archives_what_it_restamps_over_the_stale_copy(monkeypatch, tmp_pa
     witness.save()
     torch.save({"model": {"w": torch.zeros(1)}, "ema": None, "optimizer": {}, "step": 3}, run_dir / "checkpoint.pt")
     archive = tmp_path / "archive"
-    runs.archive(witness, archive)                                # as a table archived it, before the change
+    runs.archive(witness, archive, write=lambda d: archived.write(run_dir, d, witness.record))  # as a table archived it
     monkeypatch.setattr(adopt, "stale_groups", lambda ctx: {"g": [witness]})
     monkeypatch.setattr(adopt, "code_of", lambda *a: {"bench/x.py": "new"})
     monkeypatch.setattr(adopt, "evaluations_of", lambda *a: [])
@@ -198,6 +198,37 @@ def test_adopt_holds_a_training_of_another_render_to_its_recorded_code_rebuilt_f
     table = pd.read_csv(tmp_path / "results" / "adopt" / "table.csv").iloc[-1]
     assert table["verdict"].startswith("differs") and table["check"] == "recorded code", table.to_string()
     assert table["train step 1 loss"] > 1e-3 and table["eval PSNR"] > 1e-4, table.to_string()
+
+
+def test_adopt_keeps_out_of_the_archive_the_weights_it_left_out(monkeypatch, tmp_path):
+    """A training whose archived copy was left without its weights on purpose (docs/runs.md) is archived
+    again by adopt from a store that has them: the re-stamped copy stays without them."""
+    import types
+    import torch
+    from bench import archived, runs
+    from bench.experiments import adopt
+    run_dir = tmp_path / "runs" / "train" / ("2" * 16)
+    run_dir.mkdir(parents=True)
+    run = runs.Run("train", "2" * 16, run_dir, {"identity": {"model": {"_target_": "x"}}, "label": "row",
+                                                 "status": "complete", "code": {"bench/x.py": "old"}})
+    run.save()
+    torch.save({"model": {"w": torch.zeros(1)}, "ema": None, "optimizer": {}, "step": 3}, run_dir / "checkpoint.pt")
+    archive = tmp_path / "archive"
+    copy = runs.archive(run, archive, write=lambda d: archived.write(run_dir, d, run.record))
+    (copy / archived.WEIGHTS).unlink()                            # left out on purpose, the record relisted
+    record = runs.read_record(copy / runs.RECORD)
+    record["files"].pop(archived.WEIGHTS)
+    (copy / runs.RECORD).write_text(json.dumps(record))
+    for name, value in (("stale_groups", lambda ctx: {"g": [run]}), ("code_of", lambda *a: {"bench/x.py": "new"}),
+                        ("evaluations_of", lambda *a: []), ("trained_here", lambda *a: True),
+                        ("check_training", lambda *a: {"step 1 loss": 0.0, "later loss": 0.0}),
+                        ("restore_archive", lambda ctx: 0)):
+        monkeypatch.setattr(adopt, name, value)
+    ctx = types.SimpleNamespace(runs_dir=tmp_path / "runs", runs_archive=archive, results_dir=tmp_path / "results")
+    assert list(adopt.run(ctx, "adopt", 10, 1e-5, 1e-3, 1e-3, dry_run=False)["verdict"]) == ["adopted"]
+    record = runs.read_record(copy / runs.RECORD)
+    assert record["code"] == {"bench/x.py": "new"} and "code_adopted" in record
+    assert not archived.has_weights(copy) and archived.WEIGHTS not in record["files"]
 
 
 def test_adopt_restamps_a_run_its_archive_kept_without_weights_beside_a_witness_that_has_them(monkeypatch,

@@ -353,7 +353,16 @@ def cascade_model(ctx: Context, cfg: dict, seed: int, label: str = ""):
 
 def archive_training(ctx: Context, run: runs.Run) -> runs.Run:
     """Keep a finished training in `ctx.runs_archive`, in the archive's compact form (bench.archived):
-    its record, the weights evaluation loads in float16, its curves."""
+    its record, the weights evaluation loads in float16, its curves. A training the archive already keeps
+    without its weights (left out on purpose, docs/runs.md) stays without them when it is archived again
+    (adopt re-stamps it from a store that has them)."""
     if ctx.runs_archive is not None:
-        runs.archive(run, ctx.runs_archive, write=lambda directory: archived.write(run.dir, directory, run.record))
+        copy = Path(ctx.runs_archive) / run.kind / run.hash
+        weightless = (copy / runs.RECORD).exists() and not archived.has_weights(copy)
+
+        def write(directory):
+            archived.write(run.dir, directory, run.record)
+            if weightless:
+                (directory / archived.WEIGHTS).unlink(missing_ok=True)
+        runs.archive(run, ctx.runs_archive, write=write)
     return run
