@@ -94,6 +94,20 @@ def test_adopt_stops_on_ctrl_c_or_sigterm_during_a_replay(monkeypatch, tmp_path)
         adopt.run(None, "adopt", 10, 1e-5, 1e-3, 1e-3, dry_run=True)
 
 
+def _archived_stale_training(tmp_path, name):
+    """A complete training recorded by older code (label "row"), with its checkpoint in the store, archived
+    as a table archives it (bench.experiments.training.archive_training); (run, its archived copy)."""
+    import torch
+    from bench import archived, runs
+    run_dir = tmp_path / "runs" / "train" / name
+    run_dir.mkdir(parents=True)
+    run = runs.Run("train", name, run_dir, {"identity": {"model": {"_target_": "x"}}, "label": "row",
+                                            "status": "complete", "code": {"bench/x.py": "old"}})
+    run.save()
+    torch.save({"model": {"w": torch.zeros(1)}, "ema": None, "optimizer": {}, "step": 3}, run_dir / "checkpoint.pt")
+    return run, runs.archive(run, tmp_path / "archive", write=lambda d: archived.write(run_dir, d, run.record))
+
+
 def test_adopt_archives_what_it_restamps_over_the_stale_copy(monkeypatch, tmp_path):
     """An adopted run's archived copy is replaced by the re-stamped one: a fresh clone restores from the
     archive, and the stale copy there would be trained again."""
@@ -101,14 +115,8 @@ def test_adopt_archives_what_it_restamps_over_the_stale_copy(monkeypatch, tmp_pa
     import torch
     from bench import archived, runs
     from bench.experiments import adopt
-    run_dir = tmp_path / "runs" / "train" / ("0" * 16)
-    run_dir.mkdir(parents=True)
-    witness = runs.Run("train", "0" * 16, run_dir, {"identity": {"model": {"_target_": "x"}}, "label": "row",
-                                                     "status": "complete", "code": {"bench/x.py": "old"}})
-    witness.save()
-    torch.save({"model": {"w": torch.zeros(1)}, "ema": None, "optimizer": {}, "step": 3}, run_dir / "checkpoint.pt")
+    witness, _ = _archived_stale_training(tmp_path, "0" * 16)
     archive = tmp_path / "archive"
-    runs.archive(witness, archive, write=lambda d: archived.write(run_dir, d, witness.record))  # as a table archived it
     monkeypatch.setattr(adopt, "stale_groups", lambda ctx: {"g": [witness]})
     monkeypatch.setattr(adopt, "code_of", lambda *a: {"bench/x.py": "new"})
     monkeypatch.setattr(adopt, "evaluations_of", lambda *a: [])
@@ -204,17 +212,10 @@ def test_adopt_keeps_out_of_the_archive_the_weights_it_left_out(monkeypatch, tmp
     """A training whose archived copy was left without its weights on purpose (docs/runs.md) is archived
     again by adopt from a store that has them: the re-stamped copy stays without them."""
     import types
-    import torch
     from bench import archived, runs
     from bench.experiments import adopt
-    run_dir = tmp_path / "runs" / "train" / ("2" * 16)
-    run_dir.mkdir(parents=True)
-    run = runs.Run("train", "2" * 16, run_dir, {"identity": {"model": {"_target_": "x"}}, "label": "row",
-                                                 "status": "complete", "code": {"bench/x.py": "old"}})
-    run.save()
-    torch.save({"model": {"w": torch.zeros(1)}, "ema": None, "optimizer": {}, "step": 3}, run_dir / "checkpoint.pt")
+    run, copy = _archived_stale_training(tmp_path, "2" * 16)
     archive = tmp_path / "archive"
-    copy = runs.archive(run, archive, write=lambda d: archived.write(run_dir, d, run.record))
     (copy / archived.WEIGHTS).unlink()                            # left out on purpose, the record relisted
     record = runs.read_record(copy / runs.RECORD)
     record["files"].pop(archived.WEIGHTS)
