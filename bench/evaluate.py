@@ -16,7 +16,7 @@ import pandas as pd
 import torch
 
 from bench.atomic import write_atomic
-from bench.exposure import decode, encode, frame_exposure
+from bench.exposure import decode, encode, frame_exposure, pass_highlights
 from bench.infer import REFERENCE, prepare, tiled_predict
 from bench.metrics import METRICS, SEQUENCE_METRICS, all_metrics
 from bench.sanitize import sanitize_inputs
@@ -35,7 +35,8 @@ def predict(model, x_lin: torch.Tensor, g: torch.Tensor, hdr: str, sanitize: boo
     if getattr(model, "linear_hdr", False):
         return forward(x_lin, g)["final"]
     exposure = frame_exposure(x_lin, hdr)
-    return decode(forward(encode(x_lin, hdr, exposure), g)["final"], hdr, exposure)
+    y = forward(encode(x_lin, hdr, exposure), g)["final"]
+    return decode(pass_highlights(y, x_lin, hdr, exposure), hdr, exposure)
 
 
 def runner(model, path: str = REFERENCE, tile: int | None = None):

@@ -55,7 +55,7 @@ def transforms(mode: str | None):
     module (bench.nn.upsampled_input); None for None."""
     if mode is None:
         return None
-    if mode == "exposure":  # bench.exposure: log1p of radiance divided by the frame's exposure, which is linear
+    if mode.startswith("exposure"):  # bench.exposure's: log1p of radiance divided by the frame's exposure (linear)
         mode = "log1p"
     if mode not in MODES:
         raise ValueError(f"unknown HDR transform {mode!r}; choose one of {MODES}")

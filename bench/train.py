@@ -37,12 +37,12 @@ from bench import distributed
 from bench.atomic import write_atomic
 from bench.emitters import first_frame_exposure, with_emitter, with_fireflies
 from bench.errors import UserError
-from bench.exposure import DOMAINS, encode, frame_exposure, transfer
+from bench.exposure import DOMAINS, EXPOSURE_DOMAINS, encode, frame_exposure, pass_highlights, transfer
 from bench.hdr import transforms
 from bench.infer import frames_channels_last
 from bench.losses import weighted_loss
 from bench.macs import count_params
-from bench.sanitize import sanitize_inputs
+from bench.sanitize import sanitize_inputs, sanitize_radiance
 from bench.tasks import Task
 
 CHECKPOINT = "checkpoint.pt"
@@ -148,9 +148,9 @@ class Recipe:
                 raise ValueError(f"train.{share} is a share of the training items, in [0, 1], got {getattr(self, share)!r}")
         if self.emitters_exposure not in EMITTERS_EXPOSURES:
             raise ValueError(f"train.emitters_exposure must be one of {EMITTERS_EXPOSURES}, got {self.emitters_exposure!r}")
-        if self.emitters_exposure == "without" and not (self.emitters and self.hdr == "exposure"):
-            raise ValueError("train.emitters_exposure=without sets the exposure of lamp items: it needs "
-                             f"train.emitters > 0 and train.hdr=exposure (got {self.emitters}, {self.hdr!r})")
+        if self.emitters_exposure == "without" and not (self.emitters and self.hdr in EXPOSURE_DOMAINS):
+            raise ValueError("train.emitters_exposure=without sets the exposure of lamp items: it needs train.emitters "
+                             f"> 0 and train.hdr one of {EXPOSURE_DOMAINS} (got {self.emitters}, {self.hdr!r})")
         if self.loss_knee is not None and not self.loss_knee > 0:
             raise ValueError(f"train.loss_knee must be null or a number > 0, got {self.loss_knee!r}")
         if self.compile not in (None, *COMPILE_MODES):
@@ -210,7 +210,7 @@ def augmented(item: dict, task: Task, recipe: Recipe, seed: int, draw: int) -> d
     if fireflies.random() < recipe.fireflies:   # at the levels of the item without its lamp, which would set them
         item = with_fireflies(item, task, fireflies, first_frame_exposure(original[task.x]))
     if recipe.emitters_exposure == "without":   # every item carries its exposure, so that a batch stacks
-        item = {**item, EXPOSURE: frame_exposure(sanitize_inputs(original[task.x], None)[0], recipe.hdr)}
+        item = {**item, EXPOSURE: frame_exposure(sanitize_radiance(original[task.x]), recipe.hdr)}
     return item
 
 
@@ -225,7 +225,8 @@ def batch_loss(model, batch: dict, task: Task, loss_weights: dict, hdr: str, fea
     exposure = batch[EXPOSURE] if EXPOSURE in batch else frame_exposure(x, hdr)
     out = model(encode(x, hdr, exposure), g)
     to_linear = transforms(transfer(hdr))[0]
-    total, parts = weighted_loss(out["final"], encode(batch[task.y], hdr, exposure), loss_weights["final"],
+    final = pass_highlights(out["final"], x, hdr, exposure)
+    total, parts = weighted_loss(final, encode(batch[task.y], hdr, exposure), loss_weights["final"],
                                  features, to_linear, knee)
     parts = {f"final.{k}": v for k, v in parts.items()}
     if task.mid and out.get("intermediate") is not None and any(loss_weights["intermediate"].values()):

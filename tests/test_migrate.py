@@ -176,7 +176,7 @@ def test_the_sota_ours_row_migrated_is_what_the_current_config_computes(tmp_path
         ctx = make_context(compose("config", overrides=["preset=cpu", "+experiment=sota", "eval.split=val",
                                                         "train.hdr=pu"]))
         now = make_context(compose("config", overrides=["preset=cpu", "+experiment=sota", "eval.split=val"]))
-    assert dataclasses.replace(now.train, hdr="pu") == ctx.train and now.train.hdr == "exposure"
+    assert dataclasses.replace(now.train, hdr="pu") == ctx.train and now.train.hdr == "exposure_pass"
     train, evaluation = _sota_ours_identities(ctx, recorded_train, recorded_eval)
     assert json.loads(json.dumps(train)) == recorded_train["identity"]
     assert runs.config_hash(train) == recorded_train["hash"]

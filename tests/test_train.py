@@ -561,6 +561,30 @@ def test_lamp_items_without_their_lamp_carry_the_exposure_they_had_as_rendered()
     assert batch_loss(model, half, TASK, WEIGHTS, "exposure")[0] != batch_loss(model, batch, TASK, WEIGHTS, "exposure")[0]
 
 
+def test_the_loss_in_exposure_pass_takes_no_gradient_from_the_network_where_a_lamp_passes():
+    """bench.exposure.pass_highlights inside batch_loss: on the HR pixels of a lamp far above the exposure the
+    final output is the input's, so the network's output there gets no gradient (in `exposure` it does);
+    the rest of the frame trains as before."""
+    from bench.train import batch_loss, collate
+    item = _item(t=2, c=32)
+    for name, s in (("lr_noisy", 1), ("hr_ref", 2), ("hr_noisy", 2)):
+        item[name][..., :3, 2 * s:7 * s, 2 * s:7 * s] = 5e3   # in one of the 16 exposure blocks: about 6e3x
+    batch, model, seen = collate([item], TASK.buffers(with_mid=True)), _model(), {}
+
+    def forward(x, g):   # the model, keeping its final output's gradient
+        out = model(x, g)
+        out["final"].retain_grad()
+        seen["final"] = out["final"]
+        return out
+    on_lamp = {}
+    for domain in ("exposure", "exposure_pass"):
+        batch_loss(forward, batch, TASK, WEIGHTS, domain)[0].backward()
+        grad = seen["final"].grad
+        on_lamp[domain] = grad[..., 4:14, 4:14].abs().max()
+        assert grad[..., 20:, :].abs().max() > 0
+    assert on_lamp["exposure_pass"] == 0 and on_lamp["exposure"] > 0
+
+
 def test_the_lamp_options_refuse_recipes_they_do_nothing_in():
     with pytest.raises(ValueError, match="emitters_exposure=without"):
         config_recipe(emitters_exposure="without", hdr="exposure")                # no lamps
