@@ -46,10 +46,12 @@ KEPT_STUDIES = [
     ("dark_bias", "A dark scene's colour: a linear bilinear base, a relative-MSE term, permuted colour channels."),
     ("lr_range_ssim", "The learning-rate range test with the SSIM term in the loss; its suggestions are the "
                       "cpu preset's `model_lr`."),
-    ("domain", "The learned models' network domain: PU21 against per-frame exposure + log1p, on Table 5's "
-               "learned rows (its caption gives the seeds)."),
+    ("domain", "The learned models' network domain: PU21 against per-frame exposure + log1p, without and with "
+               "highlights passed through, on Table 5's learned rows (its caption gives the seeds)."),
     ("domain_verdicts", "The domain study's pairs, judged: each learned model's exposure row against its PU21 "
                         "row (exposure is the 'better' side: a reversed verdict would say PU21 wins)."),
+    ("domain_pass_verdicts", "The domain study's pairs, judged: each learned model's exposure_pass row (highlights "
+                             "passed through) against its exposure row."),
     ("emitters", "Lamps pasted into a quarter of the training items against none, on Table 5's learned rows "
                  "(its caption gives the seeds)."),
     ("emitters_verdicts", "The emitters study's pairs, judged: each learned model trained with lamps against "

@@ -1,0 +1,119 @@
+"""Where the lamps' cost lies (docs/studies.md, emitters_causes): two probes of recorded trainings.
+
+    PYTHONPATH=$PWD .venv/bin/python scripts/lamp_cost_probe.py bins library,living_room RUN...
+    PYTHONPATH=$PWD .venv/bin/python scripts/lamp_cost_probe.py gradients RUN [ITEMS]
+
+`bins`: each training's outputs on the val sequences whose names start with one of the given prefixes,
+binned by the HR reference's luminance (linear radiance): per bin its share of the pixels, the mean
+signed error and the mean squared error on images clamped to [0, 1] (PSNR's domain), and the outputs'
+sum over the reference's. A bias shows as a signed error comparable to the root of the squared one;
+noise left in shows as a squared error far above the signed error's square.
+
+`gradients`: the norm of the loss's gradient (the cpu preset's recipe) for ITEMS training items, each as
+drawn and with a lamp pasted (bench.emitters.with_emitter), per loss term; the medians and the median
+ratio. A lamp item whose gradient is several times an item's without would take over the clipped step.
+
+RUN: a training's hash, from the run store (runs/) or the committed archive (bench.weights.export).
+Both need the cpu dataset (`python -m bench +experiment=data preset=cpu`).
+"""
+from __future__ import annotations
+
+import random
+import statistics
+import sys
+import tempfile
+from pathlib import Path
+
+import numpy as np
+import torch
+from hydra import compose, initialize_config_dir
+
+import bench.losses
+from bench.cli import CONF_DIR, make_context
+from bench.emitters import with_emitter
+from bench.evaluate import predict
+from bench.experiments.datasets import dataset
+from bench.tasks import get_task
+from bench.train import batch_loss
+from bench.weights import export, load_exported
+
+EDGES = [0, 0.003, 0.01, 0.03, 0.1, 0.3, 0.6, 1.0, np.inf]   # HR reference luminance
+TERMS = ("spatial", "edge", "temporal", "ssim")
+
+
+def _context():
+    with initialize_config_dir(config_dir=CONF_DIR, version_base=None):
+        return make_context(compose("config", overrides=["preset=cpu", "render_data=false", "device=cpu"]))
+
+
+def _model(run: str):
+    model, meta = load_exported(export(run, Path(tempfile.mkdtemp()) / f"{run}.pt", "runs"))
+    return model, meta["hdr"]
+
+
+def bins(prefixes: str, run_hashes: list[str]) -> None:
+    ctx, task = _context(), get_task("srd")
+    data = dataset(ctx, "val", task, training=False)
+    chosen = [i for i, item in enumerate(data.items) if item[0].startswith(tuple(prefixes.split(",")))]
+    for run in run_hashes:
+        model, hdr = _model(run)
+        model.eval()
+        sums = {}   # sequence -> (bins, [pixels, signed, squared, output, reference])
+        for i in chosen:
+            item = data[i]
+            with torch.no_grad():
+                out = predict(model, item[task.x][None], item[task.g][None], hdr)[0].double().numpy()
+            ref = item[task.y].double().numpy()
+            luminance = np.repeat(ref.mean(1, keepdims=True), 3, 1)
+            diff = np.clip(out, 0, 1) - np.clip(ref, 0, 1)
+            acc = sums.setdefault(data.items[i][0], np.zeros((len(EDGES) - 1, 5)))
+            for b in range(len(EDGES) - 1):
+                m = (luminance >= EDGES[b]) & (luminance < EDGES[b + 1])
+                acc[b] += [m.sum(), diff[m].sum(), (diff[m] ** 2).sum(), out[m].sum(), ref[m].sum()]
+        for sequence, acc in sums.items():
+            print(f"{run} {sequence}: PSNR of the pooled pixels {10 * np.log10(acc[:, 0].sum() / acc[:, 2].sum()):.2f}")
+            for b, (n, signed, squared, out_sum, ref_sum) in enumerate(acc):
+                if n:
+                    print(f"  [{EDGES[b]:g}, {EDGES[b + 1]:g}) share {n / acc[:, 0].sum():.3f} signed {signed / n:+.5f} "
+                          f"squared {squared / n:.2e} output/reference {out_sum / max(ref_sum, 1e-12):.3f}")
+
+
+def gradients(run: str, items: int = 16) -> None:
+    ctx, task = _context(), get_task("srd")
+    data = dataset(ctx, "train", task, training=True)
+    model, hdr = _model(run)
+    model.train()
+    keys, weights = task.buffers(with_mid=True), ctx.train.loss
+    norm = sum(weights["final"].get(t, 0) for t in ("edge", "temporal", "spatial"))
+    # one term at a time, at its weight in the whole loss (absolute_weights would renormalise the term alone)
+    bench.losses.absolute_weights = lambda w: {k: v / norm for k, v in w.items()}
+
+    def grad_norm(item, only=None):
+        chosen = {stage: {k: v for k, v in w.items() if only is None or k == only} for stage, w in weights.items()}
+        model.zero_grad()
+        batch_loss(model, {k: item[k][None] for k in keys}, task, chosen, hdr)[0].backward()
+        return float(torch.sqrt(sum((p.grad.double() ** 2).sum() for p in model.parameters() if p.grad is not None)))
+
+    rows = {t: [] for t in (*TERMS, "all")}
+    for i in range(items):
+        item = data.item(random.Random(i).randrange(len(data)), i)
+        lamp = with_emitter(item, task, random.Random(f"lamp {i}"))
+        for term in rows:
+            only = None if term == "all" else term
+            rows[term].append((grad_norm(item, only), grad_norm(lamp, only)))
+    print(f"{run} ({hdr}), {items} items, gradient norm as drawn / with a lamp:")
+    for term, pairs in rows.items():
+        plain, lamp = zip(*pairs)
+        print(f"  {term:9s} median {statistics.median(plain):.3f} / {statistics.median(lamp):.3f}, "
+              f"median ratio {statistics.median(b / a for a, b in pairs):.2f}")
+
+
+if __name__ == "__main__":
+    torch.set_num_threads(1)
+    command, args = sys.argv[1], sys.argv[2:]
+    if command == "bins":
+        bins(args[0], args[1:])
+    elif command == "gradients":
+        gradients(args[0], *map(int, args[1:2]))
+    else:
+        sys.exit(__doc__)
