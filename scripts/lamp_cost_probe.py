@@ -2,6 +2,7 @@
 
     PYTHONPATH=$PWD .venv/bin/python scripts/lamp_cost_probe.py bins library,living_room RUN...
     PYTHONPATH=$PWD .venv/bin/python scripts/lamp_cost_probe.py gradients RUN [ITEMS]
+    PYTHONPATH=$PWD .venv/bin/python scripts/lamp_cost_probe.py passed [SPLIT]
 
 `bins`: each training's outputs on the val sequences whose names start with one of the given prefixes,
 binned by the HR reference's luminance (linear radiance): per bin its share of the pixels, the mean
@@ -12,6 +13,9 @@ noise left in shows as a squared error far above the signed error's square.
 `gradients`: the norm of the loss's gradient (the cpu preset's recipe) for ITEMS training items, each as
 drawn and with a lamp pasted (bench.emitters.with_emitter), per loss term; the medians and the median
 ratio. A lamp item whose gradient is several times an item's without would take over the clipped step.
+
+`passed`: the share of a split's LR pixels (default val) that exposure_pass passes through in part
+(bench.exposure.highlights above 0) and whole (1): what the network does not see trained or scored.
 
 RUN: a training's hash, from the run store (runs/) or the committed archive (bench.weights.export).
 Both need the cpu dataset (`python -m bench +experiment=data preset=cpu`).
@@ -32,6 +36,7 @@ import bench.losses
 from bench.cli import CONF_DIR, make_context
 from bench.emitters import with_emitter
 from bench.evaluate import predict
+from bench.exposure import encode, frame_exposure, highlights
 from bench.experiments.datasets import dataset
 from bench.tasks import get_task
 from bench.train import batch_loss
@@ -108,6 +113,17 @@ def gradients(run: str, items: int = 16) -> None:
               f"median ratio {statistics.median(b / a for a, b in pairs):.2f}")
 
 
+def passed(split: str = "val") -> None:
+    ctx, task = _context(), get_task("srd")
+    data = dataset(ctx, split, task, training=False)
+    pixels = part = whole = 0
+    for i in range(len(data)):
+        x = data[i][task.x][:, :3].clamp_min(0)
+        w = highlights(encode(x, "exposure_pass", frame_exposure(x, "exposure_pass")))
+        pixels, part, whole = pixels + w.numel(), part + int((w > 0).sum()), whole + int((w == 1).sum())
+    print(f"{split}: {pixels} LR pixels, passed in part {part / pixels:.4%}, whole {whole / pixels:.4%}")
+
+
 if __name__ == "__main__":
     torch.set_num_threads(1)
     command, args = sys.argv[1], sys.argv[2:]
@@ -115,5 +131,7 @@ if __name__ == "__main__":
         bins(args[0], args[1:])
     elif command == "gradients":
         gradients(args[0], *map(int, args[1:2]))
+    elif command == "passed":
+        passed(*args)
     else:
         sys.exit(__doc__)
