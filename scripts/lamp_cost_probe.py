@@ -1,4 +1,4 @@
-"""Where the lamps' cost lies (docs/studies.md, emitters_causes): two probes of recorded trainings.
+"""Where the lamps' cost lies (docs/studies.md, emitters_causes), and what exposure_pass passes: three probes.
 
     PYTHONPATH=$PWD .venv/bin/python scripts/lamp_cost_probe.py bins library,living_room RUN...
     PYTHONPATH=$PWD .venv/bin/python scripts/lamp_cost_probe.py gradients RUN [ITEMS]
@@ -22,9 +22,9 @@ Both need the cpu dataset (`python -m bench +experiment=data preset=cpu`).
 """
 from __future__ import annotations
 
+import argparse
 import random
 import statistics
-import sys
 import tempfile
 from pathlib import Path
 
@@ -125,13 +125,21 @@ def passed(split: str = "val") -> None:
 
 
 if __name__ == "__main__":
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    commands = parser.add_subparsers(dest="command", required=True)
+    by_bin = commands.add_parser("bins", help="outputs' error by the reference's radiance")
+    by_bin.add_argument("prefixes", help="val sequence name prefixes, comma-separated (library,living_room)")
+    by_bin.add_argument("runs", nargs="+", help="training hashes")
+    grads = commands.add_parser("gradients", help="gradient norms of items with and without a lamp")
+    grads.add_argument("run", help="a training hash")
+    grads.add_argument("items", nargs="?", type=int, default=16)
+    share = commands.add_parser("passed", help="share of LR pixels exposure_pass passes through")
+    share.add_argument("split", nargs="?", default="val")
+    args = parser.parse_args()
     torch.set_num_threads(1)
-    command, args = sys.argv[1], sys.argv[2:]
-    if command == "bins":
-        bins(args[0], args[1:])
-    elif command == "gradients":
-        gradients(args[0], *map(int, args[1:2]))
-    elif command == "passed":
-        passed(*args)
+    if args.command == "bins":
+        bins(args.prefixes, args.runs)
+    elif args.command == "gradients":
+        gradients(args.run, args.items)
     else:
-        sys.exit(__doc__)
+        passed(args.split)
