@@ -5,7 +5,6 @@ tests/data/runs_v1 holds records copied as they were recorded (identity version 
 the sota table's Ours row (seed 0) and its training, a Cascade's evaluation and its two stage trainings,
 the Input bilinear row (a model that trains nothing), and a training with an `ssim_linear` term, a loss term
 that no longer exists, with its evaluation. The committed archive is only read."""
-import dataclasses
 import json
 import shutil
 from pathlib import Path
@@ -157,9 +156,9 @@ def _sota_ours_identities(ctx, recorded_train: dict, recorded_eval: dict) -> tup
 
 def test_the_sota_ours_row_migrated_is_what_the_current_config_computes(tmp_path):
     """The committed table's Ours row (seed 0), read from the committed archive (a copy of its records is
-    migrated when the archive is still at version 1): the current config in the table's recorded domain
-    (train.hdr=pu; sota now trains in exposure, its only difference), through the code that keys trainings
-    and evaluations, gives its migrated identities, so nothing retrains."""
+    migrated when the archive is still at an older identity version): the current config (sota trains in
+    exposure_pass, as the table was), through the code that keys trainings and evaluations, gives its recorded
+    identities, so nothing retrains."""
     sota = pd.read_csv(ROOT / "results/cpu/val/sota/table.csv").set_index("method")
     eval_hash = sota.loc["Ours", "runs"].split()[0]
     recorded_eval = _record(ARCHIVE, "eval", eval_hash)
@@ -173,10 +172,8 @@ def test_the_sota_ours_row_migrated_is_what_the_current_config_computes(tmp_path
         recorded_train = _record(store, "train", _new_hash(table, "train", recorded_train["hash"]))
         recorded_eval = _record(store, "eval", _new_hash(table, "eval", eval_hash))
     with initialize_config_dir(config_dir=CONF_DIR, version_base=None):
-        ctx = make_context(compose("config", overrides=["preset=cpu", "+experiment=sota", "eval.split=val",
-                                                        "train.hdr=pu"]))
-        now = make_context(compose("config", overrides=["preset=cpu", "+experiment=sota", "eval.split=val"]))
-    assert dataclasses.replace(now.train, hdr="pu") == ctx.train and now.train.hdr == "exposure_pass"
+        ctx = make_context(compose("config", overrides=["preset=cpu", "+experiment=sota", "eval.split=val"]))
+    assert recorded_train["identity"]["train"]["hdr"] == ctx.train.hdr == "exposure_pass"
     train, evaluation = _sota_ours_identities(ctx, recorded_train, recorded_eval)
     assert json.loads(json.dumps(train)) == recorded_train["identity"]
     assert runs.config_hash(train) == recorded_train["hash"]

@@ -90,10 +90,12 @@ def test_the_caption_states_the_network_domains_ceiling_from_the_rows():
 
 
 def test_the_committed_caption_is_the_one_its_rows_give(tmp_path):
-    """`python -m bench +experiment=stability preset=cpu experiment.from_csv=true` rewrites it (the experiment
-    trains in the exposure domain at every preset)."""
+    """`python -m bench +experiment=stability preset=cpu experiment.from_csv=true` rewrites it, in the domain
+    the experiment trains in at every preset."""
+    with initialize_config_dir(config_dir=CONF_DIR, version_base=None):
+        domain = compose("config", overrides=["preset=cpu", "+experiment=stability"]).train.hdr
     folder = ROOT / "results" / "cpu" / "stability"
-    write_tables(pd.read_csv(folder / "table.csv"), tmp_path, "cpu", "cpu", "exposure")
+    write_tables(pd.read_csv(folder / "table.csv"), tmp_path, "cpu", "cpu", domain)
     committed = (folder / "table.md").read_text()
     assert (tmp_path / "table.md").read_text() == committed
     assert "which has no ceiling" in committed and "'lamp kx the exposure'" in committed
