@@ -35,8 +35,9 @@ def predict(model, x_lin: torch.Tensor, g: torch.Tensor, hdr: str, sanitize: boo
     if getattr(model, "linear_hdr", False):
         return forward(x_lin, g)["final"]
     exposure = frame_exposure(x_lin, hdr)
-    y = forward(encode(x_lin, hdr, exposure), g)["final"]
-    return decode(pass_highlights(y, x_lin, hdr, exposure), hdr, exposure)
+    x_net = encode(x_lin, hdr, exposure)
+    y = forward(x_net, g)["final"]
+    return decode(pass_highlights(y, x_lin, x_net, hdr, exposure), hdr, exposure)
 
 
 def runner(model, path: str = REFERENCE, tile: int | None = None):

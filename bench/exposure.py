@@ -92,16 +92,18 @@ def highlights(x_net: torch.Tensor) -> torch.Tensor:
     return ((opened - PASS_FROM) / (PASS_FULL - PASS_FROM)).clamp(0.0, 1.0)
 
 
-def pass_highlights(y: torch.Tensor, x: torch.Tensor, domain: str, exposure: torch.Tensor | None) -> torch.Tensor:
-    """The network's output y (B, T, 3, H, W, network domain) of the linear LR input x (B, T, C, h, w),
-    as the domain finishes it: for `exposure_pass`, blended towards the input's bilinear upsampling (taken on
-    linear radiance, then encoded) by `highlights`, nearest-upsampled; unchanged for every other domain.
-    Training's loss and evaluation both see the blend, so no gradient reaches the network where it passes."""
+def pass_highlights(y: torch.Tensor, x: torch.Tensor, x_net: torch.Tensor, domain: str,
+                    exposure: torch.Tensor | None) -> torch.Tensor:
+    """The network's output y (B, T, 3, H, W, network domain) of the LR input x (B, T, C, h, w; linear, and
+    x_net as the network saw it), as the domain finishes it: for `exposure_pass`, blended towards the input's
+    bilinear upsampling (taken on linear radiance, then encoded) by `highlights` of x_net, nearest-upsampled;
+    unchanged for every other domain. Training's loss and evaluation both see the blend, so no gradient
+    reaches the network where it passes."""
     if domain != "exposure_pass":
         return y
     rgb = x[..., :3, :, :].flatten(0, 1)
     size = y.shape[-2:]
-    weight = F.interpolate(highlights(encode(rgb, domain, exposure.flatten(0, 1))), size=size)
+    weight = F.interpolate(highlights(x_net.flatten(0, 1)), size=size)
     upsampled = F.interpolate(rgb, size=size, mode="bilinear", align_corners=False).unflatten(0, x.shape[:2])
     passed = encode(upsampled, domain, exposure)
     return torch.lerp(y, passed.to(y.dtype), weight.unflatten(0, x.shape[:2]).to(y.dtype))

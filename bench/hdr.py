@@ -55,8 +55,8 @@ def transforms(mode: str | None):
     module (bench.nn.upsampled_input); None for None."""
     if mode is None:
         return None
-    if mode.startswith("exposure"):  # bench.exposure's: log1p of radiance divided by the frame's exposure (linear)
-        mode = "log1p"
+    from bench.exposure import transfer  # here, not at the top: bench.exposure builds on this module
+    mode = transfer(mode)                 # an exposure domain's pixelwise part (its exposure is linear)
     if mode not in MODES:
         raise ValueError(f"unknown HDR transform {mode!r}; choose one of {MODES}")
     return functools.partial(from_network, mode=mode), functools.partial(to_network, mode=mode)

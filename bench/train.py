@@ -37,7 +37,7 @@ from bench import distributed
 from bench.atomic import write_atomic
 from bench.emitters import first_frame_exposure, with_emitter, with_fireflies
 from bench.errors import UserError
-from bench.exposure import DOMAINS, EXPOSURE_DOMAINS, encode, frame_exposure, pass_highlights, transfer
+from bench.exposure import DOMAINS, EXPOSURE_DOMAINS, encode, frame_exposure, pass_highlights
 from bench.hdr import transforms
 from bench.infer import frames_channels_last
 from bench.losses import weighted_loss
@@ -223,9 +223,10 @@ def batch_loss(model, batch: dict, task: Task, loss_weights: dict, hdr: str, fea
     x, g = sanitize_inputs(batch[task.x], batch[task.g])
     # every image of a frame shares its LR input's exposure (or the one `augmented` recorded)
     exposure = batch[EXPOSURE] if EXPOSURE in batch else frame_exposure(x, hdr)
-    out = model(encode(x, hdr, exposure), g)
-    to_linear = transforms(transfer(hdr))[0]
-    final = pass_highlights(out["final"], x, hdr, exposure)
+    x_net = encode(x, hdr, exposure)
+    out = model(x_net, g)
+    to_linear = transforms(hdr)[0]
+    final = pass_highlights(out["final"], x, x_net, hdr, exposure)
     total, parts = weighted_loss(final, encode(batch[task.y], hdr, exposure), loss_weights["final"],
                                  features, to_linear, knee)
     parts = {f"final.{k}": v for k, v in parts.items()}

@@ -141,19 +141,24 @@ def _lamp_in_a_room(k=1.0):
     return k * x
 
 
+def _passed(y, x, domain, e):
+    """pass_highlights of y for the linear LR input x, encoded as the network sees it."""
+    return pass_highlights(y, x, encode(x, domain, e), domain, e)
+
+
 def test_pass_highlights_returns_a_lamp_whatever_the_network_outputs_and_passes_no_gradient_there():
     x = _lamp_in_a_room()
     e = frame_exposure(x, "exposure_pass")
     y = torch.zeros(1, 2, 3, 48, 64, requires_grad=True)           # a network that outputs black
-    out = decode(pass_highlights(y, x, "exposure_pass", e), "exposure_pass", e)
+    out = decode(_passed(y, x, "exposure_pass", e), "exposure_pass", e)
     assert torch.allclose(out[..., 5:11, 9:17], torch.tensor(3000.0), rtol=1e-4)   # bilinear: its inside
     rim = out[..., 4, 9:17].detach()                                  # bilinear: 3/4 lamp, 1/4 room
     assert rim.ge(0.75 * 3000 + 0.25 * 0.2 - 1e-3).all() and rim.le(0.75 * 3000 + 0.25 * 0.8 + 1e-3).all()
     assert out[..., :, :6].abs().max() < 1e-6 and out[..., :2, :].abs().max() < 1e-6  # the room: y's
     out.sum().backward()
     assert y.grad[..., 4:12, 8:18].eq(0).all() and y.grad[..., :, :6].gt(0).all()
-    assert pass_highlights(y, x, "exposure", e) is y                 # other domains: the network's output
+    assert _passed(y, x, "exposure", e) is y                 # other domains: the network's output
     for k in (1e-4, 1e4):                                            # the blend is the exposure's: invariant
         ek = frame_exposure(k * x, "exposure_pass")
-        assert torch.allclose(pass_highlights(y, k * x, "exposure_pass", ek), pass_highlights(y, x, "exposure_pass", e),
+        assert torch.allclose(_passed(y, k * x, "exposure_pass", ek), _passed(y, x, "exposure_pass", e),
                               rtol=1e-5, atol=1e-5)
