@@ -304,9 +304,10 @@ def test_the_differential_check_refuses_a_replay_that_did_not_run_the_recorded_c
 
 
 def test_the_rebuilt_code_takes_a_core_file_neither_fingerprint_names_at_the_runs_commit(tmp_path):
-    """An EDSR run's fingerprint does not name models/srd.py, but the replay's harness imports it: rebuilt
-    beside an older hdr.py, today's srd.py would import what that hdr.py lacks. So it is taken at the
-    run's recorded commit; the files the fingerprint names at their recorded hashes."""
+    """An EDSR run's fingerprint does not name models/srd.py, nor a training's the evaluator (today's
+    does), but the replay's harness imports both: rebuilt beside an older hdr.py, today's would import
+    what that hdr.py lacks. So they are taken at the run's recorded commit; the files the fingerprint
+    names at their recorded hashes."""
     import subprocess
 
     from bench import runs
@@ -318,6 +319,7 @@ def test_the_rebuilt_code_takes_a_core_file_neither_fingerprint_names_at_the_run
     def commit(hdr: str, srd: str) -> str:
         (repo / "bench" / "hdr.py").write_text(hdr)
         (repo / "bench" / "models" / "srd.py").write_text(srd)
+        (repo / "bench" / "evaluate.py").write_text(srd)
         (repo / "bench" / "models" / "factory.py").write_text(srd)  # the harness's: always today's
         git = ["git", "-C", str(repo), "-c", "user.name=t", "-c", "user.email=t@t"]
         subprocess.run([*git, "add", "-A"], check=True, capture_output=True)
@@ -330,11 +332,12 @@ def test_the_rebuilt_code_takes_a_core_file_neither_fingerprint_names_at_the_run
     old_hdr = tmp_path / "hdr_then.py"
     old_hdr.write_text("def to_network(x):\n    return x\n")
     recorded = {"bench/hdr.py": runs.source_hash.__wrapped__(old_hdr)}
-    current = {"bench/hdr.py": runs.source_hash.__wrapped__(repo / "bench" / "hdr.py")}
+    current = {path: runs.source_hash.__wrapped__(repo / path) for path in ("bench/hdr.py", "bench/evaluate.py")}
     for at, srd in ((then, "from bench.hdr import to_network\n"), (None, "from bench.hdr import transforms\n")):
         dest = recorded_code.rebuild(recorded, current, tmp_path / f"tree-{at}", at, repo=repo)
         assert (dest / "bench" / "hdr.py").read_text() == old_hdr.read_text()
         assert (dest / "bench" / "models" / "srd.py").read_text() == srd  # without the commit: today's
+        assert (dest / "bench" / "evaluate.py").read_text() == srd
         assert (dest / "bench" / "models" / "factory.py").read_text() == "from bench.hdr import transforms\n"
 
 

@@ -39,10 +39,12 @@ def rebuild(recorded: dict, current: dict, dest: Path, commit: str | None = None
     """A copy of the project's packages at `dest` in which every file whose recorded source hash differs
     from `current`'s is the version git history has with the recorded hash, with the C++ sources it names
     from the same commit (a file added since stays: the recorded code imports nothing it did not name).
-    Another model's definition that neither fingerprint names (in bench/models or baselines, not their
-    __init__ or the factory, which today's harness imports by name; e.g. models/srd.py beside an EDSR run,
-    imported only by the replay's harness) is taken at the run's recorded git `commit`, where it exists, so
-    that it imports what the rebuilt files define. UserError naming a file no version matches."""
+    A file the recorded fingerprint does not name but the replay's harness imports is taken at the run's
+    recorded git `commit`, where it exists, so that it imports what the rebuilt files define: one today's
+    fingerprint names (the evaluator beside a training's fingerprint, which names only the trainer), and
+    another model's definition that neither names (in bench/models or baselines, not their __init__ or the
+    factory, which today's harness imports by name; e.g. models/srd.py beside an EDSR run). UserError
+    naming a file no version matches."""
     for package in runs.PACKAGES:
         shutil.copytree(repo / package, dest / package, dirs_exist_ok=True,
                         ignore=shutil.ignore_patterns("__pycache__", "*.so"))
@@ -53,9 +55,7 @@ def rebuild(recorded: dict, current: dict, dest: Path, commit: str | None = None
                             f"{recorded[path]} (the recorded code cannot be rebuilt)")
     if commit and changed:
         models = {p.relative_to(repo).as_posix() for folder in MODEL_FOLDERS for p in (repo / folder).glob("*.py")}
-        for path in sorted(models - set(recorded) - set(current)):
-            if path.endswith(HARNESS):
-                continue
+        for path in sorted(p for p in (models | set(current)) - set(recorded) if not p.endswith(HARNESS)):
             shown = _git(repo, "show", f"{commit}:{path}")
             if shown.returncode == 0:
                 (dest / path).write_bytes(shown.stdout)
