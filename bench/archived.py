@@ -21,7 +21,8 @@ frames (`eval.save_exr`) stay out.
 
 A restored run (the store filled from the archive) holds the compact form too; the readers here take
 either form, the full one first. `python -m bench.archived DIR` converts an archive written before in
-place (idempotent); `--drop-unlisted results/<preset>` deletes the evaluations no table lists any more.
+place (idempotent); `--drop-unlisted results/<preset>` deletes the evaluations no table lists any more;
+`--first-seed-weights` deletes the weights of every training but the lowest seed of its row.
 """
 from __future__ import annotations
 
@@ -313,6 +314,31 @@ def unlisted_evaluations(archive_dir: Path, results_dir: Path) -> list[Path]:
                   if not p.parent.name.startswith(".") and p.parent.name not in listed)
 
 
+def weights_beyond_the_first_seed(archive_dir: Path) -> list[Path]:
+    """The archived trainings holding weights that are not the lowest seed of their row (same label and
+    identity but the seed). What runs weights again takes that seed: adopt's witness, time, stability, the
+    figures' crops, the learning-rate range test; a table's scores come from its archived evaluations."""
+    groups: dict[str, list[tuple[int, Path]]] = {}
+    for record_path in sorted(Path(archive_dir).glob(f"train/*/{runs.RECORD}")):
+        record = runs.read_json_or_none(record_path)
+        if record is None or record_path.parent.name.startswith("."):
+            continue
+        identity = {k: v for k, v in record["identity"].items() if k != "seed"}
+        key = runs.config_hash({"label": record.get("label"), "identity": identity})
+        groups.setdefault(key, []).append((int(record["identity"].get("seed", 0)), record_path.parent))
+    return sorted(run_dir for members in groups.values() for _, run_dir in sorted(members)[1:]
+                  if (run_dir / WEIGHTS).exists())
+
+
+def drop_weights(run_dirs: list[Path]) -> None:
+    """Delete archived trainings' weights on purpose; each record then lists what is left (its curves),
+    so that a verify does not call the run damaged. Such a training is trained again, into the run store
+    only, when something runs its weights (docs/runs.md); archiving it again keeps them out."""
+    for run_dir in run_dirs:
+        (Path(run_dir) / WEIGHTS).unlink()
+        runs.list_files_in_record(run_dir)
+
+
 def _size(path: Path) -> int:
     return sum(p.stat().st_size for p in Path(path).rglob("*") if p.is_file())
 
@@ -384,7 +410,11 @@ def main(argv=None) -> int:
                                                    "a run store too, e.g. runs)")
     parser.add_argument("--drop-unlisted", type=Path, metavar="RESULTS_DIR",
                         help="instead: delete the evaluations no table under RESULTS_DIR (e.g. results/cpu) lists")
-    parser.add_argument("--dry-run", action="store_true", help="with --drop-unlisted: name them, delete nothing")
+    parser.add_argument("--first-seed-weights", action="store_true",
+                        help="instead: delete the weights of every training that is not the lowest seed of its row "
+                             "(keeps the committed tree small; docs/runs.md)")
+    parser.add_argument("--dry-run", action="store_true",
+                        help="with --drop-unlisted or --first-seed-weights: name them, delete nothing")
     parser.add_argument("--verify", action="store_true",
                         help="instead: check every run's files against the sizes and digests its record lists; "
                              "exit 1 if any is damaged (nothing is changed: a damaged run is computed again, or "
@@ -408,6 +438,17 @@ def main(argv=None) -> int:
     if problem:
         print(f"error: {problem}", file=sys.stderr)
         return 2
+    if args.first_seed_weights:
+        beyond = weights_beyond_the_first_seed(args.archive)
+        size = sum((run_dir / WEIGHTS).stat().st_size for run_dir in beyond)
+        for run_dir in beyond:
+            print(f"{'would drop' if args.dry_run else 'dropped'} the weights of {run_dir} "
+                  f"({(runs.read_record(run_dir / runs.RECORD) or {}).get('label', '?')})")
+        if not args.dry_run:
+            drop_weights(beyond)
+        print(f"{args.archive}: {len(beyond)} trainings beyond their row's first seed, {size / 2**20:.1f} MiB of weights"
+              + (" (dry run: none dropped)" if args.dry_run else " dropped"))
+        return 0
     if args.drop_unlisted is not None:
         try:
             unlisted = unlisted_evaluations(args.archive, args.drop_unlisted)

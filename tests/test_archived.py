@@ -29,9 +29,9 @@ def _state() -> dict:
             "norm.num_batches_tracked": torch.tensor(7), "scale": torch.tensor([1e6, -2.0])}  # beyond float16
 
 
-def _trained_run(store: Path, schedule: str = "cosine", steps: int = 1003) -> runs.Run:
+def _trained_run(store: Path, schedule: str = "cosine", steps: int = 1003, seed: int = 0) -> runs.Run:
     """A complete training in the run store as the trainer leaves it: full checkpoint, both curves."""
-    run = runs.begin(store, "train", {"model": {"_target_": "x"}, "train": {"schedule": schedule}, "seed": 0})
+    run = runs.begin(store, "train", {"model": {"_target_": "x"}, "train": {"schedule": schedule}, "seed": seed})
     ema, raw = _state(), {k: v + 1 for k, v in _state().items()}
     torch.save({"model": raw, "ema": ema, "optimizer": {"state": {}}, "step": steps, "curve": [], "val_curve": []},
                run.dir / CHECKPOINT)
@@ -188,6 +188,29 @@ def test_drop_unlisted_deletes_the_evaluations_no_table_lists(tmp_path, capsys):
     (results / "sota" / "table.csv").unlink()
     assert archived.main([str(archive), "--drop-unlisted", str(results)]) == 2  # no table: no
     assert "every evaluation would go" in capsys.readouterr().err
+
+
+def test_first_seed_weights_drops_the_other_seeds_weights_and_leaves_records_that_verify(tmp_path, capsys):
+    """Per row (identity but the seed), the lowest seed archived keeps its weights; the others keep their
+    record and curves, listed so that a verify finds nothing damaged, and archiving one again keeps it
+    weightless."""
+    ctx = types.SimpleNamespace(runs_archive=tmp_path / "archive")
+    trained = {(schedule, seed): _trained_run(tmp_path / "runs", schedule, 150, seed)
+               for schedule, seeds in (("cosine", (0, 1, 2)), ("step", (1, 2))) for seed in seeds}
+    for run in trained.values():
+        archive_training(ctx, run)
+    kept = {key: tmp_path / "archive" / "train" / run.hash for key, run in trained.items()}
+    assert archived.main([str(ctx.runs_archive), "--first-seed-weights", "--dry-run"]) == 0
+    assert "3 trainings beyond their row's first seed" in capsys.readouterr().out
+    assert all(archived.has_weights(d) for d in kept.values())
+    assert archived.main([str(ctx.runs_archive), "--first-seed-weights"]) == 0
+    assert {key for key, d in kept.items() if archived.has_weights(d)} == {("cosine", 0), ("step", 1)}
+    assert archived.read_curve(kept[("cosine", 2)]) is not None
+    assert archived.verify(ctx.runs_archive)[1]["damaged"] == 0
+    archive_training(ctx, trained[("cosine", 1)])
+    assert not archived.has_weights(kept[("cosine", 1)]) and archived.verify(ctx.runs_archive)[1]["damaged"] == 0
+    assert archived.main([str(ctx.runs_archive), "--first-seed-weights"]) == 0  # nothing left to drop
+    assert "0 trainings beyond" in capsys.readouterr().out
 
 
 def test_conversion_leaves_a_run_store_and_unfinished_trainings_alone_and_names_a_damaged_run(tmp_path, capsys):
