@@ -303,6 +303,22 @@ def test_the_differential_check_refuses_a_replay_that_did_not_run_the_recorded_c
         replay.check_against_recorded_code(None, {"bench/x.py": "recorded"}, ["bench.x"], 3, None, None)
 
 
+def test_the_differential_check_rebuilds_what_its_harness_imports_beside_an_untrained_rows_evaluator(monkeypatch):
+    """An untrained row's evaluation names no trainer, but the replay's harness imports it: the rebuild
+    is handed today's trainer too, so that it is taken at the run's commit beside the recorded files
+    (recorded_code.rebuild; today's trainer beside an older exposure.py did not import)."""
+    from bench.experiments import recorded_code, replay
+    handed = {}
+
+    def rebuild(recorded, current, dest, commit=None):
+        handed.update(current)
+        raise RuntimeError("stop here")
+    monkeypatch.setattr(recorded_code, "rebuild", rebuild)
+    with pytest.raises(RuntimeError, match="stop here"):
+        replay.check_against_recorded_code(None, {}, ["bench.evaluate"], 0, None, None)
+    assert {"bench/train.py", "bench/evaluate.py"} <= set(handed)
+
+
 def test_the_rebuilt_code_takes_a_core_file_neither_fingerprint_names_at_the_runs_commit(tmp_path):
     """An EDSR run's fingerprint does not name models/srd.py, nor a training's the evaluator (today's
     does), but the replay's harness imports both: rebuilt beside an older hdr.py, today's would import

@@ -21,7 +21,7 @@ from bench import archived, runs
 from bench.errors import UserError
 from bench.evaluate import evaluate
 from bench.experiments import recorded_code
-from bench.experiments.context import Context, recipe_from
+from bench.experiments.context import EVALUATION_CODE, TRAINING_CODE, Context, recipe_from
 from bench.experiments.datasets import dataset, evaluation_data
 from bench.experiments.migrate import IMPLIED
 from bench.experiments.training import cascade_net, perceptual_features
@@ -207,7 +207,10 @@ def check_against_recorded_code(ctx: Context, recorded: dict, modules: list, ste
     job = {"ctx": ctx, "steps": steps, "scoring": scoring,
            "training": None if training is None else (training.record, training.dir)}
     with tempfile.TemporaryDirectory(prefix="srd-recorded-code-") as tmp:
-        tree = recorded_code.rebuild(recorded, runs.code_fingerprint(modules), Path(tmp), commit)
+        # the harness imports the trainer and the evaluator whatever `modules` names (an untrained row's
+        # evaluation names no trainer): rebuild takes what the recorded fingerprint lacks at `commit`
+        harness = runs.code_fingerprint([*modules, *TRAINING_CODE, *EVALUATION_CODE])
+        tree = recorded_code.rebuild(recorded, harness, Path(tmp), commit)
         then = recorded_code.replay_there(tree, {"replay": job, "modules": modules})
     other = sorted(p for p in recorded if then["code"].get(p) != recorded[p])
     if other:
