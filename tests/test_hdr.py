@@ -40,7 +40,7 @@ def test_bounded_domains_invert_any_network_output_to_a_finite_radiance(mode):
 
 from bench.evaluate import predict  # noqa: E402  (the one inference path: training, evaluation and predict)
 from bench.exposure import (BLACK_EXPOSURE, EXPOSURE_DOMAINS, PASS_FROM, PASS_FULL, decode, encode,  # noqa: E402
-                            frame_exposure, highlights, pass_highlights)
+                            frame_exposure, highlights, pass_highlights, transfer)
 from bench.hdr import transforms  # noqa: E402
 from bench.models.srd import SRDNet  # noqa: E402
 from conftest import SMALL, inputs  # noqa: E402
@@ -91,6 +91,7 @@ def test_the_exposure_domain_inverts_without_a_ceiling(domain):
     to_linear, from_linear = transforms(domain)  # the models' linear base: radiance / exposure
     y = torch.rand(5, dtype=torch.float64) * 3
     assert torch.allclose(to_linear(from_linear(y)), y)
+    assert torch.equal(from_linear(y), to_network(y, transfer(domain)))  # bench.hdr knows it by its prefix
 
 
 @pytest.mark.parametrize("domain", EXPOSURE_DOMAINS)
