@@ -16,8 +16,8 @@ from bench import archived, runs
 from bench.cli import CONF_DIR, run_experiment
 from bench.errors import UserError
 from bench.experiments import evaluation
-from bench.experiments.table import (compute_shard, expand_rows, paper_agreement, reference_check, shard_units,
-                                    unit_lock)
+from bench.experiments.table import (compute_shard, domain_note, expand_rows, paper_agreement, reference_check,
+                                    shard_units, unit_lock)
 from bench.models.srd import SRDNet, SRDStage, load_stage
 from bench.paper import paper_values
 from conftest import smoke_context, smoke_overrides
@@ -504,3 +504,13 @@ def test_a_rows_bad_model_argument_stops_the_table_before_anything_is_rendered(t
     with pytest.raises(UserError, match="SRDNet with .*chanels=8: .*unexpected keyword argument 'chanels'"):
         table.run(ctx, "t", [{"label": "X", "model": "srd", "overrides": {"chanels": 8}}])
     assert not (tmp_path / "runs").exists() and not (tmp_path / "data").exists()
+
+
+def test_the_caption_names_the_domains_rows_set_beside_the_default():
+    """A domain study's rows set train.hdr: the caption's default domain is then only theirs that set none."""
+    with initialize_config_dir(config_dir=CONF_DIR, version_base=None):
+        study = compose("config", overrides=["preset=cpu", "+study=domain"])
+    rows = expand_rows(OmegaConf.to_container(study.experiment.rows, resolve=True))
+    assert domain_note(study.train.hdr, rows) == ("network domain PU21 (train.hdr=pu, bench/exposure.py) where a row "
+                                                  "does not set its own (rows here set exposure, exposure_pass, pu)")
+    assert domain_note("exposure_pass", expand_rows([{"label": "A", "model": "srd"}])).endswith("bench/exposure.py)")

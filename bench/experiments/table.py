@@ -369,6 +369,13 @@ def row_of(ctx: Context, r: dict, split: str | None) -> dict:
                r.get("cascade", False))
 
 
+def domain_note(default: str, rows: list[dict]) -> str:
+    """The caption's network domain: the default's, and where rows set their own (a domain study), which."""
+    note = f"network domain {NAMES[default]} (train.hdr={default}, bench/exposure.py)"
+    own = sorted({r["train"]["hdr"] for r in rows if "hdr" in (r.get("train") or {})})
+    return note + (f" where a row does not set its own (rows here set {', '.join(own)})" if own else "")
+
+
 def caption_notes(ctx: Context, scoring_ctx: Context, table: pd.DataFrame, rows: list[dict], split: str | None,
                   leave_out: list[str] | None, gmac_column: bool, paper_table: str | None) -> str:
     """What the caption says after the experiment's own caption: task, metrics, data, recipe and seeds,
@@ -386,7 +393,7 @@ def caption_notes(ctx: Context, scoring_ctx: Context, table: pd.DataFrame, rows:
              f"split's sequences. "
              f"{scored_on[0].upper()}{scored_on[1:]}, {ctx.train.steps} training steps, loss g:t:s:p = "
              f"{loss['edge']}:{loss['temporal']}:{loss['spatial']}:{loss['perceptual']}{extra} (unless a row says "
-             f"otherwise), network domain {NAMES[ctx.train.hdr]} (train.hdr={ctx.train.hdr}, bench/exposure.py), "
+             f"otherwise), {domain_note(ctx.train.hdr, rows)}, "
              f"seeds {list(ctx.seeds)} (mean +- std over seeds when several); time_ms: "
              f"inference per frame on {ctx.device}.")
     notes += split_note(ctx, split or ctx.eval.split)
