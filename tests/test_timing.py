@@ -162,6 +162,7 @@ def test_time_end_to_end_then_reuses_its_renders(tiny, caplog):
     table = pd.read_csv(out / "table.csv")
     assert set(table["method"]) == {BRUTE_FORCE, "Bilinear", "OIDN HR"}
     assert "Skipped" in (out / "table.md").read_text() and "Ours" in (out / "table.md").read_text()
+    assert "spp in the network domain " in (out / "table.md").read_text()  # the domain its networks trained in
 
     caplog.clear()
     with caplog.at_level("INFO", logger="bench"):

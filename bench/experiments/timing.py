@@ -69,6 +69,7 @@ from bench.experiments.time_curves import (BRUTE_FORCE, EXPECTED_SLOPE, SPEEDUP_
                                            brute_force_spp, equal_time_table, loglog_slope, plot,
                                            reference_noise_slope, rising_steps, slope_ok, speedup_table)
 from bench.experiments.training import trained_model, training_records, untrained, working_split
+from bench.exposure import NAMES
 from bench.measure import cpu_isa, time_call
 from bench.metrics import HIGHER_IS_BETTER, LOWER_IS_BETTER, METRICS, RELMSE_FORMULA, mse
 from bench.models.factory import build_model, is_learned
@@ -328,7 +329,7 @@ def _caption(ctx, caption, views, variant, train_spp) -> str:
             f"averaged over views: render = render_view wall time (radiance + gBuffer in one pass, scene "
             f"loaded, JIT warm), network = median of warm runs. "
             f"{RELMSE_FORMULA}; PSNR/SSIM clamped to [0, 1]; all against the HR reference. Networks trained "
-            f"at {train_spp} spp. se: standard error over views. speed-up (M): seconds brute-force HR path "
+            f"at {train_spp} spp in the network domain {NAMES[ctx.train.hdr]} (train.hdr={ctx.train.hdr}). se: standard error over views. speed-up (M): seconds brute-force HR path "
             f"tracing (PT) needs for the same M on its fitted curve (see speedup.*; extrapolated: outside its "
             f"measured times) / the method's seconds; the paper implies about {PAPER_SPEEDUP}x at LR 8 spp. "
             f"Pareto: no other row is both faster and lower in relMSE.")
