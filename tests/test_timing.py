@@ -94,6 +94,7 @@ def test_equal_time_table_reads_each_hr_denoiser_at_the_srd_methods_time():
 
 def test_the_paper_axis_replaces_seconds_only_and_flags_verdicts_that_change_sign():
     cpu = _synthetic_table()
+    cpu = cpu.assign(**{"LDR-FLIP": 0.1 + cpu["relMSE"], "HDR-FLIP": 0.2 + cpu["relMSE"]})  # scored with FLIP
     renders = render_table([{"input": res, "size": size, "spp": k, "wall_s": wall, "cpu_s": 2 * wall,
                              "render_threads": 2, "load_1min": 3.0}
                             for res, size, ks, per_spp in (("LR", "4x2", (8,), 0.01), ("HR", "8x4", (1, 2, 4, 8), 1.0))
@@ -105,7 +106,9 @@ def test_the_paper_axis_replaces_seconds_only_and_flags_verdicts_that_change_sig
     assert set(axis["method"]) == {"SRD", "HR denoiser"}                                # path tracing is left out
     srd = axis[axis["method"] == "SRD"].iloc[0]
     assert srd["total s"] == pytest.approx(0.16 + 10.0) and srd["PSNR"] == 28.0         # quality as it was
+    assert srd["HDR-FLIP"] == pytest.approx(0.25) and srd["LDR-FLIP"] == pytest.approx(0.15)
     (row,) = paper_equal_time(axis, cpu, 8).to_dict("records")
+    assert math.isfinite(row["HDR-FLIP difference"])                                  # FLIP's verdict too
     # cpu-size axis: SRD (0.5 s) ahead of the denoiser read at 0.5 s; here the SRD network is slow (10.16 s)
     assert row["PSNR difference, cpu-size axis (dB)"] > 0 > row["PSNR difference (dB)"]
     assert row["sign differs from cpu-size axis"] == "yes"

@@ -575,6 +575,9 @@ def network_seconds(ctx: Context, methods: list[dict], speed: pd.DataFrame | Non
 
 # ---------------------------------------------------------------- the axis and its verdicts
 
+QUALITY = ("relMSE", "PSNR", "SSIM", "LDR-FLIP", "HDR-FLIP")  # the cpu table's quality columns the axis keeps
+
+
 def paper_axis(cpu_table: pd.DataFrame, renders: pd.DataFrame, networks: dict) -> pd.DataFrame:
     """The cpu table's rows that were rendered at the paper's sizes, their seconds replaced: render s (CPU
     based) and render wall s from `renders`, network s from `networks`; quality columns unchanged."""
@@ -589,7 +592,7 @@ def paper_axis(cpu_table: pd.DataFrame, renders: pd.DataFrame, networks: dict) -
         rows.append({"method": r["method"], "input": r["input"], "spp": int(r["spp"]), "render s": render_s,
                      "network s": network_s, "total s": render_s + network_s, "total s (wall)": wall_s + network_s,
                      "network from": source, "cpu-size total s": r["total s"],
-                     "relMSE": r["relMSE"], "PSNR": r["PSNR"], "SSIM": r["SSIM"]})
+                     **{m: r[m] for m in QUALITY if m in r.index}})
     return pd.DataFrame(rows)
 
 
