@@ -329,7 +329,8 @@ def _caption(ctx, caption, views, variant, train_spp) -> str:
             f"averaged over views: render = render_view wall time (radiance + gBuffer in one pass, scene "
             f"loaded, JIT warm), network = median of warm runs. "
             f"{RELMSE_FORMULA}; PSNR/SSIM clamped to [0, 1]; all against the HR reference. Networks trained "
-            f"at {train_spp} spp in the network domain {NAMES[ctx.train.hdr]} (train.hdr={ctx.train.hdr}). se: standard error over views. speed-up (M): seconds brute-force HR path "
+            f"at {train_spp} spp in the network domain {NAMES[ctx.train.hdr]} (train.hdr={ctx.train.hdr}). se: "
+            f"standard error over views. speed-up (M): seconds brute-force HR path "
             f"tracing (PT) needs for the same M on its fitted curve (see speedup.*; extrapolated: outside its "
             f"measured times) / the method's seconds; the paper implies about {PAPER_SPEEDUP}x at LR 8 spp. "
             f"Pareto: no other row is both faster and lower in relMSE.")
@@ -439,7 +440,8 @@ def _monotone_note(rising: list, views: int) -> str:
 
 
 PAPER_RENDER_S = {"LR": 4.45, "HR": 19.33}  # the paper's render seconds per frame at 540p and 1080p, 8 spp
-QUALITY_NOTE = ("Its quality axis (relMSE, PSNR, SSIM) is still the cpu preset's, from table.csv at the preset's "
+QUALITY = ("relMSE", "PSNR", "SSIM", "LDR-FLIP", "HDR-FLIP")  # the cpu table's quality columns the axis keeps
+QUALITY_NOTE = (f"Its quality axis ({', '.join(QUALITY)}) is still the cpu preset's, from table.csv at the preset's "
                 "image size: only the seconds are the paper resolution's.")
 
 
@@ -575,9 +577,6 @@ def network_seconds(ctx: Context, methods: list[dict], speed: pd.DataFrame | Non
 
 # ---------------------------------------------------------------- the axis and its verdicts
 
-QUALITY = ("relMSE", "PSNR", "SSIM", "LDR-FLIP", "HDR-FLIP")  # the cpu table's quality columns the axis keeps
-
-
 def paper_axis(cpu_table: pd.DataFrame, renders: pd.DataFrame, networks: dict) -> pd.DataFrame:
     """The cpu table's rows that were rendered at the paper's sizes, their seconds replaced: render s (CPU
     based) and render wall s from `renders`, network s from `networks`; quality columns unchanged."""
@@ -698,8 +697,9 @@ def write_paper_tables(out: Path, renders, axis, equal, views, frames, variant, 
     write_table(equal, out, name=f"equal_time_{tag}", caption=(
         f"Equal time at the paper's resolution: each SRD method at LR {operating_spp} spp against each denoiser "
         f"of HR renders given the same seconds per frame on the {tag} time axis (axis_{tag}.csv, render seconds "
-        f"from CPU time; {where}): the denoiser's relMSE and PSNR read off its own curve (lines through its HR "
-        f"spp points) at the SRD method's total time; extrapolated: outside the denoiser's measured times. "
+        f"from CPU time; {where}): the denoiser's relMSE, PSNR and FLIP read off its own curve (lines through its "
+        f"HR spp points) at the SRD method's total time; HDR-FLIP difference: SRD minus denoiser (below 0: SRD "
+        f"wins); extrapolated: outside the denoiser's measured times. "
         f"PSNR difference on the wall-time axis and on the cpu-size axis (equal_time.csv) beside it. Verdicts "
         f"whose sign differs from the cpu-size axis: {flipped}. {QUALITY_NOTE}"),
-        lower_is_better=(), higher_is_better=("PSNR difference (dB)",))
+        lower_is_better=("HDR-FLIP difference",), higher_is_better=("PSNR difference (dB)",))
