@@ -38,6 +38,7 @@ from bench.emitters import with_emitter
 from bench.evaluate import predict
 from bench.exposure import encode, frame_exposure, highlights
 from bench.experiments.datasets import dataset
+from bench.sanitize import sanitize_radiance
 from bench.tasks import get_task
 from bench.train import batch_loss
 from bench.weights import export, load_exported
@@ -118,7 +119,7 @@ def passed(split: str = "val") -> None:
     data = dataset(ctx, split, task, training=False)
     pixels = part = whole = 0
     for i in range(len(data)):
-        x = data[i][task.x][:, :3].clamp_min(0)
+        x = sanitize_radiance(data[i][task.x][:, :3])  # as predict sanitizes its input
         w = highlights(encode(x, "exposure_pass", frame_exposure(x, "exposure_pass")))
         pixels, part, whole = pixels + w.numel(), part + int((w > 0).sum()), whole + int((w == 1).sum())
     print(f"{split}: {pixels} LR pixels, passed in part {part / pixels:.4%}, whole {whole / pixels:.4%}")

@@ -65,11 +65,11 @@ from bench.evaluate import predict
 from bench.experiments.context import Context, model_config, with_training
 from bench.experiments.datasets import ensure_data
 from bench.experiments.speed import LABELS, cpu_model, device_tag
+from bench.experiments.table import domain_note
 from bench.experiments.time_curves import (BRUTE_FORCE, EXPECTED_SLOPE, SPEEDUP_COLUMNS, add_speedups, average,
                                            brute_force_spp, equal_time_table, loglog_slope, plot,
                                            reference_noise_slope, rising_steps, slope_ok, speedup_table)
 from bench.experiments.training import trained_model, training_records, untrained, working_split
-from bench.exposure import NAMES
 from bench.measure import cpu_isa, time_call
 from bench.metrics import HIGHER_IS_BETTER, LOWER_IS_BETTER, METRICS, RELMSE_FORMULA, mse
 from bench.models.factory import build_model, is_learned
@@ -329,8 +329,7 @@ def _caption(ctx, caption, views, variant, train_spp) -> str:
             f"averaged over views: render = render_view wall time (radiance + gBuffer in one pass, scene "
             f"loaded, JIT warm), network = median of warm runs. "
             f"{RELMSE_FORMULA}; PSNR/SSIM clamped to [0, 1]; all against the HR reference. Networks trained "
-            f"at {train_spp} spp in the network domain {NAMES[ctx.train.hdr]} (train.hdr={ctx.train.hdr}). se: "
-            f"standard error over views. speed-up (M): seconds brute-force HR path "
+            f"at {train_spp} spp in the {domain_note(ctx.train.hdr, [])}. se: standard error over views. speed-up (M): seconds brute-force HR path "
             f"tracing (PT) needs for the same M on its fitted curve (see speedup.*; extrapolated: outside its "
             f"measured times) / the method's seconds; the paper implies about {PAPER_SPEEDUP}x at LR 8 spp. "
             f"Pareto: no other row is both faster and lower in relMSE.")
@@ -440,8 +439,7 @@ def _monotone_note(rising: list, views: int) -> str:
 
 
 PAPER_RENDER_S = {"LR": 4.45, "HR": 19.33}  # the paper's render seconds per frame at 540p and 1080p, 8 spp
-QUALITY = ("relMSE", "PSNR", "SSIM", "LDR-FLIP", "HDR-FLIP")  # the cpu table's quality columns the axis keeps
-QUALITY_NOTE = (f"Its quality axis ({', '.join(QUALITY)}) is still the cpu preset's, from table.csv at the preset's "
+QUALITY_NOTE = (f"Its quality axis ({', '.join(METRICS)}) is still the cpu preset's, from table.csv at the preset's "
                 "image size: only the seconds are the paper resolution's.")
 
 
@@ -591,7 +589,7 @@ def paper_axis(cpu_table: pd.DataFrame, renders: pd.DataFrame, networks: dict) -
         rows.append({"method": r["method"], "input": r["input"], "spp": int(r["spp"]), "render s": render_s,
                      "network s": network_s, "total s": render_s + network_s, "total s (wall)": wall_s + network_s,
                      "network from": source, "cpu-size total s": r["total s"],
-                     **{m: r[m] for m in QUALITY if m in r.index}})
+                     **{m: r[m] for m in METRICS if m in r.index}})  # every metric the cpu table scored
     return pd.DataFrame(rows)
 
 
