@@ -3,6 +3,9 @@ PYTHON ?= $(shell command -v python3.11 || command -v python3)
 VENV   := .venv
 PY     := $(VENV)/bin/python
 STAMP  := $(VENV)/.installed
+# Python writes the bytecode of each module it imports, once (setup compiles none: scripts/install_deps.sh),
+# also where PYTHONDONTWRITEBYTECODE=1 is set, which would make every process compile every import again
+PYC    := env -u PYTHONDONTWRITEBYTECODE
 
 .PHONY: setup run test test-slow clean clean-runs
 
@@ -14,20 +17,20 @@ $(STAMP): pyproject.toml
 	@$(PYTHON) -c 'import sys; assert sys.version_info[:2] == (3, 11), sys.version' 2>/dev/null || \
 		{ echo "SRD-Bench needs Python 3.11 (torch==2.13.0 CPU wheel); set PYTHON=/path/to/python3.11"; exit 1; }
 	@test -x $(PY) || $(PYTHON) -m venv $(VENV)
-	@# uv where it can (parallel, cached, bytecode on every core), else pip: scripts/install_deps.sh
+	@# uv where it can (parallel, cached), else pip: scripts/install_deps.sh
 	bash scripts/install_deps.sh $(PY)
 	@touch $(STAMP)
 
 run: setup
-	$(PY) -m bench +experiment=smoke
+	$(PYC) $(PY) -m bench +experiment=smoke
 
 # two processes, each test file whole on one (module fixtures run once; files that share a path do not
 # overlap in time), the longest files first (tests/conftest.py); pytest alone runs them on one
 test: setup
-	$(PY) -m pytest -q -n 2 --dist loadfile --no-loadscope-reorder
+	$(PYC) $(PY) -m pytest -q -n 2 --dist loadfile --no-loadscope-reorder
 
 test-slow: setup
-	$(PY) -m pytest -q -m slow
+	$(PYC) $(PY) -m pytest -q -m slow
 
 # Removes the environment only; trained runs and rendered data are kept (see clean-runs).
 clean:

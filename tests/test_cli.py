@@ -19,21 +19,16 @@ from bench.cli import (CONF_DIR, apply_pin, available_experiments, available_stu
                        make_context)
 from bench.experiments import KINDS
 from bench.experiments.results_page import CONTROLS, PAPER_TABLES
-from conftest import REPO, SMOKE_DATA, bench
+from conftest import REPO, SMOKE_DATA, bench, bench_here
 
 PRESETS = sorted(p.stem for p in (Path(CONF_DIR) / "preset").glob("*.yaml"))
 
 
-def bench_here(monkeypatch, capsys, *args) -> tuple[int, str]:
-    """`python -m bench ARGS` run in this process (bench.cli.entry, Hydra included) for a command that must
-    stop with an error: (exit code, what it printed). The one-line-error tests need no process of their
-    own (a process costs the imports, seconds); an exception that is not a clean exit fails the test."""
-    monkeypatch.setattr(sys, "argv", ["bench", *map(str, args)])
-    monkeypatch.chdir(REPO)
-    with pytest.raises(SystemExit) as stop:
-        entry()
-    said = capsys.readouterr()
-    return stop.value.code, said.out + said.err
+def exit_and_text(*args) -> tuple[int, str]:
+    """`python -m bench ARGS` in this process (conftest.bench_here): its exit code and what it printed. The
+    one-line-error tests need no process of their own (a process costs the imports, seconds)."""
+    out = bench_here(*args)
+    return out.returncode, out.stdout + out.stderr
 
 
 def compose_experiment(name, *overrides, group="experiment"):
@@ -152,7 +147,7 @@ def test_smoke_end_to_end_then_reuse(smoke_dirs):
     for col in ("relMSE", "PSNR", "SSIM"):
         assert table[col].notna().all() and (table[col].abs() < float("inf")).all(), col
 
-    second = bench("+experiment=smoke", *args)
+    second = bench_here("+experiment=smoke", *args)
     assert second.returncode == 0, second.stderr[-3000:]
     assert "reusing" in second.stdout + second.stderr
     assert "2 of 2 rows reused" in second.stdout + second.stderr
@@ -223,7 +218,7 @@ def test_reused_training_is_loaded_for_a_new_evaluation(smoke_dirs):
     same numbers as the first evaluation, and the frames written as EXR."""
     args, root = smoke_dirs
     before = pd.read_csv(root / "results" / "smoke" / "table.csv")
-    out = bench("+experiment=smoke", "eval.save_exr=true", *args)
+    out = bench_here("+experiment=smoke", "eval.save_exr=true", *args)
     assert out.returncode == 0, out.stderr[-3000:]
     assert "train Ours: reusing run" in out.stdout + out.stderr
     after = pd.read_csv(root / "results" / "smoke" / "table.csv")
@@ -235,7 +230,7 @@ def test_reused_training_is_loaded_for_a_new_evaluation(smoke_dirs):
 def test_fast_path_auto_is_measured_and_recorded_as_the_path_it_chose(smoke_dirs):
     args, root = smoke_dirs
     others = [a for a in args if not a.startswith("results_dir=")]
-    out = bench("+experiment=smoke", "eval.fast_path=auto", f"results_dir={root / 'results_auto'}", *others)
+    out = bench_here("+experiment=smoke", "eval.fast_path=auto", f"results_dir={root / 'results_auto'}", *others)
     assert out.returncode == 0, out.stderr[-3000:]
     assert "eval Ours: fast_path=auto chose " in out.stdout + out.stderr
     chosen = json.loads((root / "runs" / "fast_paths.json").read_text())
@@ -259,13 +254,13 @@ def test_recorded_models_score_another_dataset_without_retraining(smoke_dirs):
         frame["split"] = "holdout" if frame["split"] == "val" else frame["split"]
     (mine / "manifest.json").write_text(json.dumps(manifest))
 
-    wrong_split = bench("+experiment=smoke", f"eval.data_dir={mine}", *args)
+    wrong_split = bench_here("+experiment=smoke", f"eval.data_dir={mine}", *args)
     assert wrong_split.returncode == 2 and "Traceback" not in wrong_split.stderr
     assert "no frames in split 'val'" in wrong_split.stderr and "'holdout'" in wrong_split.stderr
     assert "eval.split=" in wrong_split.stderr
 
     others = [a for a in args if not a.startswith("results_dir=")]
-    out = bench("+experiment=smoke", f"eval.data_dir={mine}", "eval.split=holdout",
+    out = bench_here("+experiment=smoke", f"eval.data_dir={mine}", "eval.split=holdout",
                 f"results_dir={root / 'results_mine'}", *others)
     assert out.returncode == 0, out.stderr[-3000:]
     log = out.stdout + out.stderr
@@ -289,43 +284,43 @@ def test_an_unknown_study_is_one_line_listing_the_studies(monkeypatch, capsys):
         f"error: +study=no_such_study: no conf/study/no_such_study.yaml; available: {', '.join(available_studies())}"]
 
 
-def test_missing_experiment_lists_the_available_ones(monkeypatch, capsys):
-    code, said = bench_here(monkeypatch, capsys)
+def test_missing_experiment_lists_the_available_ones():
+    code, said = exit_and_text()
     assert code == 2
     assert "+experiment=NAME" in said and "smoke" in said and "+study=NAME" in said and "dark_bias" in said
 
 
-def test_unknown_model_is_a_clear_message(tmp_path, monkeypatch, capsys):
-    code, said = bench_here(monkeypatch, capsys, "+experiment=smoke", "experiment.rows=[{label:x,model:no_such_model}]",
+def test_unknown_model_is_a_clear_message(tmp_path):
+    code, said = exit_and_text("+experiment=smoke", "experiment.rows=[{label:x,model:no_such_model}]",
                             f"runs_dir={tmp_path}/runs", f"results_dir={tmp_path}/results", f"data_dir={tmp_path}/data")
     assert code == 2 and "unknown model 'no_such_model'" in said
 
 
-def test_missing_data_directory_is_a_clear_message(tmp_path, monkeypatch, capsys):
-    code, said = bench_here(monkeypatch, capsys, "+experiment=smoke", "render_data=false", f"data_dir={tmp_path}/nowhere",
+def test_missing_data_directory_is_a_clear_message(tmp_path):
+    code, said = exit_and_text("+experiment=smoke", "render_data=false", f"data_dir={tmp_path}/nowhere",
                             f"runs_dir={tmp_path}/runs", f"results_dir={tmp_path}/results")
     assert code == 2 and "has no manifest.json" in said
 
 
-def test_unwritable_runs_directory_is_one_line_not_a_hydra_traceback(tmp_path, monkeypatch, capsys):
+def test_unwritable_runs_directory_is_one_line_not_a_hydra_traceback(tmp_path):
     """Hydra makes its output folder under runs_dir before our code runs; it must not fail there."""
     blocker = tmp_path / "file"
     blocker.write_text("")
-    code, said = bench_here(monkeypatch, capsys, "+experiment=macs", "preset=smoke", f"runs_dir={blocker}/runs",
+    code, said = exit_and_text("+experiment=macs", "preset=smoke", f"runs_dir={blocker}/runs",
                             f"results_dir={tmp_path}/results")
     assert code == 2 and f"runs directory {blocker}/runs is not writable" in said
 
 
-def test_unwritable_results_directory_is_a_clear_message(tmp_path, monkeypatch, capsys):
+def test_unwritable_results_directory_is_a_clear_message(tmp_path):
     blocker = tmp_path / "file"
     blocker.write_text("")
-    code, said = bench_here(monkeypatch, capsys, "+experiment=smoke", f"results_dir={blocker}/results",
+    code, said = exit_and_text("+experiment=smoke", f"results_dir={blocker}/results",
                             f"runs_dir={tmp_path}/runs")
     assert code == 2 and "not writable" in said
 
 
 def test_macs_experiment_audits_the_sota_models(tmp_path):
-    out = bench("+experiment=macs", "preset=paper", f"results_dir={tmp_path}", f"runs_dir={tmp_path}/runs")
+    out = bench_here("+experiment=macs", "preset=paper", f"results_dir={tmp_path}", f"runs_dir={tmp_path}/runs")
     assert out.returncode == 0, out.stderr[-3000:]
     table = pd.read_csv(tmp_path / "macs" / "table.csv")
     assert list(table["method"]) == ["EDSR", "RAE", "KPCN", "CFM", "Ours"]
@@ -338,7 +333,7 @@ def test_macs_experiment_audits_the_sota_models(tmp_path):
 
 def test_data_experiment_summarises_every_split(smoke_dirs):
     args, root = smoke_dirs
-    out = bench("+experiment=data", "preset=smoke", *args)
+    out = bench_here("+experiment=data", "preset=smoke", *args)
     assert out.returncode == 0, out.stderr[-3000:]
     table = pd.read_csv(root / "results" / "data" / "table.csv")
     assert set(table["split"]) == {"train", "val", "generalization"}
@@ -407,8 +402,8 @@ def test_every_bad_value_is_one_line_naming_key_value_and_rule(tmp_path, overrid
     assert not (tmp_path / "runs").exists()
 
 
-def test_a_bad_value_on_the_command_line_ends_in_one_message_before_any_run(tmp_path, monkeypatch, capsys):
-    code, said = bench_here(monkeypatch, capsys, "+experiment=smoke", "preset=smoke", "train.steps=0",
+def test_a_bad_value_on_the_command_line_ends_in_one_message_before_any_run(tmp_path):
+    code, said = exit_and_text("+experiment=smoke", "preset=smoke", "train.steps=0",
                             "train.batch_size=0", f"runs_dir={tmp_path}/runs", f"results_dir={tmp_path}/results",
                             f"data_dir={tmp_path}/data")
     assert code == 2 and "train.steps=0" in said and "train.batch_size=0" in said
@@ -474,10 +469,10 @@ def test_all_counts_every_seed_and_each_shared_run_once(tmp_path, caplog):
     assert minutes == {"eval/h0": pytest.approx(0.1), "train/t0": pytest.approx(10.0), "train/t_gone": None}
 
 
-def test_a_results_dir_elsewhere_says_the_committed_archive_is_not_read(tmp_path, monkeypatch, capsys, caplog):
+def test_a_results_dir_elsewhere_says_the_committed_archive_is_not_read(tmp_path, caplog):
     """runs_archive follows results_dir: moved elsewhere, the committed runs are not read and every
     recorded run would be computed again; the first line says so and how to read them."""
-    code, said = bench_here(monkeypatch, capsys, "+experiment=train", "experiment.model=nosuch", "preset=cpu",
+    code, said = exit_and_text("+experiment=train", "experiment.model=nosuch", "preset=cpu",
                             "tracking=none", f"results_dir={tmp_path / 'results'}", f"runs_dir={tmp_path / 'runs'}",
                             f"data_dir={tmp_path / 'data'}")
     said += caplog.text  # the line is a warning of the bench logger
@@ -486,20 +481,20 @@ def test_a_results_dir_elsewhere_says_the_committed_archive_is_not_read(tmp_path
     assert not (tmp_path / "data").exists()
     for yours in ("render_data=false", f"eval.data_dir={tmp_path / 'yours'}"):  # your frames: never in it
         caplog.clear()
-        code, said = bench_here(monkeypatch, capsys, "+experiment=train", "experiment.model=nosuch", "preset=cpu",
+        code, said = exit_and_text("+experiment=train", "experiment.model=nosuch", "preset=cpu",
                                 "tracking=none", yours, f"results_dir={tmp_path / 'results'}",
                                 f"runs_dir={tmp_path / 'runs'}", f"data_dir={tmp_path / 'data'}")
         assert code == 2 and "committed archive" not in said + caplog.text, yours
 
 
-def test_your_frames_never_replace_the_committed_tables(tmp_path, monkeypatch, capsys):
+def test_your_frames_never_replace_the_committed_tables(tmp_path):
     """Scoring or training on your frames with results_dir left at the preset's committed folder is one
     line naming results_dir=, before anything is read or written."""
     table = REPO / "results" / "cpu" / "sota" / "table.csv"
     before = table.stat().st_mtime_ns
     for yours in ([f"eval.data_dir={tmp_path / 'yours'}", "eval.split=holdout"],
                   ["render_data=false", f"data_dir={tmp_path / 'yours'}"]):
-        code, said = bench_here(monkeypatch, capsys, "+experiment=sota", "preset=cpu", "tracking=none", *yours,
+        code, said = exit_and_text("+experiment=sota", "preset=cpu", "tracking=none", *yours,
                                 f"runs_dir={tmp_path / 'runs'}")
         assert code == 2 and "Traceback" not in said, said[-2000:]
         assert "would replace the committed ones" in said and "results_dir=/tmp/mine" in said, said[-2000:]
@@ -519,8 +514,8 @@ def test_an_experiment_flag_that_is_not_true_or_false_is_refused():
 @pytest.mark.parametrize("override, said", [("experiment.input_hw=[0,0]", "expected [height, width]"),
                                             ("experiment.repeats=0", "experiment.repeats=0: expected an integer >= 1"),
                                             ("experiment.fast_paths=[bogus]", "experiment.fast_paths: 'bogus'")])
-def test_a_bad_speed_option_is_one_line_before_anything_is_timed(monkeypatch, capsys, tmp_path, override, said):
-    code, text = bench_here(monkeypatch, capsys, "+experiment=speed", "experiment.models=[srd]", override,
+def test_a_bad_speed_option_is_one_line_before_anything_is_timed(tmp_path, override, said):
+    code, text = exit_and_text("+experiment=speed", "experiment.models=[srd]", override,
                             "preset=smoke", "tracking=none", f"results_dir={tmp_path / 'results'}",
                             f"runs_dir={tmp_path / 'runs'}")
     assert code == 2 and said in text and "Traceback" not in text, text[-2000:]
@@ -534,9 +529,9 @@ def test_all_with_no_list_of_tables_is_one_line(tmp_path, tables):
         run_all([], tmp_path, [] if tables == "[]" else tables)
 
 
-def test_a_label_that_leaves_its_folder_is_refused(tmp_path, monkeypatch, capsys):
+def test_a_label_that_leaves_its_folder_is_refused(tmp_path):
     """`+experiment=train`'s label names the table's folder: `..` in it would write over other tables."""
-    code, said = bench_here(monkeypatch, capsys, "+experiment=train", "experiment.model=bilinear",
+    code, said = exit_and_text("+experiment=train", "experiment.model=bilinear",
                             "experiment.label=../../x", "preset=smoke", "tracking=none",
                             f"results_dir={tmp_path / 'results'}", f"runs_dir={tmp_path / 'runs'}",
                             f"data_dir={tmp_path / 'data'}")
@@ -544,10 +539,10 @@ def test_a_label_that_leaves_its_folder_is_refused(tmp_path, monkeypatch, capsys
     assert not (tmp_path / "x").exists() and not (tmp_path / "data").exists()
 
 
-def test_a_misspelt_experiment_key_is_one_line(tmp_path, monkeypatch, capsys):
+def test_a_misspelt_experiment_key_is_one_line(tmp_path):
     """`experiment.<key>` that the kind does not take ends in one line naming the keys it takes, before
     anything runs (nothing written)."""
-    code, said = bench_here(monkeypatch, capsys, "+experiment=macs", "+experiment.input_size=[64,96]", "preset=cpu",
+    code, said = exit_and_text("+experiment=macs", "+experiment.input_size=[64,96]", "preset=cpu",
                             "tracking=none", f"results_dir={tmp_path / 'results'}", f"runs_dir={tmp_path / 'runs'}",
                             f"data_dir={tmp_path / 'data'}")
     assert code == 2, said
@@ -567,7 +562,7 @@ def test_the_unread_archive_warning_is_for_experiments_that_read_runs(tmp_path, 
         assert ("the committed archive results/cpu/runs is not read" in caplog.text) == said, kind
 
 
-def test_check_experiment_keys_names_a_missing_key(monkeypatch, capsys):
+def test_check_experiment_keys_names_a_missing_key():
     from bench.cli import check_experiment_keys
     from bench.experiments import claims
     check_experiment_keys(claims.run, {"name": "c", "claims": [], "metric": "PSNR", "tables": None}, "claims")
@@ -576,7 +571,7 @@ def test_check_experiment_keys_names_a_missing_key(monkeypatch, capsys):
     from bench.cli import run_all
     with pytest.raises(UserError, match="no key overrides; kind all takes tables, name"):  # the caller's own
         check_experiment_keys(run_all, {"tables": [], "overrides": []}, "all", supplied=("overrides", "results_dir"))
-    code, said = bench_here(monkeypatch, capsys, "+experiment=all", "~experiment.tables", "+experiment.table=[sota]",
+    code, said = exit_and_text("+experiment=all", "~experiment.tables", "+experiment.table=[sota]",
                             "preset=cpu")
     assert code == 2 and "'all' (kind all): no key table; kind all takes tables, name" in said
 

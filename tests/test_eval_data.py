@@ -1,4 +1,4 @@
-"""eval.data_dir: recorded (archived) models scored on frames you bring, with real processes and files.
+"""eval.data_dir: recorded (archived) models scored on frames you bring, by the command line and real files.
 Nothing is rendered, nothing is trained and the training data is not read: a training's identity takes
 its data fingerprint from the data spec then, planned without rendering, and that must equal the rendered
 manifest's (here at the smoke preset, and the cpu preset's committed trainings)."""
@@ -20,6 +20,7 @@ from bench.cli import CONF_DIR, make_context
 from bench.datagen import frame_paths, load_manifest
 from bench.experiments.datasets import data_fingerprint, frame_records, split_fingerprint
 from bench.train import CHECKPOINT
+from conftest import bench_here
 
 REPO = Path(__file__).resolve().parent.parent
 # The smoke table (input bilinear, Ours) at the smoke preset, on frames small enough for seconds.
@@ -31,9 +32,7 @@ SCORES = ["method", "relMSE", "PSNR", "SSIM"]
 
 
 def bench(*args):
-    env = dict(os.environ, HYDRA_FULL_ERROR="0", PYTHONUNBUFFERED="1")
-    return subprocess.run([sys.executable, "-m", "bench", *SMOKE, *args], cwd=REPO, capture_output=True, text=True,
-                          timeout=300, env=env)
+    return bench_here(*SMOKE, *args)
 
 
 def store(root, archive, data_dir, *more):

@@ -1,9 +1,6 @@
 """Every paper table at `smoke` scale with a few training steps: rows, formats, paper values, figures,
 run reuse within and across tables, seeds as mean +- std, and `all`."""
-import os
 import shutil
-import subprocess
-import sys
 import time
 
 import pandas as pd
@@ -20,7 +17,7 @@ from bench.experiments.table import (compute_shard, domain_note, expand_rows, pa
                                     shard_units, unit_lock)
 from bench.models.srd import SRDNet, SRDStage, load_stage
 from bench.paper import paper_values
-from conftest import smoke_context, smoke_overrides
+from conftest import bench_here, smoke_context, smoke_overrides
 
 # a table's folder under results_dir; studies/NAME is `+study=NAME`
 TABLES = ["sr_denoise", "dilation", "dilation_crop", "stage_order", "deform", "sota", "ipt", "deform_num",
@@ -231,9 +228,7 @@ def test_the_one_model_command_and_a_table_reuse_each_others_runs(dirs, caplog):
 
 def test_all_runs_the_listed_tables_and_reuses_them(tables):
     overrides, root = tables  # every run of both tables is recorded
-    out = subprocess.run([sys.executable, "-m", "bench", "+experiment=all", "experiment.tables=[ipt,deform_num]",
-                          *overrides], capture_output=True, text=True, env=dict(os.environ, HYDRA_FULL_ERROR="0"),
-                         timeout=600)
+    out = bench_here("+experiment=all", "experiment.tables=[ipt,deform_num]", *overrides)
     assert out.returncode == 0, out.stderr[-3000:]
     log = out.stdout + out.stderr
     rows = {name: len(expected_labels(name, overrides)[0]) for name in ("ipt", "deform_num")}

@@ -1,9 +1,6 @@
 """The frozen test split: the paper's tables and the claims report it where the preset's data has one
 (cpu), tuning experiments read val and refuse test, and a split's tables never land on another's."""
 import json
-import os
-import subprocess
-import sys
 from pathlib import Path
 
 import pandas as pd
@@ -15,7 +12,7 @@ from bench.cli import CONF_DIR, apply_pin, apply_split, make_context
 from bench.errors import UserError
 from bench.experiments import claims
 from bench.experiments.context import split_note, working_split
-from conftest import smoke_context
+from conftest import bench_here, smoke_context
 
 REPO = Path(__file__).resolve().parent.parent
 
@@ -69,10 +66,8 @@ def test_what_tunes_reads_val_at_cpu_and_refuses_test(group, name):
 
 
 def test_a_tuning_command_on_test_is_one_line_and_exit_2_before_anything_runs(tmp_path):
-    env = dict(os.environ, HYDRA_FULL_ERROR="0")
-    out = subprocess.run([sys.executable, "-m", "bench", "+experiment=lr_range", "preset=cpu", "eval.split=test",
-                          f"runs_dir={tmp_path / 'runs'}", f"data_dir={tmp_path / 'data'}"],
-                         cwd=REPO, capture_output=True, text=True, timeout=120, env=env)
+    out = bench_here("+experiment=lr_range", "preset=cpu", "eval.split=test", f"runs_dir={tmp_path / 'runs'}",
+                     f"data_dir={tmp_path / 'data'}")
     assert out.returncode == 2 and "frozen" in out.stderr and "Traceback" not in out.stderr
     assert len(out.stderr.strip().splitlines()) == 1 and not (tmp_path / "data").exists()
 

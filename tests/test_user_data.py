@@ -2,8 +2,6 @@
 must be, before anything runs; a minimal valid one (no spec, only the buffers evaluation reads) is scored."""
 import json
 import os
-import subprocess
-import sys
 from pathlib import Path
 
 import numpy as np
@@ -12,6 +10,7 @@ import pytest
 
 from bench.datagen import manifest_problems
 from bench.exrio import write_exr
+from conftest import bench_here
 
 REPO = Path(__file__).resolve().parent.parent
 LR = (8, 12)  # h, w
@@ -73,14 +72,8 @@ def test_an_hr_frame_of_the_wrong_size_says_hr_must_be_2x_lr(tmp_path):
     assert len(problems) == 2 and "0000_hr.exr is 36x24 pixels and 0000_lr.exr beside it 12x8: HR must be 2x LR" in problems[0]
 
 
-def bench(*args):
-    env = dict(os.environ, HYDRA_FULL_ERROR="0")
-    return subprocess.run([sys.executable, "-m", "bench", *args], cwd=REPO, capture_output=True, text=True,
-                          timeout=300, env=env)
-
-
 def user_table(root, tmp_path):
-    return bench("+experiment=smoke", "render_data=false", f"data_dir={root}", f"runs_dir={tmp_path / 'runs'}",
+    return bench_here("+experiment=smoke", "render_data=false", f"data_dir={root}", f"runs_dir={tmp_path / 'runs'}",
                  f"results_dir={tmp_path / 'results'}", "progress=false", "++experiment.figure=false",
                  "experiment.rows=[{label: Input bilinear, model: bilinear}]")
 
