@@ -79,7 +79,11 @@ def _two_ranks(out_dir, term_at_draw=None, term_rank=1, term_backward=None):
         s.bind(("127.0.0.1", 0))
         port = s.getsockname()[1]
     results = mp.Manager().dict()
-    mp.spawn(_rank, args=(port, str(out_dir), term_at_draw, term_rank, term_backward, results), nprocs=2)
+    # each rank a fresh process, forked from a server that imported this module once per test run: spawned
+    # ranks each imported torch and the project first, seconds a rank (10 ranks in this file)
+    mp.set_forkserver_preload([__name__])
+    mp.start_processes(_rank, args=(port, str(out_dir), term_at_draw, term_rank, term_backward, results), nprocs=2,
+                       start_method="forkserver")
     return dict(results)
 
 

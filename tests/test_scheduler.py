@@ -11,6 +11,7 @@ from hydra import compose, initialize_config_dir
 from bench import scheduler
 from bench.cli import CONF_DIR, make_context
 from bench.errors import UserError
+from conftest import bench_here
 from test_faults import TINY_CLI
 
 REPO = Path(__file__).resolve().parent.parent
@@ -35,9 +36,8 @@ def test_jobs_and_shard_together_are_one_line_before_anything_runs(tmp_path):
 def test_jobs_trains_each_seed_once_across_the_shards_then_writes_the_table(tmp_path):
     """Two seeds, jobs=2: two shard processes share the run store (each seed trained once, by either),
     every line says which shard printed it, and the starting command writes the table reusing both."""
-    out = subprocess.run([sys.executable, "-m", "bench", *TINY_CLI, "seeds=[0,1]", "jobs=2",
-                          f"runs_dir={tmp_path / 'runs'}", f"results_dir={tmp_path / 'results'}",
-                          f"data_dir={tmp_path / 'data'}"], cwd=REPO, capture_output=True, text=True, timeout=300)
+    out = bench_here(*TINY_CLI, "seeds=[0,1]", "jobs=2", f"runs_dir={tmp_path / 'runs'}",  # the shards: processes
+                     f"results_dir={tmp_path / 'results'}", f"data_dir={tmp_path / 'data'}")
     log = out.stdout + out.stderr
     assert out.returncode == 0, log[-3000:]
     assert log.count("trained in") == 2 and all(f"[shard {i}/2]" in log for i in (0, 1)), log[-3000:]

@@ -12,13 +12,13 @@ import pytest
 from mlflow.tracking import MlflowClient
 
 from bench import runs, tracking
-from conftest import SMOKE_DATA
+from conftest import SMOKE_DATA, bench_here
 
 REPO = Path(__file__).resolve().parent.parent
 
 
-def bench(*args, tracking_mode="none"):
-    env = dict(os.environ, HYDRA_FULL_ERROR="0", PYTHONUNBUFFERED="1", SRD_TRACKING=tracking_mode)
+def bench(*args):
+    env = dict(os.environ, HYDRA_FULL_ERROR="0", PYTHONUNBUFFERED="1", SRD_TRACKING="none")
     return subprocess.run([sys.executable, "-m", "bench", *args], cwd=REPO, capture_output=True, text=True,
                           timeout=600, env=env)
 
@@ -34,7 +34,7 @@ def store(tmp_path_factory, smoke_data):
     sweep = bench("-m", "hydra/launcher=joblib", "shard=0/2,1/2", *args)
     assert sweep.returncode == 0, sweep.stderr[-3000:]
     assert not (root / "runs" / "mlflow.db").exists()  # tracking=none: no MLflow store
-    final = bench(*args, tracking_mode="mlflow")
+    final = bench_here(*args, "tracking=mlflow")
     assert final.returncode == 0, final.stderr[-3000:]
     return root, sweep.stdout + sweep.stderr, final.stdout + final.stderr
 
