@@ -292,14 +292,36 @@ def test_missing_experiment_lists_the_available_ones():
 
 def test_unknown_model_is_a_clear_message(tmp_path):
     code, said = exit_and_text("+experiment=smoke", "experiment.rows=[{label:x,model:no_such_model}]",
-                            f"runs_dir={tmp_path}/runs", f"results_dir={tmp_path}/results", f"data_dir={tmp_path}/data")
+                               f"runs_dir={tmp_path}/runs", f"results_dir={tmp_path}/results",
+                               f"data_dir={tmp_path}/data")
     assert code == 2 and "unknown model 'no_such_model'" in said
 
 
 def test_missing_data_directory_is_a_clear_message(tmp_path):
     code, said = exit_and_text("+experiment=smoke", "render_data=false", f"data_dir={tmp_path}/nowhere",
-                            f"runs_dir={tmp_path}/runs", f"results_dir={tmp_path}/results")
+                               f"runs_dir={tmp_path}/runs", f"results_dir={tmp_path}/results")
     assert code == 2 and "has no manifest.json" in said
+
+
+def test_bench_here_ends_as_the_command_in_its_own_process_and_leaves_no_hydra_state(tmp_path):
+    """conftest.bench_here, which the command tests use where a process adds nothing: a command that gets
+    as far as Hydra's logging and then stops ends with the exit code and the last line `python -m bench`
+    gives in a process of its own, and leaves the logging, Hydra, the working folder and sys.argv as it
+    found them."""
+    import logging
+    from hydra.core.global_hydra import GlobalHydra
+    from hydra.core.hydra_config import HydraConfig
+    args = ("+experiment=smoke", "render_data=false", f"data_dir={tmp_path}/nowhere", f"runs_dir={tmp_path}/runs",
+            f"results_dir={tmp_path}/results")
+    root = logging.getLogger()
+    before = (root.handlers[:], root.level, os.getcwd(), sys.argv[:])
+    here = bench_here(*args)
+    assert (root.handlers, root.level, os.getcwd(), sys.argv) == before
+    assert not GlobalHydra.instance().is_initialized() and not HydraConfig.initialized()
+    assert list((tmp_path / "runs").glob("hydra/*/cli.log")), "the command got as far as Hydra's logging"
+    there = bench(*args)
+    assert here.returncode == there.returncode == 2
+    assert here.stderr.strip().splitlines()[-1] == there.stderr.strip().splitlines()[-1]
 
 
 def test_unwritable_runs_directory_is_one_line_not_a_hydra_traceback(tmp_path):
@@ -307,7 +329,7 @@ def test_unwritable_runs_directory_is_one_line_not_a_hydra_traceback(tmp_path):
     blocker = tmp_path / "file"
     blocker.write_text("")
     code, said = exit_and_text("+experiment=macs", "preset=smoke", f"runs_dir={blocker}/runs",
-                            f"results_dir={tmp_path}/results")
+                               f"results_dir={tmp_path}/results")
     assert code == 2 and f"runs directory {blocker}/runs is not writable" in said
 
 
@@ -315,7 +337,7 @@ def test_unwritable_results_directory_is_a_clear_message(tmp_path):
     blocker = tmp_path / "file"
     blocker.write_text("")
     code, said = exit_and_text("+experiment=smoke", f"results_dir={blocker}/results",
-                            f"runs_dir={tmp_path}/runs")
+                               f"runs_dir={tmp_path}/runs")
     assert code == 2 and "not writable" in said
 
 
@@ -404,8 +426,8 @@ def test_every_bad_value_is_one_line_naming_key_value_and_rule(tmp_path, overrid
 
 def test_a_bad_value_on_the_command_line_ends_in_one_message_before_any_run(tmp_path):
     code, said = exit_and_text("+experiment=smoke", "preset=smoke", "train.steps=0",
-                            "train.batch_size=0", f"runs_dir={tmp_path}/runs", f"results_dir={tmp_path}/results",
-                            f"data_dir={tmp_path}/data")
+                               "train.batch_size=0", f"runs_dir={tmp_path}/runs", f"results_dir={tmp_path}/results",
+                               f"data_dir={tmp_path}/data")
     assert code == 2 and "train.steps=0" in said and "train.batch_size=0" in said
     assert not list((tmp_path / "runs").glob("train/*"))
 
@@ -473,8 +495,8 @@ def test_a_results_dir_elsewhere_says_the_committed_archive_is_not_read(tmp_path
     """runs_archive follows results_dir: moved elsewhere, the committed runs are not read and every
     recorded run would be computed again; the first line says so and how to read them."""
     code, said = exit_and_text("+experiment=train", "experiment.model=nosuch", "preset=cpu",
-                            "tracking=none", f"results_dir={tmp_path / 'results'}", f"runs_dir={tmp_path / 'runs'}",
-                            f"data_dir={tmp_path / 'data'}")
+                               "tracking=none", f"results_dir={tmp_path / 'results'}", f"runs_dir={tmp_path / 'runs'}",
+                               f"data_dir={tmp_path / 'data'}")
     said += caplog.text  # the line is a warning of the bench logger
     assert code == 2 and "the committed archive results/cpu/runs is not read" in said, said[-2000:]
     assert f"runs_archive={REPO / 'results' / 'cpu' / 'runs'} reads it" in said
@@ -482,8 +504,8 @@ def test_a_results_dir_elsewhere_says_the_committed_archive_is_not_read(tmp_path
     for yours in ("render_data=false", f"eval.data_dir={tmp_path / 'yours'}"):  # your frames: never in it
         caplog.clear()
         code, said = exit_and_text("+experiment=train", "experiment.model=nosuch", "preset=cpu",
-                                "tracking=none", yours, f"results_dir={tmp_path / 'results'}",
-                                f"runs_dir={tmp_path / 'runs'}", f"data_dir={tmp_path / 'data'}")
+                                   "tracking=none", yours, f"results_dir={tmp_path / 'results'}",
+                                   f"runs_dir={tmp_path / 'runs'}", f"data_dir={tmp_path / 'data'}")
         assert code == 2 and "committed archive" not in said + caplog.text, yours
 
 
@@ -495,7 +517,7 @@ def test_your_frames_never_replace_the_committed_tables(tmp_path):
     for yours in ([f"eval.data_dir={tmp_path / 'yours'}", "eval.split=holdout"],
                   ["render_data=false", f"data_dir={tmp_path / 'yours'}"]):
         code, said = exit_and_text("+experiment=sota", "preset=cpu", "tracking=none", *yours,
-                                f"runs_dir={tmp_path / 'runs'}")
+                                   f"runs_dir={tmp_path / 'runs'}")
         assert code == 2 and "Traceback" not in said, said[-2000:]
         assert "would replace the committed ones" in said and "results_dir=/tmp/mine" in said, said[-2000:]
     assert table.stat().st_mtime_ns == before
@@ -516,8 +538,8 @@ def test_an_experiment_flag_that_is_not_true_or_false_is_refused():
                                             ("experiment.fast_paths=[bogus]", "experiment.fast_paths: 'bogus'")])
 def test_a_bad_speed_option_is_one_line_before_anything_is_timed(tmp_path, override, said):
     code, text = exit_and_text("+experiment=speed", "experiment.models=[srd]", override,
-                            "preset=smoke", "tracking=none", f"results_dir={tmp_path / 'results'}",
-                            f"runs_dir={tmp_path / 'runs'}")
+                               "preset=smoke", "tracking=none", f"results_dir={tmp_path / 'results'}",
+                               f"runs_dir={tmp_path / 'runs'}")
     assert code == 2 and said in text and "Traceback" not in text, text[-2000:]
     assert not list((tmp_path / "results").rglob("table.csv"))
 
@@ -532,9 +554,9 @@ def test_all_with_no_list_of_tables_is_one_line(tmp_path, tables):
 def test_a_label_that_leaves_its_folder_is_refused(tmp_path):
     """`+experiment=train`'s label names the table's folder: `..` in it would write over other tables."""
     code, said = exit_and_text("+experiment=train", "experiment.model=bilinear",
-                            "experiment.label=../../x", "preset=smoke", "tracking=none",
-                            f"results_dir={tmp_path / 'results'}", f"runs_dir={tmp_path / 'runs'}",
-                            f"data_dir={tmp_path / 'data'}")
+                               "experiment.label=../../x", "preset=smoke", "tracking=none",
+                               f"results_dir={tmp_path / 'results'}", f"runs_dir={tmp_path / 'runs'}",
+                               f"data_dir={tmp_path / 'data'}")
     assert code == 2 and "one name without / or .." in said, said[-2000:]
     assert not (tmp_path / "x").exists() and not (tmp_path / "data").exists()
 
@@ -543,8 +565,8 @@ def test_a_misspelt_experiment_key_is_one_line(tmp_path):
     """`experiment.<key>` that the kind does not take ends in one line naming the keys it takes, before
     anything runs (nothing written)."""
     code, said = exit_and_text("+experiment=macs", "+experiment.input_size=[64,96]", "preset=cpu",
-                            "tracking=none", f"results_dir={tmp_path / 'results'}", f"runs_dir={tmp_path / 'runs'}",
-                            f"data_dir={tmp_path / 'data'}")
+                               "tracking=none", f"results_dir={tmp_path / 'results'}", f"runs_dir={tmp_path / 'runs'}",
+                               f"data_dir={tmp_path / 'data'}")
     assert code == 2, said
     assert "no key input_size; kind macs takes name, rows, input_hw, caption" in said
     assert not (tmp_path / "results").exists()
@@ -572,7 +594,7 @@ def test_check_experiment_keys_names_a_missing_key():
     with pytest.raises(UserError, match="no key overrides; kind all takes tables, name"):  # the caller's own
         check_experiment_keys(run_all, {"tables": [], "overrides": []}, "all", supplied=("overrides", "results_dir"))
     code, said = exit_and_text("+experiment=all", "~experiment.tables", "+experiment.table=[sota]",
-                            "preset=cpu")
+                               "preset=cpu")
     assert code == 2 and "'all' (kind all): no key table; kind all takes tables, name" in said
 
 
