@@ -47,9 +47,9 @@ atexit.register(shutil.rmtree, os.environ["XDG_CACHE_HOME"], ignore_errors=True)
 # files to its workers in the order collected (make test passes --no-loadscope-reorder; its default orders
 # files by their number of tests, which left files of two to six tests and half a minute each to the end,
 # one worker idle). An order only: a stale list costs balance, never a test.
-LONGEST_FIRST = ["test_cli.py", "test_experiments.py", "test_adopt.py", "test_faults.py", "test_train.py",
-                 "test_eval_data.py", "test_distributed.py", "test_gpu_job.py", "test_tracking.py",
-                 "test_stability.py", "test_scheduler.py", "test_fused_gpu.py", "test_layers.py"]
+LONGEST_FIRST = ["test_cli.py", "test_experiments.py", "test_adopt.py", "test_faults.py", "test_gpu_job.py",
+                 "test_stability.py", "test_distributed.py", "test_tracking.py", "test_fused_gpu.py", "test_train.py",
+                 "test_scheduler.py", "test_layers.py", "test_measure.py", "test_eval_data.py"]
 
 
 def pytest_collection_modifyitems(items):
