@@ -3,8 +3,9 @@ PYTHON ?= $(shell command -v python3.11 || command -v python3)
 VENV   := .venv
 PY     := $(VENV)/bin/python
 STAMP  := $(VENV)/.installed
-# Python writes the bytecode of each module it imports, once (setup compiles none: scripts/install_deps.sh),
-# also where PYTHONDONTWRITEBYTECODE=1 is set, which would make every process compile every import again
+# Python writes the bytecode of each module it imports, once (setup compiles none but what every command
+# imports: scripts/install_deps.sh), also where PYTHONDONTWRITEBYTECODE=1 is set (CI here), which would make
+# every process compile every import again: make's own commands write it whatever that variable says
 PYC    := env -u PYTHONDONTWRITEBYTECODE
 
 .PHONY: setup run test test-slow clean clean-runs
@@ -19,6 +20,8 @@ $(STAMP): pyproject.toml
 	@test -x $(PY) || $(PYTHON) -m venv $(VENV)
 	@# uv where it can (parallel, cached), else pip: scripts/install_deps.sh
 	bash scripts/install_deps.sh $(PY)
+	@# the bytecode of what every command imports, for commands run without make too
+	$(PYC) $(PY) -c 'import torch._dynamo, bench.cli, bench.train, bench.evaluate, bench.experiments.table'
 	@touch $(STAMP)
 
 run: setup

@@ -3,9 +3,10 @@
 # uv installs the wheels in parallel from its cache; pip goes one package at a time, and this registry's
 # answers are not cached for it. Clean-clone make test minus pytest's time, on 2 AVX-512 cores: pip 89 s,
 # uv 40 s (uv's cache warm). No bytecode is compiled here: compiling all 15,000 modules took 21 of uv's 26 s
-# (2 cores), and a run imports a fraction of them. `make run` and `make test` let Python write the bytecode
-# of what it imports, once, even where PYTHONDONTWRITEBYTECODE=1 (CI here), without which every process
-# would compile every import (the Makefile, PYC).
+# (2 cores), and a run imports a fraction of them. `make setup` then imports what every command imports,
+# and make's commands the rest as they need it, writing its bytecode once, even where
+# PYTHONDONTWRITEBYTECODE=1 (CI here), without which every process would compile every import (the
+# Makefile, PYC).
 # uv reads no pip configuration, so pip's find-links (where the torch CPU wheel lies), from its config files
 # or the environment, go along; where uv cannot install, pip does, and says so.
 set -euo pipefail

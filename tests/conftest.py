@@ -146,45 +146,70 @@ def bench(*args, cwd=REPO, timeout=600):
                           text=True, timeout=timeout, env=env)
 
 
-def bench_here(*args) -> subprocess.CompletedProcess:
+def bench_here(*args, timeout=600) -> subprocess.CompletedProcess:
     """`python -m bench ARGS` run in this process (bench.cli.entry, Hydra included), from the repository:
     the exit code and what it printed, as `bench` returns them, without the process's seconds of imports
-    (torch, Hydra, the project: about 2.5 s of every `bench` call). Hydra's logging and global state are put
-    back afterwards, so that the next command, in-process or not, starts as a fresh process would."""
-    import contextlib
-    import io
+    (torch, Hydra, the project: about 2.5 s of every `bench` call). As a process would show it: file
+    descriptors 1 and 2 are captured (C++ libraries' lines and child processes' too, in the order
+    written), and warnings print as in a fresh process (pytest would record them instead). Afterwards the
+    logging, the folder, argv and the environment are as before. keep_freed_memory=false unless given:
+    its mallopt would stay for the rest of this process. A command still running after `timeout` seconds
+    ends this process (pytest-xdist reports the worker gone), with every thread's traceback."""
+    import faulthandler
     import logging
-    from hydra.core.global_hydra import GlobalHydra
-    from hydra.core.hydra_config import HydraConfig
+    import tempfile
+    import warnings
     from bench.cli import entry
-    out, err = io.StringIO(), io.StringIO()
-    root, saved_argv, saved_cwd = logging.getLogger(), sys.argv, os.getcwd()
+    argv = ["bench", *map(str, args)]
+    if not any(a.startswith("keep_freed_memory=") for a in argv):
+        argv.append("keep_freed_memory=false")
+    root, saved = logging.getLogger(), (sys.argv, os.getcwd(), dict(os.environ), sys.stdout, sys.stderr)
     saved_handlers, saved_level = root.handlers[:], root.level
-    saved_env = os.environ.get("HYDRA_FULL_ERROR")
-    GlobalHydra.instance().clear()
-    sys.argv, code = ["bench", *map(str, args)], 0
-    os.environ["HYDRA_FULL_ERROR"] = "0"
-    os.chdir(REPO)
-    try:
-        with contextlib.redirect_stdout(out), contextlib.redirect_stderr(err):
-            entry()
-    except SystemExit as stop:
-        code = stop.code if isinstance(stop.code, int) else (0 if stop.code is None else 1)
-    finally:
-        sys.argv = saved_argv
-        os.chdir(saved_cwd)
-        if saved_env is None:
-            os.environ.pop("HYDRA_FULL_ERROR", None)
-        else:
-            os.environ["HYDRA_FULL_ERROR"] = saved_env
-        GlobalHydra.instance().clear()
-        HydraConfig.instance().cfg = None  # as before any command: code that asks finds no Hydra run
-        for handler in root.handlers:  # Hydra's console and log-file handlers
-            if handler not in saved_handlers:
-                handler.close()
-        root.handlers[:] = saved_handlers
-        root.setLevel(saved_level)
-    return subprocess.CompletedProcess(["bench", *map(str, args)], code, out.getvalue(), err.getvalue())
+    sys.stdout.flush()
+    sys.stderr.flush()
+    saved_fds = os.dup(1), os.dup(2)
+    with tempfile.TemporaryFile() as out_file, tempfile.TemporaryFile() as err_file, \
+            open(saved_fds[1], "w", closefd=False) as real_stderr:
+        os.dup2(out_file.fileno(), 1)
+        os.dup2(err_file.fileno(), 2)
+        sys.stdout = open(1, "w", buffering=1, closefd=False, errors="backslashreplace")  # line-buffered, as
+        sys.stderr = open(2, "w", buffering=1, closefd=False, errors="backslashreplace")  # PYTHONUNBUFFERED
+        sys.argv, code = argv, 0
+        os.environ["HYDRA_FULL_ERROR"] = "0"
+        os.chdir(REPO)
+        faulthandler.dump_traceback_later(timeout, exit=True, file=real_stderr)
+        try:
+            with warnings.catch_warnings():
+                warnings.resetwarnings()  # a fresh process's filters (python -W none), printed to stderr
+                for category in (DeprecationWarning, PendingDeprecationWarning, ImportWarning, ResourceWarning):
+                    warnings.filterwarnings("ignore", category=category)
+                warnings.filterwarnings("default", category=DeprecationWarning, module="__main__")
+                warnings.showwarning = lambda message, category, filename, lineno, file=None, line=None: \
+                    sys.stderr.write(warnings.formatwarning(message, category, filename, lineno, line))
+                entry()
+        except SystemExit as stop:
+            code = stop.code if isinstance(stop.code, int) else (0 if stop.code is None else 1)
+        finally:
+            faulthandler.cancel_dump_traceback_later()
+            sys.stdout.close()
+            sys.stderr.close()
+            sys.argv, cwd, environ, sys.stdout, sys.stderr = saved
+            os.dup2(saved_fds[0], 1)
+            os.dup2(saved_fds[1], 2)
+            os.chdir(cwd)
+            os.environ.clear()
+            os.environ.update(environ)
+            for handler in root.handlers:  # Hydra's console and log-file handlers
+                if handler not in saved_handlers:
+                    handler.close()
+            root.handlers[:] = saved_handlers
+            root.setLevel(saved_level)
+        out_file.seek(0)
+        err_file.seek(0)
+        said = [f.read().decode(errors="backslashreplace") for f in (out_file, err_file)]
+    for fd in saved_fds:
+        os.close(fd)
+    return subprocess.CompletedProcess(argv, code, *said)
 
 
 @pytest.fixture(scope="module")

@@ -303,25 +303,40 @@ def test_missing_data_directory_is_a_clear_message(tmp_path):
     assert code == 2 and "has no manifest.json" in said
 
 
-def test_bench_here_ends_as_the_command_in_its_own_process_and_leaves_no_hydra_state(tmp_path):
+def test_bench_here_ends_as_the_command_in_its_own_process_and_leaves_this_one_as_it_was(tmp_path, monkeypatch):
     """conftest.bench_here, which the command tests use where a process adds nothing: a command that gets
-    as far as Hydra's logging and then stops ends with the exit code and the last line `python -m bench`
-    gives in a process of its own, and leaves the logging, Hydra, the working folder and sys.argv as it
-    found them."""
+    as far as Hydra's logging and then stops ends with the exit code and the output `python -m bench`
+    gives in a process of its own (lines written to the file descriptors and warnings included), and
+    leaves the logging, the SIGTERM handler, the environment, the working folder and sys.argv as it found
+    them."""
     import logging
-    from hydra.core.global_hydra import GlobalHydra
-    from hydra.core.hydra_config import HydraConfig
+    import signal
+    import warnings
     args = ("+experiment=smoke", "render_data=false", f"data_dir={tmp_path}/nowhere", f"runs_dir={tmp_path}/runs",
             f"results_dir={tmp_path}/results")
     root = logging.getLogger()
-    before = (root.handlers[:], root.level, os.getcwd(), sys.argv[:])
+    state = lambda: (root.handlers[:], root.level, signal.getsignal(signal.SIGTERM), dict(os.environ), os.getcwd(),
+                     sys.argv[:])
+    before = state()
     here = bench_here(*args)
-    assert (root.handlers, root.level, os.getcwd(), sys.argv) == before
-    assert not GlobalHydra.instance().is_initialized() and not HydraConfig.initialized()
+    assert state() == before
     assert list((tmp_path / "runs").glob("hydra/*/cli.log")), "the command got as far as Hydra's logging"
     there = bench(*args)
     assert here.returncode == there.returncode == 2
     assert here.stderr.strip().splitlines()[-1] == there.stderr.strip().splitlines()[-1]
+
+    from bench.experiments import table
+    ready_data = table.ready_data
+
+    def loud(*a, **k):  # what a C++ library or a child process writes, and a warning, before the same stop
+        os.write(2, b"written to fd 2\n")
+        warnings.warn("a warning a fresh process prints")
+        return ready_data(*a, **k)
+    monkeypatch.setattr(table, "ready_data", loud)
+    noisy = bench_here(*args)
+    lines = noisy.stderr.strip().splitlines()
+    assert lines[0] == "written to fd 2" and "UserWarning: a warning a fresh process prints" in lines[1]
+    assert lines[-1] == here.stderr.strip().splitlines()[-1]
 
 
 def test_unwritable_runs_directory_is_one_line_not_a_hydra_traceback(tmp_path):

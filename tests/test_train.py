@@ -446,14 +446,17 @@ def test_the_compiled_training_step_traces_forward_losses_and_backward_as_eager_
     them): torch.compile with the recipe's mode, over forward and losses, whose backward is the traced
     graph's (TorchDynamo and AOT autograd: backend aot_eager); eager's losses, gradient norms and weights;
     the identity names the option."""
+    from torch._dynamo.utils import counters
     modes, compile_ = [], torch.compile
 
     def traced(fn, mode=None):
         modes.append(mode)
         return compile_(fn, backend="aot_eager")
     monkeypatch.setattr(torch, "compile", traced)
+    counters.clear()
     _compiled_matches_eager(tmp_path)
     assert modes == ["default"]                          # compiled once, with the recipe's mode
+    assert counters["aot_autograd"]["ok"] >= 1 and not counters["graph_break"], dict(counters)  # traced, whole
 
 
 def _item(t=3, c=8, seed=0):
