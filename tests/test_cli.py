@@ -15,7 +15,7 @@ import torch
 from hydra import compose, initialize_config_dir
 from omegaconf import OmegaConf
 
-from bench.cli import (CONF_DIR, apply_pin, available_experiments, available_studies, choice_problem, entry,
+from bench.cli import (CONF_DIR, apply_pin, available_experiments, available_studies, choice_problem,
                        make_context)
 from bench.experiments import KINDS
 from bench.experiments.results_page import CONTROLS, PAPER_TABLES
@@ -273,14 +273,11 @@ def test_recorded_models_score_another_dataset_without_retraining(smoke_dirs):
     assert set(before["runs"]).isdisjoint(after["runs"])
 
 
-def test_an_unknown_study_is_one_line_listing_the_studies(monkeypatch, capsys):
-    """`python -m bench +study=no_such_study` (bench.cli.entry, in this process: it stops before Hydra)."""
-    monkeypatch.setattr(sys, "argv", ["bench", "+study=no_such_study", "preset=smoke"])
-    monkeypatch.chdir(REPO)                                   # elsewhere, the working folder is refused first
-    with pytest.raises(SystemExit) as stop:
-        entry()
-    assert stop.value.code == 2
-    assert capsys.readouterr().err.strip().splitlines() == [
+def test_an_unknown_study_is_one_line_listing_the_studies():
+    """`python -m bench +study=no_such_study`: it stops before Hydra."""
+    out = bench_here("+study=no_such_study", "preset=smoke")
+    assert out.returncode == 2
+    assert out.stderr.strip().splitlines() == [
         f"error: +study=no_such_study: no conf/study/no_such_study.yaml; available: {', '.join(available_studies())}"]
 
 

@@ -31,7 +31,8 @@ SMOKE = ["+experiment=smoke", "preset=smoke", "data.lr_width=8", "data.lr_height
 SCORES = ["method", "relMSE", "PSNR", "SSIM"]
 
 
-def bench(*args):
+def smoke_table(*args):
+    """`python -m bench` with SMOKE and `args`, in this process (conftest.bench_here)."""
     return bench_here(*SMOKE, *args)
 
 
@@ -44,7 +45,7 @@ def store(root, archive, data_dir, *more):
 def trained(tmp_path_factory):
     """The smoke table computed once, its runs archived (runs_archive, as the cpu preset keeps them)."""
     root = tmp_path_factory.mktemp("trained")
-    out = bench(*store(root, root / "archive", root / "data"))
+    out = smoke_table(*store(root, root / "archive", root / "data"))
     assert out.returncode == 0, out.stderr[-3000:]
     return root
 
@@ -91,7 +92,7 @@ def test_recorded_models_score_your_frames_on_a_fresh_clone_rendering_and_traini
     table that trained them (same frames)."""
     mine = copy_of_split(trained / "data", "val", tmp_path / "mine")
     archived_evaluations = sorted(p.name for p in (trained / "archive" / "eval").iterdir())
-    out = bench(*store(tmp_path, trained / "archive", tmp_path / "nowhere"), f"eval.data_dir={mine}")
+    out = smoke_table(*store(tmp_path, trained / "archive", tmp_path / "nowhere"), f"eval.data_dir={mine}")
     assert out.returncode == 0, out.stderr[-3000:]
     # the archive is read for the models; the scores of your frames stay out of it (it is committed)
     assert sorted(p.name for p in (trained / "archive" / "eval").iterdir()) == archived_evaluations
@@ -115,7 +116,7 @@ def test_a_fresh_clone_regenerates_a_recorded_table_rendering_and_training_nothi
     training; only the crops figure, which reads frames, is not redrawn (it says so)."""
     cards = list((trained / "archive" / "frames").glob("*.json.gz"))
     assert len(cards) == 1
-    out = bench(*store(tmp_path, trained / "archive", tmp_path / "nowhere"))
+    out = smoke_table(*store(tmp_path, trained / "archive", tmp_path / "nowhere"))
     assert out.returncode == 0, out.stderr[-3000:]
     log = out.stdout + out.stderr
     assert "every evaluation is recorded: nothing is rendered or trained" in log and "crops figure not redrawn" in log
@@ -143,7 +144,7 @@ def test_a_training_without_recorded_weights_is_one_line_before_anything_is_scor
     for weights in [*archive.glob(f"train/*/{CHECKPOINT}"), *archive.glob(f"train/*/{archived.WEIGHTS}")]:
         weights.unlink()
     mine = copy_of_split(trained / "data", "val", tmp_path / "mine")
-    out = bench(*store(tmp_path, archive, tmp_path / "nowhere"), f"eval.data_dir={mine}")
+    out = smoke_table(*store(tmp_path, archive, tmp_path / "nowhere"), f"eval.data_dir={mine}")
     assert out.returncode == 2 and "Traceback" not in out.stderr, out.stderr[-3000:]
     message = [line for line in out.stderr.splitlines() if "eval.data_dir" in line]
     assert len(message) == 1 and "Ours seed 0: its training" in message[0] and "without weights" in message[0]
@@ -156,7 +157,7 @@ def test_a_fresh_clone_scores_the_frozen_test_split_rendering_only_it(trained, t
     """The archive holds every training of the table, so a table on a new (frozen) test split renders that
     split alone, not the training data, and reports it as the split nothing was chosen on."""
     test_split = "+data.splits.test={families:[bathroom],sequences:1}"
-    out = bench(*store(tmp_path, trained / "archive", tmp_path / "data"), test_split)
+    out = smoke_table(*store(tmp_path, trained / "archive", tmp_path / "data"), test_split)
     assert out.returncode == 0, out.stderr[-3000:]
     assert sorted(p.name for p in (tmp_path / "data").iterdir() if p.is_dir()) == ["test"]
     assert {f["split"] for f in load_manifest(tmp_path / "data")["frames"]} == {"test"}
@@ -172,7 +173,7 @@ def test_a_table_that_must_train_renders_the_training_and_working_splits_not_the
     scored one; a split no one reads (here an extra one, as generalization is to the sota table) stays
     unrendered."""
     extra = "+data.splits.extra={families:[bathroom],sequences:1}"
-    out = bench(*store(tmp_path, tmp_path / "archive", tmp_path / "data"), extra)
+    out = smoke_table(*store(tmp_path, tmp_path / "archive", tmp_path / "data"), extra)
     assert out.returncode == 0, out.stderr[-3000:]
     assert sorted(p.name for p in (tmp_path / "data").iterdir() if p.is_dir()) == ["train", "val"]
     assert "trained in" in out.stdout + out.stderr
@@ -279,7 +280,7 @@ def test_your_damaged_frame_is_one_line_naming_it_and_eval_data_dir_before_anyth
     else:
         Path(hr).write_bytes(Path(hr).read_bytes()[:os.path.getsize(hr) * 2 // 3])  # header whole, pixels cut
         bad = hr
-    out = bench(*store(tmp_path, trained / "archive", tmp_path / "nowhere"), f"eval.data_dir={mine}")
+    out = smoke_table(*store(tmp_path, trained / "archive", tmp_path / "nowhere"), f"eval.data_dir={mine}")
     assert out.returncode == 2, out.stderr[-3000:]
     lines = [x for x in out.stderr.splitlines() if x.strip()]
     assert len(lines) == 1 and lines[0].startswith("error: data: 1 damaged frame files in eval.data_dir="), out.stderr
