@@ -56,15 +56,39 @@ if compgen -G ".whl/*.whl" > /dev/null; then
 fi
 export PYTHONPATH=/tmp/site:$PWD${PYTHONPATH:+:$PYTHONPATH}
 
-tag=$("$PYTHON" -c "from bench.experiments.speed import device_tag; print(device_tag('$DEVICE'))") \
-    || { echo "gpu_job: bench does not import (missing packages? carry them as wheels)"; exit 1; }
+# what the job asks of Python, in one start (each imports torch, 2-3 s): the machine's directory name; the
+# kernels' digest: a record counts for these kernels only, so a change to their code (not a comment or
+# docstring: the syntax tree, as run fingerprints hash it) is tested again before they are used; the
+# versions and the GPU the tests record names
+probe=$("$PYTHON" - "$DEVICE" <<'PY'
+import hashlib, sys
+from pathlib import Path
+try:
+    import torch
+    from bench.experiments.speed import device_tag
+    from bench.runs import source_hash
+except ImportError as err:
+    sys.exit(f"gpu_job: bench does not import (missing packages? carry them as wheels): {err}")
+try:
+    joined = "".join(source_hash(Path(p)) for p in ("bench/nn/triton_kernels.py", "bench/nn/fused.py",
+                                                    "bench/nn/deform.py", "bench/nn/cfm.py"))
+except SyntaxError as err:
+    sys.exit(f"gpu_job: the kernels' sources do not parse: {err}")
+try:
+    import triton
+    triton_version = triton.__version__
+except ImportError:
+    triton_version = "none"
+gpu = torch.cuda.get_device_name() if torch.cuda.is_available() else ""
+print(device_tag(sys.argv[1]))
+print(hashlib.sha256((joined + "\n").encode()).hexdigest()[:16])  # as `print(joined) | sha256sum` gave it
+print(gpu)
+print("torch", torch.__version__, "triton", triton_version, gpu)
+PY
+) || exit 1
+{ read -r tag; read -r kernels; read -r gpu; read -r versions; } <<< "$probe"
 echo "gpu_job: $(date -u +%FT%TZ) on $tag, steps: $STEPS"
 tests_record=results/gpu/cuda_tests/$tag.txt
-# the record counts for these kernels only: a change to their code (not a comment or docstring: the
-# syntax tree, as run fingerprints hash it) is tested again before they are used
-kernels=$("$PYTHON" -c "from pathlib import Path; from bench.runs import source_hash
-print(''.join(source_hash(Path(p)) for p in ('bench/nn/triton_kernels.py', 'bench/nn/fused.py', 'bench/nn/deform.py', 'bench/nn/cfm.py')))" \
-    | sha256sum | cut -c1-16) || { echo "gpu_job: the kernels' sources do not parse"; exit 1; }
 tests_passed() { grep -q "^passed" "$tests_record" 2>/dev/null && grep -q "^kernels: $kernels" "$tests_record"; }
 
 step_tests() {
@@ -74,14 +98,12 @@ step_tests() {
     SRD_BENCH_FUSED_GPU=1 timeout "$(step_limit)" "$PYTHON" -m pytest -q -p no:cacheprovider tests/test_cuda.py \
         tests/test_fused_gpu.py > "$log" 2>&1
     local rc=$?
-    local gpu
-    gpu=$("$PYTHON" -c "import torch; print(torch.cuda.get_device_name() if torch.cuda.is_available() else '')")
     [ -n "$gpu" ] || rc="no CUDA GPU: the CUDA tests skipped"   # never a "passed" without a GPU
     { [ "$rc" = 0 ] && echo passed || echo "failed ($rc)"
       echo "kernels: $kernels"
       echo "command: SRD_BENCH_FUSED_GPU=1 pytest -q tests/test_cuda.py tests/test_fused_gpu.py"
       echo "date: $(date -u +%FT%TZ)"
-      "$PYTHON" -c "import torch, triton; print('torch', torch.__version__, 'triton', triton.__version__, '$gpu')"
+      echo "$versions"
       tail -40 "$log"; } > "$tests_record"
     tail -5 "$log"
 }

@@ -4,6 +4,8 @@ stops both at the same step, and the checkpoint resumes."""
 import os
 import signal
 import socket
+import sys
+from multiprocessing import forkserver
 
 import pandas as pd
 import pytest
@@ -74,14 +76,30 @@ def _rank(rank, port, out_dir, term_at_draw, term_rank, term_backward, results):
         dist.destroy_process_group()
 
 
+def _start_forkserver():
+    """Each rank a fresh process, forked from a server that imported this module, torch and TorchDynamo (the
+    first optimizer imports it) once per test run: spawned, each of the file's 10 ranks imported them itself,
+    6-7 s of CPU a rank. Python 3.11's forkserver does not take this process's sys.path before it imports
+    what it preloads (3.12 does) and skips a module it cannot import: PYTHONPATH gives it the path. A
+    server already running is kept (what it preloaded stays)."""
+    mp.set_forkserver_preload([__name__, "torch._dynamo"])
+    path = os.environ.get("PYTHONPATH")
+    os.environ["PYTHONPATH"] = os.pathsep.join(p for p in sys.path if p)
+    try:
+        forkserver.ensure_running()
+    finally:
+        if path is None:
+            del os.environ["PYTHONPATH"]
+        else:
+            os.environ["PYTHONPATH"] = path
+
+
 def _two_ranks(out_dir, term_at_draw=None, term_rank=1, term_backward=None):
     with socket.socket() as s:  # a free port for the rendezvous
         s.bind(("127.0.0.1", 0))
         port = s.getsockname()[1]
     results = mp.Manager().dict()
-    # each rank a fresh process, forked from a server that imported this module once per test run: spawned
-    # ranks each imported torch and the project first, seconds a rank (10 ranks in this file)
-    mp.set_forkserver_preload([__name__])
+    _start_forkserver()
     mp.start_processes(_rank, args=(port, str(out_dir), term_at_draw, term_rank, term_backward, results), nprocs=2,
                        start_method="forkserver")
     return dict(results)
