@@ -19,6 +19,7 @@ from bench.train import CHECKPOINT, TrainingInterrupted, train
 from conftest import config_recipe
 from test_train import WEIGHTS, SyntheticSequences
 
+IMPORTED_IN = os.getpid()  # in a rank: the forkserver's, which imported this module for the ranks (_start_forkserver)
 MODELS = {"srd": dict(channels=4, sr_blocks=1, dn_levels=2, dn_deform_blocks=1, cond_channels=4)}
 
 
@@ -57,6 +58,8 @@ def _term_in_backward(model, backward_index):
 
 
 def _rank(rank, port, out_dir, term_at_draw, term_rank, term_backward, results):
+    assert IMPORTED_IN != os.getpid() and "torch._dynamo" in sys.modules, \
+        "the forkserver did not preload this module and TorchDynamo: each rank imports them again"
     os.environ.update(MASTER_ADDR="127.0.0.1", MASTER_PORT=str(port))
     torch.set_num_threads(1)
     dist.init_process_group("gloo", rank=rank, world_size=2)
@@ -78,10 +81,10 @@ def _rank(rank, port, out_dir, term_at_draw, term_rank, term_backward, results):
 
 def _start_forkserver():
     """Each rank a fresh process, forked from a server that imported this module, torch and TorchDynamo (the
-    first optimizer imports it) once per test run: spawned, each of the file's 10 ranks imported them itself,
-    6-7 s of CPU a rank. Python 3.11's forkserver does not take this process's sys.path before it imports
-    what it preloads (3.12 does) and skips a module it cannot import: PYTHONPATH gives it the path. A
-    server already running is kept (what it preloaded stays)."""
+    first optimizer imports it) once per test run, not each of the file's 10 ranks (6-7 s of CPU a rank).
+    Python 3.11's forkserver does not take this process's sys.path before it imports what it preloads (3.12
+    does) and skips, silently, a module it cannot import: PYTHONPATH gives it the path (`_rank` checks the
+    preload took). A server already running is kept (what it preloaded stays)."""
     mp.set_forkserver_preload([__name__, "torch._dynamo"])
     path = os.environ.get("PYTHONPATH")
     os.environ["PYTHONPATH"] = os.pathsep.join(p for p in sys.path if p)
