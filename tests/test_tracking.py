@@ -9,7 +9,6 @@ from pathlib import Path
 
 import pandas as pd
 import pytest
-from mlflow.tracking import MlflowClient
 
 from bench import runs, tracking
 from conftest import SMOKE_DATA, bench_here
@@ -40,6 +39,8 @@ def store(tmp_path_factory, smoke_data):
 
 
 def client_of(root):
+    # imported here, not at the top: both xdist workers collect every file, one runs this one (MLflow: 1-2 s)
+    from mlflow.tracking import MlflowClient
     return MlflowClient(tracking_uri=tracking.default_uri(root / "runs"))
 
 
