@@ -294,7 +294,6 @@ def test_adopt_never_takes_a_nan_for_a_match():
 def test_the_differential_check_refuses_a_replay_that_did_not_run_the_recorded_code(monkeypatch, tmp_path):
     """The subprocess reports the fingerprint of what it imported; one file that is not the recorded
     version (the rebuilt tree shadowed, a search that picked another blob) fails the check."""
-    from bench.errors import UserError
     from bench.experiments import recorded_code, replay
     monkeypatch.setattr(recorded_code, "rebuild", lambda recorded, current, dest, commit=None: dest)
     monkeypatch.setattr(recorded_code, "replay_there", lambda tree, job: {"code": {"bench/x.py": "today"}})
