@@ -61,18 +61,20 @@ export PYTHONPATH=/tmp/site:$PWD${PYTHONPATH:+:$PYTHONPATH}
 # docstring: the syntax tree, as run fingerprints hash it) is tested again before they are used; the
 # versions and the GPU the tests record names
 probe=$("$PYTHON" - "$DEVICE" <<'PY'
-import hashlib, sys
+import hashlib, sys, traceback
 from pathlib import Path
 try:
     import torch
     from bench.experiments.speed import device_tag
     from bench.runs import source_hash
 except Exception as err:  # noqa: BLE001 - any failure to import is this one message, as before
+    traceback.print_exc()
     sys.exit(f"gpu_job: bench does not import (missing packages? carry them as wheels): {err}")
 try:
     joined = "".join(source_hash(Path(p)) for p in ("bench/nn/triton_kernels.py", "bench/nn/fused.py",
                                                     "bench/nn/deform.py", "bench/nn/cfm.py"))
 except Exception as err:  # noqa: BLE001 - a file missing or not Python
+    traceback.print_exc()
     sys.exit(f"gpu_job: the kernels' sources do not parse: {err}")
 try:
     import triton
@@ -87,6 +89,8 @@ print("torch", torch.__version__, "triton", triton_version, gpu)
 PY
 ) || exit 1
 { read -r tag; read -r kernels; read -r gpu; read -r versions; } <<< "$probe"
+# the values come by line: a line printed by an import would shift them
+[[ $kernels =~ ^[0-9a-f]{16}$ ]] || { echo "gpu_job: the start-up probe printed more than its four lines: $probe"; exit 1; }
 echo "gpu_job: $(date -u +%FT%TZ) on $tag, steps: $STEPS"
 tests_record=results/gpu/cuda_tests/$tag.txt
 tests_passed() { grep -q "^passed" "$tests_record" 2>/dev/null && grep -q "^kernels: $kernels" "$tests_record"; }

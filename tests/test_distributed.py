@@ -82,9 +82,10 @@ def _rank(rank, port, out_dir, term_at_draw, term_rank, term_backward, results):
 def _start_forkserver():
     """Each rank a fresh process, forked from a server that imported this module, torch and TorchDynamo (the
     first optimizer imports it) once per test run, not each of the file's 10 ranks (6-7 s of CPU a rank).
-    Python 3.11's forkserver does not take this process's sys.path before it imports what it preloads (3.12
-    does) and skips, silently, a module it cannot import: PYTHONPATH gives it the path (`_rank` checks the
-    preload took). A server already running is kept (what it preloaded stays)."""
+    The forkserver imports what it preloads without this process's sys.path (Python 3.11's ignores the
+    sys_path it is given) and skips, silently, a module it cannot import: PYTHONPATH gives it the path
+    (`_rank` checks the preload took). This process's PYTHONPATH is put back; the server, and the ranks it
+    forks, keep the one they started with. A server already running is kept (what it preloaded stays)."""
     mp.set_forkserver_preload([__name__, "torch._dynamo"])
     path = os.environ.get("PYTHONPATH")
     os.environ["PYTHONPATH"] = os.pathsep.join(p for p in sys.path if p)
@@ -101,8 +102,8 @@ def _two_ranks(out_dir, term_at_draw=None, term_rank=1, term_backward=None):
     with socket.socket() as s:  # a free port for the rendezvous
         s.bind(("127.0.0.1", 0))
         port = s.getsockname()[1]
+    _start_forkserver()  # first: where forkserver is the default start method, the Manager would start it
     results = mp.Manager().dict()
-    _start_forkserver()
     mp.start_processes(_rank, args=(port, str(out_dir), term_at_draw, term_rank, term_backward, results), nprocs=2,
                        start_method="forkserver")
     return dict(results)
