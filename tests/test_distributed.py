@@ -6,6 +6,7 @@ import signal
 import socket
 import sys
 from multiprocessing import forkserver
+from unittest import mock
 
 import pandas as pd
 import pytest
@@ -87,15 +88,8 @@ def _start_forkserver():
     (`_rank` checks the preload took). This process's PYTHONPATH is put back; the server, and the ranks it
     forks, keep the one they started with. A server already running is kept (what it preloaded stays)."""
     mp.set_forkserver_preload([__name__, "torch._dynamo"])
-    path = os.environ.get("PYTHONPATH")
-    os.environ["PYTHONPATH"] = os.pathsep.join(p for p in sys.path if p)
-    try:
+    with mock.patch.dict(os.environ, PYTHONPATH=os.pathsep.join(p for p in sys.path if p)):
         forkserver.ensure_running()
-    finally:
-        if path is None:
-            del os.environ["PYTHONPATH"]
-        else:
-            os.environ["PYTHONPATH"] = path
 
 
 def _two_ranks(out_dir, term_at_draw=None, term_rank=1, term_backward=None):
