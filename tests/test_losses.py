@@ -8,7 +8,6 @@ from pathlib import Path
 import numpy as np
 import pytest
 import scipy.ndimage
-import scipy.signal
 import torch
 from skimage.metrics import structural_similarity
 
@@ -37,6 +36,7 @@ def test_hfen_matches_scipy_gaussian_laplace():
 def test_log_interior_matches_explicit_2d_kernel():
     """Away from borders, the separable filter equals a correlation with the explicit 15x15 kernel
     built from scipy.ndimage's 1D Gaussian derivative weights."""
+    import scipy.signal  # here, not at collection: 1 s of every pytest-xdist worker's start, for two tests
     impulse = np.zeros((15, 15))
     impulse[7, 7] = 1
     kernel = _scipy_log(impulse)  # impulse response = the 2D LoG kernel (symmetric)
@@ -51,6 +51,7 @@ def test_separable_filter_and_its_gradient_match_scipy_valid_correlation():
     """The banded-matrix filter (used for speed on training crops) is a valid 2D correlation with
     ky (rows) x kx (columns), different lengths and a non-square plane included; its gradient is the
     adjoint, a full convolution with the same kernel (checked through SciPy too)."""
+    import scipy.signal
     rng = np.random.default_rng(2)
     planes, ky, kx = rng.random((3, 20, 13)), rng.random(7), rng.random(5)
     kernel = np.outer(ky, kx)

@@ -61,12 +61,13 @@ def views(root, n=2, frames=2):
     return root
 
 
-def predict(*args, umask=None):
-    """`srd-bench predict` (fp32: the reference path, nothing measured) as its console script runs it,
-    `bench.predict.main` in this process; in a process of its own where `umask` is given (a new process's
-    umask is what that test checks), which also runs the module as a program."""
+def srd_bench(*args, umask=None) -> subprocess.CompletedProcess:
+    """`srd-bench ARGS`: its console script's function (bench.predict.main) called in this process, with its
+    exit code (argparse's exit on a bad argument included) and what it printed; in a process of its own
+    where `umask` is given (a new process's umask is what that test checks), which also runs the module as
+    a program."""
     from bench.predict import main
-    argv = ["predict", "--fast-path", "fp32", *map(str, args)]
+    argv = [str(a) for a in args]
     if umask is not None:
         return subprocess.run([sys.executable, "-m", "bench.predict", *argv], cwd=REPO, capture_output=True,
                               text=True, timeout=120, env=dict(os.environ, PYTHONPATH=str(REPO)),
@@ -77,7 +78,12 @@ def predict(*args, umask=None):
             code = main(argv)
         except SystemExit as stop:  # argparse's exit on a bad argument
             code = stop.code
-    return subprocess.CompletedProcess(argv, code, stdout.getvalue(), stderr.getvalue())
+    return subprocess.CompletedProcess(["srd-bench", *argv], code, stdout.getvalue(), stderr.getvalue())
+
+
+def predict(*args, umask=None):
+    """`srd-bench predict` on the fp32 path (the reference path, nothing measured)."""
+    return srd_bench("predict", "--fast-path", "fp32", *args, umask=umask)
 
 
 def one_line_error(out, *fragments):

@@ -14,7 +14,7 @@ import pytest
 
 from bench import exrio
 from bench.evaluate import SCORES
-from test_predict_folders import REPO, write_lr, write_weights
+from test_predict_folders import REPO, srd_bench, write_lr, write_weights
 
 SEQUENCES, FRAMES, LR = ("atrium-1-v0", "atrium-1-v1"), 3, (16, 16)
 TABLE = REPO / "results" / "cpu" / "sota" / "table.csv"
@@ -34,14 +34,6 @@ def write_dataset(root):
     return root
 
 
-def srd_bench(*args):
-    # one thread here and in the fixture's evaluator: the same summation order, so scores agree to 1e-6
-    # (other test files leave torch at one thread; predict in a fresh process would take two)
-    env = dict(os.environ, PYTHONPATH=str(REPO), OMP_NUM_THREADS="1")
-    return subprocess.run([sys.executable, "-m", "bench.predict", *map(str, args)], cwd=REPO, capture_output=True,
-                          text=True, timeout=120, env=env)
-
-
 @pytest.fixture(scope="module")
 def scored(tmp_path_factory):
     """predict --fast-path fp32 on data/val, the evaluator on the same frames (recorded as an evaluation
@@ -54,12 +46,12 @@ def scored(tmp_path_factory):
     from bench.tasks import get_task
     root = tmp_path_factory.mktemp("score")
     data, weights = write_dataset(root / "data"), write_weights(root / "rae.pt")
+    torch.set_num_threads(1)  # predict and the evaluator alike: the same summation order, so scores agree to 1e-6
     out = srd_bench("predict", "--weights", weights, "--fast-path", "fp32", "--output-dir", root / "out", data / "val")
     assert out.returncode == 0, out.stderr
     model, meta = load_exported(weights)
     task = get_task("srd")
     torch.manual_seed(0)
-    torch.set_num_threads(1)
     per_image, metrics = evaluate(model, SequenceDataset(data, "val", task.buffers(with_mid=False)), task,
                                   hdr=meta["hdr"], out_dir=root / "eval")
     (root / "eval" / runs.RECORD).write_text(json.dumps({"kind": "eval", "status": "complete", "metrics": metrics}))
