@@ -81,7 +81,7 @@ def srd_bench(*args, umask=None) -> subprocess.CompletedProcess:
     return subprocess.CompletedProcess(["srd-bench", *argv], code, stdout.getvalue(), stderr.getvalue())
 
 
-def predict(*args, umask=None):
+def predict(*args, umask=None) -> subprocess.CompletedProcess:
     """`srd-bench predict` on the fp32 path (the reference path, nothing measured)."""
     return srd_bench("predict", "--fast-path", "fp32", *args, umask=umask)
 
