@@ -148,22 +148,35 @@ def bench(*args, cwd=REPO, timeout=600):
 
 
 def bench_here(*args, timeout=600) -> subprocess.CompletedProcess:
-    """`python -m bench ARGS` run in this process (bench.cli.entry, Hydra included), from the repository:
-    the exit code and what it printed, as `bench` returns them, without the process's seconds of imports
-    (torch, Hydra, the project: about 2.5 s of every `bench` call). As a process would show it: file
-    descriptors 1 and 2 are captured (C++ libraries' lines and child processes' too, in the order
-    written), and warnings print as in a fresh process (pytest would record them instead). Afterwards the
-    logging, the folder, argv and the environment are as before. keep_freed_memory=false unless given:
-    its mallopt would stay for the rest of this process. A command still running after `timeout` seconds
-    ends this process (pytest-xdist reports the worker gone), with every thread's traceback."""
-    import faulthandler
-    import logging
-    import tempfile
-    import warnings
+    """`python -m bench ARGS` run in this process (bench.cli.entry, Hydra included), as `command_here` runs
+    a command, without the process's seconds of imports (torch, Hydra, the project: about 2.5 s of every
+    `bench` call). keep_freed_memory=false unless given: its mallopt would stay for the rest of this
+    process."""
     from bench.cli import entry
     argv = ["bench", *map(str, args)]
     if not any(a.startswith("keep_freed_memory=") for a in argv):
         argv.append("keep_freed_memory=false")
+    return command_here(entry, argv, timeout)
+
+
+def srd_bench_here(*args, timeout=600) -> subprocess.CompletedProcess:
+    """`srd-bench ARGS` (its console script's function, bench.predict.main) run in this process, as
+    `command_here` runs a command."""
+    from bench.predict import main
+    return command_here(lambda: sys.exit(main()), ["srd-bench", *map(str, args)], timeout)
+
+
+def command_here(entry, argv, timeout) -> subprocess.CompletedProcess:
+    """`entry()` run with `argv` as sys.argv, from the repository: the exit code and what it printed, as the
+    command's process would return them. As a process would show it: file descriptors 1 and 2 are captured
+    (C++ libraries' lines and child processes' too, in the order written), and warnings print as in a fresh
+    process (pytest would record them instead). Afterwards the logging, the folder, argv and the environment
+    are as before. A command still running after `timeout` seconds ends this process (pytest-xdist reports
+    the worker gone), with every thread's traceback."""
+    import faulthandler
+    import logging
+    import tempfile
+    import warnings
     root, saved = logging.getLogger(), (sys.argv, os.getcwd(), dict(os.environ), sys.stdout, sys.stderr)
     saved_handlers, saved_level = root.handlers[:], root.level
     sys.stdout.flush()

@@ -5,7 +5,6 @@ one file, mostly non-finite frames are refused and every repair is printed, outp
 and damaged or foreign weights and a bad --tile are one line."""
 import contextlib
 import hashlib
-import io
 import json
 import os
 import subprocess
@@ -18,6 +17,7 @@ import torch
 
 from bench import exrio
 from bench.weights import FORMAT
+from conftest import srd_bench_here
 
 REPO = Path(__file__).resolve().parent.parent
 RAE = {"_target_": "baselines.rae.RAE", "width": 8}        # recurrent: its state crosses frames
@@ -62,23 +62,13 @@ def views(root, n=2, frames=2):
 
 
 def srd_bench(*args, umask=None) -> subprocess.CompletedProcess:
-    """`srd-bench ARGS`: its console script's function (bench.predict.main) called in this process, with its
-    exit code (argparse's exit on a bad argument included) and what it printed; in a process of its own
-    where `umask` is given (a new process's umask is what that test checks), which also runs the module as
-    a program."""
-    from bench.predict import main
-    argv = [str(a) for a in args]
-    if umask is not None:
-        return subprocess.run([sys.executable, "-m", "bench.predict", *argv], cwd=REPO, capture_output=True,
-                              text=True, timeout=120, env=dict(os.environ, PYTHONPATH=str(REPO)),
-                              preexec_fn=lambda: os.umask(umask))
-    stdout, stderr = io.StringIO(), io.StringIO()
-    with contextlib.redirect_stdout(stdout), contextlib.redirect_stderr(stderr):
-        try:
-            code = main(argv)
-        except SystemExit as stop:  # argparse's exit on a bad argument
-            code = stop.code
-    return subprocess.CompletedProcess(["srd-bench", *argv], code, stdout.getvalue(), stderr.getvalue())
+    """`srd-bench ARGS` in this process (conftest.srd_bench_here); in a process of its own where `umask` is
+    given (a new process's umask is what that test checks), which also runs the module as a program."""
+    if umask is None:
+        return srd_bench_here(*args)
+    return subprocess.run([sys.executable, "-m", "bench.predict", *map(str, args)], cwd=REPO, capture_output=True,
+                          text=True, timeout=120, env=dict(os.environ, PYTHONPATH=str(REPO)),
+                          preexec_fn=lambda: os.umask(umask))
 
 
 def predict(*args, umask=None) -> subprocess.CompletedProcess:
