@@ -408,21 +408,27 @@ def main(argv=None) -> int:
                                      description="Convert a run archive's trainings and evaluations in place to the compact form.")
     parser.add_argument("archive", type=Path, help="an archive directory, e.g. results/cpu/runs (with --verify: "
                                                    "a run store too, e.g. runs)")
-    parser.add_argument("--drop-unlisted", type=Path, metavar="RESULTS_DIR",
-                        help="instead: delete the evaluations no table under RESULTS_DIR (e.g. results/cpu) lists")
-    parser.add_argument("--first-seed-weights", action="store_true",
-                        help="instead: delete the weights of every training that is not the lowest seed of its row "
-                             "(keeps the committed tree small; docs/runs.md)")
+    instead = parser.add_mutually_exclusive_group()   # one action a call; without any, the conversion
+    instead.add_argument("--drop-unlisted", type=Path, metavar="RESULTS_DIR",
+                         help="instead: delete the evaluations no table under RESULTS_DIR (e.g. results/cpu) lists")
+    instead.add_argument("--first-seed-weights", action="store_true",
+                         help="instead: delete the weights of every training that is not the lowest seed of its "
+                              "row (keeps the committed tree small; docs/runs.md)")
+    instead.add_argument("--verify", action="store_true",
+                         help="instead: check every run's files against the sizes and digests its record lists; "
+                              "exit 1 if any is damaged (nothing is changed: a damaged run is computed again, or "
+                              "rebuilt, by the next command that needs it)")
     parser.add_argument("--dry-run", action="store_true",
                         help="with --drop-unlisted or --first-seed-weights: name them, delete nothing")
-    parser.add_argument("--verify", action="store_true",
-                        help="instead: check every run's files against the sizes and digests its record lists; "
-                             "exit 1 if any is damaged (nothing is changed: a damaged run is computed again, or "
-                             "rebuilt, by the next command that needs it)")
     parser.add_argument("--list-unlisted", action="store_true",
                         help="with --verify: give each complete run recorded before file lists, whose every file "
                              "reads whole, its list now (its record is rewritten)")
     args = parser.parse_args(argv)
+    # a flag that qualifies an action never runs the conversion, which rewrites the archive, in its place
+    if args.dry_run and args.drop_unlisted is None and not args.first_seed_weights:
+        parser.error("--dry-run goes with --drop-unlisted or --first-seed-weights (the conversion has none)")
+    if args.list_unlisted and not args.verify:
+        parser.error("--list-unlisted goes with --verify")
     if args.verify:
         if not args.archive.is_dir():
             print(f"error: {args.archive} is not a directory", file=sys.stderr)

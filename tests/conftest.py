@@ -128,6 +128,18 @@ SMALL = {
 }
 
 
+def perturbed(model, std=0.02, seed=0):
+    """`model` with N(0, std) added to every parameter, in place. At initialisation the learned models'
+    zero convs (the input_residual output conv, CFM gamma/beta, deform offsets) make the output the
+    bilinear upsample exactly, whatever the gBuffer or the other frames: a test of what the network does
+    with its inputs needs these perturbed."""
+    gen = torch.Generator().manual_seed(seed)
+    with torch.no_grad():
+        for p in model.parameters():
+            p.add_(std * torch.randn(p.shape, generator=gen, dtype=p.dtype).to(p.device))
+    return model
+
+
 def inputs(b=2, t=3, h=13, w=17, g=7, seed=0):
     """Noisy LR frames (b, t, 3, h, w) and a gBuffer (b, t, g, h, w), uniform in [0, 1)."""
     gen = torch.Generator().manual_seed(seed)
@@ -137,6 +149,11 @@ def inputs(b=2, t=3, h=13, w=17, g=7, seed=0):
 # ---------------------------------------------------------------- the command line, and a smoke run store
 
 REPO = Path(__file__).resolve().parents[1]
+# What the project's shared folder beside a checkout holds (not shipped: the product never reads it; the
+# tests of these files skip where it is absent, as in a CI clone elsewhere): the paper's full text (its
+# LaTeX tables and the loss ratios) and two partial torchvision VGG16 files.
+PAPER_TEXT = Path(os.environ.get("SRD_PAPER_TEXT") or REPO.parent / "shared" / "seed" / "000_0570fe89fc995d8b.txt")
+VGG16_WEIGHTS_DIR = Path(os.environ.get("SRD_VGG16_WEIGHTS_DIR") or REPO.parent / "shared" / "weights")
 
 
 def bench(*args, cwd=REPO, timeout=600):

@@ -94,6 +94,25 @@ def test_the_converter_is_idempotent_and_gives_what_archiving_gives(tmp_path):
     assert archived.main([str(tmp_path / "nothing")]) == 2
 
 
+@pytest.mark.parametrize("flags,message", [
+    (["--dry-run"], "--dry-run goes with --drop-unlisted or --first-seed-weights"),
+    (["--list-unlisted"], "--list-unlisted goes with --verify"),
+    (["--first-seed-weights", "--drop-unlisted", "results"], "not allowed with argument"),
+    (["--verify", "--first-seed-weights"], "not allowed with argument"),
+])
+def test_a_flag_without_its_action_is_refused_and_the_archive_is_not_converted(tmp_path, capsys, flags, message):
+    """--dry-run alone once fell through to the conversion, which rewrites weights as float16 and deletes
+    checkpoints in place; two actions at once ran one of them."""
+    run = _trained_run(tmp_path / "runs")
+    archive = tmp_path / "archive"
+    shutil.copytree(run.dir, archive / "train" / run.hash)
+    before = {p.relative_to(archive): p.read_bytes() for p in archive.rglob("*") if p.is_file()}
+    with pytest.raises(SystemExit) as end:
+        archived.main([str(archive), *flags])
+    assert end.value.code == 2 and message in capsys.readouterr().err
+    assert {p.relative_to(archive): p.read_bytes() for p in archive.rglob("*") if p.is_file()} == before
+
+
 def test_a_damaged_compact_curve_reads_as_missing(tmp_path, caplog):
     (tmp_path / archived.COMPACT_CURVE).write_bytes(b"\x1f\x8b not a whole gzip")
     assert archived.read_curve(tmp_path) is None and "is damaged" in caplog.text

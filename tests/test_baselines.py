@@ -9,7 +9,7 @@ from baselines.edsr import EDSR
 from baselines.kpcn import KPCN
 from baselines.oidn import OIDN
 from baselines.rae import RAE
-from conftest import SMALL, inputs
+from conftest import SMALL, inputs, perturbed
 
 torch.set_num_threads(1)
 
@@ -31,10 +31,7 @@ def test_output_shape_odd_size_multi_frame(name, scale):
 def test_gradients_reach_every_parameter(name):
     cls, kwargs = SMALL[name]
     torch.manual_seed(0)
-    model = cls(**kwargs)
-    with torch.no_grad():  # zero-initialized layers (CFM gamma/beta, deform offsets) would block gradients
-        for p in model.parameters():
-            p.add_(0.01 * torch.randn_like(p))
+    model = perturbed(cls(**kwargs), std=0.01)  # zero-initialized layers (CFM gamma/beta, offsets) block gradients
     x, g = inputs(b=1, t=2)
     target = torch.rand(1, 2, 3, 26, 34)
     F.mse_loss(model(x, g)["final"], target).backward()
@@ -64,12 +61,16 @@ def test_rae_streaming_equals_forward_and_state_matters():
     assert not torch.allclose(alone, full[:, 3], atol=1e-4), "hidden state has no effect"
 
 
-def test_non_recurrent_models_treat_frames_independently():
+@pytest.mark.parametrize("name", ["edsr", "cfm", "cfm_deform", "kpcn"])
+def test_non_recurrent_models_treat_frames_independently(name):
+    cls, kwargs = SMALL[name]
     torch.manual_seed(0)
-    model = EDSR(channels=8, blocks=2)
+    model = perturbed(cls(**kwargs))   # untrained, EDSR and CFM return the bilinear upsample of each frame
     x, g = inputs(b=1, t=3)
     with torch.no_grad():
-        assert torch.allclose(model(x, g)["final"][:, 1], model(x[:, 1:2], g[:, 1:2])["final"][:, 0], atol=1e-6)
+        out = model(x, g)["final"]
+        assert (out - Bilinear()(x)["final"]).abs().max() > 1e-3, "the network adds nothing to the bilinear base"
+        assert torch.allclose(out[:, 1], model(x[:, 1:2], g[:, 1:2])["final"][:, 0], atol=1e-6)
 
 
 @pytest.mark.parametrize("scale", [1, 2])
@@ -198,13 +199,20 @@ def test_oidn_denoise_only():
 
 
 def test_fewer_gbuffer_channels_take_a_prefix():
-    """ARCHITECTURE.md: a model built with gbuffer_channels=6 uses albedo + normal of a 7-channel gBuffer."""
+    """ARCHITECTURE.md: a model built with gbuffer_channels=6 uses albedo + normal of a 7-channel gBuffer:
+    the first six channels change its output, the seventh (roughness) does not."""
     x, g = inputs(t=1)
     for cls, kwargs in (SMALL["edsr"], SMALL["cfm"]):
         torch.manual_seed(0)
-        model = cls(gbuffer_channels=6, **kwargs)
+        model = perturbed(cls(gbuffer_channels=6, **kwargs))   # untrained, the output ignores the gBuffer
+        other_roughness, other_normal = g.clone(), g.clone()
+        other_roughness[:, :, 6] = 1 - g[:, :, 6]
+        other_normal[:, :, 5] = 1 - g[:, :, 5]
         with torch.no_grad():
-            assert torch.equal(model(x, g)["final"], model(x, g[:, :, :6])["final"])
+            out = model(x, g)["final"]
+            assert torch.equal(out, model(x, g[:, :, :6])["final"])
+            assert torch.equal(out, model(x, other_roughness)["final"])
+            assert (out - model(x, other_normal)["final"]).abs().max() > 1e-4
 
 
 @pytest.mark.parametrize("name", ["edsr", "rae", "cfm"])

@@ -19,7 +19,7 @@ from bench.cli import (CONF_DIR, apply_pin, available_experiments, available_stu
                        make_context)
 from bench.experiments import KINDS
 from bench.experiments.results_page import CONTROLS, PAPER_TABLES
-from conftest import REPO, SMOKE_DATA, bench, bench_here
+from conftest import REPO, SMOKE_DATA, bench, bench_here, perturbed
 
 PRESETS = sorted(p.stem for p in (Path(CONF_DIR) / "preset").glob("*.yaml"))
 
@@ -107,10 +107,12 @@ def test_every_experiment_composes_at_every_preset(name, preset):
 def test_every_model_config_is_configured_and_keeps_the_model_contract(name):
     """Each conf/model/*.yaml: in the root config's models, built by the one factory, (B, T, C, h, w) in,
     "final" (B, T, 3, 2h, 2w) out, finite, and the same whether the sequence comes at once or frame by
-    frame for a model that is not recurrent."""
+    frame for a model that is not recurrent (its weights perturbed: untrained, a learned model returns the
+    bilinear upsample of each frame, which is frame by frame whatever the network does)."""
     from bench.models.factory import build_model
     cfg = compose_experiment("smoke", "preset=smoke")
     assert name in cfg.models, f"conf/model/{name}.yaml is not in conf/config.yaml's defaults"
+    torch.manual_seed(0)
     model = build_model(OmegaConf.to_container(cfg.models[name], resolve=True), 2)
     x, g = torch.rand(1, 2, 3, 13, 7), torch.rand(1, 2, 7, 13, 7)
     with torch.no_grad():
@@ -118,6 +120,9 @@ def test_every_model_config_is_configured_and_keeps_the_model_contract(name):
         assert out["final"].shape == (1, 2, 3, 26, 14)
         assert torch.isfinite(out["final"]).all()
         if not getattr(model, "recurrent", False):
+            if any(True for _ in model.parameters()):
+                out = perturbed(model)(x, g)
+                assert torch.isfinite(out["final"]).all()
             second = model(x[:, 1:], g[:, 1:])["final"]
             torch.testing.assert_close(second[:, 0], out["final"][:, 1], rtol=1e-4, atol=1e-5)
 

@@ -21,7 +21,7 @@ from bench.models import SRDNet
 from bench.nn import CFM, DeformConv2d, deform_conv2d, fused
 from bench.tasks import get_task
 from bench.train import load_weights, train
-from conftest import SMALL, inputs
+from conftest import SMALL, inputs, perturbed
 from test_train import TASK, SyntheticSequences, _model, _recipe
 
 pytestmark = pytest.mark.skipif(not torch.cuda.is_available(),
@@ -52,11 +52,7 @@ def _perturbed(name, scale=2):
     """The model with N(0, 0.02) on every weight: zero-initialised branches (CFM, offsets) compute."""
     cls, kwargs = MODELS[name]
     torch.manual_seed(0)
-    model = cls(scale=scale, **kwargs)
-    with torch.no_grad():
-        for p in model.parameters():
-            p.add_(0.02 * torch.randn_like(p))
-    return model
+    return perturbed(cls(scale=scale, **kwargs))
 
 
 def _close(cuda, cpu, rtol=1e-4):

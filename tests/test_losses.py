@@ -1,9 +1,7 @@
 """Tests for bench.losses against independent NumPy/SciPy computations and the paper's numbers."""
 import functools
 import math
-import os
 import re
-from pathlib import Path
 
 import numpy as np
 import pytest
@@ -14,8 +12,8 @@ from skimage.metrics import structural_similarity
 from bench.losses import (HFEN_KERNEL_SIZE, HFEN_SIGMA, PAPER_WEIGHTS, absolute_weights, hfen,
                           laplacian_of_gaussian, perceptual, relmse_loss, separable_filter, soft_knee,
                           spatial_l1, ssim_loss, temporal_l1, weighted_loss)
+from conftest import PAPER_TEXT
 
-PAPER = os.environ.get("SRD_PAPER_TEXT")  # the paper's full text, where a machine has it (not shipped)
 
 
 def _scipy_log(img, sigma=1.5):
@@ -99,9 +97,9 @@ def test_paper_weights():
 
 
 def test_paper_weights_against_paper_text():
-    if not PAPER or not Path(PAPER).exists():
-        pytest.skip("set SRD_PAPER_TEXT to the paper's text file to check the weights against it")
-    text = Path(PAPER).read_text()
+    if not PAPER_TEXT.is_file():
+        pytest.skip(f"the paper's text is not at {PAPER_TEXT} (set SRD_PAPER_TEXT to its path)")
+    text = PAPER_TEXT.read_text(encoding="utf-8")
     # "For the intermediate supervision, the ratio is set as $1:1:8:0$ ... final ... $1:1:8:10$"
     ratios = re.findall(r"ratio is (?:empirically )?set as \$([\d:]+)\$", text)
     assert len(ratios) == 2

@@ -1,6 +1,6 @@
 """bench.measure: the fast-path chooser never times an emulated path, never picks an incorrect one,
 picks the fastest of the rest, and measures once per machine and model."""
-import inspect
+import json
 import os
 import re
 import shutil
@@ -127,17 +127,60 @@ def test_a_run_records_the_fused_kernels_it_took_by_their_digest(monkeypatch):
     monkeypatch.setenv(measure.FUSED_GPU, "1")
     monkeypatch.setattr(fused, "kernels", lambda: None)                 # no Triton
     assert measure.fused_kernels_used("cuda") is None
+
+
+def test_training_and_evaluation_records_keep_what_fused_kernels_used_says(monkeypatch, tmp_path):
+    """What measure.fused_kernels_used says for the run's device is in each training's and evaluation's
+    record (a stand-in digest here: a CPU run took no Triton kernels)."""
     from bench.experiments import evaluation, training
-    assert "fused_kernels_used(ctx.device)" in inspect.getsource(training.trained_model)
-    assert "fused_kernels_used(ctx.device)" in inspect.getsource(evaluation)
+    from conftest import bench_here
+    from test_faults import TINY_CLI
+    asked = []
+    monkeypatch.setattr(training, "fused_kernels_used", lambda device: asked.append(device) or "digest-stand-in")
+    monkeypatch.setattr(evaluation, "fused_kernels_used", lambda device: asked.append(device) or "digest-stand-in")
+    done = bench_here(*TINY_CLI, f"runs_dir={tmp_path / 'runs'}", f"results_dir={tmp_path / 'results'}",
+                      f"data_dir={tmp_path / 'data'}", "experiment.rows=[{label:a,model:edsr}]")
+    assert done.returncode == 0, done.stderr[-2000:]
+    records = {kind: [json.loads(f.read_text()) for f in (tmp_path / "runs" / kind).glob("*/run.json")]
+               for kind in ("train", "eval")}
+    assert len(records["train"]) == 1 and len(records["eval"]) == 1, records
+    assert all(r["metrics"]["fused_kernels"] == "digest-stand-in" for rs in records.values() for r in rs)
+    assert set(asked) == {"cpu"}
 
 
-def test_both_entry_points_enter_the_fused_kernels_default():
-    """python -m bench and srd-bench run their commands inside measure.fused_kernels_on_cuda."""
-    import inspect
-    from bench import cli, predict
-    assert "with fused_kernels_on_cuda():" in inspect.getsource(cli.main)
-    assert "with fused_kernels_on_cuda():" in inspect.getsource(predict.main)
+def test_both_entry_points_enter_the_fused_kernels_default(monkeypatch, tmp_path):
+    """python -m bench and srd-bench predict do their work inside measure.fused_kernels_on_cuda: a stand-in
+    that records sees the command's error (bench) or its output file (predict) appear while it is entered."""
+    import contextlib
+    from bench import predict
+    from conftest import bench_here, srd_bench_here
+    from test_predict_folders import write_lr, write_weights
+    seen = []
+
+    @contextlib.contextmanager
+    def recording(out=tmp_path / "out"):
+        seen.append(("enter", len(list(out.glob("**/*.exr")))))
+        try:
+            yield
+        except Exception as err:
+            seen.append(("raised", type(err).__name__))
+            raise
+        seen.append(("exit", len(list(out.glob("**/*.exr")))))
+
+    monkeypatch.setattr(measure, "fused_kernels_on_cuda", recording)   # bench.cli imports it at each call
+    monkeypatch.setattr(predict, "fused_kernels_on_cuda", recording)   # bench.predict, at its import
+    done = bench_here("+experiment=smoke", "preset=smoke", "experiment.rows=[{label:a,model:sdr}]",
+                      f"runs_dir={tmp_path / 'runs'}", f"results_dir={tmp_path / 'results'}",
+                      f"data_dir={tmp_path / 'data'}")
+    assert done.returncode == 2 and "unknown model 'sdr'" in done.stderr, done.stderr[-2000:]
+    assert seen == [("enter", 0), ("raised", "UserError")]
+    seen.clear()
+    weights = write_weights(tmp_path / "rae.pt")
+    frame = write_lr(tmp_path / "in" / "0000_lr.exr")
+    done = srd_bench_here("predict", "--fast-path", "fp32", "--weights", weights, "--output-dir", tmp_path / "out",
+                          frame)
+    assert done.returncode == 0, done.stderr[-2000:]
+    assert seen == [("enter", 0), ("exit", 1)]
 
 
 def test_scripts_as_avx2_runs_a_command_as_on_a_cpu_with_avx2_only(tmp_path):

@@ -2,15 +2,13 @@
 from __future__ import annotations
 
 import csv
-import os
 import re
-from pathlib import Path
 
 import pytest
 
 from bench.paper import CSV_PATH, TABLES, paper_values
+from conftest import PAPER_TEXT
 
-SEED_NAME = "000_0570fe89fc995d8b.txt"
 # LaTeX \label{tab:...} -> experiment name, and the tasks each row spans (left to right).
 LATEX_TABLES = {
     "sr_denoise": ("sr_denoise", ("SR", "Denoising")),
@@ -22,13 +20,6 @@ LATEX_TABLES = {
     "deform_num": ("deform_num", ("SRD",)),
 }
 METRICS = ("relMSE", "PSNR", "SSIM")
-
-
-def _seed_path() -> Path:
-    env = os.environ.get("SRD_PAPER_SEED")
-    if env:
-        return Path(env)
-    return Path(__file__).resolve().parents[2] / "shared" / "seed" / SEED_NAME
 
 
 def _clean(cell: str) -> str:
@@ -70,10 +61,9 @@ def _csv_rows() -> list[dict[str, str]]:
 
 
 def test_csv_matches_the_papers_latex_tables():
-    seed = _seed_path()
-    if not seed.is_file():
-        pytest.skip(f"paper LaTeX seed not found at {seed} (set SRD_PAPER_SEED to its path)")
-    expected = _parse_seed(seed.read_text(encoding="utf-8"))
+    if not PAPER_TEXT.is_file():
+        pytest.skip(f"the paper's text is not at {PAPER_TEXT} (set SRD_PAPER_TEXT to its path)")
+    expected = _parse_seed(PAPER_TEXT.read_text(encoding="utf-8"))
     rows = _csv_rows()
     assert len(rows) == len(expected)
     got = {}

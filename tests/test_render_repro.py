@@ -7,13 +7,11 @@ import os
 import subprocess
 import sys
 
+import mitsuba as mi
 import numpy as np
 import pytest
 
-from bench import scenes
-
-mi = pytest.importorskip("mitsuba")
-from bench import render  # noqa: E402  (after the skip: it needs mitsuba at call time)
+from bench import render, scenes
 
 # Tiny frames: the causes of differing renders (light order, vertex normals) show at any size.
 WIDTH, HEIGHT, SPP, SEED = 16, 12, 2, 11

@@ -6,6 +6,7 @@ errors add up through a few dozen layers). Tiled inference must equal untiled in
 models once the overlap covers the receptive radius, and stream recurrent models tile by tile.
 """
 import platform
+import re
 import pandas as pd
 import pytest
 import torch
@@ -16,6 +17,7 @@ from baselines.edsr import EDSR
 from baselines.kpcn import KPCN
 from baselines.rae import RAE
 from bench.cli import CONF_DIR, run_experiment
+from bench.errors import UserError
 from bench.experiments.speed import PATHS, device_tag, peak_memory_mib
 from bench.infer import (frames_channels_last, parse_path, prepare, receptive_radius, tiled_predict)
 from bench.models.srd import SRDNet
@@ -222,6 +224,24 @@ def test_speed_experiment_writes_every_section(tmp_path):
     assert stages == pytest.approx(profile.loc["Ours: whole frame", "GMac"], rel=0.02)
     caption = (out / "table.md").read_text().splitlines()[0]
     assert "torch " + torch.__version__ in caption and "1 torch threads" in caption
+
+
+@pytest.mark.parametrize("override,message", [
+    ("experiment.tiled.tile=0", "experiment.tiled.tile=0: expected an integer >= 1"),
+    ("experiment.tiled.tile=-40", "experiment.tiled.tile=-40: expected an integer >= 1"),
+    ("experiment.tiled.overlap=-1", "experiment.tiled.overlap=-1: expected an integer >= 0"),
+    ("experiment.tiled.uhd_input_hw=[4,64]", "experiment.tiled.uhd_input_hw: [4, 64]: expected [height, width]"),
+    ("experiment.deform.sizes=[[16]]", "experiment.deform.sizes: [16]: expected [height, width]"),
+    ("experiment.deform.channels=0", "experiment.deform.channels=0: expected an integer >= 1"),
+    ("experiment.conv_stack_channels=-2", "experiment.conv_stack_channels=-2: expected an integer >= 0"),
+    ("experiment.perturb=-0.1", "experiment.perturb=-0.1: expected a number >= 0"),
+])
+def test_a_bad_section_value_is_one_line_before_anything_is_timed(tmp_path, override, message):
+    with initialize_config_dir(config_dir=CONF_DIR, version_base=None):
+        cfg = compose("config", overrides=["+experiment=speed", "preset=smoke", f"results_dir={tmp_path}", override])
+    with pytest.raises(UserError, match=re.escape(message)):
+        run_experiment(cfg)
+    assert not any(tmp_path.iterdir())   # nothing timed, no table written
 
 
 def test_keep_freed_memory_applies_once_on_glibc():

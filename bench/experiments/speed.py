@@ -556,6 +556,7 @@ def run(ctx, name: str = "speed", models: list[str] = (), input_hw=(540, 960),
             parse_path(path)
         except ValueError as err:
             raise UserError(f"experiment.fast_paths: {path!r}: {err}") from None
+    _check_sections(conv_stack_channels, perturb, deform or {}, tiled or {})
     device = str(ctx.device)
     previous_threads = torch.get_num_threads()
     if threads:
@@ -579,6 +580,26 @@ def run(ctx, name: str = "speed", models: list[str] = (), input_hw=(540, 960),
         torch.set_num_threads(previous_threads)
     log.info("speed: table in %s", out_dir)
     return table
+
+
+def _check_sections(conv_stack_channels, perturb, deform: dict, tiled: dict) -> None:
+    """The sections' own values, before the first is timed (a tile of 0 ended in a traceback after the
+    inference and training sections; a negative one timed an empty output)."""
+    def integer(key, value, least):
+        if not (isinstance(value, int) and not isinstance(value, bool) and value >= least):
+            raise UserError(f"experiment.{key}={value!r}: expected an integer >= {least}")
+    integer("conv_stack_channels", conv_stack_channels, 0)
+    if not (isinstance(perturb, (int, float)) and not isinstance(perturb, bool) and perturb >= 0):
+        raise UserError(f"experiment.perturb={perturb!r}: expected a number >= 0")
+    integer("deform.channels", deform.get("channels", 32), 1)
+    integer("tiled.tile", tiled.get("tile", 512), 1)
+    integer("tiled.overlap", tiled.get("overlap", 128), 0)
+    sizes = [("deform.sizes", hw) for hw in deform.get("sizes", [])]
+    if "uhd_input_hw" in tiled:
+        sizes.append(("tiled.uhd_input_hw", tiled["uhd_input_hw"]))
+    for key, hw in sizes:
+        if not (len(hw) == 2 and all(isinstance(n, int) and n >= 8 for n in hw)):
+            raise UserError(f"experiment.{key}: {list(hw)}: expected [height, width], each an integer >= 8")
 
 
 def _sections(ctx, models, input_hw, paths, repeats, warmup, train, oidn, stack_channels, deform, tiled,

@@ -95,15 +95,6 @@ def _train_identity(ctx: Context, cfg: dict, task: Task, seed: int, vgg_id: dict
     return identity
 
 
-def recorded_training(ctx: Context, cfg: dict, task: Task, seed: int) -> runs.Run | None:
-    """The complete training run of (cfg, task, seed) in this context, or None; never trains."""
-    try:
-        vgg_id = _loss_features(ctx)[1]
-    except UserError:  # no VGG weights: nothing can have been trained with them here either
-        return None
-    return runs.lookup(ctx.runs_dir, "train", _train_identity(ctx, cfg, task, seed, vgg_id, None), ctx.runs_archive)
-
-
 def _trainings(ctx: Context, cfg: dict, task: Task, seed: int, cascade: bool):
     """(stage label or None, identity) of each training that scoring (cfg, task, seed) uses: a
     Cascade's stages in order, none for a model that learns nothing."""
