@@ -132,7 +132,7 @@ def row_problems(plain: dict, data: dict | None) -> list[str]:
         train = deep_merge(plain["train"], r.get("train"))
         own = train_problems(train, data, f"{where}.train.")
         problems += [p for p in own if "train." + p.removeprefix(f"{where}.train.") not in shared]
-        own_recipe = recipe_problems(train)
+        own_recipe = [p for p in recipe_problems(train) if not _said(p, own, f"{where}.train.")]
         problems += [f"{where}.{p}" for p in own_recipe if p not in recipe_problems(plain["train"])]
     return problems
 
@@ -150,6 +150,13 @@ def cascade_problems(model: dict, where: str) -> list[str]:
     return []
 
 
+def _said(recipe_line: str, problems: list[str], where: str) -> bool:
+    """Whether the Recipe's line is about a key `problems` already name: the Recipe checks a few values
+    these checks do too (the shares of lamp and firefly items, ...), and a value is one line, not two."""
+    key = re.search(r"train\.(\w+)", recipe_line)
+    return bool(key) and any(p.startswith(f"{where}{key.group(1)}=") for p in problems)
+
+
 def recipe_problems(train: dict) -> list[str]:
     """A `train:` dict's unknown or missing keys, or a bad schedule, domain or precision: [] or one line."""
     from bench.experiments.context import recipe_from
@@ -164,7 +171,8 @@ def config_problems(plain: dict) -> list[str]:
     """What is wrong with a resolved config, one line per bad value: the key, the value, what is allowed."""
     from bench.infer import parse_path
     data = plain["data"] if plain["render_data"] else None  # your own frames: checked at start
-    problems = train_problems(plain["train"], data) + recipe_problems(plain["train"])
+    problems = train_problems(plain["train"], data)
+    problems += [p for p in recipe_problems(plain["train"]) if not _said(p, problems, "train.")]
     if not (_is_int(plain.get("workers")) and plain["workers"] > 0):
         problems.append(f"workers={plain.get('workers')!r}: expected a positive integer")
     if not (_is_int(plain.get("jobs")) and plain["jobs"] > 0):

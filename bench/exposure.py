@@ -1,12 +1,12 @@
 """The network domains: bench.hdr's pixelwise transforms, and `exposure`, which divides each frame by its
 exposure before one of them.
 
-- `exposure` (the default): each frame is divided by its exposure (`frame_exposure` of the LR input: the
+- `exposure`: each frame is divided by its exposure (`frame_exposure` of the LR input: the
   geometric mean luminance of its lit 8x8 blocks, as OIDN's autoexposure), then log(1 + x); the output is
   decoded and multiplied back. A frame k times brighter enters the network unchanged and leaves it k
   times brighter; there is no ceiling (log1p is unbounded); an all-black frame has exposure
   BLACK_EXPOSURE, so whatever the network adds to it is scaled to radiance ~1e-30.
-- `exposure_pass` (the default for new trainings): `exposure`, and where the input is far brighter than its
+- `exposure_pass` (the default: `train.hdr` in conf/config.yaml): `exposure`, and where the input is far brighter than its
   frame's exposure over a region, the output there is the input upsampled (`pass_highlights`). A lamp or a
   window seen directly is noise-free and lies far outside what a network learns from the renders: one
   trained without lamps returned a radiance-3000 lamp 14-29% too bright (KPCN 45% too dark), and one trained

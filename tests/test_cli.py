@@ -441,6 +441,17 @@ def test_every_bad_value_is_one_line_naming_key_value_and_rule(tmp_path, overrid
     assert not (tmp_path / "runs").exists()
 
 
+@pytest.mark.parametrize("override", ["train.emitters=2", "train.fireflies=-0.1", "train.emitters_exposure=room",
+                                      "train.loss_knee=0",
+                                      "experiment.rows=[{label:a,model:srd,train:{emitters:2}}]"])
+def test_a_value_the_recipe_checks_too_is_named_once(tmp_path, override):
+    """The config checks and the training Recipe both check these values: one line says it, not two."""
+    with pytest.raises(UserError) as err:
+        make_context(compose_experiment("smoke", "preset=smoke", override, f"runs_dir={tmp_path}/runs"))
+    said = str(err.value).removeprefix("bad config (nothing was run): ")
+    assert said.count("\n") == 0 and said.count("train.") == 1, said
+
+
 def test_a_bad_value_on_the_command_line_ends_in_one_message_before_any_run(tmp_path):
     code, said = exit_and_text("+experiment=smoke", "preset=smoke", "train.steps=0",
                                "train.batch_size=0", f"runs_dir={tmp_path}/runs", f"results_dir={tmp_path}/results",

@@ -178,6 +178,25 @@ def test_weights_the_archive_left_out_are_trained_again_only_where_they_are_run(
     assert runs.read_record(tmp_path / "fresh" / "eval" / seed1.name / runs.RECORD)["wall_time_s"] < since_training
 
 
+def test_a_cascade_evaluation_is_reused_from_its_stages_records_without_their_weights(dirs, tmp_path, caplog,
+                                                                                     monkeypatch):
+    """The archive keeps the weights of each row's first seed only (docs/runs.md): a Cascade row's recorded
+    evaluation is reused from its stages' records, as any row's is, not trained again for weights it does
+    not load (the committed stage_order table's seeds 1 and 2 were: 8 trainings and a render)."""
+    overrides, _ = dirs
+    mine = [o for o in overrides if not o.startswith(("runs_dir=", "results_dir="))]
+    mine += [f"results_dir={tmp_path / 'results'}", f"runs_archive={tmp_path / 'archive'}", "seeds=[0]",
+             "experiment.rows=[{label:c,model:srd,cascade:true,overrides:{channel_aug:false,skip:false}}]",
+             "++experiment.figure=false"]
+    monkeypatch.setattr(runs, "ARCHIVED_FILE_MAX_BYTES", 20_000)  # smoke weights in float16: left out
+    run_experiment(compose_experiment("stage_order", mine + [f"runs_dir={tmp_path / 'lost'}"]))
+    assert len(list((tmp_path / "archive" / "train").glob("*/run.json"))) == 2      # the two stages
+    assert not list((tmp_path / "archive").glob("train/*/*.pt"))
+    with caplog.at_level("INFO", logger="bench"):
+        run_experiment(compose_experiment("stage_order", mine + [f"runs_dir={tmp_path / 'fresh'}"]))
+    assert "1 of 1 rows reused" in caplog.text and "trained in" not in caplog.text, caplog.text[-3000:]
+
+
 def test_seeds_give_mean_and_std(dirs):
     overrides, root = dirs
     run_experiment(compose_experiment("perceptual", overrides + ["seeds=[0,1]", "++experiment.figure=false"]))

@@ -94,6 +94,10 @@ def test_paper_weights():
     # Chaitanya et al. 2017 use 0.1 / 0.1 / 0.8 for edge / temporal / spatial
     assert absolute_weights(PAPER_WEIGHTS["final"]) == pytest.approx(
         {"edge": 0.1, "temporal": 0.1, "spatial": 0.8, "perceptual": 1.0})
+    # what the trainer uses: the root config's loss is the paper's (presets and rows change it from there)
+    from omegaconf import OmegaConf
+    from conftest import REPO
+    assert OmegaConf.to_container(OmegaConf.load(REPO / "conf" / "config.yaml").train.loss) == PAPER_WEIGHTS
 
 
 def test_paper_weights_against_paper_text():

@@ -10,7 +10,8 @@ from bench import archived, runs
 from bench.evaluate import LATER_SCORES, REQUIRED_SCORES, evaluate
 from bench.experiments.context import EVALUATION_CODE, TRAINING_CODE, Context, code_of
 from bench.experiments.datasets import dataset, evaluation_data, render_digest, split_fingerprint
-from bench.experiments.training import RecordedTraining, cascade_model, reused_trainings, trained_model
+from bench.experiments.training import (RecordedTraining, cascade_model, reused_trainings, trained_model,
+                                        training_records)
 from bench.exrio import write_exr
 from bench.macs import count_params
 from bench.measure import AUTO, choose_fast_path, fused_kernels_used
@@ -23,9 +24,13 @@ log = logging.getLogger("bench")
 def evaluated(ctx: Context, cfg: dict, task: Task, seed: int, split: str, label: str = "",
               cascade: bool = False) -> runs.Run:
     """Evaluation run of a row (training it first if needed)."""
-    if cascade:
-        model, stage_runs = cascade_model(ctx, cfg, seed, label)
-        train_run, trained = None, runs.join_trainings([r.hash for r in stage_runs])
+    if cascade:  # the stages' records decide whether the evaluation is recorded; their weights load only if not
+        model, train_run, stage_runs = None, None, None
+        hashes = reused_trainings(training_records(ctx, cfg, task, seed, cascade=True))
+        if hashes is None:  # a stage trains first
+            model, stage_runs = cascade_model(ctx, cfg, seed, label)
+            hashes = [r.hash for r in stage_runs]
+        trained = runs.join_trainings(hashes)
     else:
         model, train_run = trained_model(ctx, cfg, task, seed, label, load=False)
         trained = train_run.hash if train_run else {"model": cfg, "task": task.name}
@@ -47,8 +52,11 @@ def evaluated(ctx: Context, cfg: dict, task: Task, seed: int, split: str, label:
         log.info("eval %s: reusing run %s", label, run.hash)
         return archive_evaluation(ctx, run)
     try:
-        if model is None:  # a recorded training whose weights trained_model did not read (or that lacks them)
-            model, train_run = trained_model(ctx, cfg, task, seed, label)
+        if model is None:  # recorded trainings whose weights were not read (or that lack them)
+            if cascade:
+                model, stage_runs = cascade_model(ctx, cfg, seed, label)
+            else:
+                model, train_run = trained_model(ctx, cfg, task, seed, label)
             run.restart_clock()  # a training done here for the weights is the training run's time, not this one's
         _, metrics = evaluate(model, dataset(scoring_ctx, split, task, training=False), task, hdr=hdr,
                               device=ctx.device, out_dir=run.dir, save_exr=ctx.eval.save_exr,
@@ -73,7 +81,7 @@ def evaluation_recorded(ctx: Context, cfg: dict, task: Task, seed: int, split: s
     when force=true or eval.fast_path=auto (its choice is measured on the frames)."""
     if ctx.force or ctx.eval.fast_path == AUTO:
         return False
-    hashes = reused_trainings(trainings, cascade)
+    hashes = reused_trainings(trainings)
     if hashes is None:
         return False
     trained = runs.join_trainings(hashes) if cascade else hashes[0] if hashes else {"model": cfg, "task": task.name}

@@ -135,11 +135,11 @@ def untrained(trainings: list[RecordedTraining]) -> list[str]:
     return [f"[{stage} stage] {why}" if stage else why for stage, why in whys if why]
 
 
-def reused_trainings(trainings: list[RecordedTraining], cascade: bool = False) -> list[str] | None:
+def reused_trainings(trainings: list[RecordedTraining]) -> list[str] | None:
     """The run hashes of `trainings` when all are reused as recorded ([] for a model that learns
-    nothing), else None; weights are asked for only of a Cascade's stages, which `cascade_model` always
-    loads (a single training's evaluation, when recorded, needs none)."""
-    if any(t.why or (cascade and not t.weights) for t in trainings):
+    nothing), else None. Their weights are not asked for: a recorded evaluation needs none (a training
+    without them, left out of the archive, is trained again only where its weights are loaded)."""
+    if any(t.why for t in trainings):
         return None
     return [t.hash for t in trainings]
 

@@ -1,0 +1,111 @@
+"""Check that a preset's committed tables regenerate from its committed run archive alone.
+
+Each table (and its val copy) runs as `python -m bench +experiment=NAME preset=P` into an empty run store,
+with no rendered data and its results in a scratch folder, reading `results/P/runs`. A table whose every
+run is archived and current is written from the archive in seconds; one that would render or train (a
+stale run, weights a Cascade needs, a config that no longer names the recorded runs) is stopped at the
+first sign of it (the data step's "rendering what is missing") and named. A table written is compared
+with the committed one, column by column.
+
+    .venv/bin/python scripts/regenerates_from_archive.py                     # the cpu tables, test and val
+    .venv/bin/python scripts/regenerates_from_archive.py --tables sota ipt --splits test
+    SRD_VGG16_WEIGHTS=/path/to/vgg16.pth .venv/bin/python scripts/regenerates_from_archive.py --tables perceptual
+
+Exit status 0 when every table checked regenerates and matches, 1 otherwise. About 15 s a table on 2 cores.
+"""
+from __future__ import annotations
+
+import argparse
+import signal
+import subprocess
+import sys
+import tempfile
+from pathlib import Path
+
+import pandas as pd
+from omegaconf import OmegaConf
+
+REPO = Path(__file__).resolve().parents[1]
+RENDERING = "rendering what is missing"   # bench.experiments.datasets.ensure_data: any render, and so any training
+
+
+def kind(name: str) -> str:
+    """An experiment's kind, from its file or the experiment its defaults start from."""
+    conf = OmegaConf.load(REPO / "conf" / "experiment" / f"{name}.yaml")
+    found = OmegaConf.select(conf, "experiment.kind")
+    return found if found is not None else kind(conf.defaults[0])
+
+
+def committed_tables(preset: str) -> list[str]:
+    """The paper tables `+experiment=all` runs (kind table: not the MAC audit, stability or timing, which
+    measure this machine or compute cases) that the preset has a committed table.csv of."""
+    listed = OmegaConf.load(REPO / "conf" / "experiment" / "all.yaml").experiment.tables
+    return [name for name in listed
+            if kind(name) == "table" and (REPO / "results" / preset / name / "table.csv").is_file()]
+
+
+def differing_columns(committed: Path, regenerated: Path) -> list[str]:
+    """The columns that differ (added, removed, or other values) between two table.csv files."""
+    old, new = pd.read_csv(committed), pd.read_csv(regenerated)
+    changed = sorted(set(old.columns) ^ set(new.columns))
+    if len(old) != len(new):
+        return changed + ["(rows)"]
+    return changed + [c for c in old.columns if c in new.columns and not old[c].equals(new[c])]
+
+
+def regenerate(name: str, preset: str, split: str, work: Path, extra: list[str]) -> tuple[str, Path | None]:
+    """(verdict, the regenerated table.csv or None): run the table, stopping it where it would render."""
+    where = work / f"{name}-{split}"
+    command = [sys.executable, "-m", "bench", f"+experiment={name}", f"preset={preset}",
+               f"runs_dir={work / 'runs'}", f"data_dir={where / 'data'}", f"results_dir={where / 'results'}",
+               f"runs_archive={REPO / 'results' / preset / 'runs'}", "tracking=none", "progress=false",
+               *([] if split == "test" else [f"eval.split={split}"]), *extra]
+    log = where / "log.txt"
+    where.mkdir(parents=True)
+    with open(log, "w") as out:
+        proc = subprocess.Popen(command, cwd=REPO, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+        for line in proc.stdout:
+            out.write(line)
+            if RENDERING in line:
+                proc.send_signal(signal.SIGINT)
+                try:
+                    proc.wait(timeout=30)
+                except subprocess.TimeoutExpired:
+                    proc.kill()
+                return f"would render or train (log: {log})", None
+        proc.wait()
+    if proc.returncode != 0:
+        return f"exit {proc.returncode} (log: {log})", None
+    table = where / "results" / ("" if split == "test" else split) / name / "table.csv"
+    return "regenerated", table
+
+
+def main(argv=None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("--preset", default="cpu")
+    parser.add_argument("--tables", nargs="*", help="default: every table of +experiment=all committed for the preset")
+    parser.add_argument("--splits", nargs="*", default=["test", "val"],
+                        help="test: results/<preset>/<table>; another: results/<preset>/<split>/<table>, where "
+                             "committed")
+    parser.add_argument("--work", type=Path, help="scratch folder (default: a new one under the system's tmp)")
+    parser.add_argument("overrides", nargs="*", help="more overrides for every table, e.g. vgg.weights=...")
+    args = parser.parse_args(argv)
+    work = args.work or Path(tempfile.mkdtemp(prefix="regenerates-"))
+    failed = 0
+    for name in args.tables or committed_tables(args.preset):
+        for split in args.splits:
+            committed = REPO / "results" / args.preset / ("" if split == "test" else split) / name / "table.csv"
+            if not committed.is_file():
+                continue
+            verdict, table = regenerate(name, args.preset, split, work, args.overrides)
+            if table is not None:
+                differs = differing_columns(committed, table)
+                verdict = f"differs from the committed table in {', '.join(differs)}" if differs else "matches"
+            failed += verdict != "matches"
+            print(f"{name} ({split}): {verdict}", flush=True)
+    print(f"{failed} table(s) do not regenerate as committed; scratch folder {work}")
+    return 1 if failed else 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
