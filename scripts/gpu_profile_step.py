@@ -17,7 +17,7 @@ import torch.nn.functional as F
 import yaml
 from torch.profiler import ProfilerActivity, profile
 
-from bench.experiments.speed import device_tag, frame_inputs
+from bench.experiments.speed import device_tag, random_frames
 from bench.models.factory import build_model
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
@@ -102,7 +102,7 @@ def main() -> None:
     parser.add_argument("--out", required=True)
     args = parser.parse_args()
     device = args.device if args.device != "cuda" or torch.cuda.is_available() else "cpu"
-    x, g = frame_inputs(args.batch, args.frames, (args.crop, args.crop), device, seed=1)
+    x, g = random_frames(args.batch, args.frames, (args.crop, args.crop), device, seed=1)
     target = torch.rand(args.batch, args.frames, 3, 2 * args.crop, 2 * args.crop, device=device)
     rows = {}
     modes = ["eager"] + ([] if args.no_compile else ["torch.compile"]) + (["reduce-overhead"] if args.reduce_overhead else [])

@@ -13,6 +13,7 @@ from baselines.edsr import EDSR
 from baselines.kpcn import KPCN
 from baselines.rae import RAE
 from bench.experiments.macs import build_table
+from bench.paper import paper_values
 from bench.models.factory import build_model
 from bench.macs import audit, count_macs, fit_width, macs_at, on_meta, torch_counter_macs
 from bench.models.srd import SRDNet
@@ -186,6 +187,16 @@ def test_build_table_writes_the_audit(tmp_path):
     stages = pd.read_csv(tmp_path / "stages.csv")
     fixed_stages = stages[stages.method == "EDSR fixed"]
     assert fixed_stages.GMac.sum() == pytest.approx(fixed / 1e9)
+
+
+def test_the_papers_gmac_column_is_beside_counts_at_its_budget_and_frame_size_only(tmp_path):
+    """Table 5's GMac are per 960x540 input frame at 260 GMac: beside counts at another size they would
+    compare unlike things."""
+    models = {"EDSR": {"_target_": "baselines.edsr.EDSR", "blocks": 2, "channels": 8}}
+    at_paper = build_table(models, 260, (540, 960), tmp_path / "paper")
+    assert at_paper.loc[0, "GMac (paper)"] == paper_values("sota").set_index("row").loc["EDSR", "GMac"]
+    assert "GMac (paper)" not in build_table(models, 260, (270, 480), tmp_path / "half")
+    assert "GMac (paper)" not in build_table(models, 72, (540, 960), tmp_path / "cpu")
 
 
 def test_srdnet_audit_small():

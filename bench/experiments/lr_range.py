@@ -26,11 +26,15 @@ from bench.experiments.datasets import ensure_data
 from bench.experiments.training import trained_model
 from bench.table_writer import write_table
 from bench.tasks import get_task
+from bench.train import lr_at
 
 log = logging.getLogger("bench")
 
 
-def analyse(lr: np.ndarray, loss: np.ndarray, smoothing: float = 0.9, blowup: float = 4.0) -> dict:
+BLOWUP = 4.0  # diverged: the smoothed loss above this many times its minimum so far
+
+
+def analyse(lr: np.ndarray, loss: np.ndarray, smoothing: float = 0.9, blowup: float = BLOWUP) -> dict:
     """Lowest-loss and divergence rates of one range test, and the suggested peak rate."""
     smooth, avg = np.empty_like(loss), 0.0
     for i, value in enumerate(loss):  # bias-corrected EMA, as fast.ai's LR finder
@@ -68,10 +72,11 @@ def run(ctx: Context, name: str = "lr_range", models: list[str] | None = None, s
         rows.append({"model": model, **found, "steps": len(curve), "run": run_.hash})
     table = pd.DataFrame(rows)
     out = ctx.results_dir / name
+    lowest_lr = lr_at(0, test_ctx.train)  # the range schedule's own start (bench.train.lr_at)
     write_table(table, out, caption=(
         f"Learning-rate range test (Smith 2017), preset {ctx.preset}, task {task}: {steps} steps of the preset's "
-        f"recipe with the lr rising geometrically from {lr_max * 1e-4:g} to {lr_max:g}; loss smoothed by an EMA "
-        f"({smoothing}). divergence: the first lr whose smoothed loss exceeds 4x its minimum so far (diverged "
+        f"recipe with the lr rising geometrically from {lowest_lr:g} to {lr_max:g}; loss smoothed by an EMA "
+        f"({smoothing}). divergence: the first lr whose smoothed loss exceeds {BLOWUP:g}x its minimum so far (diverged "
         f"false: it never did, the test's top lr is shown); suggested = divergence lr / 10, the peak of the cosine "
         f"schedule (conf/preset/<preset>.yaml model_lr)."))
     plt.xscale("log")

@@ -21,7 +21,7 @@ from bench.errors import UserError
 from bench.experiments.context import model_config
 from bench.macs import audit, closest_width, count_params, on_meta
 from bench.models.factory import build_model
-from bench.paper import paper_values
+from bench.paper import BUDGET_GMAC, GMAC_INPUT_HW, paper_values
 from bench.table_writer import write_table
 
 log = logging.getLogger("bench")
@@ -91,7 +91,7 @@ def build_table(models: dict[str, dict], budget_gmac: float, input_hw=(540, 960)
         rows.append(row)
         stages += [{"method": name, "stage": s, "GMac": m / 1e9} for s, m in per_stage.items()]
     table = pd.DataFrame(rows)
-    if budget_gmac == 260:  # the paper's numbers are for its budget only
+    if budget_gmac == BUDGET_GMAC and tuple(input_hw) == GMAC_INPUT_HW:  # the paper's numbers: its budget and size
         published = paper_gmac()
         table["GMac (paper)"] = [published.get(name) for name in table["method"]]
     out_dir = Path(out_dir)

@@ -135,7 +135,7 @@ def peak_memory_mib(fn, device: str) -> float:
 
 # ------------------------------------------------------------------------------ models and inputs
 
-def frame_inputs(batch: int, frames: int, hw, device: str, in_channels=3, gbuffer_channels=7, seed=0):
+def random_frames(batch: int, frames: int, hw, device: str, in_channels=3, gbuffer_channels=7, seed=0):
     """Random radiance in [0, 1) and gBuffer (B, T, C, h, w), reproducible."""
     gen = torch.Generator().manual_seed(seed)
     h, w = hw
@@ -308,7 +308,7 @@ def training_row(label: str, model, train: dict, loss_weights: dict, lr: float, 
     the trainer's weighted loss without the perceptual term (no VGG here)."""
     model = copy.deepcopy(model).train()
     batch, frames, crop = train["batch"], train["frames"], train["crop"]
-    x, g = frame_inputs(batch, frames, (crop, crop), device, seed=1, in_channels=in_channels)
+    x, g = random_frames(batch, frames, (crop, crop), device, seed=1, in_channels=in_channels)
     if channels_last:
         model, x, g = model.to(memory_format=torch.channels_last), frames_channels_last(x), frames_channels_last(g)
     target = torch.rand(batch, frames, out_channels, scale * crop, scale * crop,
@@ -351,7 +351,7 @@ def oidn_row(out_hw, device, repeats, warmup) -> dict | None:
         log.warning("speed: no OIDN reference (%s)", err)
         return None
     oidn = OIDN(scale=1, variant="lr_then_up", quality="high")
-    x, g = frame_inputs(1, 1, out_hw, "cpu", seed=3)
+    x, g = random_frames(1, 1, out_hw, "cpu", seed=3)
     timing = time_call(lambda: oidn(x, g), "cpu", repeats, warmup)
     return _row("reference", "OIDN (albedo + normal)", "its own (fp32)", _size(out_hw, 1), "frame", timing,
                 **{"peak MiB": peak_memory_mib(lambda: oidn(x, g), "cpu"), "time / OIDN": 1.0,
@@ -445,7 +445,7 @@ def tiled_rows(label: str, model, x, g, tile: int, overlap: int, device, repeats
         row["max rel diff"] = row["max abs diff"] / max(float(untiled["final"].abs().max()), 1e-12)
     rows = [row]
     if uhd_hw:
-        x4, g4 = frame_inputs(1, 1, uhd_hw, device, seed=6)
+        x4, g4 = random_frames(1, 1, uhd_hw, device, seed=6)
         run4 = lambda: tiled_predict(model, x4, g4, tile=tile, overlap=overlap)
         timing4 = time_call(run4, device, repeats=1, warmup=0)
         rows.append(_row("tiled", label, "fp32", _size(uhd_hw), "frame", timing4, note=note,
@@ -618,7 +618,7 @@ def _sections(ctx, models, input_hw, paths, repeats, warmup, train, oidn, stack_
     if deform.get("enabled", True):
         yield deform_rows(deform.get("channels", 32), [tuple(s) for s in deform.get("sizes", [[270, 480], [540, 960]])],
                           device, repeats, warmup)
-    x, g = frame_inputs(1, 1, input_hw, device)
+    x, g = random_frames(1, 1, input_hw, device)
     train = train_crop
     tile_models = (tiled.get("models") or models) if tiled.get("enabled", True) else []
     for name in models:
