@@ -374,9 +374,12 @@ def apply_split(cfg: DictConfig) -> None:
 
 
 def apply_pin(cfg: DictConfig) -> None:
-    """Merge the experiment's pin for this preset (`experiment.pin.<preset>`, conf/pin/studies.yaml) over
-    `train`, in place and before anything resolves, so that the rows' `${train.steps}` see it too. Taken by
-    `+experiment=lr_range` and `+study=dark_bias`, which keep the recipe they were measured at."""
+    """Merge the experiment's pin for this preset (`experiment.pin.<preset>`, conf/pin/) over `train`, in
+    place and before anything resolves, so that the rows' `${train.steps}` see it too. Taken by
+    `+experiment=lr_range` and `+study=dark_bias` (conf/pin/studies.yaml), which keep the recipe they were
+    measured at, and `+experiment=generalization` (conf/pin/generalization.yaml), which keeps the domain its
+    cpu table scored. A pin wins over `train.*` on the command line; `experiment.pin.<preset>.<key>=...`
+    changes it."""
     pin = OmegaConf.select(cfg, f"experiment.pin.{cfg.preset.name}", default=None)
     if pin is not None:
         cfg.train = OmegaConf.merge(cfg.train, pin)

@@ -66,12 +66,7 @@ def export(run_hash: str, out: str | Path, runs_dir: str | Path = "runs", force:
     identity = record["identity"]
     cfg, task = identity["model"], get_task(identity["task"])
     if not archived.has_weights(path.parent):
-        seed = identity.get("seed", record.get("seed"))
-        raise UserError(f"training run {run_hash} has no weights in {path.parent}: the archive keeps files over "
-                        f"{runs.ARCHIVED_FILE_MAX_BYTES / 2**20:.1f} MiB out of git. The run store of the machine "
-                        f"that trained it has them. Elsewhere, run the table whose row it is with seeds=[{seed}] "
-                        f"results_dir=<a scratch folder>: its crops.png loads that seed's weights, which trains "
-                        f"the run again into {runs_dir}; then export")
+        raise UserError(_no_weights(run_hash, path.parent, record, runs_dir, then="export"))
     model = archived.load_weights(build_model(cfg, task.scale), path.parent)
     meta = {"format": FORMAT, "model": cfg, "task": task.name, "scale": task.scale,
             "hdr": identity["train"]["hdr"], "run": run_hash, "identity": identity,
@@ -162,6 +157,16 @@ def load_exported(path: str | Path):
     return model.eval(), {k: v for k, v in saved.items() if k not in ("state_dict", COMPACT)}
 
 
+def _no_weights(run_hash: str, run_dir: Path, record: dict, runs_dir, then: str) -> str:
+    """Why a recorded training has no weights here, and how to get them (export and predict --run say it)."""
+    seed = record["identity"].get("seed", record.get("seed"))
+    return (f"training run {run_hash} has no weights in {run_dir}: the archive leaves some out of git (every seed's but "
+            f"a row's first, files over {runs.ARCHIVED_FILE_MAX_BYTES / 2**20:.1f} MiB, retired studies'; docs/runs.md). The run "
+            f"store of the machine that trained it has them. Elsewhere, run the table whose row it is with "
+            f"seeds=[{seed}] results_dir=<a scratch folder>: its crops.png loads that seed's weights, which trains "
+            f"the run again into {runs_dir}; then {then}")
+
+
 def from_run(run_hash: str, runs_dir: str | Path = "runs"):
     """(model, metadata) of a recorded training run, without exporting it."""
     path, record = finished_training(run_hash, runs_dir)
@@ -169,7 +174,7 @@ def from_run(run_hash: str, runs_dir: str | Path = "runs"):
     task = get_task(identity["task"])
     checkpoint = archived.weights_file(path.parent)
     if checkpoint is None:
-        raise UserError(f"training run {run_hash} has no weights in {path.parent}")
+        raise UserError(_no_weights(run_hash, path.parent, record, runs_dir, then="predict"))
     try:
         state = archived.state_dict(path.parent)
     except Exception as err:

@@ -44,40 +44,46 @@ def committed_tables(preset: str) -> list[str]:
             if kind(name) == "table" and (REPO / "results" / preset / name / "table.csv").is_file()]
 
 
-def differing_columns(committed: Path, regenerated: Path) -> list[str]:
-    """The columns that differ (added, removed, or other values) between two table.csv files."""
-    old, new = pd.read_csv(committed), pd.read_csv(regenerated)
-    changed = sorted(set(old.columns) ^ set(new.columns))
+def differences(committed: Path, regenerated: Path) -> list[str]:
+    """What differs between two tables' folders: the caption (table.md's first line), the rows, and each
+    column of table.csv added, removed or with other values."""
+    caption = [] if _caption(committed) == _caption(regenerated) else ["the caption"]
+    old, new = pd.read_csv(committed / "table.csv"), pd.read_csv(regenerated / "table.csv")
+    changed = caption + sorted(set(old.columns) ^ set(new.columns))
     if len(old) != len(new):
-        return changed + ["(rows)"]
+        return changed + ["the rows"]
     return changed + [c for c in old.columns if c in new.columns and not old[c].equals(new[c])]
 
 
+def _caption(folder: Path) -> str:
+    return (folder / "table.md").read_text().split("\n", 1)[0]
+
+
 def regenerate(name: str, preset: str, split: str, work: Path, extra: list[str]) -> tuple[str, Path | None]:
-    """(verdict, the regenerated table.csv or None): run the table, stopping it where it would render."""
+    """(verdict, the regenerated table's folder or None): run the table, stopping it where it would render."""
     where = work / f"{name}-{split}"
     command = [sys.executable, "-m", "bench", f"+experiment={name}", f"preset={preset}",
                f"runs_dir={work / 'runs'}", f"data_dir={where / 'data'}", f"results_dir={where / 'results'}",
                f"runs_archive={REPO / 'results' / preset / 'runs'}", "tracking=none", "progress=false",
                *([] if split == "test" else [f"eval.split={split}"]), *extra]
     log = where / "log.txt"
-    where.mkdir(parents=True)
+    where.mkdir(parents=True, exist_ok=True)
     with open(log, "w") as out:
-        proc = subprocess.Popen(command, cwd=REPO, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+        # SIGINT's default disposition in the child: where this script runs in the background of a
+        # non-interactive shell, SIGINT is ignored, and the command would render on instead of stopping
+        # (and stopping its render workers) as Ctrl-C in a terminal does
+        proc = subprocess.Popen(command, cwd=REPO, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True,
+                                preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))
         for line in proc.stdout:
             out.write(line)
             if RENDERING in line:
                 proc.send_signal(signal.SIGINT)
-                try:
-                    proc.wait(timeout=30)
-                except subprocess.TimeoutExpired:
-                    proc.kill()
+                out.write(proc.communicate(timeout=120)[0])
                 return f"would render or train (log: {log})", None
         proc.wait()
     if proc.returncode != 0:
         return f"exit {proc.returncode} (log: {log})", None
-    table = where / "results" / ("" if split == "test" else split) / name / "table.csv"
-    return "regenerated", table
+    return "regenerated", where / "results" / ("" if split == "test" else split) / name
 
 
 def main(argv=None) -> int:
@@ -94,12 +100,12 @@ def main(argv=None) -> int:
     failed = 0
     for name in args.tables or committed_tables(args.preset):
         for split in args.splits:
-            committed = REPO / "results" / args.preset / ("" if split == "test" else split) / name / "table.csv"
-            if not committed.is_file():
+            committed = REPO / "results" / args.preset / ("" if split == "test" else split) / name
+            if not (committed / "table.csv").is_file():
                 continue
             verdict, table = regenerate(name, args.preset, split, work, args.overrides)
             if table is not None:
-                differs = differing_columns(committed, table)
+                differs = differences(committed, table)
                 verdict = f"differs from the committed table in {', '.join(differs)}" if differs else "matches"
             failed += verdict != "matches"
             print(f"{name} ({split}): {verdict}", flush=True)

@@ -299,7 +299,9 @@ def test_a_run_kept_only_in_an_archive_exports_the_same_weights(recorded, tmp_pa
 
 
 def test_a_run_archived_without_its_weights_says_where_they_are(recorded, tmp_path, monkeypatch):
-    """Weights over the archive's file limit stay out of git: export says so instead of a missing file."""
+    """Weights over the archive's file limit stay out of git: export and predict --run say so, and how to
+    train them again, instead of a missing file."""
+    from bench.weights import from_run
     from bench.experiments.training import archive_training
     from conftest import smoke_context
     runs_dir, run_hash = recorded
@@ -308,8 +310,10 @@ def test_a_run_archived_without_its_weights_says_where_they_are(recorded, tmp_pa
     monkeypatch.setattr(runs, "COMMITTED_RESULTS", tmp_path / "results")  # export's archives
     monkeypatch.setattr(runs, "ARCHIVED_FILE_MAX_BYTES", 1000)
     archive_training(smoke_context(runs_archive=Path("results/cpu/runs")), run)
-    with pytest.raises(UserError, match=r"no weights.*out of git.*seeds=\[\d\].*trains the run again"):
+    with pytest.raises(UserError, match=r"no weights.*out of git.*seeds=\[\d\].*trains the run again.*; then export"):
         export(run_hash, tmp_path / "out.pt", tmp_path / "no_store")
+    with pytest.raises(UserError, match=r"no weights.*out of git.*seeds=\[\d\].*trains the run again.*; then predict"):
+        from_run(run_hash, tmp_path / "no_store")
 
 
 @pytest.mark.parametrize("change, message", [({"status": "interrupted"}, "'interrupted', not complete"),

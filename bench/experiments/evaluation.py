@@ -10,8 +10,7 @@ from bench import archived, runs
 from bench.evaluate import LATER_SCORES, REQUIRED_SCORES, evaluate
 from bench.experiments.context import EVALUATION_CODE, TRAINING_CODE, Context, code_of
 from bench.experiments.datasets import dataset, evaluation_data, render_digest, split_fingerprint
-from bench.experiments.training import (RecordedTraining, cascade_model, reused_trainings, trained_model,
-                                        training_records)
+from bench.experiments.training import RecordedTraining, cascade_model, reused_trainings, trained_model
 from bench.exrio import write_exr
 from bench.macs import count_params
 from bench.measure import AUTO, choose_fast_path, fused_kernels_used
@@ -24,13 +23,9 @@ log = logging.getLogger("bench")
 def evaluated(ctx: Context, cfg: dict, task: Task, seed: int, split: str, label: str = "",
               cascade: bool = False) -> runs.Run:
     """Evaluation run of a row (training it first if needed)."""
-    if cascade:  # the stages' records decide whether the evaluation is recorded; their weights load only if not
-        model, train_run, stage_runs = None, None, None
-        hashes = reused_trainings(training_records(ctx, cfg, task, seed, cascade=True))
-        if hashes is None:  # a stage trains first
-            model, stage_runs = cascade_model(ctx, cfg, seed, label)
-            hashes = [r.hash for r in stage_runs]
-        trained = runs.join_trainings(hashes)
+    if cascade:  # the stages' runs name the evaluation; their weights load only where it is scored
+        model, stage_runs = cascade_model(ctx, cfg, seed, label, load=False)
+        train_run, trained = None, runs.join_trainings([r.hash for r in stage_runs])
     else:
         model, train_run = trained_model(ctx, cfg, task, seed, label, load=False)
         trained = train_run.hash if train_run else {"model": cfg, "task": task.name}

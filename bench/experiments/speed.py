@@ -37,6 +37,7 @@ import re
 import statistics
 import time
 from collections import defaultdict
+from collections.abc import Sequence
 from pathlib import Path
 
 import pandas as pd
@@ -594,12 +595,16 @@ def _check_sections(conv_stack_channels, perturb, deform: dict, tiled: dict) -> 
     integer("deform.channels", deform.get("channels", 32), 1)
     integer("tiled.tile", tiled.get("tile", 512), 1)
     integer("tiled.overlap", tiled.get("overlap", 128), 0)
-    sizes = [("deform.sizes", hw) for hw in deform.get("sizes", [])]
+    def size(key, hw):
+        if not (isinstance(hw, Sequence) and len(hw) == 2 and all(isinstance(n, int) and n >= 8 for n in hw)):
+            raise UserError(f"experiment.{key}: {hw!r}: expected [height, width], each an integer >= 8")
+    sizes = deform.get("sizes", [])
+    if not isinstance(sizes, Sequence) or isinstance(sizes, str):
+        raise UserError(f"experiment.deform.sizes={sizes!r}: expected a list of [height, width]")
+    for hw in sizes:
+        size("deform.sizes", hw)
     if "uhd_input_hw" in tiled:
-        sizes.append(("tiled.uhd_input_hw", tiled["uhd_input_hw"]))
-    for key, hw in sizes:
-        if not (len(hw) == 2 and all(isinstance(n, int) and n >= 8 for n in hw)):
-            raise UserError(f"experiment.{key}: {list(hw)}: expected [height, width], each an integer >= 8")
+        size("tiled.uhd_input_hw", tiled["uhd_input_hw"])
 
 
 def _sections(ctx, models, input_hw, paths, repeats, warmup, train, oidn, stack_channels, deform, tiled,

@@ -116,9 +116,8 @@ def _renders_note(renders) -> str:
                 "split as the others is not known")
     else:
         return ""
-    # the figure is a measurement of its own, named as such, not this table's
-    return what + (": hosts render the same settings with different noise (the cpu val split's input "
-                   "bilinear: 31.68-31.70 dB over three hosts' renders).")
+    return what + (": hosts render the same settings with different noise of the same statistics, so rows "
+                   "that scored different renders differ by that noise too.")
 
 
 def shard_units(rows: list[dict], seeds: list, index: int, count: int) -> list[tuple[dict, int]]:

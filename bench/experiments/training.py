@@ -330,14 +330,16 @@ def cascade_net(cfg: dict) -> SRDNet:
     return net
 
 
-def cascade_model(ctx: Context, cfg: dict, seed: int, label: str = ""):
+def cascade_model(ctx: Context, cfg: dict, seed: int, label: str = "", load: bool = True):
     """A Cascade (paper Table 3): each SRDNet stage trained alone on its own task, assembled into one
-    net. Returns (net, list of the stages' training runs)."""
-    net, stage_runs = cascade_net(cfg), []
+    net. Returns (net, list of the stages' training runs); load=False: (None, the runs), each stage
+    trained first only if it is not recorded, as `trained_model(load=False)` does for one training."""
+    net, stage_runs = cascade_net(cfg) if load else None, []
     for stage, task_name in CASCADE_STAGES[cfg.get("stage_order", "sr_dn")]:
         stage_model, run = trained_model(ctx, cfg, get_task(task_name), seed, f"{label} [{stage} stage]",
-                                         stage=stage)
-        load_stage(net, stage, stage_model.state_dict())
+                                         stage=stage, load=load)
+        if load:
+            load_stage(net, stage, stage_model.state_dict())
         stage_runs.append(run)
     return net, stage_runs
 
