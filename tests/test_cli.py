@@ -73,6 +73,7 @@ def test_every_study_is_documented_writes_under_studies_and_passes_the_config_ch
     assert cfg.experiment.name == f"studies/{name}" and cfg.experiment.kind in KINDS
     ctx = make_context(cfg)                       # the config check every command passes before it runs
     assert ctx.data_spec and ctx.train.steps > 0
+    keys_are_its_kinds_arguments(cfg)
 
 
 @pytest.mark.parametrize("args,problem", [
@@ -101,6 +102,18 @@ def test_every_experiment_composes_at_every_preset(name, preset):
     assert cfg.experiment.name == name
     ctx = make_context(cfg)                       # every key the experiments read is there
     assert ctx.data_spec and ctx.train.steps > 0 and ctx.budget_gmac > 0
+    keys_are_its_kinds_arguments(cfg)
+
+
+def keys_are_its_kinds_arguments(cfg):
+    """An experiment's keys bind to its kind's run(): the YAML is their one source (run() restates no default)."""
+    import importlib
+    from bench.cli import check_experiment_keys
+    exp = OmegaConf.to_container(cfg.experiment, resolve=False)
+    exp.pop("pin", None), exp.pop("tunes", None)
+    kind = exp.pop("kind", "table")
+    if kind != "all":
+        check_experiment_keys(importlib.import_module(f"bench.experiments.{kind}").run, exp, kind)
 
 
 @pytest.mark.parametrize("name", sorted(p.stem for p in (Path(CONF_DIR) / "model").glob("*.yaml")))

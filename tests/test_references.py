@@ -119,7 +119,7 @@ def test_the_references_tool_proposes_more_samples_for_the_sequences_that_fall_s
     shutil.rmtree(tmp_path / "runs" / "eval" / "unrecorded-best")
     ctx = SimpleNamespace(results_dir=tmp_path / "results", runs_dir=tmp_path / "runs", runs_archive=None, archives=(),
                           data_dir=tmp_path / "data", preset="cpu", data_spec=spec, render_data=True)
-    table = references.run(ctx, margin=0.8, max_ref_spp=8192).set_index("sequence")
+    table = references.run(ctx, "references", margin=0.8, max_ref_spp=8192).set_index("sequence")
     assert table.loc["s1", "worst shortfall"] == pytest.approx(5.0)  # 1e-3 over a tenth of 2e-3
     assert table.loc["s1", "worst in"] == "elsewhere (A)"
     assert table.loc["s1", "proposed ref spp"] == 8192      # 12x wanted (see _after): three doublings
@@ -152,7 +152,7 @@ def test_without_the_split_on_disk_it_reads_the_archives_frame_records(tmp_path,
     records.parent.mkdir(parents=True)
     records.write_bytes(gzip.compress(json.dumps({"spec": spec, "frames": frames}).encode()))
     _recorded_table(tmp_path, "strict", best_relmse=4e-3)
-    table = references.run(ctx, margin=0.8, max_ref_spp=8192).set_index("sequence")
+    table = references.run(ctx, "references", margin=0.8, max_ref_spp=8192).set_index("sequence")
     assert table.loc["s1", "worst shortfall"] == pytest.approx(2.5)
     assert table.loc["s1", "ref render s"] == pytest.approx(25.0)
     assert math.isnan(table.loc["s0", "ref render s"])  # not 0: unknown
@@ -258,4 +258,4 @@ def test_without_rendered_data_it_says_how_to_render_it(tmp_path):
     from conftest import smoke_context
     with pytest.raises(UserError, match=r"nor the run archive holds the frame records .*`python -m bench \+experiment=data preset=smoke`"):
         references.run(smoke_context(data_dir=tmp_path / "nothing", results_dir=tmp_path / "results",
-                                     runs_archive=tmp_path / "archive"))
+                                     runs_archive=tmp_path / "archive"), "references", 0.8, 8192)

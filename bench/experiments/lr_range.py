@@ -48,8 +48,10 @@ def analyse(lr: np.ndarray, loss: np.ndarray, smoothing: float = 0.9, blowup: fl
             "diverged": bool(len(diverged)), "suggested lr": float(lr[diverge] / 10), "smoothed": smooth}
 
 
-def run(ctx: Context, name: str = "lr_range", models: list[str] | None = None, steps: int = 200,
-        lr_max: float = 0.1, smoothing: float = 0.9, task: str = "srd") -> pd.DataFrame:
+def run(ctx: Context, name: str, models: list[str], steps: int, lr_max: float, smoothing: float = 0.9,
+        task: str = "srd") -> pd.DataFrame:
+    """conf/experiment/lr_range.yaml says what each argument is (smoothing and task: the analysis' EMA and
+    the task trained, which no table has needed to change)."""
     import matplotlib
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
@@ -59,7 +61,7 @@ def run(ctx: Context, name: str = "lr_range", models: list[str] | None = None, s
     test_ctx = with_training(ctx, {"schedule": "range", "lr": lr_max, "steps": steps, "ema": None,
                                    "val_sequences": 0})
     rows, fig = [], plt.figure(figsize=(6, 4))
-    for model in models or []:
+    for model in models:
         _, run_ = trained_model(test_ctx, model_config(ctx, model), t, ctx.seeds[0], f"{model} (lr range)",
                                 load=False, divergence_ends=True)
         curve = archived.read_curve(run_.dir)  # a range test's is archived whole

@@ -107,7 +107,7 @@ def proposed_spp(ref_spp: int, shortfall: float, margin: float, max_ref_spp: int
     return max(ref_spp, min(cap, ref_spp * 2 ** math.ceil(math.log2(factor))))
 
 
-def run(ctx: Context, name: str = "references", margin: float = 0.8, max_ref_spp: int = 8192) -> pd.DataFrame:
+def run(ctx: Context, name: str, margin: float, max_ref_spp: int) -> pd.DataFrame:
     # the frames' estimated reference errors and render times: data_dir's, else the archive's records
     frames = [f for split in (ctx.data_spec.get("splits") or {}) for f in frame_records(ctx, split)]
     if not frames:

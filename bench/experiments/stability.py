@@ -380,8 +380,8 @@ def write_tables(table: pd.DataFrame, out_dir, preset: str, device: str, hdr: st
     table.to_csv(out_dir / "table.csv", index=False)
 
 
-def run(ctx: Context, name: str = "stability", models: list[str] = (), frames: int = 3,
-        long_frames: int = 100, from_csv: bool = False) -> pd.DataFrame:
+def run(ctx: Context, name: str, models: list[str], frames: int, long_frames: int,
+        from_csv: bool = False) -> pd.DataFrame:
     """conf/experiment/stability.yaml says what each argument is. from_csv: rewrite table.md/.tex from the
     recorded table.csv (its rows unchanged, no case run): a caption change without retraining."""
     out_dir = ctx.results_dir / name
