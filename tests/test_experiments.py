@@ -182,16 +182,21 @@ def test_a_cascade_evaluation_is_reused_from_its_stages_records_without_their_we
                                                                                      monkeypatch):
     """The archive keeps the weights of each row's first seed only (docs/runs.md): a Cascade row's recorded
     evaluation is reused from its stages' records, as any row's is, not trained again for weights it does
-    not load (the committed stage_order table's seeds 1 and 2 were: 8 trainings and a render)."""
+    not load (the committed stage_order table's seeds 1 and 2 were: 8 trainings and a render). A store's
+    reused stage trainings go to the archive with their evaluation, as a single training does."""
     overrides, _ = dirs
     mine = [o for o in overrides if not o.startswith(("runs_dir=", "results_dir="))]
-    mine += [f"results_dir={tmp_path / 'results'}", f"runs_archive={tmp_path / 'archive'}", "seeds=[0]",
+    mine += [f"results_dir={tmp_path / 'results'}", "seeds=[0]",
              "experiment.rows=[{label:c,model:srd,cascade:true,overrides:{channel_aug:false,skip:false}}]",
              "++experiment.figure=false"]
+    archive = [f"runs_archive={tmp_path / 'archive'}"]
     monkeypatch.setattr(runs, "ARCHIVED_FILE_MAX_BYTES", 20_000)  # smoke weights in float16: left out
-    run_experiment(compose_experiment("stage_order", mine + [f"runs_dir={tmp_path / 'lost'}"]))
+    run_experiment(compose_experiment("stage_order", mine + [f"runs_dir={tmp_path / 'lost'}", "runs_archive=null"]))
+    run_experiment(compose_experiment("stage_order", mine + archive + [f"runs_dir={tmp_path / 'lost'}"]))  # reuses
     assert len(list((tmp_path / "archive" / "train").glob("*/run.json"))) == 2      # the two stages
+    assert len(list((tmp_path / "archive" / "eval").glob("*/run.json"))) == 1
     assert not list((tmp_path / "archive").glob("train/*/*.pt"))
+    mine += archive
     with caplog.at_level("INFO", logger="bench"):
         run_experiment(compose_experiment("stage_order", mine + [f"runs_dir={tmp_path / 'fresh'}"]))
     assert "1 of 1 rows reused" in caplog.text and "trained in" not in caplog.text, caplog.text[-3000:]
