@@ -585,16 +585,18 @@ def run(ctx, name: str = "speed", models: list[str] = (), input_hw=(540, 960),
 
 def _check_sections(conv_stack_channels, perturb, deform: dict, tiled: dict) -> None:
     """The sections' own values, before the first is timed (a tile of 0 ended in a traceback after the
-    inference and training sections; a negative one timed an empty output)."""
+    inference and training sections; a negative one timed an empty output). A key left out takes
+    `_sections`' default, which is valid: only the given ones are checked."""
     def integer(key, value, least):
         if not (isinstance(value, int) and not isinstance(value, bool) and value >= least):
             raise UserError(f"experiment.{key}={value!r}: expected an integer >= {least}")
     integer("conv_stack_channels", conv_stack_channels, 0)
     if not (isinstance(perturb, (int, float)) and not isinstance(perturb, bool) and perturb >= 0):
         raise UserError(f"experiment.perturb={perturb!r}: expected a number >= 0")
-    integer("deform.channels", deform.get("channels", 32), 1)
-    integer("tiled.tile", tiled.get("tile", 512), 1)
-    integer("tiled.overlap", tiled.get("overlap", 128), 0)
+    for name, section, key, least in (("deform", deform, "channels", 1), ("tiled", tiled, "tile", 1),
+                                      ("tiled", tiled, "overlap", 0)):
+        if key in section:
+            integer(f"{name}.{key}", section[key], least)
     def size(key, hw):
         if not (isinstance(hw, Sequence) and len(hw) == 2 and all(isinstance(n, int) and n >= 8 for n in hw)):
             raise UserError(f"experiment.{key}: {hw!r}: expected [height, width], each an integer >= 8")
