@@ -11,6 +11,7 @@ import pandas as pd
 import pytest
 import torch
 from hydra import compose, initialize_config_dir
+from omegaconf import OmegaConf
 
 from baselines.cfm import CFMNet
 from baselines.edsr import EDSR
@@ -18,6 +19,7 @@ from baselines.kpcn import KPCN
 from baselines.rae import RAE
 from bench.cli import CONF_DIR, run_experiment
 from bench.errors import UserError
+from bench.experiments.macs import audit_row
 from bench.experiments.speed import PATHS, device_tag, peak_memory_mib
 from bench.infer import (frames_channels_last, parse_path, prepare, receptive_radius, tiled_predict)
 from bench.models.srd import SRDNet
@@ -205,6 +207,13 @@ def test_speed_experiment_writes_every_section(tmp_path):
     assert sorted(tiled.method) == sorted(labels * 2) and set(tiled["size"]) == {"40x24 -> 80x48", "64x40 -> 128x80"}
     references = table.loc[table.section == "reference", "method"]
     assert references.str.startswith("OIDN").sum() == 1 and references.str.startswith("3x3 conv stack").sum() == len(PATHS)
+    # the conv stack's MACs by formula (depth x h*w*c^2*9), and Ours' as the MAC audit counts them
+    stack_rows = table[(table.section == "reference") & table.method.str.startswith("3x3 conv stack")]
+    depth, channels = map(int, re.match(r"3x3 conv stack \((\d+) x (\d+) ch\)", stack_rows.method.iloc[0]).groups())
+    assert stack_rows["GMac"].tolist() == pytest.approx([depth * 24 * 40 * channels ** 2 * 9 / 1e9] * len(PATHS))
+    ours = cfg.models.srd
+    audited = audit_row("Ours", OmegaConf.to_container(ours, resolve=True), 1.0, (24, 40))[0]["GMac (analytic)"]
+    assert inference.loc[inference.method == "Ours", "GMac"].tolist() == pytest.approx([audited] * len(PATHS))
     deform = table[table.section == "deformable conv"]
     # per path: the conv, the sampler this machine takes and (when that is the compiled one) the eager
     # gather; plus the training sampler once

@@ -49,7 +49,8 @@ from bench.evaluate import sync
 from bench.infer import (frames_channels_last, freed_memory_kept, max_abs_diff, parse_path, prepare, release_free_memory,
                          tiled_predict)
 from bench.losses import weighted_loss
-from bench.macs import count_macs, on_meta
+from bench.experiments.macs import frame_inputs
+from bench.macs import count_macs, macs_at, on_meta
 from bench.measure import candidate_paths, choose_fast_path, cpu_flags, cpu_isa, time_call
 from bench.models.factory import build_model
 from bench.nn import DeformConv2d, eager_gather, fused, grid_sample_training, inference_sampler, training_sampler
@@ -153,19 +154,6 @@ def build(cfg: dict, device: str, perturb: float, seed: int = 0) -> nn.Module:
         for p in model.parameters():
             p.add_(torch.randn_like(p) * perturb)
     return model.to(device).eval()
-
-
-def macs_table(model_fn, hw, in_channels=3, gbuffer_channels=7) -> pd.DataFrame:
-    """bench.macs rows (layer, macs, ...) of one frame at LR size hw, counted on the meta device."""
-    h, w = hw
-    model, inputs = on_meta(model_fn, lambda d: (torch.zeros(1, 1, in_channels, h, w, device=d),
-                                                 torch.zeros(1, 1, gbuffer_channels, h, w, device=d)))
-    return count_macs(model, inputs)
-
-
-def macs_per_frame(model_fn, hw, in_channels=3, gbuffer_channels=7) -> int:
-    """Analytic MACs of one frame at LR size hw, counted on the meta device (no compute)."""
-    return int(macs_table(model_fn, hw, in_channels, gbuffer_channels)["macs"].sum())
 
 
 class ConvStack(nn.Module):
@@ -360,24 +348,24 @@ def oidn_row(out_hw, device, repeats, warmup) -> dict | None:
 
 
 def conv_stack_rows(target_macs: int, hw, channels: int, paths, device, repeats, warmup,
-                    train: dict | None = None) -> list[dict]:
+                    train: dict | None, lr: float) -> list[dict]:
     """The dense-conv reference at the proposed model's MACs, per fast path; with `train`, also its
-    training step (forward, L1, backward, Adam) at the training crop: the same MACs per LR pixel as the
-    proposed model's forward."""
+    training step (forward, L1, backward, Adam at the models' learning rate `lr`) at the training crop:
+    the same MACs per LR pixel as the proposed model's forward."""
     depth = conv_stack_depth(target_macs, hw, channels)
     torch.manual_seed(0)
     stack = ConvStack(channels, depth).to(device).eval()
     x = torch.rand(1, 1, channels, *hw, generator=torch.Generator().manual_seed(4)).to(device)
-    macs = macs_per_frame(lambda: ConvStack(channels, depth), hw, in_channels=channels)
+    macs = macs_at(lambda: ConvStack(channels, depth), frame_inputs({"in_channels": channels}, hw))
     label = f"3x3 conv stack ({depth} x {channels} ch)"
     rows = inference_rows(label, stack, macs, x, None, paths, device, repeats, warmup)
     for row in rows:
         row["section"], row["size"] = "reference", _size(hw, 1)
     if train:
-        rows.append(training_row(label, stack, train, {"final": {"spatial": 1}}, 6e-4, device, repeats, warmup,
+        rows.append(training_row(label, stack, train, {"final": {"spatial": 1}}, lr, device, repeats, warmup,
                                  in_channels=channels, out_channels=channels, scale=1))
         if train.get("compile"):  # the same path as Ours' compiled row, for their ratio
-            rows.append(training_row(label, stack, train, {"final": {"spatial": 1}}, 6e-4, device, repeats, warmup,
+            rows.append(training_row(label, stack, train, {"final": {"spatial": 1}}, lr, device, repeats, warmup,
                                      in_channels=channels, out_channels=channels, scale=1,
                                      path=f"fp32, compiled ({train['compile']})", compile=train["compile"]))
     return rows
@@ -619,9 +607,9 @@ def _sections(ctx, models, input_hw, paths, repeats, warmup, train, oidn, stack_
     train_crop = {"batch": ctx.train.batch_size, "frames": ctx.train.seq_len, "crop": ctx.train.crop,
                   **{k: v for k, v in train.items() if v is not None}}
     if stack_channels and "srd" in ctx.models:
-        ours_macs = macs_per_frame(lambda: build_model(ctx.models["srd"], 2), input_hw)
+        ours_macs = macs_at(lambda: build_model(ctx.models["srd"], 2), frame_inputs(ctx.models["srd"], input_hw))
         yield conv_stack_rows(ours_macs, input_hw, stack_channels, paths, device, repeats, warmup,
-                              train_crop if train_crop.get("enabled", True) else None)
+                              train_crop if train_crop.get("enabled", True) else None, ctx.train.lr)
     if deform.get("enabled", True):
         yield deform_rows(deform.get("channels", 32), [tuple(s) for s in deform.get("sizes", [[270, 480], [540, 960]])],
                           device, repeats, warmup)
@@ -632,14 +620,15 @@ def _sections(ctx, models, input_hw, paths, repeats, warmup, train, oidn, stack_
         cfg = ctx.models[name]
         label = LABELS.get(name, name)
         model = build(cfg, device, perturb)
-        macs = macs_per_frame(lambda: build_model(cfg, 2), input_hw)
+        layers = count_macs(*on_meta(lambda: build_model(cfg, 2), frame_inputs(cfg, input_hw)))  # as the MAC audit counts
+        macs = int(layers["macs"].sum())
         rows = inference_rows(label, model, macs, x, g, paths, device, repeats, warmup)
         note_auto_choice(rows, model, x, g, device, repeats)
         if train.get("enabled", True):
             rows += training_rows(label, model, train, ctx.train.loss, ctx.train.lr, device,
                                   repeats, warmup)
         if name in (profile.get("models") or []):
-            rows += profile_rows(label, model, macs_table(lambda: build_model(cfg, 2), input_hw), x, g,
+            rows += profile_rows(label, model, layers, x, g,
                                  profile.get("fast_path") or paths[-1], device, repeats, warmup)
         if name in tile_models:
             untiled = prepare(model)(x, g)
