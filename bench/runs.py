@@ -752,7 +752,7 @@ def _close(run: Run, status: str) -> Run:
     return run
 
 
-def load(runs_dir: str | Path = "runs", kind: str | None = None) -> pd.DataFrame:
+def load(runs_dir: str | Path, kind: str | None = None) -> pd.DataFrame:
     """All recorded runs as one tidy DataFrame: a row per run, metrics as `metric.<name>` columns and
     the identity flattened as `cfg.<dotted.key>` columns. A record left "running" by a process that no
     longer exists shows as "abandoned" (its checkpoints resume on the next request)."""

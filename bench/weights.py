@@ -28,7 +28,7 @@ FORMAT = "srd-bench-weights/2"
 READABLE_FORMATS = ("srd-bench-weights/1", FORMAT)
 COMPACT = "weights_float16_compact"  # instead of "state_dict" when the run's weights are float16-rounded
 
-def training_record(run_hash: str, runs_dir: str | Path = "runs") -> Path:
+def training_record(run_hash: str, runs_dir: str | Path) -> Path:
     """The run.json of training run `run_hash`: in the run store, else in a committed archive (a fresh
     clone has no run store)."""
     path, _ = runs.find_record("train", run_hash, runs_dir, runs.committed_archives())
@@ -38,7 +38,7 @@ def training_record(run_hash: str, runs_dir: str | Path = "runs") -> Path:
     return path
 
 
-def finished_training(run_hash: str, runs_dir: str | Path = "runs") -> tuple[Path, dict]:
+def finished_training(run_hash: str, runs_dir: str | Path) -> tuple[Path, dict]:
     """(run.json path, record) of training run `run_hash`, which must be complete and a whole model (not an
     interrupted run's last checkpoint, nor one stage of a Cascade)."""
     path = training_record(run_hash, runs_dir)
@@ -53,7 +53,7 @@ def finished_training(run_hash: str, runs_dir: str | Path = "runs") -> tuple[Pat
     return path, record
 
 
-def export(run_hash: str, out: str | Path, runs_dir: str | Path = "runs", force: bool = False) -> Path:
+def export(run_hash: str, out: str | Path, runs_dir: str | Path, force: bool = False) -> Path:
     """Write the weights of the complete training run `run_hash` to `out` (+ `out`.json); an existing
     file there (a committed weights file, an earlier export, a run's own checkpoint) only with `force`."""
     out = Path(out)
@@ -167,7 +167,7 @@ def _no_weights(run_hash: str, run_dir: Path, record: dict, runs_dir, then: str)
             f"the run again into {runs_dir}; then {then}")
 
 
-def from_run(run_hash: str, runs_dir: str | Path = "runs"):
+def from_run(run_hash: str, runs_dir: str | Path):
     """(model, metadata) of a recorded training run, without exporting it."""
     path, record = finished_training(run_hash, runs_dir)
     identity = record["identity"]

@@ -25,6 +25,7 @@ from __future__ import annotations
 import argparse
 import random
 import statistics
+import sys
 import tempfile
 from pathlib import Path
 
@@ -35,6 +36,7 @@ from hydra import compose, initialize_config_dir
 import bench.losses
 from bench.cli import CONF_DIR, make_context
 from bench.emitters import with_emitter
+from bench.errors import UserError
 from bench.evaluate import predict
 from bench.exposure import encode, frame_exposure, highlights
 from bench.experiments.datasets import dataset
@@ -53,7 +55,7 @@ def _context():
 
 
 def _model(run: str):
-    model, meta = load_exported(export(run, Path(tempfile.mkdtemp()) / f"{run}.pt", "runs"))
+    model, meta = load_exported(export(run, Path(tempfile.mkdtemp()) / f"{run}.pt", _context().runs_dir))
     return model, meta["hdr"]
 
 
@@ -138,9 +140,12 @@ if __name__ == "__main__":
     share.add_argument("split", nargs="?", default="val")
     args = parser.parse_args()
     torch.set_num_threads(1)
-    if args.command == "bins":
-        bins(args.prefixes, args.runs)
-    elif args.command == "gradients":
-        gradients(args.run, args.items)
-    else:
-        passed(args.split)
+    try:
+        if args.command == "bins":
+            bins(args.prefixes, args.runs)
+        elif args.command == "gradients":
+            gradients(args.run, args.items)
+        else:
+            passed(args.split)
+    except UserError as err:  # a mistyped hash, data not rendered: one line, as `python -m bench` says it
+        sys.exit(f"error: {err}")
