@@ -41,7 +41,7 @@ def run(ctx: Context, name: str, model: str, overrides: dict | None = None, task
         raise UserError(f"experiment.label={row['label']!r}: the table's folder under {ctx.results_dir / name}, "
                         "one name without / or ..")
     table = run_table(ctx, f"{name}/{row['label']}", [row], caption=f"One model: {row['label']}.", task=task, split=split,
-                      paper=None, figure=figure)
+                      paper_table=None, figure=figure)
     if not table.empty:  # (a shard= run writes no table)
         for seed, eval_hash in zip(ctx.seeds, listed_evaluations(table["runs"].iloc[0])):
             log.info("%s seed %s: %s", row["label"], seed, reuse_summary(eval_hash, ctx.runs_dir, ctx.archives, started))

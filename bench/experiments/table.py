@@ -422,10 +422,12 @@ def caption_notes(ctx: Context, scoring_ctx: Context, table: pd.DataFrame, rows:
 
 
 def run(ctx: Context, name: str, rows: list[dict], caption: str = "", task: str = "srd",
-        split: str | None = None, paper: str | None = "auto", gmac_column: bool = False,
+        split: str | None = None, paper_table: str | None = "auto", gmac_column: bool = False,
         figure: bool = True, leave_out: list[str] | None = None) -> pd.DataFrame:
-    """`leave_out`: labels of rows this call does not compute, named in the caption (e.g. rows whose
-    trainings cannot be loaded or run here); the table has the others."""
+    """`paper_table`: the published table whose values go beside the rows that name a paper row
+    (bench/paper_values.csv); "auto": the experiment's own, where the paper has one. `leave_out`: labels
+    of rows this call does not compute, named in the caption (e.g. rows whose trainings cannot be loaded
+    or run here); the table has the others."""
     rows = selected_rows(ctx, rows, task, leave_out)
     scoring_ctx = evaluation_data(ctx)
     drawn = ready_data(ctx, scoring_ctx, name, rows, task, split, figure)
@@ -446,7 +448,7 @@ def run(ctx: Context, name: str, rows: list[dict], caption: str = "", task: str 
     if gmac_column:
         after = "SSIM std" if "SSIM std" in table else "SSIM"
         table.insert(table.columns.get_loc(after) + 1, "GMac", [gmac(ctx, r) for r in rows])
-    paper_table = (name if name in TABLES else None) if paper == "auto" else paper
+    paper_table = (name if name in TABLES else None) if paper_table == "auto" else paper_table
     table = with_paper(table, rows, paper_table)
     notes = caption_notes(ctx, scoring_ctx, table, rows, split, leave_out, gmac_column, paper_table)
     out_dir = ctx.results_dir / name
