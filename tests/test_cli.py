@@ -711,3 +711,21 @@ def test_every_script_answers_help(script):
                          timeout=120, env={**os.environ, "PYTHONPATH": str(REPO)})
     assert out.returncode == 0 and "Traceback" not in out.stderr and "usage" in out.stdout.lower(), \
         out.stdout[-500:] + out.stderr[-1500:]
+
+
+def test_the_regeneration_check_takes_every_paper_table_and_table_study_with_the_seeds_their_captions_name(tmp_path):
+    """scripts/regenerates_from_archive.py checks the paper tables `all` runs and the studies of kind table
+    (not the verdicts or stability studies, which read other tables or compute cases), each with the
+    seeds its committed caption names (a study run on seed 0 alone is checked as it ran)."""
+    import importlib.util
+    spec = importlib.util.spec_from_file_location("regenerates", REPO / "scripts" / "regenerates_from_archive.py")
+    script = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(script)
+    assert script.kind("studies/lr_range_ssim") == "lr_range" and script.kind("studies/fireflies_verdicts") == "claims"
+    tables = script.committed_tables("cpu")
+    assert {"sota", "perceptual", "studies/fireflies", "studies/domain"} <= set(tables)
+    assert not {"stability", "macs", "studies/fireflies_verdicts", "studies/fireflies_stability"} & set(tables)
+    (tmp_path / "table.md").write_text("A study. Preset cpu, split val, seeds [0, 2] (mean +- std over seeds).\n")
+    assert script.recorded_seeds(tmp_path) == ["seeds=[0,2]"]
+    (tmp_path / "table.md").write_text("A table with no seeds named.\n")
+    assert script.recorded_seeds(tmp_path) == []

@@ -314,17 +314,26 @@ def render_what_runs(ctx: Context, name: str, rows: list[dict], task: str, split
     neither there nor archived. Returns whether the figure is redrawn."""
     pending = unrecorded_rows(ctx, rows, split, trainings)
     needed = {r.get("split", split) or ctx.eval.split for r in pending}
+    whys = [f"not recorded: the evaluation of {', '.join(r['label'] for r in pending)}"] if pending else []
     shown = split or ctx.eval.split
     scored = {r.get("split", split) or ctx.eval.split for r in rows}
-    needed |= {s for s in scored if not frame_records(ctx, s)}
+    unrecorded_frames = {s for s in scored if not frame_records(ctx, s)}
+    needed |= unrecorded_frames
+    whys += [f"no frame records of {s} (the caption's reference check)" for s in sorted(unrecorded_frames)]
     if figure and shown in splits_on_disk(ctx, as_specified=True):
         needed.add(shown)
     drawn = figure and shown in needed
     loading = {(r["label"], seed) for r in pending for seed in ctx.seeds} | (
         {(r["label"], ctx.seeds[0]) for r in rows} if drawn else set())  # the figure shows the first seed
-    if ctx.force or any(untrained(trainings[key]) for key in loading):
+    to_train = [f"{label} seed {seed}: {why}" for label, seed in sorted(loading) if not ctx.force
+                for why in untrained(trainings[label, seed])]
+    if ctx.force or to_train:
         needed |= training_splits(ctx)
+        whys += ["force=true"] if ctx.force else [f"to train: {why}" for why in to_train]
     if needed:
+        # why, before the render: a table a user expected from the archive says what is missing
+        log.info("%s: rendering %s where missing; %s", name, ", ".join(sorted(needed)),
+                 "; ".join(whys) or f"the crops figure reads {shown}")
         ensure_data(ctx, passes_for(rows, task), needed)
     else:
         log.info("%s: every evaluation is recorded: nothing is rendered or trained", name)
