@@ -54,8 +54,8 @@ def _context():
         return make_context(compose("config", overrides=["preset=cpu", "render_data=false", "device=cpu"]))
 
 
-def _model(run: str):
-    model, meta = load_exported(export(run, Path(tempfile.mkdtemp()) / f"{run}.pt", _context().runs_dir))
+def _model(run: str, runs_dir: Path):
+    model, meta = load_exported(export(run, Path(tempfile.mkdtemp()) / f"{run}.pt", runs_dir))
     return model, meta["hdr"]
 
 
@@ -64,7 +64,7 @@ def bins(prefixes: str, run_hashes: list[str]) -> None:
     data = dataset(ctx, "val", task, training=False)
     chosen = [i for i, item in enumerate(data.items) if item[0].startswith(tuple(prefixes.split(",")))]
     for run in run_hashes:
-        model, hdr = _model(run)
+        model, hdr = _model(run, ctx.runs_dir)
         model.eval()
         sums = {}   # sequence -> (bins, [pixels, signed, squared, output, reference])
         for i in chosen:
@@ -89,7 +89,7 @@ def bins(prefixes: str, run_hashes: list[str]) -> None:
 def gradients(run: str, items: int = 16) -> None:
     ctx, task = _context(), get_task("srd")
     data = dataset(ctx, "train", task, training=True)
-    model, hdr = _model(run)
+    model, hdr = _model(run, ctx.runs_dir)
     model.train()
     keys, weights = task.buffers(with_mid=True), ctx.train.loss
     norm = sum(weights["final"].get(t, 0) for t in ("edge", "temporal", "spatial"))

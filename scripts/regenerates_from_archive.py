@@ -29,9 +29,11 @@ from pathlib import Path
 import pandas as pd
 from omegaconf import OmegaConf
 
+from bench.experiments.datasets import RENDERING  # in the log line of any render, and so of any training
+from bench.experiments.table import RENDERING_BECAUSE
+
 REPO = Path(__file__).resolve().parents[1]
 STUDIES = "studies/"   # a study's table folder, under results/<preset>/
-RENDERING = "rendering what is missing"   # bench.experiments.datasets.ensure_data: any render, and so any training
 
 
 def conf_file(name: str) -> Path:
@@ -99,8 +101,8 @@ def regenerate(name: str, preset: str, split: str, work: Path, extra: list[str])
         why = ""
         for line in proc.stdout:
             out.write(line)
-            if "where missing; " in line:  # bench.experiments.table.render_what_runs says why
-                why = line.split("where missing; ", 1)[1].strip()
+            if RENDERING_BECAUSE in line:  # bench.experiments.table.render_what_runs says why
+                why = line.split(RENDERING_BECAUSE, 1)[1].strip()
             if RENDERING in line:
                 proc.send_signal(signal.SIGINT)
                 out.write(proc.communicate(timeout=120)[0])
@@ -115,17 +117,19 @@ def regenerate(name: str, preset: str, split: str, work: Path, extra: list[str])
 def main(argv=None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--preset", default="cpu")
-    parser.add_argument("--tables", nargs="*", help="default: every table of +experiment=all committed for the preset")
+    parser.add_argument("--tables", nargs="*", help="default: every paper table of +experiment=all and every study "
+                                                    "of kind table committed for the preset (studies/NAME)")
     parser.add_argument("--splits", nargs="*", default=["test", "val"],
                         help="test: results/<preset>/<table>; another: results/<preset>/<split>/<table>, where "
-                             "committed (a study: test alone, its own split: results/<preset>/studies/<name>)")
+                             "committed. A study is checked with test, on the split it scores "
+                             "(results/<preset>/studies/<name>)")
     parser.add_argument("--work", type=Path, help="scratch folder (default: a new one under the system's tmp)")
     parser.add_argument("overrides", nargs="*", help="more overrides for every table, e.g. vgg.weights=...")
     args = parser.parse_args(argv)
     work = args.work or Path(tempfile.mkdtemp(prefix="regenerates-"))
     failed = 0
     for name in args.tables or committed_tables(args.preset):
-        for split in ["test"] if name.startswith(STUDIES) else args.splits:
+        for split in [s for s in args.splits if s == "test"] if name.startswith(STUDIES) else args.splits:
             committed = REPO / "results" / args.preset / ("" if split == "test" else split) / name
             if not (committed / "table.csv").is_file():
                 continue
@@ -134,7 +138,7 @@ def main(argv=None) -> int:
                 differs = differences(committed, table)
                 verdict = f"differs from the committed table in {', '.join(differs)}" if differs else "matches"
             failed += verdict != "matches"
-            print(f"{name} ({split}): {verdict}", flush=True)
+            print(f"{name} ({'its own split' if name.startswith(STUDIES) else split}): {verdict}", flush=True)
     print(f"{failed} table(s) do not regenerate as committed; scratch folder {work}")
     return 1 if failed else 0
 

@@ -179,7 +179,7 @@ def test_a_table_that_must_train_renders_the_training_and_working_splits_not_the
     assert sorted(p.name for p in (tmp_path / "data").iterdir() if p.is_dir()) == ["train", "val"]
     assert "trained in" in out.stdout + out.stderr
     # before it renders, the log says why: what is not recorded, and each training to run (row, seed, why)
-    said = re.search(r": rendering (.+) where missing; (.+)", out.stdout + out.stderr)
+    said = re.search(r": rendering (.+) where missing, because: (.+)", out.stdout + out.stderr)
     assert said and said.group(1) == "train, val", (out.stdout + out.stderr)[-3000:]
     assert said.group(2).startswith("not recorded: the evaluation of ")
     assert re.search(r"; to train: \S.* seed 0: no complete training recorded in ", said.group(2)), said.group(2)

@@ -24,6 +24,7 @@ from bench.experiments.context import Context
 from bench.tasks import Task
 
 log = logging.getLogger("bench")
+RENDERING = "rendering what is missing"  # in the log line of every render (scripts read it)
 
 
 def _canonical(value) -> str:
@@ -197,7 +198,7 @@ def _render_missing(ctx: Context, passes: set[str], splits: list[str]) -> str:
     run = runs.begin(ctx.runs_dir, "data", identity, seed=ctx.data_spec.get("seed"), device=ctx.device,
                      label=f"data {ctx.preset}", force=True, every_call=True)  # a data run records one render job
     try:
-        log.info("data: making sure %s holds %s (rendering what is missing)", ctx.data_dir, ", ".join(sorted(passes)))
+        log.info("data: making sure %s holds %s (%s)", ctx.data_dir, ", ".join(sorted(passes)), RENDERING)
         manifest = build_dataset(ctx.data_dir, ctx.data_spec, sorted(passes), workers=ctx.workers,
                                  progress=ctx.progress, variant="cuda_ad_rgb" if ctx.device == "cuda" else None,
                                  splits=splits)

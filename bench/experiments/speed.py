@@ -49,8 +49,8 @@ from bench.evaluate import sync
 from bench.infer import (frames_channels_last, freed_memory_kept, max_abs_diff, parse_path, prepare, release_free_memory,
                          tiled_predict)
 from bench.losses import weighted_loss
-from bench.experiments.macs import frame_inputs
-from bench.macs import count_macs, macs_at, on_meta
+from bench.experiments.macs import frame_inputs, frame_macs
+from bench.macs import macs_at
 from bench.measure import candidate_paths, choose_fast_path, cpu_flags, cpu_isa, time_call
 from bench.models.factory import build_model
 from bench.nn import DeformConv2d, eager_gather, fused, grid_sample_training, inference_sampler, training_sampler
@@ -350,8 +350,8 @@ def oidn_row(out_hw, device, repeats, warmup) -> dict | None:
 def conv_stack_rows(target_macs: int, hw, channels: int, paths, device, repeats, warmup,
                     train: dict | None, lr: float) -> list[dict]:
     """The dense-conv reference at the proposed model's MACs, per fast path; with `train`, also its
-    training step (forward, L1, backward, Adam at the models' learning rate `lr`) at the training crop:
-    the same MACs per LR pixel as the proposed model's forward."""
+    training step (forward, L1, backward, Adam at `lr`: train.lr, as the models' timed steps take) at the
+    training crop: the same MACs per LR pixel as the proposed model's forward."""
     depth = conv_stack_depth(target_macs, hw, channels)
     torch.manual_seed(0)
     stack = ConvStack(channels, depth).to(device).eval()
@@ -607,7 +607,7 @@ def _sections(ctx, models, input_hw, paths, repeats, warmup, train, oidn, stack_
     train_crop = {"batch": ctx.train.batch_size, "frames": ctx.train.seq_len, "crop": ctx.train.crop,
                   **{k: v for k, v in train.items() if v is not None}}
     if stack_channels and "srd" in ctx.models:
-        ours_macs = macs_at(lambda: build_model(ctx.models["srd"], 2), frame_inputs(ctx.models["srd"], input_hw))
+        ours_macs = int(frame_macs(ctx.models["srd"], input_hw)["macs"].sum())
         yield conv_stack_rows(ours_macs, input_hw, stack_channels, paths, device, repeats, warmup,
                               train_crop if train_crop.get("enabled", True) else None, ctx.train.lr)
     if deform.get("enabled", True):
@@ -620,7 +620,7 @@ def _sections(ctx, models, input_hw, paths, repeats, warmup, train, oidn, stack_
         cfg = ctx.models[name]
         label = LABELS.get(name, name)
         model = build(cfg, device, perturb)
-        layers = count_macs(*on_meta(lambda: build_model(cfg, 2), frame_inputs(cfg, input_hw)))  # as the MAC audit counts
+        layers = frame_macs(cfg, input_hw)
         macs = int(layers["macs"].sum())
         rows = inference_rows(label, model, macs, x, g, paths, device, repeats, warmup)
         note_auto_choice(rows, model, x, g, device, repeats)

@@ -45,6 +45,7 @@ from bench.tasks import CASCADE_STAGES, TASKS, get_task
 
 log = logging.getLogger("bench")
 
+RENDERING_BECAUSE = " where missing, because: "  # in the log line that says why a table renders (scripts read it)
 PAPER_TASK = {"srd": "SRD", "sr": "SR", "denoise": "Denoising"}  # our task name -> the paper's column
 ROW_KEYS = {"label", "model", "overrides", "task", "train", "cascade", "paper", "split"}
 
@@ -317,22 +318,24 @@ def render_what_runs(ctx: Context, name: str, rows: list[dict], task: str, split
     whys = [f"not recorded: the evaluation of {', '.join(r['label'] for r in pending)}"] if pending else []
     shown = split or ctx.eval.split
     scored = {r.get("split", split) or ctx.eval.split for r in rows}
-    unrecorded_frames = {s for s in scored if not frame_records(ctx, s)}
-    needed |= unrecorded_frames
-    whys += [f"no frame records of {s} (the caption's reference check)" for s in sorted(unrecorded_frames)]
+    splits_without_frame_records = {s for s in scored if not frame_records(ctx, s)}
+    needed |= splits_without_frame_records
+    whys += [f"no frame records of {s} (the caption's reference check)" for s in sorted(splits_without_frame_records)]
     if figure and shown in splits_on_disk(ctx, as_specified=True):
         needed.add(shown)
     drawn = figure and shown in needed
     loading = {(r["label"], seed) for r in pending for seed in ctx.seeds} | (
         {(r["label"], ctx.seeds[0]) for r in rows} if drawn else set())  # the figure shows the first seed
-    to_train = [f"{label} seed {seed}: {why}" for label, seed in sorted(loading) if not ctx.force
-                for why in untrained(trainings[label, seed])]
+    to_train = [] if ctx.force else [f"{label} seed {seed}: {why}" for label, seed in sorted(loading)
+                                     for why in untrained(trainings[label, seed])]
     if ctx.force or to_train:
         needed |= training_splits(ctx)
-        whys += ["force=true"] if ctx.force else [f"to train: {why}" for why in to_train]
+    if ctx.force:  # every run computes again: the one reason
+        whys = ["force=true"]
+    whys += [f"to train: {why}" for why in to_train]
     if needed:
         # why, before the render: a table a user expected from the archive says what is missing
-        log.info("%s: rendering %s where missing; %s", name, ", ".join(sorted(needed)),
+        log.info("%s: rendering %s%s%s", name, ", ".join(sorted(needed)), RENDERING_BECAUSE,
                  "; ".join(whys) or f"the crops figure reads {shown}")
         ensure_data(ctx, passes_for(rows, task), needed)
     else:
@@ -457,9 +460,9 @@ def run(ctx: Context, name: str, rows: list[dict], caption: str = "", task: str 
     if gmac_column:
         after = "SSIM std" if "SSIM std" in table else "SSIM"
         table.insert(table.columns.get_loc(after) + 1, "GMac", [gmac(ctx, r) for r in rows])
-    paper_table = (name if name in TABLES else None) if paper_table == "auto" else paper_table
-    table = with_paper(table, rows, paper_table)
-    notes = caption_notes(ctx, scoring_ctx, table, rows, split, leave_out, gmac_column, paper_table)
+    published = (name if name in TABLES else None) if paper_table == "auto" else paper_table
+    table = with_paper(table, rows, published)
+    notes = caption_notes(ctx, scoring_ctx, table, rows, split, leave_out, gmac_column, published)
     out_dir = ctx.results_dir / name
     curves = {label: hashes for label, hashes in zip(table["method"], table.pop("train runs")) if hashes}
     write_table(table.drop(columns=["reused"]), out_dir, caption=f"{caption} {notes}".strip(),
