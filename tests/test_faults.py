@@ -20,7 +20,7 @@ import pytest
 from bench import datagen, exrio, runs
 from bench.atomic import write_atomic
 from bench.errors import UserError
-from bench.experiments.datasets import ensure_data
+from bench.experiments.datasets import RENDERING, ensure_data
 from conftest import bench_here, smoke_context
 
 SPEC = {"name": "tiny", "seed": 1, "lr_width": 8, "lr_height": 6, "scale": 2, "spp": 1, "ref_spp": 4,
@@ -227,7 +227,7 @@ def test_a_signal_while_rendering_is_one_line_and_the_data_run_is_recorded_faile
     seen = []
     for line in proc.stdout:                                      # wait until rendering has begun
         seen.append(line)
-        if "rendering what is missing" in line:
+        if RENDERING in line:
             break
     proc.send_signal(signum)
     t0 = time.perf_counter()
