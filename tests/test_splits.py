@@ -115,8 +115,15 @@ def test_a_tables_caption_names_rows_left_out_scored_with_rounded_weights_or_tra
     assert "float16-rounded weights" in note and ": Ours, EDSR (1 of 3 seeds)." in note
     assert "reuse_stale=true" in note and "re-stamps them): Ours." in note
     assert table._weights_note(["Input bilinear"], [0], [0], seeds=3) == ""
+
+
+def test_a_table_refuses_a_row_to_leave_out_or_a_paper_table_it_does_not_have_before_it_runs():
+    from bench.experiments import table
+    rows = [{"label": "Input bilinear", "model": "bilinear"}]
     with pytest.raises(UserError, match="experiment.leave_out: no row 'RAE'"):
-        table.run(smoke_context(), "t", rows=[{"label": "Input bilinear", "model": "bilinear"}], leave_out=["RAE"])
+        table.run(smoke_context(), "t", rows=rows, leave_out=["RAE"])
+    with pytest.raises(UserError, match="experiment.paper_table='Table 5': expected auto, null or one of sr_denoise"):
+        table.run(smoke_context(), "t", rows=rows, paper_table="Table 5")
 
 
 class _Rendering(Exception):

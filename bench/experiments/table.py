@@ -440,6 +440,8 @@ def run(ctx: Context, name: str, rows: list[dict], caption: str = "", task: str 
     (bench/paper_values.csv); "auto": the experiment's own, where the paper has one. `leave_out`: labels
     of rows this call does not compute, named in the caption (e.g. rows whose trainings cannot be loaded
     or run here); the table has the others."""
+    if paper_table not in ("auto", None, *TABLES):
+        raise UserError(f"experiment.paper_table={paper_table!r}: expected auto, null or one of {', '.join(TABLES)}")
     rows = selected_rows(ctx, rows, task, leave_out)
     scoring_ctx = evaluation_data(ctx)
     drawn = ready_data(ctx, scoring_ctx, name, rows, task, split, figure)
