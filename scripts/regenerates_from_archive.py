@@ -29,9 +29,6 @@ from pathlib import Path
 import pandas as pd
 from omegaconf import OmegaConf
 
-from bench.experiments.datasets import RENDERING  # in the log line of any render, and so of any training
-from bench.experiments.table import RENDERING_BECAUSE
-
 REPO = Path(__file__).resolve().parents[1]
 STUDIES = "studies/"   # a study's table folder, under results/<preset>/
 
@@ -84,6 +81,10 @@ def recorded_seeds(committed: Path) -> list[str]:
 
 def regenerate(name: str, preset: str, split: str, work: Path, extra: list[str]) -> tuple[str, Path | None]:
     """(verdict, the regenerated table's folder or None): run the table, stopping it where it would render."""
+    # the log lines of any render (and so of any training), and of why a table renders; imported here, not at
+    # the top: bench imports torch, which --help need not wait for
+    from bench.experiments.datasets import RENDERING
+    from bench.experiments.table import RENDERING_BECAUSE
     where = work / f"{name.replace('/', '-')}-{split}"
     choice = f"+study={name.removeprefix(STUDIES)}" if name.startswith(STUDIES) else f"+experiment={name}"
     command = [sys.executable, "-m", "bench", choice, f"preset={preset}",
