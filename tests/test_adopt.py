@@ -11,7 +11,7 @@ import pytest
 import torch
 
 from bench.errors import UserError
-from conftest import bench, copy_of_project_and_store
+from conftest import bench, copy_of_project_and_store, smoke_context
 
 
 def test_a_real_edit_to_a_model_file_makes_its_trainings_stale_and_a_comment_does_not(smoke_dirs, tmp_path):
@@ -83,6 +83,7 @@ def test_adopt_stops_on_ctrl_c_or_sigterm_during_a_replay(monkeypatch, tmp_path)
     (tmp_path / "checkpoint.pt").write_text("weights")                   # a witness has them
     monkeypatch.setattr(adopt, "stale_groups", lambda ctx: {"g": [witness]})
     monkeypatch.setattr(adopt, "restore_archive", lambda ctx: 0)
+    monkeypatch.setattr(adopt, "render_what_the_checks_read", lambda ctx, groups: None)  # no frames here
     monkeypatch.setattr(adopt, "code_of", lambda *a: {})
     monkeypatch.setattr(runs, "code_changes", lambda *a: [])
 
@@ -92,6 +93,34 @@ def test_adopt_stops_on_ctrl_c_or_sigterm_during_a_replay(monkeypatch, tmp_path)
     monkeypatch.setattr(adopt, "trained_here", lambda *a: True)
     with pytest.raises(TrainingInterrupted):
         adopt.run(None, "adopt", 10, 1e-5, 1e-3, 1e-3, dry_run=True)
+
+
+def test_adopt_renders_the_training_split_and_val_where_missing_and_nothing_else(monkeypatch, tmp_path):
+    """A fresh clone adopts after rendering what the checks read: the training split for the replays and
+    val for the scoring (with the buffers of the stale groups' tasks), not the whole dataset; nothing
+    when nothing is stale, val not when today's frames have val or test, and never your own data."""
+    import dataclasses
+    from bench import runs
+    from bench.experiments import adopt
+    rendered = []
+    monkeypatch.setattr(adopt, "ensure_data", lambda ctx, passes, splits: rendered.append((passes, splits)))
+    monkeypatch.setattr(adopt, "stale_untrained_evaluations", lambda ctx: [])
+    ctx = smoke_context(runs_dir=tmp_path / "runs", data_dir=tmp_path / "no data")
+    group = {"g": [runs.Run("train", "0" * 16, tmp_path, {"identity": {"task": "srd"}})]}
+    adopt.render_what_the_checks_read(ctx, group)
+    assert rendered == [({"lr_noisy", "lr_gbuf", "hr_noisy", "hr_ref"}, {"train", "val"})]
+    adopt.render_what_the_checks_read(ctx, {})
+    assert len(rendered) == 1                                         # nothing stale: nothing rendered
+    monkeypatch.setattr(adopt, "splits_on_disk", lambda ctx, as_specified: {"test"})
+    adopt.render_what_the_checks_read(ctx, group)
+    assert rendered[-1][1] == {"train"}                               # test scores as well as val
+    adopt.render_what_the_checks_read(dataclasses.replace(ctx, render_data=False), group)
+    assert len(rendered) == 2                                         # your own frames: as they are
+    untrained = runs.Run("eval", "1" * 16, tmp_path, {"identity": {"trained": {"task": "denoise"}}})
+    monkeypatch.setattr(adopt, "stale_untrained_evaluations", lambda ctx: [untrained])
+    monkeypatch.setattr(adopt, "splits_on_disk", lambda ctx, as_specified: set())
+    adopt.render_what_the_checks_read(ctx, {})
+    assert rendered[-1][1] == {"val"}                                 # an untrained model's evaluation: val only
 
 
 def _archived_stale_training(tmp_path, name):
@@ -123,6 +152,7 @@ def test_adopt_archives_what_it_restamps_over_the_stale_copy(monkeypatch, tmp_pa
     monkeypatch.setattr(adopt, "check_training", lambda *a: {"step 1 loss": 0.0, "later loss": 0.0})
     monkeypatch.setattr(adopt, "trained_here", lambda *a: True)
     monkeypatch.setattr(adopt, "restore_archive", lambda ctx: 0)
+    monkeypatch.setattr(adopt, "render_what_the_checks_read", lambda ctx, groups: None)  # no frames here
     ctx = types.SimpleNamespace(runs_dir=tmp_path / "runs", runs_archive=archive, results_dir=tmp_path / "results")
     table = adopt.run(ctx, "adopt", 10, 1e-5, 1e-3, 1e-3, dry_run=False)
     assert list(table["verdict"]) == ["adopted"]
@@ -223,7 +253,7 @@ def test_adopt_keeps_out_of_the_archive_the_weights_it_left_out(monkeypatch, tmp
     for name, value in (("stale_groups", lambda ctx: {"g": [run]}), ("code_of", lambda *a: {"bench/x.py": "new"}),
                         ("evaluations_of", lambda *a: []), ("trained_here", lambda *a: True),
                         ("check_training", lambda *a: {"step 1 loss": 0.0, "later loss": 0.0}),
-                        ("restore_archive", lambda ctx: 0)):
+                        ("restore_archive", lambda ctx: 0), ("render_what_the_checks_read", lambda ctx, groups: None)):
         monkeypatch.setattr(adopt, name, value)
     ctx = types.SimpleNamespace(runs_dir=tmp_path / "runs", runs_archive=archive, results_dir=tmp_path / "results")
     assert list(adopt.run(ctx, "adopt", 10, 1e-5, 1e-3, 1e-3, dry_run=False)["verdict"]) == ["adopted"]
@@ -251,7 +281,7 @@ def test_adopt_restamps_a_run_its_archive_kept_without_weights_beside_a_witness_
         made[weights] = run
     lone = runs.complete(runs.begin(tmp_path / "runs", "train", {**ident, "model": {"_target_": "y"}}, seed=0,
                                     code={"bench/x.py": "old"}), {})
-    monkeypatch.setattr(adopt, "data_fingerprint", lambda *a: "d")
+    monkeypatch.setattr(adopt, "split_fingerprint", lambda *a: "d")
     monkeypatch.setattr(adopt, "code_of", lambda *a: {"bench/x.py": "new"})
     groups = sorted(adopt.stale_groups(types.SimpleNamespace(runs_dir=tmp_path / "runs")).values(), key=len)
     assert [[r.hash for r in g] for g in groups] == [[lone.hash], [made[True].hash, made[False].hash]]
@@ -259,6 +289,7 @@ def test_adopt_restamps_a_run_its_archive_kept_without_weights_beside_a_witness_
     monkeypatch.setattr(adopt, "check_training", lambda *a: {"step 1 loss": 0.0, "later loss": 0.0})
     monkeypatch.setattr(adopt, "trained_here", lambda *a: True)
     monkeypatch.setattr(adopt, "restore_archive", lambda ctx: 0)
+    monkeypatch.setattr(adopt, "render_what_the_checks_read", lambda ctx, groups: None)  # no frames here
     ctx = types.SimpleNamespace(runs_dir=tmp_path / "runs", runs_archive=None, results_dir=tmp_path / "results")
     table = adopt.run(ctx, "adopt", 10, 1e-5, 1e-3, 1e-3, dry_run=False).set_index("witness")
     assert table.loc[made[True].hash, "verdict"] == "adopted" and table.loc[made[True].hash, "weights"]

@@ -41,7 +41,9 @@ Stopped trainings (interrupted, failed, or killed: a "running" record no process
 resume instead of starting again; a group of only such runs has no evaluation to check.
 
 The archive's runs (`runs_archive`) that the store lacks are restored into it first (with `dry_run`
-too), so a fresh clone adopts the committed runs. Runs recorded under an older identity version are not looked at: `+experiment=migrate` re-keys them first.
+too), and where anything is stale the frames the checks read are rendered where missing (the train split,
+and val unless val or test is there: `render_what_the_checks_read`), so a fresh clone adopts the committed
+runs. Runs recorded under an older identity version are not looked at: `+experiment=migrate` re-keys them first.
 
 Writes `<results_dir>/adopt/table.{csv,md,tex}`: one row per group with the verdict and the differences.
 """
@@ -57,13 +59,15 @@ from bench import archived, runs
 from bench.errors import UserError
 from bench.experiments.context import (EVALUATION_CODE, FROZEN_SPLIT, TRAINING_CODE, TUNING_SPLIT, Context,
                                       code_of)
-from bench.experiments.datasets import data_fingerprint, evaluation_data, render_digest, splits_on_disk
+from bench.experiments.datasets import (data_fingerprint, ensure_data, evaluation_data, render_digest, split_fingerprint,
+                                       splits_on_disk)
 from bench.experiments.evaluation import archive_evaluation
 from bench.experiments.replay import (COMPARED, check_against_recorded_code, check_inference, check_training,
                                       fingerprints_agree, scoring_of)
 from bench.experiments.training import archive_training
 from bench.infer import REFERENCE
 from bench.table_writer import write_table
+from bench.tasks import get_task
 from bench.train import TrainingInterrupted
 
 log = logging.getLogger("bench")
@@ -78,7 +82,7 @@ def stale_groups(ctx: Context) -> dict[str, list[runs.Run]]:
     they were recorded and whose data is this data_dir's, grouped by identity without the seed (one
     table row): runs with weights first, then lowest seed first; complete runs first among equal seeds
     (their evaluations can be checked)."""
-    data = data_fingerprint(ctx, "train")
+    data = split_fingerprint(ctx, "train")  # planned from the spec: found before the split is rendered
     groups: dict[str, list[runs.Run]] = {}
     for path in sorted((ctx.runs_dir / "train").glob(f"*/{runs.RECORD}")):
         record = runs.read_record(path) or {}  # a damaged record is missing
@@ -96,6 +100,26 @@ def stale_groups(ctx: Context) -> dict[str, list[runs.Run]]:
         groups.setdefault(key, []).append(runs.Run("train", record["hash"], path.parent, record))
     return {k: sorted(v, key=lambda r: (not archived.has_weights(r.dir), r.record["seed"] or 0,
                                         r.record["status"] != "complete")) for k, v in groups.items()}
+
+
+def render_what_the_checks_read(ctx: Context, groups: dict[str, list[runs.Run]]) -> None:
+    """Render, where missing, the frames the checks read and nothing else (rendered data only; your own
+    is used as it is): the training split, for the groups' replays, and val, for the scoring, unless
+    today's frames have val or test already (`scoring_split` takes either). A fresh clone adopts after
+    rendering two splits, not the whole dataset."""
+    untrained = stale_untrained_evaluations(ctx)
+    if not (groups or untrained) or not ctx.render_data:
+        return
+    tasks = {g[0].record["identity"]["task"] for g in groups.values()}
+    tasks |= {e.record["identity"]["trained"]["task"] for e in untrained}
+    passes = set().union(*(get_task(t).buffers(with_mid=True) for t in tasks))
+    splits = {"train"} if groups else set()
+    if evaluation_data(ctx) is ctx and not splits_on_disk(ctx, as_specified=True) & {TUNING_SPLIT, FROZEN_SPLIT}:
+        splits.add(TUNING_SPLIT)
+    if splits:
+        log.info("adopt: rendering %s where missing, for the checks (%d groups, %d evaluations of untrained models)",
+                 ", ".join(sorted(splits)), len(groups), len(untrained))
+        ensure_data(ctx, passes, splits)
 
 
 def restore_archive(ctx: Context) -> int:
@@ -298,6 +322,7 @@ def run(ctx: Context, name: str, steps: int, rtol: float, rtol_later_steps: floa
     log.info("adopt: %d archived runs restored into the store", restore_archive(ctx))
     groups = stale_groups(ctx)
     log.info("adopt: %d groups of stale training runs (%d runs)", len(groups), sum(map(len, groups.values())))
+    render_what_the_checks_read(ctx, groups)
     rows, adopted = [], set()
     for group in groups.values():
         row = check_group(ctx, group, steps, rtol, rtol_later_steps, rtol_rounded_weights)
