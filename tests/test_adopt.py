@@ -83,7 +83,8 @@ def test_adopt_stops_on_ctrl_c_or_sigterm_during_a_replay(monkeypatch, tmp_path)
     (tmp_path / "checkpoint.pt").write_text("weights")                   # a witness has them
     monkeypatch.setattr(adopt, "stale_groups", lambda ctx: {"g": [witness]})
     monkeypatch.setattr(adopt, "restore_archive", lambda ctx: 0)
-    monkeypatch.setattr(adopt, "render_what_the_checks_read", lambda ctx, groups: None)  # no frames here
+    monkeypatch.setattr(adopt, "render_what_the_checks_read", lambda *a: None)  # no frames here
+    monkeypatch.setattr(adopt, "stale_untrained_evaluations", lambda ctx: [])   # no store here
     monkeypatch.setattr(adopt, "code_of", lambda *a: {})
     monkeypatch.setattr(runs, "code_changes", lambda *a: [])
 
@@ -104,22 +105,20 @@ def test_adopt_renders_the_training_split_and_val_where_missing_and_nothing_else
     from bench.experiments import adopt
     rendered = []
     monkeypatch.setattr(adopt, "ensure_data", lambda ctx, passes, splits: rendered.append((passes, splits)))
-    monkeypatch.setattr(adopt, "stale_untrained_evaluations", lambda ctx: [])
     ctx = smoke_context(runs_dir=tmp_path / "runs", data_dir=tmp_path / "no data")
     group = {"g": [runs.Run("train", "0" * 16, tmp_path, {"identity": {"task": "srd"}})]}
-    adopt.render_what_the_checks_read(ctx, group)
+    adopt.render_what_the_checks_read(ctx, group, [])
     assert rendered == [({"lr_noisy", "lr_gbuf", "hr_noisy", "hr_ref"}, {"train", "val"})]
-    adopt.render_what_the_checks_read(ctx, {})
+    adopt.render_what_the_checks_read(ctx, {}, [])
     assert len(rendered) == 1                                         # nothing stale: nothing rendered
     monkeypatch.setattr(adopt, "splits_on_disk", lambda ctx, as_specified: {"test"})
-    adopt.render_what_the_checks_read(ctx, group)
+    adopt.render_what_the_checks_read(ctx, group, [])
     assert rendered[-1][1] == {"train"}                               # test scores as well as val
-    adopt.render_what_the_checks_read(dataclasses.replace(ctx, render_data=False), group)
+    adopt.render_what_the_checks_read(dataclasses.replace(ctx, render_data=False), group, [])
     assert len(rendered) == 2                                         # your own frames: as they are
     untrained = runs.Run("eval", "1" * 16, tmp_path, {"identity": {"trained": {"task": "denoise"}}})
-    monkeypatch.setattr(adopt, "stale_untrained_evaluations", lambda ctx: [untrained])
     monkeypatch.setattr(adopt, "splits_on_disk", lambda ctx, as_specified: set())
-    adopt.render_what_the_checks_read(ctx, {})
+    adopt.render_what_the_checks_read(ctx, {}, [untrained])
     assert rendered[-1][1] == {"val"}                                 # an untrained model's evaluation: val only
 
 
@@ -152,7 +151,7 @@ def test_adopt_archives_what_it_restamps_over_the_stale_copy(monkeypatch, tmp_pa
     monkeypatch.setattr(adopt, "check_training", lambda *a: {"step 1 loss": 0.0, "later loss": 0.0})
     monkeypatch.setattr(adopt, "trained_here", lambda *a: True)
     monkeypatch.setattr(adopt, "restore_archive", lambda ctx: 0)
-    monkeypatch.setattr(adopt, "render_what_the_checks_read", lambda ctx, groups: None)  # no frames here
+    monkeypatch.setattr(adopt, "render_what_the_checks_read", lambda *a: None)  # no frames here
     ctx = types.SimpleNamespace(runs_dir=tmp_path / "runs", runs_archive=archive, results_dir=tmp_path / "results")
     table = adopt.run(ctx, "adopt", 10, 1e-5, 1e-3, 1e-3, dry_run=False)
     assert list(table["verdict"]) == ["adopted"]
@@ -253,7 +252,7 @@ def test_adopt_keeps_out_of_the_archive_the_weights_it_left_out(monkeypatch, tmp
     for name, value in (("stale_groups", lambda ctx: {"g": [run]}), ("code_of", lambda *a: {"bench/x.py": "new"}),
                         ("evaluations_of", lambda *a: []), ("trained_here", lambda *a: True),
                         ("check_training", lambda *a: {"step 1 loss": 0.0, "later loss": 0.0}),
-                        ("restore_archive", lambda ctx: 0), ("render_what_the_checks_read", lambda ctx, groups: None)):
+                        ("restore_archive", lambda ctx: 0), ("render_what_the_checks_read", lambda *a: None)):
         monkeypatch.setattr(adopt, name, value)
     ctx = types.SimpleNamespace(runs_dir=tmp_path / "runs", runs_archive=archive, results_dir=tmp_path / "results")
     assert list(adopt.run(ctx, "adopt", 10, 1e-5, 1e-3, 1e-3, dry_run=False)["verdict"]) == ["adopted"]
@@ -289,7 +288,7 @@ def test_adopt_restamps_a_run_its_archive_kept_without_weights_beside_a_witness_
     monkeypatch.setattr(adopt, "check_training", lambda *a: {"step 1 loss": 0.0, "later loss": 0.0})
     monkeypatch.setattr(adopt, "trained_here", lambda *a: True)
     monkeypatch.setattr(adopt, "restore_archive", lambda ctx: 0)
-    monkeypatch.setattr(adopt, "render_what_the_checks_read", lambda ctx, groups: None)  # no frames here
+    monkeypatch.setattr(adopt, "render_what_the_checks_read", lambda *a: None)  # no frames here
     ctx = types.SimpleNamespace(runs_dir=tmp_path / "runs", runs_archive=None, results_dir=tmp_path / "results")
     table = adopt.run(ctx, "adopt", 10, 1e-5, 1e-3, 1e-3, dry_run=False).set_index("witness")
     assert table.loc[made[True].hash, "verdict"] == "adopted" and table.loc[made[True].hash, "weights"]

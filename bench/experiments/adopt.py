@@ -102,12 +102,11 @@ def stale_groups(ctx: Context) -> dict[str, list[runs.Run]]:
                                         r.record["status"] != "complete")) for k, v in groups.items()}
 
 
-def render_what_the_checks_read(ctx: Context, groups: dict[str, list[runs.Run]]) -> None:
+def render_what_the_checks_read(ctx: Context, groups: dict[str, list[runs.Run]], untrained: list[runs.Run]) -> None:
     """Render, where missing, the frames the checks read and nothing else (rendered data only; your own
     is used as it is): the training split, for the groups' replays, and val, for the scoring, unless
     today's frames have val or test already (`scoring_split` takes either). A fresh clone adopts after
-    rendering two splits, not the whole dataset."""
-    untrained = stale_untrained_evaluations(ctx)
+    rendering two splits, not the whole dataset. `untrained`: the stale evaluations of untrained models."""
     if not (groups or untrained) or not ctx.render_data:
         return
     tasks = {g[0].record["identity"]["task"] for g in groups.values()}
@@ -282,11 +281,11 @@ def adopt_group(ctx: Context, group: list[runs.Run], row: dict, rtol: float, rto
         archive_training(ctx, r)
 
 
-def untrained_rows(ctx: Context, rtol: float, dry_run: bool) -> list[dict]:
+def untrained_rows(ctx: Context, untrained: list[runs.Run], rtol: float, dry_run: bool) -> list[dict]:
     """Rows for the stale evaluations of models that are not trained (bilinear, OIDN: their evaluator
     changed), each checked on its first sequence and re-stamped when adopted."""
     rows = []
-    for evaluation in stale_untrained_evaluations(ctx):
+    for evaluation in untrained:
         row = check_untrained(ctx, evaluation, rtol)
         log.info("adopt %s (evaluation %s): %s", row["label"], evaluation.hash, row["verdict"])
         if row["verdict"] == "adopted" and not dry_run:
@@ -322,7 +321,8 @@ def run(ctx: Context, name: str, steps: int, rtol: float, rtol_later_steps: floa
     log.info("adopt: %d archived runs restored into the store", restore_archive(ctx))
     groups = stale_groups(ctx)
     log.info("adopt: %d groups of stale training runs (%d runs)", len(groups), sum(map(len, groups.values())))
-    render_what_the_checks_read(ctx, groups)
+    untrained = stale_untrained_evaluations(ctx)
+    render_what_the_checks_read(ctx, groups, untrained)
     rows, adopted = [], set()
     for group in groups.values():
         row = check_group(ctx, group, steps, rtol, rtol_later_steps, rtol_rounded_weights)
@@ -334,7 +334,7 @@ def run(ctx: Context, name: str, steps: int, rtol: float, rtol_later_steps: floa
         restamp(evaluation, evaluation_code(ctx, evaluation),
                 {"trainings": evaluation.record["metrics"]["train_run"], "rtol": rtol})
         archive_evaluation(ctx, evaluation)
-    rows += untrained_rows(ctx, rtol, dry_run)
+    rows += untrained_rows(ctx, untrained, rtol, dry_run)
     checked = time.strftime("%Y-%m-%dT%H:%M:%S%z")
     table = pd.DataFrame([{**row, "checked": checked, "rtol": rtol, "rtol later steps": rtol_later_steps,
                            "dry run": dry_run} for row in rows])

@@ -315,12 +315,10 @@ def render_what_runs(ctx: Context, name: str, rows: list[dict], task: str, split
     neither there nor archived. Returns whether the figure is redrawn."""
     pending = unrecorded_rows(ctx, rows, split, trainings)
     needed = {r.get("split", split) or ctx.eval.split for r in pending}
-    whys = [f"not recorded: the evaluation of {', '.join(r['label'] for r in pending)}"] if pending else []
     shown = split or ctx.eval.split
     scored = {r.get("split", split) or ctx.eval.split for r in rows}
     splits_without_frame_records = {s for s in scored if not frame_records(ctx, s)}
     needed |= splits_without_frame_records
-    whys += [f"no frame records of {s} (the caption's reference check)" for s in sorted(splits_without_frame_records)]
     if figure and shown in splits_on_disk(ctx, as_specified=True):
         needed.add(shown)
     drawn = figure and shown in needed
@@ -330,11 +328,12 @@ def render_what_runs(ctx: Context, name: str, rows: list[dict], task: str, split
                                      for why in untrained(trainings[label, seed])]
     if ctx.force or to_train:
         needed |= training_splits(ctx)
-    if ctx.force:  # every run computes again: the one reason
-        whys = ["force=true"]
-    whys += [f"to train: {why}" for why in to_train]
     if needed:
         # why, before the render: a table a user expected from the archive says what is missing
+        whys = ["force=true"] if ctx.force else (  # every run computes again: the one reason
+            ([f"not recorded: the evaluation of {', '.join(r['label'] for r in pending)}"] if pending else [])
+            + [f"no frame records of {s} (the caption's reference check)" for s in sorted(splits_without_frame_records)]
+            + [f"to train: {why}" for why in to_train])
         log.info("%s: rendering %s%s%s", name, ", ".join(sorted(needed)), RENDERING_BECAUSE,
                  "; ".join(whys) or f"the crops figure reads {shown}")
         ensure_data(ctx, passes_for(rows, task), needed)
