@@ -1,5 +1,7 @@
 """Every paper table at `smoke` scale with a few training steps: rows, formats, paper values, figures,
 run reuse within and across tables, seeds as mean +- std, and `all`."""
+import json
+import re
 import shutil
 import time
 
@@ -151,6 +153,9 @@ def test_weights_the_archive_left_out_are_trained_again_only_where_they_are_run(
     assert f"{n} of {n} rows reused" in log and "trained in" not in log      # scores only: nothing to train
     log = rerun()                                                              # crops.png runs seed 0
     assert log.count(f"has no checkpoint.pt or {archived.WEIGHTS}") == n and log.count("trained in") == n
+    # each says which render of val its archived curve and its own scored: here the same
+    assert len(re.findall(r"archived final val PSNR [\d.]+ dB on val render (\w+), now [\d.]+ dB on val "
+                          r"render \1\)", log)) == n, log
     fresh = {runs.read_record(p)["seed"]: p.parent for p in (tmp_path / "fresh" / "train").glob("*/run.json")}
     assert (fresh[0] / "checkpoint.pt").exists() and not (fresh[1] / "checkpoint.pt").exists()
     assert {p: p.read_bytes() for p in archive.glob("train/*/run.json")} == records  # what was scored
@@ -176,6 +181,13 @@ def test_weights_the_archive_left_out_are_trained_again_only_where_they_are_run(
     assert (tmp_path / "fresh" / "eval" / seed1.name / "per_image.csv").exists()
     # the evaluation's wall time is its own, not the training's it waited for
     assert runs.read_record(tmp_path / "fresh" / "eval" / seed1.name / runs.RECORD)["wall_time_s"] < since_training
+    # the new evaluation went to the archive with the training it scored: seed 1's retraining replaced
+    # the archived record; seed 0's, whose evaluation was reused, is the one archived first
+    kept = {runs.read_record(p)["seed"]: p for p in archive.glob("train/*/run.json")}
+    started = lambda record: json.loads(record)["started"]
+    assert started(kept[1].read_bytes()) == runs.read_record(fresh[1] / runs.RECORD)["started"] \
+        != started(records[kept[1]])
+    assert kept[0].read_bytes() == records[kept[0]]
 
 
 def test_a_cascade_evaluation_is_reused_from_its_stages_records_without_their_weights(dirs, tmp_path, caplog,

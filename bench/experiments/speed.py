@@ -31,6 +31,7 @@ from __future__ import annotations
 
 import contextlib
 import copy
+import functools
 import logging
 import platform
 import re
@@ -606,8 +607,9 @@ def _sections(ctx, models, input_hw, paths, repeats, warmup, train, oidn, stack_
         yield [row] if row else []
     train_crop = {"batch": ctx.train.batch_size, "frames": ctx.train.seq_len, "crop": ctx.train.crop,
                   **{k: v for k, v in train.items() if v is not None}}
+    layers_of = functools.cache(lambda name: frame_macs(ctx.models[name], input_hw))  # srd's counted once
     if stack_channels and "srd" in ctx.models:
-        ours_macs = int(frame_macs(ctx.models["srd"], input_hw)["macs"].sum())
+        ours_macs = int(layers_of("srd")["macs"].sum())
         yield conv_stack_rows(ours_macs, input_hw, stack_channels, paths, device, repeats, warmup,
                               train_crop if train_crop.get("enabled", True) else None, ctx.train.lr)
     if deform.get("enabled", True):
@@ -620,7 +622,7 @@ def _sections(ctx, models, input_hw, paths, repeats, warmup, train, oidn, stack_
         cfg = ctx.models[name]
         label = LABELS.get(name, name)
         model = build(cfg, device, perturb)
-        layers = frame_macs(cfg, input_hw)
+        layers = layers_of(name)
         macs = int(layers["macs"].sum())
         rows = inference_rows(label, model, macs, x, g, paths, device, repeats, warmup)
         note_auto_choice(rows, model, x, g, device, repeats)

@@ -220,11 +220,11 @@ def trained_model(ctx: Context, cfg: dict, task: Task, seed: int, label: str = "
                  "checkpoint's %.1f s of optimisation", label or cfg["_target_"], run.hash, saved.get("elapsed_s", 0.0))
     if distributed.rank_and_size()[1] > 1:  # the other torchrun ranks (serve_trainings) join this training
         distributed.share((ctx, cfg, task.name, seed, stage, str(run.dir)))
+    validate = validation(ctx, task, recipe.val_sequences) if stage is None else None
     try:
         summary = train(model, dataset(ctx, "train", task, training=True, seed=seed), task, run.dir, recipe,
                         features=features, seed=seed, device=ctx.device, progress=ctx.progress,
-                        validate=validation(ctx, task, recipe.val_sequences) if stage is None else None,
-                        distributed_ranks=True)
+                        validate=validate, distributed_ranks=True)
     except TrainingDiverged as err:
         if divergence_ends:  # a learning-rate range test: divergence is its result, recorded as such
             archive_training(ctx, runs.complete(run, {"diverged_at_step": err.step, "divergence": str(err)}))
@@ -240,6 +240,8 @@ def trained_model(ctx: Context, cfg: dict, task: Task, seed: int, label: str = "
         runs.fail(run, f"{type(err).__name__}: {err}")
         raise
     summary["render"] = render_digest(ctx, "train")  # which render it trained on (adopt compares it)
+    if validate is not None:  # and which its curve scored: curves on two renders of val differ
+        summary["val_render"] = render_digest(ctx, working_split(ctx))
     summary["fused_kernels"] = fused_kernels_used(ctx.device)
     runs.complete(run, summary)
     if weights_only:
@@ -292,8 +294,13 @@ def archived_without_weights(ctx: Context, run: runs.Run, code: dict) -> dict | 
 
 
 def _final_val_psnr(record: dict) -> str:
-    psnr = record.get("metrics", {}).get("val", {}).get("PSNR")
-    return f"{psnr:.3f} dB" if psnr is not None else "not recorded"
+    """The learning curve's last PSNR, with the render of val it scored: a run trained again on the same
+    frames ends near its archived curve only when both scored the same render."""
+    metrics = record.get("metrics", {})
+    psnr = metrics.get("val", {}).get("PSNR")
+    if psnr is None:
+        return "not recorded"
+    return f"{psnr:.3f} dB on val render {metrics.get('val_render') or '(not recorded)'}"
 
 
 def _initial_model(cfg: dict, task: Task, seed: int, stage: str | None):
