@@ -10,8 +10,7 @@ from bench import archived, runs
 from bench.evaluate import LATER_SCORES, REQUIRED_SCORES, evaluate
 from bench.experiments.context import EVALUATION_CODE, TRAINING_CODE, Context, code_of
 from bench.experiments.datasets import dataset, evaluation_data, render_digest, split_fingerprint
-from bench.experiments.training import (RecordedTraining, archive_training, cascade_model, reused_trainings,
-                                        trained_model)
+from bench.experiments.training import RecordedTraining, cascade_model, reused_trainings, trained_model
 from bench.exrio import write_exr
 from bench.macs import count_params
 from bench.measure import AUTO, choose_fast_path, fused_kernels_used
@@ -67,7 +66,7 @@ def evaluated(ctx: Context, cfg: dict, task: Task, seed: int, split: str, label:
     metrics["fused_kernels"] = fused_kernels_used(ctx.device)
     trainings = stage_runs if cascade else [train_run] if train_run is not None else []
     metrics["rounded_weights"] = any(archived.rounded(r.dir) for r in trainings)  # the archive's float16 copy
-    return archive_evaluation(ctx, runs.complete(run, metrics), trainings)
+    return archive_evaluation(ctx, runs.complete(run, metrics))
 
 
 def evaluation_recorded(ctx: Context, cfg: dict, task: Task, seed: int, split: str,
@@ -117,17 +116,12 @@ def evaluation_identity(trained, split: str, data: str, hdr: str, fast_path: str
     return identity
 
 
-def archive_evaluation(ctx: Context, run: runs.Run, scored: list[runs.Run] = ()) -> runs.Run:
+def archive_evaluation(ctx: Context, run: runs.Run) -> runs.Run:
     """Keep a finished evaluation in `ctx.runs_archive`: its record and per-frame scores (claims pair
     them), not its output frames (`eval.save_exr`), which stay in the run store. Scores of your frames
     (`eval.data_dir`) stay out too: the archive is committed with the preset's tables, and there it is
-    only read, for the recorded models. `scored`: the trainings a new evaluation scored, archived with it,
-    so that a table written from the archive shows the training behind its scores: one trained again here
-    for the weights its archive left out replaces the archived record (a reused evaluation passes none:
-    it scored the archived run)."""
+    only read, for the recorded models."""
     if ctx.runs_archive is not None and ctx.eval.data_dir is None and not run.record["identity"].get("frames"):
-        for training in scored:
-            archive_training(ctx, training)
         runs.archive(run, ctx.runs_archive, write=lambda directory: archived.write_evaluation(run.dir, directory))
     return run
 

@@ -220,8 +220,10 @@ def trained_model(ctx: Context, cfg: dict, task: Task, seed: int, label: str = "
                  "checkpoint's %.1f s of optimisation", label or cfg["_target_"], run.hash, saved.get("elapsed_s", 0.0))
     if distributed.rank_and_size()[1] > 1:  # the other torchrun ranks (serve_trainings) join this training
         distributed.share((ctx, cfg, task.name, seed, stage, str(run.dir)))
-    validate = validation(ctx, task, recipe.val_sequences) if stage is None else None
+    validate = None
     try:
+        if stage is None:
+            validate = validation(ctx, task, recipe.val_sequences)
         summary = train(model, dataset(ctx, "train", task, training=True, seed=seed), task, run.dir, recipe,
                         features=features, seed=seed, device=ctx.device, progress=ctx.progress,
                         validate=validate, distributed_ranks=True)
