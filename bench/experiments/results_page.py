@@ -44,6 +44,8 @@ STUDIES = "studies"   # the folder of the studies' tables: <results_dir>/studies
 # the studies of conf/study/ (`+study=NAME`)
 KEPT_STUDIES = [
     ("dark_bias", "A dark scene's colour: a linear bilinear base, a relative-MSE term, permuted colour channels."),
+    ("dark_bias_verdicts", "The dark_bias study's pairs, judged: each candidate against 'Ours + SSIM term 8', the "
+                           "row it is added to."),
     ("lr_range_ssim", "The learning-rate range test with the SSIM term in the loss; its suggestions are the "
                       "cpu preset's `model_lr`."),
     ("domain", "The learned models' network domain: PU21 against per-frame exposure + log1p, without and with "
