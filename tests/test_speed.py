@@ -233,6 +233,8 @@ def test_speed_experiment_writes_every_section(tmp_path):
     assert stages == pytest.approx(profile.loc["Ours: whole frame", "GMac"], rel=0.02)
     caption = (out / "table.md").read_text().splitlines()[0]
     assert "torch " + torch.__version__ in caption and "1 torch threads" in caption
+    from bench.experiments.results_page import speed_weights    # what the results page says of the table
+    assert speed_weights(out / "table.md") == "untrained weights"
 
 
 @pytest.mark.parametrize("override,message", [
@@ -321,3 +323,65 @@ def test_auto_choice_names_a_faster_path_its_accuracy_check_refused(monkeypatch)
             {"fast path": "channels_last+bf16", "ms": 6.0}]
     speed.note_auto_choice(rows, None, None, None, "cpu", 1)
     assert rows[1]["note"].endswith("but fp32 was 1.25x faster in this table")
+
+
+def _exported(path, cfg, seed=3):
+    """A weights file as `srd-bench export` writes it (no sidecar), of the model `cfg` builds."""
+    from bench.models.factory import build_model
+    from bench.weights import FORMAT
+    torch.manual_seed(seed)
+    model = build_model(cfg, 2)
+    torch.save({"format": FORMAT, "model": cfg, "scale": 2, "hdr": "pu", "task": "srd", "run": "0123abcd",
+                "state_dict": model.state_dict()}, path)
+    return model.state_dict()
+
+
+def test_weights_give_a_model_its_trained_weights_in_every_row_and_the_caption_names_them(tmp_path, monkeypatch):
+    """experiment.weights: the rows of that model run the file's weights (unperturbed), the others untrained
+    ones, and the caption says which; auto's note says a refusal on untrained weights is on them."""
+    import bench.experiments.speed as speed
+    with initialize_config_dir(config_dir=CONF_DIR, version_base=None):
+        cfg = compose("config", overrides=[
+            "+experiment=speed", "preset=smoke", f"results_dir={tmp_path}", "device=cpu", "models.edsr.channels=4",
+            "models.edsr.blocks=2", "models.rae.width=4", "experiment.models=[edsr,rae]", "experiment.input_hw=[16,24]",
+            "experiment.fast_paths=[fp32]", "experiment.repeats=1", "experiment.oidn=false",
+            "experiment.conv_stack_channels=0", "+experiment.deform.enabled=false", "+experiment.tiled.enabled=false",
+            "+experiment.train.enabled=false", "experiment.profile.models=[]",
+            f"experiment.weights={{edsr:{tmp_path / 'edsr.pt'}}}"])                 # as on the command line
+    edsr = OmegaConf.to_container(cfg.models.edsr, resolve=True)
+    saved = _exported(tmp_path / "edsr.pt", edsr)
+    timed, on_untrained = {}, {}
+    monkeypatch.setattr(speed, "inference_rows", lambda label, model, *a: timed.setdefault(label, model) and [])
+    monkeypatch.setattr(speed, "note_auto_choice", lambda rows, model, *a, untrained: on_untrained.setdefault(
+        type(model).__name__, untrained))
+    run_experiment(cfg)
+    assert timed["EDSR"].state_dict().keys() == saved.keys()
+    assert all(torch.equal(v, timed["EDSR"].state_dict()[k]) for k, v in saved.items())   # not perturbed
+    assert on_untrained == {"EDSR": False, "RAE": True}
+    caption = (tmp_path / "speed" / device_tag("cpu") / "table.md").read_text().splitlines()[0]
+    assert f"trained weights (EDSR {tmp_path / 'edsr.pt'}, training run 0123abcd), untrained for RAE" in caption
+    from bench.experiments.results_page import speed_weights    # what the results page says of the table
+    assert speed_weights(tmp_path / "speed" / device_tag("cpu") / "table.md") == "trained weights for some models"
+
+
+@pytest.mark.parametrize("weights,message", [
+    ({"srd": "W"}, "experiment.weights.srd: 'srd' is not one of experiment.models ['edsr']"),
+    ({"edsr": "W"}, "experiment.weights.edsr: W holds another configuration than this preset's edsr (channels 4, here 64)"),
+    ({"edsr": "missing.pt"}, "weights file missing.pt does not exist"),
+])
+def test_weights_of_another_model_or_width_are_one_line_before_anything_is_timed(tmp_path, weights, message):
+    from bench.experiments.speed import trained_models
+    edsr = {"_target_": "baselines.edsr.EDSR", "channels": 64, "blocks": 2}
+    _exported(tmp_path / "W", {**edsr, "channels": 4})
+    weights = {name: str(tmp_path / path) if path == "W" else path for name, path in weights.items()}
+    with pytest.raises(UserError, match=re.escape(message.replace("W holds", f"{tmp_path / 'W'} holds"))):
+        trained_models(weights, ["edsr"], {"edsr": edsr})
+
+
+def test_auto_choice_says_a_refusal_on_untrained_weights_is_on_them(monkeypatch):
+    import bench.experiments.speed as speed
+    monkeypatch.setattr(speed, "candidate_paths", lambda device: ["fp32", "bf16"])
+    monkeypatch.setattr(speed, "choose_fast_path", lambda *a, **k: ("fp32", {"fp32": 4.0, "bf16": "off by 0.06"}))
+    rows = [{"fast path": "fp32", "ms": 4.0}, {"fast path": "bf16", "ms": 2.0}]
+    speed.note_auto_choice(rows, None, None, None, "cpu", 1, untrained=True)
+    assert rows[0]["note"].endswith("; bf16 ran 2.00x faster here, refused on these untrained weights: off by 0.06")

@@ -283,16 +283,26 @@ def stability_section(results_dir: Path, name: str = "stability", what: str = ""
                                     "largest output"], rows)
 
 
+def speed_weights(table_md: Path) -> str:
+    """Which weights a speed table ran, from its caption (`+experiment=speed`'s weights_caption)."""
+    caption = table_md.read_text().split("\n", 1)[0] if table_md.exists() else ""
+    if "widths, trained weights (" in caption:
+        return "trained weights" + (" for some models" if "), untrained for " in caption else "")
+    return "untrained weights" if "widths, untrained weights" in caption else "weights not said"
+
+
 def speed_section(results_dir: Path) -> list[str]:
     lines = ["### speed", "", "Milliseconds per 960x540 frame (1920x1080 out) and per training step, per "
              "machine: a speed table describes the machine it ran on. auto: the fast path `fast_path=auto` "
-             "picks there.", ""]
+             "picks there for the weights the table ran, since its accuracy check depends on them (a path "
+             "refused on untrained weights may pass on trained ones).", ""]
     for table_path in sorted((results_dir / "speed").glob("*/table.csv")):
         device = table_path.parent.name
         table = pd.read_csv(table_path)
         inference = table[table["section"] == "inference"]
         steps = table[table["section"] == "training step"]
-        lines += [f"{device}: {_link(results_dir, f'speed/{device}/table.csv')}", ""]
+        lines += [f"{device}, {speed_weights(table_path.with_suffix('.md'))}: "
+                  f"{_link(results_dir, f'speed/{device}/table.csv')}", ""]
         rows = []
         for model, paths in inference.groupby("method", sort=False):
             fp32 = paths[paths["fast path"] == "fp32"]["ms"]

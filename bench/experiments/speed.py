@@ -20,7 +20,9 @@ resident set (VmHWM, reset through /proc/self/clear_refs after malloc_trim) duri
 torch.cuda.max_memory_allocated above what was allocated before. Weights are the untrained init plus
 N(0, `perturb`) noise on every parameter: timings do not depend on trained values, and the noise makes
 the zero-initialised branches (CFM, deformable offsets, residual output convs) compute, which the
-tiling check needs.
+tiling check needs. The differences from fp32 do depend on them, and so does the path auto picks (it
+refuses a path whose output strays, which a path may do on untrained weights and not on trained ones):
+`weights` gives a model its exported trained weights (`srd-bench export`) for every row.
 
 Writes `<results_dir>/speed/<device tag>/table.{csv,md,tex}`: keyed by preset (the widths) and by
 machine and its ISA (e.g. `results/cpu/speed/cpu-amd-epyc-avx2/`), since a speed table describes one machine.
@@ -56,6 +58,7 @@ from bench.measure import candidate_paths, choose_fast_path, cpu_flags, cpu_isa,
 from bench.models.factory import build_model
 from bench.nn import DeformConv2d, eager_gather, fused, grid_sample_training, inference_sampler, training_sampler
 from bench.table_writer import write_table
+from bench.weights import load_exported
 
 log = logging.getLogger("bench")
 
@@ -157,6 +160,24 @@ def build(cfg: dict, device: str, perturb: float, seed: int = 0) -> nn.Module:
     return model.to(device).eval()
 
 
+def trained_models(weights: dict[str, str], models: Sequence[str], configs) -> dict[str, tuple[nn.Module, str]]:
+    """{model name: (its exported trained weights, loaded; what the caption says of them)}, each checked
+    to be a model this table times, at the preset's configuration (widths), before anything is timed."""
+    trained = {}
+    for name, path in weights.items():
+        if name not in models:
+            raise UserError(f"experiment.weights.{name}: {name!r} is not one of experiment.models {list(models)}")
+        model, meta = load_exported(path)
+        if meta["model"] != configs[name]:
+            differ = sorted(k for k in set(meta["model"]) | set(configs[name])
+                            if meta["model"].get(k) != configs[name].get(k))
+            raise UserError(f"experiment.weights.{name}: {path} holds another configuration than this preset's "
+                            f"{name} (" + ", ".join(f"{k} {meta['model'].get(k)!r}, here {configs[name].get(k)!r}"
+                                                   for k in differ[:3]) + ")")
+        trained[name] = (model, f"{path}, training run {meta.get('run')}")
+    return trained
+
+
 class ConvStack(nn.Module):
     """`depth` 3x3 convs + ReLU at `channels` channels, applied to a (B, T, channels, h, w) input: the
     dense-conv reference. Takes (x, g) like a model and ignores g."""
@@ -225,12 +246,13 @@ def inference_rows(label: str, model, macs: int, x, g, paths, device, repeats, w
     return rows
 
 
-def note_auto_choice(rows: list[dict], model, x, g, device, repeats) -> str | None:
+def note_auto_choice(rows: list[dict], model, x, g, device, repeats, untrained: bool = False) -> str | None:
     """Which path `fast_path=auto` picks for `model` on this machine (bench.measure.choose_fast_path,
     measured afresh), noted on that path's row of `rows` (the model's inference rows) with a check:
     whether this table measured it as the fastest of the candidates auto accepted, or which one beat
     it, and which faster paths auto refused and why (bf16 off by more than measure.TOLERANCE with these
-    weights, say). None, and a warning, when no path runs the model."""
+    weights, say: on `untrained` weights the note says so, for trained ones may pass). None, and a warning,
+    when no path runs the model."""
     try:
         chosen, measured = choose_fast_path(model, x, g, device, cache=None, key={}, repeats=repeats)
     except RuntimeError as err:
@@ -247,7 +269,8 @@ def note_auto_choice(rows: list[dict], model, x, g, device, repeats) -> str | No
         check = ("the fastest in this table of those its accuracy check accepted" if fastest == chosen else
                  f"but {fastest} was {timed[chosen] / timed[fastest]:.2f}x faster in this table")
         faster_refused = [p for p in timed if p in refused and timed[p] < timed[chosen]]
-        check += "".join(f"; {p} ran {timed[chosen] / timed[p]:.2f}x faster here, refused: {refused[p]}"
+        on_what = " on these untrained weights" if untrained else ""
+        check += "".join(f"; {p} ran {timed[chosen] / timed[p]:.2f}x faster here, refused{on_what}: {refused[p]}"
                          for p in faster_refused)
     on_its_row = [row for row in rows if row["fast path"] == chosen]
     # a path the table has no row for (channels_last+bf16 where only the default paths were timed):
@@ -530,7 +553,7 @@ def run(ctx, name: str = "speed", models: list[str] = (), input_hw=(540, 960),
         fast_paths: list[str] | None = None, repeats: int = 5, warmup: int = 1, threads: int | None = None,
         train: dict | None = None, oidn: bool = True, conv_stack_channels: int = 32,
         deform: dict | None = None, tiled: dict | None = None, perturb: float = 0.02,
-        profile: dict | None = None, caption: str = "") -> pd.DataFrame:
+        profile: dict | None = None, weights: dict | None = None, caption: str = "") -> pd.DataFrame:
     """CLI entry (conf/experiment/speed.yaml documents every parameter). Returns the table, which is
     rewritten after every section, so an interrupted run leaves what it measured."""
     unknown = [m for m in models if m not in ctx.models]
@@ -547,13 +570,14 @@ def run(ctx, name: str = "speed", models: list[str] = (), input_hw=(540, 960),
         except ValueError as err:
             raise UserError(f"experiment.fast_paths: {path!r}: {err}") from None
     _check_sections(conv_stack_channels, perturb, deform or {}, tiled or {})
+    trained = trained_models(weights or {}, models, ctx.models)
     device = str(ctx.device)
     previous_threads = torch.get_num_threads()
     if threads:
         torch.set_num_threads(int(threads))
     out_dir = Path(ctx.results_dir) / name / device_tag(device)
     caption = (caption + " " if caption else "") + (
-        f"Speed on {machine_caption(device)}; preset {ctx.preset} widths, untrained weights. ms: wall clock, median "
+        f"Speed on {machine_caption(device)}; preset {ctx.preset} widths, {weights_caption(trained, models)}. ms: wall clock, median "
         f"(min, max) of {repeats} warm calls; GMac: analytic multiply-accumulates per frame; path: fp32 reference "
         "or bench.infer fast path (bf16 = autocast bfloat16); diffs vs the fp32 output (tiled: vs untiled); peak MiB: "
         "memory one call adds; note: the path fast_path=auto picks on this machine. Ratios: model time / OIDN at the output size; model GMac/s / a 3x3 conv stack of "
@@ -562,7 +586,7 @@ def run(ctx, name: str = "speed", models: list[str] = (), input_hw=(540, 960),
     try:
         for section in _sections(ctx, models, tuple(input_hw), fast_paths or PATHS, repeats, warmup,
                                  train or {}, oidn, conv_stack_channels, deform or {}, tiled or {}, perturb,
-                                 profile or {}, device):
+                                 profile or {}, trained, device):
             rows += section
             table = _ratios(pd.DataFrame(rows, columns=COLUMNS))
             write_table(table, out_dir, digits=3, caption=caption)
@@ -570,6 +594,15 @@ def run(ctx, name: str = "speed", models: list[str] = (), input_hw=(540, 960),
         torch.set_num_threads(previous_threads)
     log.info("speed: table in %s", out_dir)
     return table
+
+
+def weights_caption(trained: dict, models: Sequence[str]) -> str:
+    """What the caption says of the weights: untrained, or which models ran which trained weights."""
+    if not trained:
+        return "untrained weights"
+    named = "; ".join(f"{LABELS.get(name, name)} {said}" for name, (_, said) in trained.items())
+    others = [LABELS.get(m, m) for m in models if m not in trained]
+    return f"trained weights ({named})" + (f", untrained for {', '.join(others)}" if others else "")
 
 
 def _check_sections(conv_stack_channels, perturb, deform: dict, tiled: dict) -> None:
@@ -599,7 +632,7 @@ def _check_sections(conv_stack_channels, perturb, deform: dict, tiled: dict) -> 
 
 
 def _sections(ctx, models, input_hw, paths, repeats, warmup, train, oidn, stack_channels, deform, tiled,
-              perturb, profile, device):
+              perturb, profile, trained, device):
     """Rows, section by section: the reference points first (quick, and every ratio needs them), then
     one model at a time."""
     if oidn:
@@ -621,11 +654,11 @@ def _sections(ctx, models, input_hw, paths, repeats, warmup, train, oidn, stack_
     for name in models:
         cfg = ctx.models[name]
         label = LABELS.get(name, name)
-        model = build(cfg, device, perturb)
+        model = trained[name][0].to(device) if name in trained else build(cfg, device, perturb)
         layers = layers_of(name)
         macs = int(layers["macs"].sum())
         rows = inference_rows(label, model, macs, x, g, paths, device, repeats, warmup)
-        note_auto_choice(rows, model, x, g, device, repeats)
+        note_auto_choice(rows, model, x, g, device, repeats, untrained=name not in trained)
         if train.get("enabled", True):
             rows += training_rows(label, model, train, ctx.train.loss, ctx.train.lr, device,
                                   repeats, warmup)
