@@ -325,14 +325,14 @@ def test_auto_choice_names_a_faster_path_its_accuracy_check_refused(monkeypatch)
     assert rows[1]["note"].endswith("but fp32 was 1.25x faster in this table")
 
 
-def _exported(path, cfg, seed=3):
+def _exported(path, cfg, seed=3, scale=2):
     """A weights file as `srd-bench export` writes it (no sidecar), of the model `cfg` builds."""
     from bench.models.factory import build_model
     from bench.weights import FORMAT
     torch.manual_seed(seed)
-    model = build_model(cfg, 2)
-    torch.save({"format": FORMAT, "model": cfg, "scale": 2, "hdr": "pu", "task": "srd", "run": "0123abcd",
-                "state_dict": model.state_dict()}, path)
+    model = build_model(cfg, scale)
+    torch.save({"format": FORMAT, "model": cfg, "scale": scale, "hdr": "pu", "task": "srd" if scale == 2 else "denoise",
+                "run": "0123abcd", "state_dict": model.state_dict()}, path)
     return model.state_dict()
 
 
@@ -346,25 +346,32 @@ def test_weights_give_a_model_its_trained_weights_in_every_row_and_the_caption_n
             "models.edsr.blocks=2", "models.rae.width=4", "experiment.models=[edsr,rae]", "experiment.input_hw=[16,24]",
             "experiment.fast_paths=[fp32]", "experiment.repeats=1", "experiment.oidn=false",
             "experiment.conv_stack_channels=0", "+experiment.deform.enabled=false", "+experiment.tiled.enabled=false",
-            "+experiment.train.enabled=false", "experiment.profile.models=[]",
+            "experiment.train={batch:1,frames:2,crop:8}", "experiment.profile.models=[edsr]",
             f"experiment.weights={{edsr:{tmp_path / 'edsr.pt'}}}"])                 # as on the command line
     edsr = OmegaConf.to_container(cfg.models.edsr, resolve=True)
     saved = _exported(tmp_path / "edsr.pt", edsr)
-    timed, on_untrained = {}, {}
+    timed, stepped, profiled, on_untrained = {}, {}, {}, {}
     monkeypatch.setattr(speed, "inference_rows", lambda label, model, *a: timed.setdefault(label, model) and [])
+    monkeypatch.setattr(speed, "training_rows", lambda label, model, *a: stepped.setdefault(label, model) and [])
+    monkeypatch.setattr(speed, "profile_rows", lambda label, model, *a: profiled.setdefault(label, model) and [])
     monkeypatch.setattr(speed, "note_auto_choice", lambda rows, model, *a, untrained: on_untrained.setdefault(
         type(model).__name__, untrained))
     run_experiment(cfg)
-    assert timed["EDSR"].state_dict().keys() == saved.keys()
-    assert all(torch.equal(v, timed["EDSR"].state_dict()[k]) for k, v in saved.items())   # not perturbed
+    for section in (timed, stepped, profiled):              # every section of it, unperturbed
+        assert section["EDSR"].state_dict().keys() == saved.keys()
+        assert all(torch.equal(v, section["EDSR"].state_dict()[k]) for k, v in saved.items())
+    assert set(stepped) == {"EDSR", "RAE"} and set(profiled) == {"EDSR"}
     assert on_untrained == {"EDSR": False, "RAE": True}
     caption = (tmp_path / "speed" / device_tag("cpu") / "table.md").read_text().splitlines()[0]
-    assert f"trained weights (EDSR {tmp_path / 'edsr.pt'}, training run 0123abcd), untrained for RAE" in caption
+    assert f"trained weights (EDSR {tmp_path / 'edsr.pt'}, training run 0123abcd, pu domain), untrained for RAE" in caption
     from bench.experiments.results_page import speed_weights    # what the results page says of the table
     assert speed_weights(tmp_path / "speed" / device_tag("cpu") / "table.md") == "trained weights for some models"
 
 
 @pytest.mark.parametrize("weights,message", [
+    ("W", "experiment.weights='W': expected {model: weights file}"),
+    ({"edsr": None}, "experiment.weights.edsr=None: expected the path of a weights file"),
+    ({"edsr": "W1"}, "experiment.weights.edsr: W1 holds a model of scale 1 (task denoise); this table times scale 2"),
     ({"srd": "W"}, "experiment.weights.srd: 'srd' is not one of experiment.models ['edsr']"),
     ({"edsr": "W"}, "experiment.weights.edsr: W holds another configuration than this preset's edsr (channels 4, here 64)"),
     ({"edsr": "missing.pt"}, "weights file missing.pt does not exist"),
@@ -373,8 +380,11 @@ def test_weights_of_another_model_or_width_are_one_line_before_anything_is_timed
     from bench.experiments.speed import trained_models
     edsr = {"_target_": "baselines.edsr.EDSR", "channels": 64, "blocks": 2}
     _exported(tmp_path / "W", {**edsr, "channels": 4})
-    weights = {name: str(tmp_path / path) if path == "W" else path for name, path in weights.items()}
-    with pytest.raises(UserError, match=re.escape(message.replace("W holds", f"{tmp_path / 'W'} holds"))):
+    _exported(tmp_path / "W1", edsr, scale=1)
+    if isinstance(weights, dict):
+        weights = {name: str(tmp_path / path) if path in ("W", "W1") else path for name, path in weights.items()}
+    message = message.replace("W holds", f"{tmp_path / 'W'} holds").replace("W1 holds", f"{tmp_path / 'W1'} holds")
+    with pytest.raises(UserError, match=re.escape(message)):
         trained_models(weights, ["edsr"], {"edsr": edsr})
 
 
@@ -385,3 +395,17 @@ def test_auto_choice_says_a_refusal_on_untrained_weights_is_on_them(monkeypatch)
     rows = [{"fast path": "fp32", "ms": 4.0}, {"fast path": "bf16", "ms": 2.0}]
     speed.note_auto_choice(rows, None, None, None, "cpu", 1, untrained=True)
     assert rows[0]["note"].endswith("; bf16 ran 2.00x faster here, refused on these untrained weights: off by 0.06")
+    # a path that failed to run failed whatever the weights
+    monkeypatch.setattr(speed, "choose_fast_path", lambda *a, **k: ("fp32", {"fp32": 4.0, "bf16": "failed: X"}))
+    rows = [{"fast path": "fp32", "ms": 4.0}, {"fast path": "bf16", "ms": 2.0}]
+    speed.note_auto_choice(rows, None, None, None, "cpu", 1, untrained=True)
+    assert rows[0]["note"].endswith("; bf16 ran 2.00x faster here, refused: failed: X")
+
+
+def test_the_results_page_says_a_table_of_trained_weights_for_every_model_ran_trained_weights(tmp_path):
+    from bench.experiments.results_page import speed_weights
+    from bench.experiments.speed import weights_caption
+    caption = weights_caption({"srd": (None, "ours.pt, training run 1, pu domain")}, ["srd"])
+    assert caption == "trained weights (Ours ours.pt, training run 1, pu domain)"
+    (tmp_path / "table.md").write_text(f"Speed on x CPU; preset cpu widths, {caption}. ms: wall clock\n")
+    assert speed_weights(tmp_path / "table.md") == "trained weights"

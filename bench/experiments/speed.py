@@ -35,12 +35,13 @@ import contextlib
 import copy
 import functools
 import logging
+import os
 import platform
 import re
 import statistics
 import time
 from collections import defaultdict
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 from pathlib import Path
 
 import pandas as pd
@@ -160,21 +161,31 @@ def build(cfg: dict, device: str, perturb: float, seed: int = 0) -> nn.Module:
     return model.to(device).eval()
 
 
-def trained_models(weights: dict[str, str], models: Sequence[str], configs) -> dict[str, tuple[nn.Module, str]]:
+def trained_models(weights, models: Sequence[str], configs) -> dict[str, tuple[nn.Module, str]]:
     """{model name: (its exported trained weights, loaded; what the caption says of them)}, each checked
-    to be a model this table times, at the preset's configuration (widths), before anything is timed."""
+    to be a model this table times, at the preset's configuration (widths) and the table's scale (2),
+    before anything is timed."""
+    if not isinstance(weights, Mapping):
+        raise UserError(f"experiment.weights={weights!r}: expected {{model: weights file}}, e.g. "
+                        "'experiment.weights={srd:results/cpu/weights/ours.pt}'")
     trained = {}
     for name, path in weights.items():
         if name not in models:
             raise UserError(f"experiment.weights.{name}: {name!r} is not one of experiment.models {list(models)}")
+        if not isinstance(path, str) or not path:
+            raise UserError(f"experiment.weights.{name}={path!r}: expected the path of a weights file")
+        path = os.path.expanduser(path)
         model, meta = load_exported(path)
+        if meta["scale"] != 2:
+            raise UserError(f"experiment.weights.{name}: {path} holds a model of scale {meta['scale']} (task "
+                            f"{meta.get('task')}); this table times scale 2 (960x540 -> 1920x1080)")
         if meta["model"] != configs[name]:
             differ = sorted(k for k in set(meta["model"]) | set(configs[name])
                             if meta["model"].get(k) != configs[name].get(k))
             raise UserError(f"experiment.weights.{name}: {path} holds another configuration than this preset's "
                             f"{name} (" + ", ".join(f"{k} {meta['model'].get(k)!r}, here {configs[name].get(k)!r}"
                                                    for k in differ[:3]) + ")")
-        trained[name] = (model, f"{path}, training run {meta.get('run')}")
+        trained[name] = (model, f"{path}, training run {meta.get('run')}, {meta['hdr']} domain")
     return trained
 
 
@@ -251,8 +262,8 @@ def note_auto_choice(rows: list[dict], model, x, g, device, repeats, untrained: 
     measured afresh), noted on that path's row of `rows` (the model's inference rows) with a check:
     whether this table measured it as the fastest of the candidates auto accepted, or which one beat
     it, and which faster paths auto refused and why (bf16 off by more than measure.TOLERANCE with these
-    weights, say: on `untrained` weights the note says so, for trained ones may pass). None, and a warning,
-    when no path runs the model."""
+    weights, say; on `untrained` weights the note says the refusal was on them: trained ones may pass).
+    None, and a warning, when no path runs the model."""
     try:
         chosen, measured = choose_fast_path(model, x, g, device, cache=None, key={}, repeats=repeats)
     except RuntimeError as err:
@@ -269,9 +280,10 @@ def note_auto_choice(rows: list[dict], model, x, g, device, repeats, untrained: 
         check = ("the fastest in this table of those its accuracy check accepted" if fastest == chosen else
                  f"but {fastest} was {timed[chosen] / timed[fastest]:.2f}x faster in this table")
         faster_refused = [p for p in timed if p in refused and timed[p] < timed[chosen]]
-        on_what = " on these untrained weights" if untrained else ""
-        check += "".join(f"; {p} ran {timed[chosen] / timed[p]:.2f}x faster here, refused{on_what}: {refused[p]}"
-                         for p in faster_refused)
+        def on_what(why):  # an output that strayed depends on the weights; a path that failed does not
+            return " on these untrained weights" if untrained and why.startswith("off by") else ""
+        check += "".join(f"; {p} ran {timed[chosen] / timed[p]:.2f}x faster here, refused{on_what(refused[p])}: "
+                         f"{refused[p]}" for p in faster_refused)
     on_its_row = [row for row in rows if row["fast path"] == chosen]
     # a path the table has no row for (channels_last+bf16 where only the default paths were timed):
     # said on the model's first row
