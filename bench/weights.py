@@ -117,8 +117,9 @@ def _torch_load(path: Path, what: str):
 
 def load_exported(path: str | Path):
     """(model in eval mode, metadata) from an exported weights file; its sha256 is checked against the
-    JSON beside it when there is one."""
-    path = Path(path)
+    JSON beside it when there is one. A leading `~` is the home folder (a path in a Hydra override or a
+    config reaches here without a shell)."""
+    path = Path(path).expanduser()
     if path.is_dir():
         found = sorted(p.name for p in path.glob("*.pt"))
         raise UserError(f"--weights {path} is a folder: give a weights file"

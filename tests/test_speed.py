@@ -7,6 +7,7 @@ models once the overlap covers the receptive radius, and stream recurrent models
 """
 import platform
 import re
+from pathlib import Path
 import pandas as pd
 import pytest
 import torch
@@ -249,6 +250,7 @@ def test_speed_experiment_writes_every_section(tmp_path):
     ("experiment.deform.channels=0", "experiment.deform.channels=0: expected an integer >= 1"),
     ("experiment.conv_stack_channels=-2", "experiment.conv_stack_channels=-2: expected an integer >= 0"),
     ("experiment.perturb=-0.1", "experiment.perturb=-0.1: expected a number >= 0"),
+    ("experiment.weights=[]", "experiment.weights=[]: expected {model: weights file}"),   # not taken for "none"
 ])
 def test_a_bad_section_value_is_one_line_before_anything_is_timed(tmp_path, override, message):
     with initialize_config_dir(config_dir=CONF_DIR, version_base=None):
@@ -375,6 +377,7 @@ def test_weights_give_a_model_its_trained_weights_in_every_row_and_the_caption_n
     ({"srd": "W"}, "experiment.weights.srd: 'srd' is not one of experiment.models ['edsr']"),
     ({"edsr": "W"}, "experiment.weights.edsr: W holds another configuration than this preset's edsr (channels 4, here 64)"),
     ({"edsr": "missing.pt"}, "weights file missing.pt does not exist"),
+    ({"edsr": "~/no-such-srd-weights.pt"}, f"weights file {Path.home() / 'no-such-srd-weights.pt'} does not exist"),
 ])
 def test_weights_of_another_model_or_width_are_one_line_before_anything_is_timed(tmp_path, weights, message):
     from bench.experiments.speed import trained_models

@@ -35,7 +35,6 @@ import contextlib
 import copy
 import functools
 import logging
-import os
 import platform
 import re
 import statistics
@@ -164,7 +163,9 @@ def build(cfg: dict, device: str, perturb: float, seed: int = 0) -> nn.Module:
 def trained_models(weights, models: Sequence[str], configs) -> dict[str, tuple[nn.Module, str]]:
     """{model name: (its exported trained weights, loaded; what the caption says of them)}, each checked
     to be a model this table times, at the preset's configuration (widths) and the table's scale (2),
-    before anything is timed."""
+    before anything is timed. None: none (the YAML's default)."""
+    if weights is None:
+        return {}
     if not isinstance(weights, Mapping):
         raise UserError(f"experiment.weights={weights!r}: expected {{model: weights file}}, e.g. "
                         "'experiment.weights={srd:results/cpu/weights/ours.pt}'")
@@ -174,7 +175,6 @@ def trained_models(weights, models: Sequence[str], configs) -> dict[str, tuple[n
             raise UserError(f"experiment.weights.{name}: {name!r} is not one of experiment.models {list(models)}")
         if not isinstance(path, str) or not path:
             raise UserError(f"experiment.weights.{name}={path!r}: expected the path of a weights file")
-        path = os.path.expanduser(path)
         model, meta = load_exported(path)
         if meta["scale"] != 2:
             raise UserError(f"experiment.weights.{name}: {path} holds a model of scale {meta['scale']} (task "
@@ -582,7 +582,7 @@ def run(ctx, name: str = "speed", models: list[str] = (), input_hw=(540, 960),
         except ValueError as err:
             raise UserError(f"experiment.fast_paths: {path!r}: {err}") from None
     _check_sections(conv_stack_channels, perturb, deform or {}, tiled or {})
-    trained = trained_models(weights or {}, models, ctx.models)
+    trained = trained_models(weights, models, ctx.models)
     device = str(ctx.device)
     previous_threads = torch.get_num_threads()
     if threads:
