@@ -7,7 +7,7 @@ import pytest
 import torch
 
 from bench.dataset import SequenceDataset, augment_sequence, permute_colours
-from bench.exrio import read_exr, write_exr
+from bench.exrio import ExrError, read_exr, write_exr
 
 LR_H, LR_W, T = 10, 14, 3
 
@@ -147,7 +147,7 @@ def test_missing_layer_that_was_not_left_out_is_an_error(tmp_path):
     for rec in manifest["frames"]:
         rec["left_out"] = {}
     (tmp_path / "manifest.json").write_text(json.dumps(manifest))
-    with pytest.raises(Exception, match="0000_lr.exr"):
+    with pytest.raises(ExrError, match=r"0000_lr\.exr: missing layers \['roughness'\]"):
         SequenceDataset(tmp_path, "train", ["lr_gbuf"])[0]
     with pytest.raises(ValueError, match="no frames in split 'val'"):
         SequenceDataset(tmp_path, "val", ["lr_gbuf"])
@@ -162,12 +162,15 @@ def test_decoded_frames_are_cached_and_items_do_not_alias_the_cache(tmp_path):
     for path in tmp_path.glob("train/seq0/*.exr"):             # the cache serves them from now on
         path.write_bytes(b"")
     again = data.item(0, 5)
+    expected = {key: first[key].clone() for key in ALL}      # a view of the cache would move with it
     for key in ALL:
         assert torch.equal(first[key], again[key])
         again[key].add_(1.0)                                  # an item is its own copy ...
-    assert torch.equal(data.item(0, 5)["lr_noisy"], first["lr_noisy"])  # ... the cache is untouched
+    third = data.item(0, 5)
+    for key in ALL:                                           # ... the cache is untouched
+        assert torch.equal(third[key], expected[key])
     uncached = SequenceDataset(tmp_path, "train", ALL, seq_len=2, crop=4, cache_bytes=0)
-    with pytest.raises(Exception):
+    with pytest.raises(ExrError, match=r"000[01]_(lr|hr)\.exr: unreadable or corrupt EXR"):
         uncached.item(0, 5)                                   # without the cache the broken files are read
 
 

@@ -151,7 +151,8 @@ def test_a_training_without_recorded_weights_is_one_line_before_anything_is_scor
     assert len(message) == 1 and "Ours seed 0: its training" in message[0] and "without weights" in message[0]
     assert "without eval.data_dir" in message[0]
     assert not (tmp_path / "nowhere").exists() and not (tmp_path / "runs" / "eval").exists()
-    assert all(json.loads(p.read_text())["status"] == "complete" for p in (tmp_path / "runs").glob("*/*/run.json"))
+    records = list((tmp_path / "runs").glob("*/*/run.json"))
+    assert records and all(json.loads(p.read_text())["status"] == "complete" for p in records)
 
 
 def test_a_fresh_clone_scores_the_frozen_test_split_rendering_only_it(trained, tmp_path):

@@ -343,7 +343,7 @@ def test_cascade_stages_assemble_into_one_net(stage_order):
     for name, p in net.named_parameters():
         source = first.net if name.startswith(("sr.", "cond_sr.")) else second.net
         torch.testing.assert_close(p, dict(source.named_parameters())[name])
-    with pytest.raises(ValueError):
+    with pytest.raises(ValueError, match="no parameters of stage 'sr'"):
         load_stage(SRDNet(**kw), "sr", {"net.dn.out.weight": torch.zeros(1)})
 
 

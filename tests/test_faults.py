@@ -282,8 +282,10 @@ def test_a_split_rendered_again_with_fewer_buffers_gets_the_rest_when_a_table_ne
     ensure_data(ctx, {"lr_noisy", "lr_ref", "hr_ref"})
     ctx = dataclasses.replace(ctx, data_spec={**SPEC, "splits": {**SPEC["splits"], "val": {**val, "ref_spp": 8}}})
     ensure_data(ctx, {"lr_noisy", "hr_ref"})
-    assert all(set(f["buffers"]) == {"lr_noisy", "hr_ref"} for f in _frames(tmp_path) if f["split"] == "val")
+    val_frames = [f for f in _frames(tmp_path) if f["split"] == "val"]
+    assert val_frames and all(set(f["buffers"]) == {"lr_noisy", "hr_ref"} for f in val_frames)
     ensure_data(ctx, {"lr_ref"})
+    assert _frames(tmp_path)
     for f in _frames(tmp_path):
         assert "lr_ref" in f["buffers"]
         assert "ref" in exrio.exr_layers(tmp_path / "data" / f["split"] / f["sequence"] / f"{f['frame']:04d}_lr.exr")

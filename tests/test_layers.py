@@ -130,7 +130,7 @@ def test_deform_module_starts_as_plain_conv_and_learns_offsets():
 
 
 def test_deform_rejects_non_same_padding():
-    with pytest.raises(ValueError):
+    with pytest.raises(ValueError, match="same-size convs only"):
         DeformConv2d(2, 2, kernel_size=3, padding=0)
 
 
@@ -641,9 +641,16 @@ def test_recurrent_block_takes_a_float32_zero_state_under_bf16_autocast():
     torch.testing.assert_close(out32, out16, atol=0, rtol=0)
 
 
-def test_training_sampler_reads_zeros_for_huge_and_infinite_offsets():
-    """The differentiable (grid_sample) path agrees with inference on extreme offsets: zeros, not NaN,
-    and finite gradients."""
+@pytest.mark.parametrize("sampler", ["compiled", "grid_sample"])
+def test_training_sampler_reads_zeros_for_huge_and_infinite_offsets(sampler):
+    """Both differentiable paths (the compiled columns sampler where it builds, grid_sample) agree with
+    inference on extreme offsets: zeros, not NaN, and finite gradients."""
+    from bench.nn import grid_sample_training
+    with contextlib.nullcontext() if sampler == "compiled" else grid_sample_training():
+        _extreme_offsets_read_zeros()
+
+
+def _extreme_offsets_read_zeros():
     torch.manual_seed(0)
     x, w = torch.randn(1, 8, 6, 6, requires_grad=True), torch.randn(4, 8, 3, 3)
     offset = torch.zeros(1, 18, 6, 6)

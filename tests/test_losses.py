@@ -70,7 +70,7 @@ def test_spatial_and_temporal_l1():
     ref = np.abs(np.diff(p, axis=1) - np.diff(t, axis=1)).mean()
     assert temporal_l1(torch.from_numpy(p), torch.from_numpy(t)).item() == pytest.approx(ref)
     assert temporal_l1(torch.from_numpy(p[:, :1]), torch.from_numpy(t[:, :1])).item() == 0
-    with pytest.raises(ValueError):
+    with pytest.raises(ValueError, match=r"needs \(B, T, C, H, W\) tensors"):
         temporal_l1(torch.from_numpy(p[0]), torch.from_numpy(t[0]))
 
 
@@ -222,5 +222,11 @@ def test_the_loss_knee_compresses_what_every_term_but_relmse_sees():
         torch.testing.assert_close(kneed_parts[name], seen_parts[name])
     assert kneed_parts["spatial"] < plain_parts["spatial"]    # 1-Lipschitz: values above 2 differ less
     torch.testing.assert_close(kneed_parts["relmse"], plain_parts["relmse"])
-    assert weighted_loss(pred, target, weights, to_linear=to_linear, knee=None)[0] == plain
+    # without a knee every term sees pred and target as given, and the total is the weighted sum of them
+    as_given = {"spatial": spatial_l1(pred, target), "edge": hfen(pred, target),
+                "temporal": temporal_l1(pred, target), "ssim": ssim_loss(pred, target),
+                "relmse": relmse_loss(to_linear(pred), to_linear(target))}
+    for name, value in as_given.items():
+        torch.testing.assert_close(plain_parts[name], value)
+    torch.testing.assert_close(plain, sum(w * as_given[n] for n, w in absolute_weights(weights).items() if w))
     torch.testing.assert_close(weighted_loss(pred, target, weights, to_linear=to_linear, knee=7.0)[0], plain)

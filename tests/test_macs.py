@@ -140,9 +140,9 @@ def test_fit_width_on_a_known_formula():
     width, macs = fit_width(build, 37.3 * per_width, inputs)
     assert (width, macs) == (37, 37 * per_width)
     assert fit_width(build, 37.6 * per_width, inputs)[0] == 38
-    with pytest.raises(ValueError):
+    with pytest.raises(ValueError, match=r"no width in \[4, 256\] .* closest is width 256 "):
         fit_width(build, 1000 * per_width, inputs, hi=256)  # out of range
-    with pytest.raises(ValueError):
+    with pytest.raises(ValueError, match=r"no width in \[4, 256\] gives MACs within 5% .* closest is width [45] with"):
         fit_width(build, 4.5 * per_width, inputs, tolerance=0.05)  # 4 and 5 both miss by 10%
 
 

@@ -9,7 +9,7 @@ import pytest
 import torch
 from hydra import compose, initialize_config_dir
 
-from bench import archived, exrio, runs
+from bench import archived, exrio, measure, runs
 from bench.cli import CONF_DIR
 from bench.errors import UserError
 from bench.evaluate import predict as predict_batch
@@ -95,7 +95,7 @@ def test_predict_says_when_the_weights_were_trained_for_another_task(recorded, t
         assert (said in err) if said else "trained for the task" not in err, err
 
 
-def test_predict_measures_the_fast_path_once_and_its_output_matches_fp32(recorded, tmp_path, capsys):
+def test_predict_measures_the_fast_path_once_and_its_output_matches_fp32(recorded, tmp_path, capsys, monkeypatch):
     runs_dir, run_hash = recorded
     frame = _frame(tmp_path / "0000_lr.exr")
     common = ["predict", "--run", run_hash, "--runs-dir", str(runs_dir), str(frame)]
@@ -103,6 +103,10 @@ def test_predict_measures_the_fast_path_once_and_its_output_matches_fp32(recorde
     assert main([*common, "--output-dir", str(tmp_path / "auto")]) == 0            # auto is the default
     assert "fast path: " in capsys.readouterr().err
     assert fast_path_cache().exists()
+    measured, fake = [], measure.prepare
+    monkeypatch.setattr(measure, "prepare", lambda model, name: measured.append(name) or fake(model, name))
+    assert main([*common, "--output-dir", str(tmp_path / "again")]) == 0
+    assert "fast path: " in capsys.readouterr().err and measured == []       # the second run reads the cache
     fp32 = exrio.read_exr(tmp_path / "fp32" / "0000_hr.exr")["output"]
     auto = exrio.read_exr(tmp_path / "auto" / "0000_hr.exr")["output"]
     assert np.abs(auto - fp32).max() <= 0.02 * np.abs(fp32).max() + 1e-6

@@ -182,6 +182,7 @@ def test_more_reference_samples_render_only_the_samples_a_frame_lacks_and_match_
     boosted["splits"]["test"]["sequence_ref_spp"] = {sequence: 32}
     datagen.build_dataset(tmp_path / "refined", REFINE_SPEC, progress=False)
     before = {p.name: read_exr(p) for p in (tmp_path / "refined" / "test" / sequence).glob("*.exr")}
+    assert len(before) == 2 * REFINE_SPEC["seq_len"]                      # an LR and an HR file per frame
     halves_s = json.loads((tmp_path / "refined" / "manifest.json").read_text())["frames"][0]["time_s"]["hr_ref_s"]
     rendered = []
     real = render.render_view
@@ -246,7 +247,9 @@ def test_a_refinement_cut_off_between_its_two_files_ends_as_a_render_from_scratc
     monkeypatch.setattr(datagen.exrio, "write_exr", real)
     datagen.build_dataset(tmp_path / "cut", boosted, progress=False)
     datagen.build_dataset(tmp_path / "scratch", boosted, progress=False)
-    for path in (tmp_path / "scratch" / "test" / sequence).glob("*.exr"):
+    paths = sorted((tmp_path / "scratch" / "test" / sequence).glob("*.exr"))
+    assert len(paths) == 2 * REFINE_SPEC["seq_len"]                       # an LR and an HR file per frame
+    for path in paths:
         cut, scratch = read_exr(tmp_path / "cut" / "test" / sequence / path.name), read_exr(path)
         for layer in scratch:
             np.testing.assert_array_equal(cut[layer], scratch[layer])

@@ -22,7 +22,7 @@ from bench.cli import CONF_DIR, run_experiment
 from bench.errors import UserError
 from bench.experiments.macs import audit_row
 from bench.experiments.speed import PATHS, device_tag, peak_memory_mib
-from bench.infer import (frames_channels_last, parse_path, prepare, receptive_radius, tiled_predict)
+from bench.infer import (FastPath, frames_channels_last, parse_path, prepare, receptive_radius, tiled_predict)
 from bench.models.srd import SRDNet
 
 TINY = {
@@ -63,9 +63,12 @@ def inputs(frames=2, h=20, w=28, seed=1):
 # ---- fast paths -----------------------------------------------------------------------------------
 
 def test_parse_path_combines_switches_and_rejects_unknown_ones():
-    assert parse_path("fp32") == parse_path("fp32") and not parse_path("fp32").inference_mode
+    assert parse_path("fp32") == FastPath("fp32") and not parse_path("fp32").inference_mode
     combo = parse_path("channels_last+bf16")
     assert combo.channels_last and combo.bf16 and combo.inference_mode and not combo.compile
+    assert parse_path(combo) is combo    # a parsed path passes through
+    swapped = parse_path("bf16+channels_last")
+    assert swapped.channels_last and swapped.bf16 and swapped.inference_mode
     with pytest.raises(ValueError, match="fp16"):
         parse_path("fp16")
 
@@ -137,7 +140,8 @@ def test_tiled_streams_recurrent_models_with_a_state_per_tile(name):
     torch.testing.assert_close(whole, untiled, atol=1e-5, rtol=0)
     errors = [float((tiled_predict(model, x, g, tile=32, overlap=o, align=32) - untiled).abs().max())
               for o in (0, 32)]
-    assert errors[1] <= errors[0]
+    assert errors[0] > 1e-2    # the check can fail: tiles without context have seams, so tiling took place
+    assert errors[1] < errors[0]
 
 
 def test_tiled_runs_a_fast_path():

@@ -160,7 +160,7 @@ def test_cascade_stages_compose_to_full_model(stage_order, gbuffer_mode):
 
 def test_forward_stage_needs_rgb_between_stages():
     model = SRDNet(**TINY)  # channel_aug=True, skip=True
-    with pytest.raises(ValueError):
+    with pytest.raises(ValueError, match=r"channel_aug=False and skip=False \(RGB between stages\)"):
         model.forward_stage("sr", *_inputs())
 
 
