@@ -23,6 +23,10 @@ DOWN, UP = "\u2193", "\u2191"
 SCORED_ON = "preset {preset}, split {split}"
 SCORED_ON_PATTERN = r"[Pp]reset (\w+), split (\w+)"
 
+# Opens the caption of a table written section by section until its last section is in (the speed
+# table): a run stopped before then leaves a table that says so, and the GPU job times it again.
+PARTIAL_CAPTION = "PARTIAL: the run stopped before every section was timed."
+
 
 def read_table(path: str | Path) -> pd.DataFrame:
     """A table.csv as `write_table` wrote it, its `runs` column as text: a single seed's hash of digits

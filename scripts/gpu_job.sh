@@ -5,8 +5,8 @@
 #     bash scripts/gpu_job.sh [tests] [speed] [profile] [sweep] [sota]     (no argument: tests speed sota)
 # It installs the carried wheels, then runs the steps in order within JOB_S seconds in all (default 560,
 # for a run timeout_s of 600), each within STEP_S (default 540) and what is left; a step whose result is
-# already in the working tree is skipped, so the next call, carrying what the last one brought back,
-# goes on where it stopped:
+# already in the working tree is skipped (a speed table or sweep that says PARTIAL is not done), so the
+# next call, carrying what the last one brought back, goes on where it stopped:
 #   tests    tests/test_cuda.py and tests/test_fused_gpu.py with the fused kernels on
 #            -> results/gpu/cuda_tests/<device>.txt
 #   speed    +experiment=speed preset=gpu device=cuda, with the fused kernels on only if `tests` passed, and
@@ -112,8 +112,11 @@ step_tests() {
     tail -5 "$log"
 }
 
+# a record is done when it exists and does not say PARTIAL (a run stopped at its limit leaves one that does)
+finished() { [ -f "$1" ] && ! grep -q "^PARTIAL: " "$1"; }
+
 step_speed() {
-    if [ -f "results/gpu/speed/$tag/table.md" ]; then echo "gpu_job: speed table already there"; return; fi
+    if finished "results/gpu/speed/$tag/table.md"; then echo "gpu_job: speed table already there"; return; fi
     local fused=0
     tests_passed && fused=1
     echo "gpu_job: speed with SRD_BENCH_FUSED_GPU=$fused"
@@ -134,7 +137,7 @@ step_sota() {
 
 step_sweep() {
     local record=results/gpu/profile/$tag-deform-sweep.md
-    if [ -f "$record" ]; then echo "gpu_job: sweep already there ($record)"; return; fi
+    if finished "$record"; then echo "gpu_job: sweep already there ($record)"; return; fi
     timeout "$(step_limit)" "$PYTHON" scripts/gpu_deform_sweep.py --device "$DEVICE" --out "$record"
     echo "gpu_job: sweep exit $?"
 }

@@ -84,3 +84,18 @@ def test_the_kernel_tests_run_again_for_a_code_change_not_for_a_comment(project,
     record.write_text(f"passed\n{kernels_line}\n")
     again = job(project, "tests", out=tmp_path / "again")
     assert "already passed" not in again.stdout and record.read_text().startswith("failed (no CUDA GPU")
+
+
+def test_a_speed_table_or_sweep_stopped_at_its_limit_is_timed_again(tmp_path):
+    """A step is skipped when its record is there and finished: the speed table's caption and the sweep's
+    record say PARTIAL until their last section is in (tests/test_speed.py), and the next call runs
+    the step again instead of bringing back a table that lacks models."""
+    script = (REPO / "scripts" / "gpu_job.sh").read_text()
+    (finished,) = [line for line in script.splitlines() if line.startswith("finished() ")]
+    assert 'finished "results/gpu/speed/$tag/table.md"' in script and 'finished "$record"' in script
+    (tmp_path / "partial.md").write_text("PARTIAL: the run stopped before every section was timed. Speed on x\n")
+    (tmp_path / "sweep.md").write_text("# sweep\n\n## fp32 (TF32 dots)\n\nPARTIAL: stopped before bf16 was timed.\n")
+    (tmp_path / "done.md").write_text("Speed on x CPU; preset gpu widths, untrained weights.\n\n| a |\n")
+    said = {name: subprocess.run(["bash", "-c", f'{finished}\nfinished "$1"', "-", str(tmp_path / name)]).returncode
+            for name in ("missing.md", "partial.md", "sweep.md", "done.md")}
+    assert said == {"missing.md": 1, "partial.md": 1, "sweep.md": 1, "done.md": 0}

@@ -210,6 +210,10 @@ def test_speed_experiment_writes_every_section(tmp_path):
     assert sorted(before.method) == ["Ours"]
     tiled = table[table.section == "tiled"]
     assert sorted(tiled.method) == sorted(labels * 2) and set(tiled["size"]) == {"40x24 -> 80x48", "64x40 -> 128x80"}
+    oidn_size = table.loc[table.method.str.startswith("OIDN"), "size"].item()
+    assert oidn_size == "80x48"                          # OIDN is timed at one size: ratios at that size only
+    assert tiled.loc[tiled["size"] == "40x24 -> 80x48", "time / OIDN"].notna().all()
+    assert tiled.loc[tiled["size"] == "64x40 -> 128x80", "time / OIDN"].isna().all()
     references = table.loc[table.section == "reference", "method"]
     assert references.str.startswith("OIDN").sum() == 1 and references.str.startswith("3x3 conv stack").sum() == len(PATHS)
     # the conv stack's MACs by formula (depth x h*w*c^2*9), and Ours' as the MAC audit counts them
@@ -238,6 +242,7 @@ def test_speed_experiment_writes_every_section(tmp_path):
     assert stages == pytest.approx(profile.loc["Ours: whole frame", "GMac"], rel=0.02)
     caption = (out / "table.md").read_text().splitlines()[0]
     assert "torch " + torch.__version__ in caption and "1 torch threads" in caption
+    assert not caption.startswith("PARTIAL")                # every section is in
     from bench.experiments.results_page import speed_weights    # what the results page says of the table
     assert speed_weights(out / "table.md") == "untrained weights"
 
@@ -416,3 +421,35 @@ def test_the_results_page_says_a_table_of_trained_weights_for_every_model_ran_tr
     assert caption == "trained weights (Ours ours.pt, training run 1, pu domain)"
     (tmp_path / "table.md").write_text(f"Speed on x CPU; preset cpu widths, {caption}. ms: wall clock\n")
     assert speed_weights(tmp_path / "table.md") == "trained weights"
+
+
+def test_a_run_stopped_before_its_last_section_leaves_a_table_that_says_partial(tmp_path, monkeypatch):
+    """The table is rewritten after every section: one stopped part way (a GPU job's step at its limit)
+    keeps what it timed under a caption opening with PARTIAL, which the results page repeats and
+    scripts/gpu_job.sh reads to time it again; a run that finishes writes the caption without it."""
+    import bench.experiments.speed as speed
+    from bench.experiments.results_page import speed_weights
+    with initialize_config_dir(config_dir=CONF_DIR, version_base=None):
+        cfg = compose("config", overrides=[
+            "+experiment=speed", "preset=smoke", f"results_dir={tmp_path}", "device=cpu", "models.edsr.channels=4",
+            "models.edsr.blocks=2", "models.rae.width=4", "experiment.models=[edsr,rae]", "experiment.input_hw=[16,24]",
+            "experiment.fast_paths=[fp32]", "experiment.repeats=1", "experiment.oidn=false",
+            "experiment.conv_stack_channels=0", "+experiment.deform.enabled=false", "+experiment.tiled.enabled=false",
+            "+experiment.train.enabled=false", "experiment.profile.models=[]"])
+    table_md = tmp_path / "speed" / device_tag("cpu") / "table.md"
+    timed = speed.inference_rows
+
+    def stops_at_rae(label, *args):
+        if label == "RAE":
+            raise KeyboardInterrupt  # as SIGINT, or the trainer's SIGTERM handler, would stop it
+        return timed(label, *args)
+    monkeypatch.setattr(speed, "inference_rows", stops_at_rae)
+    with pytest.raises(KeyboardInterrupt):
+        run_experiment(cfg)
+    assert table_md.read_text().startswith("PARTIAL: ")
+    assert set(pd.read_csv(table_md.with_suffix(".csv")).method) == {"EDSR"}
+    assert speed_weights(table_md) == "untrained weights, PARTIAL (the run stopped before its last section)"
+    monkeypatch.setattr(speed, "inference_rows", timed)
+    run_experiment(cfg)
+    assert not table_md.read_text().startswith("PARTIAL") and speed_weights(table_md) == "untrained weights"
+    assert set(pd.read_csv(table_md.with_suffix(".csv")).method) == {"EDSR", "RAE"}

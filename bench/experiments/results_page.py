@@ -20,7 +20,7 @@ from pathlib import Path
 import pandas as pd
 
 from bench.runs import ROOT
-from bench.table_writer import SCORED_ON_PATTERN, listed_evaluations, read_caption, read_table
+from bench.table_writer import PARTIAL_CAPTION, SCORED_ON_PATTERN, listed_evaluations, read_caption, read_table
 
 PAGE = "README.md"
 
@@ -286,9 +286,10 @@ def stability_section(results_dir: Path, name: str = "stability", what: str = ""
 def speed_weights(table_md: Path) -> str:
     """Which weights a speed table ran, from its caption (`+experiment=speed`'s weights_caption)."""
     caption = table_md.read_text().split("\n", 1)[0] if table_md.exists() else ""
+    partial = ", PARTIAL (the run stopped before its last section)" if caption.startswith(PARTIAL_CAPTION) else ""
     if "widths, trained weights (" in caption:
-        return "trained weights" + (" for some models" if "), untrained for " in caption else "")
-    return "untrained weights" if "widths, untrained weights" in caption else "weights not said"
+        return "trained weights" + (" for some models" if "), untrained for " in caption else "") + partial
+    return ("untrained weights" if "widths, untrained weights" in caption else "weights not said") + partial
 
 
 def speed_section(results_dir: Path) -> list[str]:
