@@ -37,7 +37,7 @@ from bench.atomic import write_atomic
 from bench.dataset import SequenceDataset
 from bench.errors import UserError
 from bench.evaluate import SCORES, aggregate, evaluate
-from bench.metrics import HIGHER_IS_BETTER, LOWER_IS_BETTER
+from bench.metrics import HIGHER_IS_BETTER, LOWER_IS_BETTER, METRICS
 from bench.table_writer import read_table, to_markdown, write_table
 from bench.tasks import Task
 
@@ -203,7 +203,19 @@ def add_parser(commands) -> None:
     sc.add_argument("--against", help="an evaluation run's folder: compare the scores with its recorded ones")
     sc.add_argument("--rtol", type=float, default=1e-6, help="relative tolerance of --against (default 1e-6)")
     sc.add_argument("--accept-nonfinite", action="store_true",
-                    help="score outputs holding NaN or Inf as they are (their frames' scores are then NaN)")
+                    help="score outputs holding NaN or Inf as they are (a frame whose scores are then NaN is left "
+                         "out of the row's means, and the caption says how many)")
+
+
+def unscored_frames(per_image) -> list[str]:
+    """'<sequence> frame <n>' of each frame with a NaN per-frame score (a non-finite output; PSNR's +inf,
+    identical images, is a score, and the temporal relMSE of a sequence's first frame is not per-frame)."""
+    scores = [name for name in METRICS if name in per_image]
+    if not scores:
+        return []
+    bad = per_image[per_image[scores].isna().any(axis=1)]
+    return [f"{row.sequence} frame {row.frame}" for row in bad.itertuples()]
+
 
 
 def run(args) -> int:
@@ -215,6 +227,13 @@ def run(args) -> int:
                         "they are")
     for path in nonfinite:
         print(f"{path}: holds non-finite values; scored as they are", file=sys.stderr)
+    unscored = unscored_frames(per_image)
+    caption = f"{args.label}: {args.outputs} on {args.data} {args.split}"
+    if unscored:  # a mean skips NaN: the row's means are over the other frames, and say so
+        left_out = (f"{len(unscored)} of {len(per_image)} frames have NaN scores and are left out of the "
+                    f"row's means ({', '.join(unscored[:3])}{', ...' if len(unscored) > 3 else ''})")
+        print(left_out, file=sys.stderr)
+        caption += f"; {left_out}"
     table = table_with(args.label, scores, args.table)
     compared = compare(per_image, scores, args.against, args.rtol) if args.against else None  # before writing
     out_dir = Path(args.out_dir or args.outputs)
@@ -224,8 +243,7 @@ def run(args) -> int:
     try:
         out_dir.mkdir(parents=True, exist_ok=True)
         write_atomic(out_dir / "per_image.csv", lambda tmp: per_image.to_csv(tmp, index=False))
-        written = write_table(table, out_dir, "table", f"{args.label}: {args.outputs} on {args.data} {args.split}",
-                              LOWER_IS_BETTER, HIGHER_IS_BETTER)
+        written = write_table(table, out_dir, "table", caption, LOWER_IS_BETTER, HIGHER_IS_BETTER)
     except OSError as err:
         raise UserError(f"cannot write the scores to {out_dir} ({err}); choose another --out-dir") from err
     print(to_markdown(table, LOWER_IS_BETTER, HIGHER_IS_BETTER))

@@ -258,6 +258,14 @@ def test_fast_path_auto_is_measured_and_recorded_as_the_path_it_chose(smoke_dirs
     auto = pd.read_csv(root / "results_auto" / "smoke" / "table.csv").set_index("method")
     record = json.loads((root / "runs" / "eval" / auto.loc["Ours", "runs"] / "run.json").read_text())
     assert record["identity"]["fast_path"] == entry["path"]
+    # chosen on the weights it scored (a path's error depends on them), not on an untrained copy
+    from bench import archived
+    from bench.measure import weights_digest
+    from bench.models.factory import build_model
+    train_dir = root / "runs" / "train" / record["metrics"]["train_run"]
+    cfg = json.loads((train_dir / "run.json").read_text())["identity"]["model"]
+    trained = archived.load_weights(build_model(cfg, 2), train_dir, "cpu")
+    assert json.loads(next(iter(chosen)))["weights"] == weights_digest(trained)
     assert abs(auto.loc["Ours", "PSNR"] - fp32.loc["Ours", "PSNR"]) < 0.05
 
 

@@ -294,3 +294,25 @@ def test_your_damaged_frame_is_one_line_naming_it_and_eval_data_dir_before_anyth
     assert str(bad) in lines[0] and "experiment.verify=true" in lines[0] and f"data_dir={mine}" in lines[0]
     assert "Traceback" not in out.stdout + out.stderr and not _eval_records(tmp_path)
 
+
+
+def test_an_output_that_is_not_finite_on_a_frame_stops_the_table_instead_of_leaving_the_frame_out(
+        trained, tmp_path, monkeypatch):
+    """A NaN output gives NaN scores, which a mean skips: the row would be scored on the other frames and
+    look better than the model is. The evaluation is recorded failed and the table stops with one line
+    naming the frame."""
+    import bench.evaluate
+    real = bench.evaluate.predict
+
+    def nan_on_the_second_frame(model, x, g, hdr, forward=None):
+        out = real(model, x, g, hdr, forward=forward)
+        if getattr(model, "recurrent", False) and out.shape[1] > 1:   # Ours, not the bilinear input row
+            out[:, 1] = float("nan")
+        return out
+    monkeypatch.setattr(bench.evaluate, "predict", nan_on_the_second_frame)
+    out = smoke_table(*store(tmp_path, "null", trained / "data"))      # no archive: trained and scored here
+    assert out.returncode == 2 and "Traceback" not in out.stderr, out.stderr[-3000:]
+    (line,) = [line for line in out.stderr.splitlines() if "whose scores are NaN" in line]
+    assert "eval Ours: the output is not finite on 1 of 2 frames (" in line and "frame 1)" in line
+    failed = [json.loads(p.read_text()) for p in (tmp_path / "runs" / "eval").glob("*/run.json")]
+    assert [r["status"] for r in failed if r["label"] == "Ours"] == ["failed"]

@@ -145,6 +145,12 @@ def test_nonfinite_outputs_score_only_when_accepted_and_a_table_without_scores_i
     exrio.write_exr(tmp_path / "out" / SEQUENCES[0] / "0001_hr.exr", {"output": np.full((32, 32, 3), np.inf, np.float32)})
     args = ["score", "--outputs", str(tmp_path / "out"), "--data", str(root / "data"), "--label", "x"]
     assert main([*args, "--accept-nonfinite"]) == 0 and "scored as they are" in capsys.readouterr().err
+    # a NaN output scores NaN, which a mean skips: the row says how many frames its means leave out
+    exrio.write_exr(tmp_path / "out" / SEQUENCES[1] / "0000_hr.exr", {"output": np.full((32, 32, 3), np.nan, np.float32)})
+    assert main([*args, "--accept-nonfinite"]) == 0
+    per_image = pd.read_csv(tmp_path / "out" / "per_image.csv")
+    said = f"1 of {len(per_image)} frames have NaN scores and are left out of the row's means ({SEQUENCES[1]} frame 0)"
+    assert said in capsys.readouterr().err and said in (tmp_path / "out" / "table.md").read_text()
     pd.DataFrame([{"method": "A", "notes": "no scores"}]).to_csv(tmp_path / "t.csv", index=False)
     assert main([*args, "--accept-nonfinite", "--table", str(tmp_path / "t.csv")]) == 2
     assert "none of the score columns" in capsys.readouterr().err

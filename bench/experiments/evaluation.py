@@ -11,10 +11,11 @@ from bench.evaluate import LATER_SCORES, REQUIRED_SCORES, evaluate
 from bench.experiments.context import EVALUATION_CODE, TRAINING_CODE, Context, code_of
 from bench.experiments.datasets import dataset, evaluation_data, render_digest, split_fingerprint
 from bench.experiments.training import RecordedTraining, cascade_model, reused_trainings, trained_model
+from bench.errors import UserError
 from bench.exrio import write_exr
 from bench.macs import count_params
 from bench.measure import AUTO, choose_fast_path, fused_kernels_used
-from bench.models.factory import build_model
+from bench.score import unscored_frames
 from bench.tasks import Task
 
 log = logging.getLogger("bench")
@@ -32,8 +33,10 @@ def evaluated(ctx: Context, cfg: dict, task: Task, seed: int, split: str, label:
     hdr = ctx.train.hdr
     scoring_ctx = evaluation_data(ctx)
     fast_path = ctx.eval.fast_path
-    if fast_path == AUTO:
-        fast_path = measured_fast_path(ctx, cfg, task, split, label)
+    if fast_path == AUTO:  # judged on the weights it will score: a path's error depends on them
+        if model is None:
+            model = (cascade_model(ctx, cfg, seed, label) if cascade else trained_model(ctx, cfg, task, seed, label))[0]
+        fast_path = measured_fast_path(ctx, cfg, model, task, split, label)
     identity, code = _evaluation_key(ctx, scoring_ctx, cfg, trained, split, fast_path,
                                      learned=train_run is not None or cascade)
     run = runs.begin(ctx.runs_dir, "eval", identity, seed=seed, device=ctx.device, label=label,
@@ -53,9 +56,14 @@ def evaluated(ctx: Context, cfg: dict, task: Task, seed: int, split: str, label:
             else:
                 model, train_run = trained_model(ctx, cfg, task, seed, label)
             run.restart_clock()  # a training done here for the weights is the training run's time, not this one's
-        _, metrics = evaluate(model, dataset(scoring_ctx, split, task, training=False), task, hdr=hdr,
-                              device=ctx.device, out_dir=run.dir, save_exr=ctx.eval.save_exr,
-                              write_exr=write_exr, path=fast_path, tile=ctx.eval.tile)
+        per_image, metrics = evaluate(model, dataset(scoring_ctx, split, task, training=False), task, hdr=hdr,
+                                      device=ctx.device, out_dir=run.dir, save_exr=ctx.eval.save_exr,
+                                      write_exr=write_exr, path=fast_path, tile=ctx.eval.tile)
+        unscored = unscored_frames(per_image)
+        if unscored:  # a mean would leave them out and the row would look better than the model is
+            raise UserError(f"eval {label}: the output is not finite on {len(unscored)} of {len(per_image)} frames "
+                            f"({', '.join(unscored[:3])}), whose scores are NaN: a table's means would leave them "
+                            f"out (eval.fast_path={fast_path}); the evaluation is recorded failed")
     except BaseException as err:  # the record says so, never "running" forever
         runs.fail(run, f"{type(err).__name__}: {err}")
         raise
@@ -126,12 +134,12 @@ def archive_evaluation(ctx: Context, run: runs.Run) -> runs.Run:
     return run
 
 
-def measured_fast_path(ctx: Context, cfg: dict, task: Task, split: str, label: str) -> str:
-    """eval.fast_path=auto: the fastest correct path for this model on this machine (bench.measure),
-    timed on an untrained copy (speed does not depend on the weights) and one sequence of the split,
-    cached in <runs_dir>/fast_paths.json. The evaluation's identity records the path chosen."""
+def measured_fast_path(ctx: Context, cfg: dict, model, task: Task, split: str, label: str) -> str:
+    """eval.fast_path=auto: the fastest correct path for `model` (with the weights it scores: a path's
+    accuracy depends on them, bench.measure) on this machine and one sequence of the split, cached in
+    <runs_dir>/fast_paths.json under the weights' digest. The evaluation's identity records the path."""
     item = dataset(evaluation_data(ctx), split, task, training=False)[0]
-    model = build_model(cfg, task.scale).to(ctx.device).eval()
+    model = model.to(ctx.device).eval()
     x, g = item[task.x][None].to(ctx.device), item[task.g][None].to(ctx.device)
     chosen, times = choose_fast_path(model, x, g, ctx.device, ctx.runs_dir / "fast_paths.json",
                                      {"model": cfg, "task": task.name})
