@@ -111,6 +111,13 @@ def test_a_case_is_judged_against_its_scaled_reference_not_only_for_being_finite
     black = {"case": "all-black frame", "finite": True}
     assert status({**black, "max |output|": 0.0}) == "ok 0" and status({**black, "max |output|": 1e-6}) == "ok 1e-06"
     assert status({**black, "max |output|": 7e-3}) == "FAIL (black in, 0.007 out)"
+    # a refusal raised on purpose is acceptable; a crash (a shape error, an index out of range) is not
+    odd = {"model": "srd", "case": "odd size 13x7", "finite": False}
+    assert status({**odd, "error": "ValueError: frames must be at least 8x8"}) == "error (clear)"
+    assert status({**odd, "error": "UserError: frames must be at least 8x8"}) == "error (clear)"
+    assert status({**odd, "error": "RuntimeError: The size of tensor a (7) must match"}) == \
+        "FAIL (RuntimeError: The size of tensor a (7) must match)"
+    assert status({**odd, "error": "IndexError: index 3 is out of bounds"}).startswith("FAIL (IndexError")
     lamp = {"case": "lamp 1e4x the exposure", "finite": True, "max |output|": 50.0}
     assert status({**lamp, "lamp energy": 1.05}) == "ok 50" and status({**lamp, "lamp energy": 1.29}) == \
         "FAIL (lamp energy 129%)"

@@ -137,7 +137,7 @@ def _eval_row(model, x, g, hdr, ref=None, clean=None, sanitize=True, above=math.
     try:
         timed = time_call(lambda: predict(model, x, g, hdr, sanitize=sanitize), "cpu", repeats=1, warmup=0)
         out, ms = timed["result"], timed["ms"]
-    except Exception as err:  # a refusal with a message is an acceptable outcome; record it
+    except Exception as err:  # recorded; `status` tells a refusal from a crash by its type
         return {"finite": False, "error": f"{type(err).__name__}: {err}"[:200]}
     row = {"finite": _finite(out), "max |output|": float(out.abs().nan_to_num(math.inf).max()), "time_ms": ms}
     if row["finite"] and ref is not None and ref.shape == out.shape:
@@ -287,14 +287,19 @@ def _number(row, key) -> float | None:
     return float(value) if isinstance(value, (int, float)) and not math.isnan(value) else None
 
 
+# the exceptions a model or the input checks raise on purpose, with a message saying what is refused
+REFUSALS = ("UserError", "ValueError")
+
+
 def status(row, clean_relmse: float | None = None) -> str:
     """The Markdown cell of a row: "ok" + max |output|, "error (clear)", or FAIL with its reason. Finite is
     necessary, not sufficient: a case of the scene scaled by k passes when its relMSE to the reference
     scaled by k is within RELMSE_FACTOR of the unscaled case's (`clean_relmse`), and a learned model's
     output returns the energy above its domain's ceiling within ENERGY_TOLERANCE, as every model does the
     energy of a lamp case's emitter; an all-black input gives at most BLACK_MAX."""
-    if isinstance(row.get("error"), str):
-        return "error (clear)"
+    error = row.get("error")
+    if isinstance(error, str):  # a refusal with a message is an acceptable outcome, any other error is not
+        return "error (clear)" if error.split(":")[0] in REFUSALS else f"FAIL ({error[:80]})"
     train = row.get("train step")
     bad_train = isinstance(train, str) and not (train == "ok" or train.startswith("divergence detected"))
     if not row.get("finite") or bad_train:
@@ -364,7 +369,8 @@ def caption(table: pd.DataFrame, preset: str, device: str, hdr: str) -> str:
              f"{ENERGY_TOLERANCE:.0%} (every model), " if table["case"].isin(list(LAMPS)).any() else "")
     return (f"Stability at preset {preset} on {device}: each case through each model (trained at this "
             f"preset), inputs sanitized (bench.sanitize). 'ok' + max |output| (linear radiance); 'error "
-            f"(clear)': the model refused with a message; FAIL: non-finite output, gradients or weights, or a "
+            f"(clear)': the model refused with a message ({' or '.join(REFUSALS)}); FAIL: any other error, "
+            f"non-finite output, gradients or weights, or a "
             f"case judged against its reference: 'HDR scale k' passes when its output divided by k has a relMSE "
             f"to the reference within {RELMSE_FACTOR:g}x the unscaled case's, a learned model's output returns the energy "
             f"above its network domain's ceiling within {ENERGY_TOLERANCE:.0%}{energy}, {lamps}and an all-black "
