@@ -74,9 +74,13 @@ def compare(model, task_name: str, hdr: str, frames: list) -> dict:
 
 def models(archive: Path, weights_dir: Path):
     """(name, model with float32 weights, task, hdr) of every committed weights file and of one archived
-    training per model class and task (float32 checkpoints only: an archive converted already is rounded)."""
+    training per model class and task; weights rounded already (an exported file of a float16-rounded
+    run, an archive converted to its compact form) are left out: rounding them again moves nothing."""
     for path in sorted(weights_dir.glob("*.pt")):
         model, meta = load_exported(path)
+        if meta.get("weights_rounded_to_float16"):
+            print(f"{path}: rounded to float16 already, left out", flush=True)
+            continue
         yield path.name, model, meta["task"], meta["hdr"]
     seen = set()
     for path in sorted(archive.glob(f"train/*/{runs.RECORD}")):
@@ -97,6 +101,9 @@ def main(archive: str, weights_dir: str) -> None:
     for name, model, task, hdr in models(Path(archive), Path(weights_dir)):
         rows.append({"model": name, "task": task, **compare(model.eval(), task, hdr, frames)})
         print(rows[-1], flush=True)
+    if not rows:  # a table of zeros would read as "rounding moves nothing"
+        sys.exit(f"nothing to compare: every weights file in {weights_dir} and every training in {archive} holds "
+                 "float16-rounded weights (the float32 ones are in a run store's checkpoints, before archiving)")
     table = pd.DataFrame(rows)
     pd.set_option("display.width", 200)
     print(table.to_string(index=False, float_format=lambda v: f"{v:.2e}"))
