@@ -31,7 +31,7 @@ class CFMNet(nn.Module):
             raise ValueError("CFM modulates features by the gBuffer: gbuffer_channels must be > 0")
         if not 0 <= deformable_blocks <= blocks:
             raise ValueError(f"deformable_blocks must be in [0, {blocks}]")
-        self.gbuffer_channels = gbuffer_channels
+        self.gbuffer_channels, self.scale = gbuffer_channels, scale  # scale: what tiled inference allocates
         self.condition = ConditionNet(gbuffer_channels, cond_channels, cond_hidden)
         self.trunk = EDSRTrunk(in_channels, channels, blocks, deform_blocks=deformable_blocks,
                                cond_channels=cond_channels)

@@ -31,7 +31,7 @@ class EDSR(nn.Module):
     def __init__(self, in_channels=3, gbuffer_channels=7, scale=2, channels=64, blocks=16, dilation=1,
                  deformable=False, res_scale=1.0, input_residual=True, linear_base=None):
         super().__init__()
-        self.gbuffer_channels = gbuffer_channels
+        self.gbuffer_channels, self.scale = gbuffer_channels, scale  # scale: what tiled inference allocates
         self.trunk = EDSRTrunk(in_channels + gbuffer_channels, channels, blocks, dilation=dilation,
                                deform_blocks=blocks if deformable else 0, res_scale=res_scale)
         self.output = RGBUpsampler(channels, scale, input_residual, transforms(linear_base))

@@ -27,6 +27,23 @@ def test_output_shape_odd_size_multi_frame(name, scale):
     assert isinstance(cls.recurrent, bool)
 
 
+@pytest.mark.parametrize("scale", [1, 2])
+@pytest.mark.parametrize("name", sorted(SMALL))
+def test_tiled_inference_gives_the_untiled_output_at_every_scale(name, scale):
+    """Tiled inference allocates the output at the model's scale: a denoise-only (scale 1) EDSR or CFM
+    ended in a shape error (they did not say their scale). With an overlap covering the frame, every tile
+    sees it whole and the stitched output is the untiled one."""
+    from bench.infer import tiled_predict
+    cls, kwargs = SMALL[name]
+    model = perturbed(cls(scale=scale, **kwargs)).eval()
+    x, g = inputs(b=1)
+    with torch.no_grad():
+        whole = model(x, g)["final"]
+    tiled = tiled_predict(model, x, g, tile=8, overlap=32, align=1)
+    assert tiled.shape == whole.shape == (1, 3, 3, 13 * scale, 17 * scale)
+    torch.testing.assert_close(tiled, whole, atol=1e-5, rtol=0)
+
+
 @pytest.mark.parametrize("name", sorted(SMALL))
 def test_gradients_reach_every_parameter(name):
     cls, kwargs = SMALL[name]
