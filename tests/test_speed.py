@@ -260,6 +260,8 @@ def test_speed_experiment_writes_every_section(tmp_path):
     ("experiment.conv_stack_channels=-2", "experiment.conv_stack_channels=-2: expected an integer >= 0"),
     ("experiment.perturb=-0.1", "experiment.perturb=-0.1: expected a number >= 0"),
     ("experiment.weights=[]", "experiment.weights=[]: expected {model: weights file}"),   # not taken for "none"
+    ("experiment.profile.fast_path=compile", "experiment.profile.fast_path=compile: hooks do not see inside"),
+    ("experiment.profile.fast_path=fp16", "experiment.profile.fast_path: 'fp16': unknown fast path switch"),
 ])
 def test_a_bad_section_value_is_one_line_before_anything_is_timed(tmp_path, override, message):
     with initialize_config_dir(config_dir=CONF_DIR, version_base=None):
@@ -453,3 +455,10 @@ def test_a_run_stopped_before_its_last_section_leaves_a_table_that_says_partial(
     run_experiment(cfg)
     assert not table_md.read_text().startswith("PARTIAL") and speed_weights(table_md) == "untrained weights"
     assert set(pd.read_csv(table_md.with_suffix(".csv")).method) == {"EDSR", "RAE"}
+
+
+def test_the_profile_takes_the_last_path_hooks_can_see_into():
+    from bench.experiments.speed import profiled_path
+    assert profiled_path({}, ["fp32", "channels_last", "compile"]) == "channels_last"   # the YAML's "+ compile"
+    assert profiled_path({"fast_path": None}, ["compile"]) == "fp32"
+    assert profiled_path({"fast_path": "bf16"}, ["fp32", "compile"]) == "bf16"

@@ -49,7 +49,7 @@ import torch.nn as nn
 
 from bench.errors import UserError
 from bench.evaluate import sync
-from bench.infer import (frames_channels_last, freed_memory_kept, max_abs_diff, parse_path, prepare, release_free_memory,
+from bench.infer import (REFERENCE, frames_channels_last, freed_memory_kept, max_abs_diff, parse_path, prepare, release_free_memory,
                          tiled_predict)
 from bench.losses import weighted_loss
 from bench.experiments.macs import frame_inputs, frame_macs
@@ -584,6 +584,7 @@ def run(ctx, name: str = "speed", models: list[str] = (), input_hw=(540, 960),
         except ValueError as err:
             raise UserError(f"experiment.fast_paths: {path!r}: {err}") from None
     _check_sections(conv_stack_channels, perturb, deform or {}, tiled or {})
+    profile = {**(profile or {}), "fast_path": profiled_path(profile or {}, fast_paths or PATHS)}
     trained = trained_models(weights, models, ctx.models)
     device = str(ctx.device)
     previous_threads = torch.get_num_threads()
@@ -619,6 +620,24 @@ def weights_caption(trained: dict, models: Sequence[str]) -> str:
     named = "; ".join(f"{LABELS.get(name, name)} {said}" for name, (_, said) in trained.items())
     others = [LABELS.get(m, m) for m in models if m not in trained]
     return f"trained weights ({named})" + (f", untrained for {', '.join(others)}" if others else "")
+
+
+def profiled_path(profile: dict, paths: Sequence[str]) -> str:
+    """The path the profile section runs: `profile.fast_path`, else the last of `paths` that hooks can see
+    into (not compiled). Checked before the first section is timed: a compiled or misspelt one ended in a
+    traceback after every other section had run."""
+    chosen = profile.get("fast_path")
+    if chosen is None:
+        hookable = [p for p in paths if not parse_path(p).compile]
+        return hookable[-1] if hookable else REFERENCE
+    try:
+        compiled = parse_path(chosen).compile
+    except ValueError as err:
+        raise UserError(f"experiment.profile.fast_path: {chosen!r}: {err}") from None
+    if compiled:
+        raise UserError(f"experiment.profile.fast_path={chosen}: hooks do not see inside a compiled module; "
+                        "choose a path without compile")
+    return chosen
 
 
 def _check_sections(conv_stack_channels, perturb, deform: dict, tiled: dict) -> None:
@@ -679,8 +698,7 @@ def _sections(ctx, models, input_hw, paths, repeats, warmup, train, oidn, stack_
             rows += training_rows(label, model, train, ctx.train.loss, ctx.train.lr, device,
                                   repeats, warmup)
         if name in (profile.get("models") or []):
-            rows += profile_rows(label, model, layers, x, g,
-                                 profile.get("fast_path") or paths[-1], device, repeats, warmup)
+            rows += profile_rows(label, model, layers, x, g, profile["fast_path"], device, repeats, warmup)
         if name in tile_models:
             untiled = prepare(model)(x, g)
             uhd = tuple(tiled.get("uhd_input_hw", (1080, 1920))) if tiled.get("uhd", True) else None
