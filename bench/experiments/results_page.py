@@ -217,7 +217,9 @@ def comparisons(results_dir: Path, name: str, claims: pd.DataFrame) -> list[str]
 
 def macs_section(results_dir: Path) -> list[str]:
     table = pd.read_csv(results_dir / "macs" / "table.csv")
-    lines = ["### macs", "", "The MAC audit: each learned model's multiply-accumulates per 960x540 input frame, "
+    size = re.search(r"per (\d+x\d+) input frame", read_caption(results_dir / "macs" / "table.md"))
+    lines = ["### macs", "", "The MAC audit: each learned model's multiply-accumulates per "
+             f"{size.group(1) + ' ' if size else ''}input frame, "
              f"counted two ways, at the widths fitted to the preset's budget. Numbers: "
              f"{_link(results_dir, 'macs/table.csv')}.", ""]
     rows = [[r["method"], str(r["width"]), str(int(r["params"])), _num(r["GMac (analytic)"], 1),
@@ -229,9 +231,12 @@ def time_section(results_dir: Path) -> list[str]:
     folder = results_dir / "time"
     lines = ["### time", "", "Error against run time on the machine that ran it: brute-force path tracing "
              "(PT) against low-sample renders plus each method."]
+    operating = "its operating spp"  # the LR input's samples per pixel, as speedup.csv records them
     if (folder / "speedup.csv").exists():
         speed = pd.read_csv(folder / "speedup.csv")
-        lines += [f"Equal quality at 8 spp ({_link(results_dir, 'time/speedup.csv')}): the seconds PT needs to "
+        spp = sorted({int(n) for n in speed.loc[speed["input"] == "LR", "spp"]}) if "spp" in speed else []
+        operating = " or ".join(str(n) for n in spp) + " spp" if spp else operating
+        lines += [f"Equal quality at {operating} ({_link(results_dir, 'time/speedup.csv')}): the seconds PT needs to "
                   "reach the method's error, over the method's seconds.", ""]
         rows = [[r["method"], r["input"], _num(r["total s"], 3), _num(r["PSNR"], 2),
                  _num(r["speed-up at equal PSNR"], 1), _num(r["speed-up at equal relMSE"], 1),
@@ -240,7 +245,7 @@ def time_section(results_dir: Path) -> list[str]:
                                   "x at equal relMSE", "x at equal SSIM", "extrapolated"], rows)
     if (folder / "equal_time.csv").exists():
         equal = pd.read_csv(folder / "equal_time.csv")
-        lines += [f"Equal time ({_link(results_dir, 'time/equal_time.csv')}): each SRD method at LR 8 spp "
+        lines += [f"Equal time ({_link(results_dir, 'time/equal_time.csv')}): each SRD method at LR {operating} "
                   "against a denoiser of HR renders given the same seconds.", ""]
         rows = [[r["SRD method"], r["HR denoiser"], _num(r["SRD PSNR"], 2), _num(r["denoiser PSNR"], 2),
                  _num(r["PSNR difference (dB)"], 2), str(r.get("extrapolated", "-"))] for _, r in equal.iterrows()]
@@ -293,8 +298,8 @@ def speed_weights(table_md: Path) -> str:
 
 
 def speed_section(results_dir: Path) -> list[str]:
-    lines = ["### speed", "", "Milliseconds per 960x540 frame (1920x1080 out) and per training step, per "
-             "machine: a speed table describes the machine it ran on. auto: the fast path `fast_path=auto` "
+    lines = ["### speed", "", "Milliseconds per input frame (its size and the output's in each table) and per "
+             "training step, per machine: a speed table describes the machine it ran on. auto: the fast path `fast_path=auto` "
              "picks there for the weights the table ran, since its accuracy check depends on them (a path "
              "refused on untrained weights may pass on trained ones).", ""]
     for table_path in sorted((results_dir / "speed").glob("*/table.csv")):

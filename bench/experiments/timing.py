@@ -686,7 +686,7 @@ def write_paper_tables(out: Path, renders, axis, equal, views, frames, variant, 
     write_table(axis, out, name=f"axis_{tag}", caption=(
         f"The time axis at the paper's resolution: each method's seconds per frame with its input rendered at "
         f"the LR or HR size of render_{tag}.csv: render s = the renders' CPU time / render threads; network s at "
-        f"the {tag} output (network from): the speed table's wall-clock median (fp32, untrained weights) where it "
+        f"the {tag} output (network from): the speed table's wall-clock median (fp32; its caption names the weights) where it "
         f"has the method, else measured here as CPU time / torch threads; total s = render s + network s; total "
         f"s (wall): with the renders' wall seconds; cpu-size total s: the same row in table.csv. {QUALITY_NOTE}"),
         lower_is_better=(), higher_is_better=())
