@@ -158,8 +158,10 @@ def to_latex(df: pd.DataFrame, lower=(), higher=(), digits: int = 4, caption: st
 
 
 def write_table(df: pd.DataFrame, out_dir: str | Path, name: str = "table", caption: str = "",
-                lower_is_better=(), higher_is_better=(), digits: int = 4) -> dict[str, Path]:
-    """Write `<name>.csv` (full precision), `<name>.md` and `<name>.tex`; returns their paths."""
+                lower_is_better=(), higher_is_better=(), digits: int = 4,
+                csv_table: pd.DataFrame | None = None) -> dict[str, Path]:
+    """Write `<name>.csv` (full precision), `<name>.md` and `<name>.tex`; returns their paths. `csv_table`:
+    what the CSV holds when it is not `df` (a long form, or columns the printed table leaves out)."""
     out_dir = Path(out_dir)
     try:
         out_dir.mkdir(parents=True, exist_ok=True)
@@ -169,7 +171,8 @@ def write_table(df: pd.DataFrame, out_dir: str | Path, name: str = "table", capt
     df = df.reset_index(drop=True)
     paths = {"csv": out_dir / f"{name}.csv", "md": out_dir / f"{name}.md", "tex": out_dir / f"{name}.tex"}
     try:
-        write_atomic(paths["csv"], lambda tmp: df.drop(columns=["compete"], errors="ignore").to_csv(tmp, index=False))
+        raw = df if csv_table is None else csv_table
+        write_atomic(paths["csv"], lambda tmp: raw.drop(columns=["compete"], errors="ignore").to_csv(tmp, index=False))
         markdown = to_markdown(df, lower_is_better, higher_is_better, digits, caption)
         latex = to_latex(df, lower_is_better, higher_is_better, digits, _latex_escape(caption), f"tab:{out_dir.name}")
         write_atomic(paths["md"], lambda tmp: tmp.write_text(markdown))

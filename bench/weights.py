@@ -18,6 +18,7 @@ from pathlib import Path
 import torch
 
 from bench import archived, exposure, runs
+from bench.atomic import write_atomic
 from bench.errors import UserError
 from bench.models.factory import build_model
 from bench.tasks import get_task
@@ -77,9 +78,11 @@ def export(run_hash: str, out: str | Path, runs_dir: str | Path, force: bool = F
     # float16-rounded weights in the archive's compact form: the same values, a quarter of the bytes
     weights = ({COMPACT: archived.encode(model.state_dict())} if meta["weights_rounded_to_float16"]
                else {"state_dict": model.state_dict()})
-    torch.save({**meta, **weights}, out)
+    # never half a file, also where --force replaces a committed one
+    write_atomic(out, lambda tmp: torch.save({**meta, **weights}, tmp))
     meta["sha256"] = hashlib.sha256(out.read_bytes()).hexdigest()
-    out.with_suffix(out.suffix + ".json").write_text(json.dumps(meta, indent=2, sort_keys=True, default=str))
+    sidecar = json.dumps(meta, indent=2, sort_keys=True, default=str)
+    write_atomic(out.with_suffix(out.suffix + ".json"), lambda tmp: tmp.write_text(sidecar))
     return out
 
 

@@ -348,9 +348,9 @@ def run(ctx: Context, name: str, claims: list[dict], metric: str, tables: list[s
     table.insert(table.columns.get_loc(f"{metric} verdict") + 1, f"{metric} rests on",
                  rests_on(pair, {f: pd.Series(v) for f, v in left_out.items()}))
     detail = [f"{metric} diff {f}" for f in families] + [f"{metric} sd {k}" for k in ("seed", "sequence", "residual")]
-    paths = write_table(table.drop(columns=detail), ctx.results_dir / name,
-                        caption=_caption(ctx, metric, tables, subject))
-    table.to_csv(paths["csv"], index=False)   # the CSV keeps the per-family differences and components
+    # the CSV keeps the per-family differences and components
+    write_table(table.drop(columns=detail), ctx.results_dir / name, caption=_caption(ctx, metric, tables, subject),
+                csv_table=table)
     log.info("%s: %d comparisons, %s", name, len(table),
              ", ".join(f"{c}: {v}" for c, v in table.drop_duplicates("claim")[["claim", "verdict"]].values))
     log.info("results page: %s", results_page.write(ctx.results_dir, ctx.preset))

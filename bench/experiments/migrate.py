@@ -204,7 +204,7 @@ def rewrite_results(results_dir: Path, renamed: dict[str, str], train_identities
             value.update(identity=train_identities[value["run"]], migrated_from=old_of.get(value["run"]))
             new = json.dumps(value, indent=2, sort_keys=True, default=str)
         if new != text:
-            path.write_text(new)
+            write_atomic(path, lambda tmp, new=new: tmp.write_text(new))
             changed.append(path)
     return changed
 
@@ -245,7 +245,8 @@ def run(ctx: Context, name: str, delete_dropped: bool) -> pd.DataFrame:
         f"per store and kind, the runs moved to their new hash (now or by an earlier call), left as recorded, "
         f"and dropped (an option that no longer exists; {'deleted' if delete_dropped else 'kept on disk'}). "
         f"Every run, its old and new hash: runs.csv."))
-    table.assign(store=table["store"].map(lambda s: names.get(s, s))).to_csv(out_dir / "runs.csv", index=False)
+    listed = table.assign(store=table["store"].map(lambda s: names.get(s, s)))
+    write_atomic(out_dir / "runs.csv", lambda tmp: listed.to_csv(tmp, index=False))
     for _, row in dropped.iterrows():
         log.warning("migrate: dropped %s/%s (%s): %s", row["kind"], row["hash"], row["label"], row["reason"])
     log.info("migrate: %s", "; ".join(f"{r['store']} {r['kind']}: " + ", ".join(f"{r[o]} {o}" for o in OUTCOMES)

@@ -19,6 +19,7 @@ from pathlib import Path
 
 import pandas as pd
 
+from bench.atomic import write_atomic
 from bench.runs import ROOT
 from bench.table_writer import PARTIAL_CAPTION, SCORED_ON_PATTERN, listed_evaluations, read_caption, read_table
 
@@ -500,8 +501,8 @@ def write(results_dir: str | Path, preset: str, repository: str | Path = ROOT) -
         shown = results_dir.resolve().relative_to(Path(repository).resolve()).as_posix()
     except ValueError:
         shown = None
-    path = results_dir / PAGE
-    path.write_text(page(results_dir, preset, shown))
+    path, text = results_dir / PAGE, page(results_dir, preset, shown)
+    write_atomic(path, lambda tmp: tmp.write_text(text))
     return path
 
 

@@ -382,8 +382,7 @@ def caption(table: pd.DataFrame, preset: str, device: str, hdr: str) -> str:
 def write_tables(table: pd.DataFrame, out_dir, preset: str, device: str, hdr: str) -> None:
     """table.md/.tex (case x model) and table.csv (the long form, one row per case and model)."""
     pivot = table.pivot_table(index="case", columns="model", values="status", aggfunc="first", sort=False).fillna("")
-    write_table(pivot.reset_index(), out_dir, caption=caption(table, preset, device, hdr))
-    table.to_csv(out_dir / "table.csv", index=False)
+    write_table(pivot.reset_index(), out_dir, caption=caption(table, preset, device, hdr), csv_table=table)
 
 
 def run(ctx: Context, name: str, models: list[str], frames: int, long_frames: int,
