@@ -29,8 +29,10 @@ if python3 -c "import sys, zipfile; sys.exit(not any(n.startswith('mitsuba/inclu
 fi
 grep -qx '/results/cpu/runs/' "$exclude" || echo '/results/cpu/runs/' >> "$exclude"
 git rm -r -q --cached results/cpu/runs 2>/dev/null || true
-tree=$(git ls-files -z | xargs -0 du -cb | tail -1 | cut -f1)
-untracked=$(git ls-files -z --others --exclude-standard | xargs -0 -r du -cb | tail -1 | cut -f1)
+# du reads the names itself: through xargs, a list past its buffer (91 KiB of names now) would be summed
+# in batches, and the last batch's total taken for the whole
+tree=$(git ls-files -z | du -cb --files0-from=- | tail -1 | cut -f1)
+untracked=$(git ls-files -z --others --exclude-standard | du -cb --files0-from=- | tail -1 | cut -f1)
 wheels=$(du -cb .whl/*.whl | tail -1 | cut -f1)
 total=$(( (tree + ${untracked:-0} + wheels) / 1048576 ))
 echo "gpu_prepare: tracked tree $((tree / 1048576)) MiB, untracked $((${untracked:-0} / 1048576)) MiB, .whl $((wheels / 1048576)) MiB: $total MiB of 64"

@@ -106,7 +106,11 @@ def regenerate(name: str, preset: str, split: str, work: Path, extra: list[str])
                 why = line.split(RENDERING_BECAUSE, 1)[1].strip()
             if RENDERING in line:
                 proc.send_signal(signal.SIGINT)
-                out.write(proc.communicate(timeout=120)[0])
+                try:
+                    out.write(proc.communicate(timeout=120)[0])
+                except subprocess.TimeoutExpired:  # it did not stop on SIGINT: nor does it outlive this script
+                    proc.kill()
+                    out.write(proc.communicate()[0])
                 shown = why if len(why) <= 400 else why[:400] + " ..."
                 return f"would render or train ({shown or 'see the log'}; log: {log})", None
         proc.wait()
