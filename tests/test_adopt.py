@@ -99,7 +99,8 @@ def test_adopt_stops_on_ctrl_c_or_sigterm_during_a_replay(monkeypatch, tmp_path)
 def test_adopt_renders_the_training_split_and_val_where_missing_and_nothing_else(monkeypatch, tmp_path):
     """A fresh clone adopts after rendering what the checks read: the training split for the replays and
     val for the scoring (with the buffers of the stale groups' tasks), not the whole dataset; nothing
-    when nothing is stale, val not when today's frames have val or test, and never your own data."""
+    when nothing is stale, the scoring's buffers in the test frames when today's frames have test and not
+    val, and never your own data."""
     import dataclasses
     from bench import runs
     from bench.experiments import adopt
@@ -113,9 +114,12 @@ def test_adopt_renders_the_training_split_and_val_where_missing_and_nothing_else
     assert len(rendered) == 1                                         # nothing stale: nothing rendered
     monkeypatch.setattr(adopt, "splits_on_disk", lambda ctx, as_specified: {"test"})
     adopt.render_what_the_checks_read(ctx, group, [])
-    assert rendered[-1][1] == {"train"}                               # test scores as well as val
+    assert rendered[-1][1] == {"train", "test"}                       # test scores as well as val: its buffers
+    monkeypatch.setattr(adopt, "splits_on_disk", lambda ctx, as_specified: {"val"})
+    adopt.render_what_the_checks_read(ctx, group, [])                 # a val rendered for other tasks gets
+    assert rendered[-1] == ({"lr_noisy", "lr_gbuf", "hr_noisy", "hr_ref"}, {"train", "val"})  # the srd task's
     adopt.render_what_the_checks_read(dataclasses.replace(ctx, render_data=False), group, [])
-    assert len(rendered) == 2                                         # your own frames: as they are
+    assert len(rendered) == 3                                         # your own frames: as they are
     untrained = runs.Run("eval", "1" * 16, tmp_path, {"identity": {"trained": {"task": "denoise"}}})
     monkeypatch.setattr(adopt, "splits_on_disk", lambda ctx, as_specified: set())
     adopt.render_what_the_checks_read(ctx, {}, [untrained])

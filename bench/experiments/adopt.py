@@ -104,17 +104,19 @@ def stale_groups(ctx: Context) -> dict[str, list[runs.Run]]:
 
 def render_what_the_checks_read(ctx: Context, groups: dict[str, list[runs.Run]], untrained: list[runs.Run]) -> None:
     """Render, where missing, the frames the checks read and nothing else (rendered data only; your own
-    is used as it is): the training split, for the groups' replays, and val, for the scoring, unless
-    today's frames have val or test already (`scoring_split` takes either). A fresh clone adopts after
-    rendering two splits, not the whole dataset. `untrained`: the stale evaluations of untrained models."""
+    is used as it is): the training split, for the groups' replays, and for the scoring the val or test
+    frames on disk (`scoring_split` takes either), val where neither is, each with the stale tasks'
+    buffers it lacks (a val rendered for other tasks lacked the sr task's LR reference, and every replay
+    of an sr group failed on it). A fresh clone adopts after rendering two splits, not the whole dataset.
+    `untrained`: the stale evaluations of untrained models."""
     if not (groups or untrained) or not ctx.render_data:
         return
     tasks = {g[0].record["identity"]["task"] for g in groups.values()}
     tasks |= {e.record["identity"]["trained"]["task"] for e in untrained}
     passes = set().union(*(get_task(t).buffers(with_mid=True) for t in tasks))
     splits = {"train"} if groups else set()
-    if evaluation_data(ctx) is ctx and not splits_on_disk(ctx, as_specified=True) & {TUNING_SPLIT, FROZEN_SPLIT}:
-        splits.add(TUNING_SPLIT)
+    if evaluation_data(ctx) is ctx:
+        splits |= (splits_on_disk(ctx, as_specified=True) & {TUNING_SPLIT, FROZEN_SPLIT}) or {TUNING_SPLIT}
     if splits:
         log.info("adopt: rendering %s where missing, for the checks (%d groups, %d evaluations of untrained models)",
                  ", ".join(sorted(splits)), len(groups), len(untrained))
