@@ -349,18 +349,23 @@ def _exported(path, cfg, seed=3, scale=2):
     return model.state_dict()
 
 
+def two_tiny_models(results_dir, *overrides):
+    """The speed experiment on a tiny EDSR and RAE, fp32 only, without the reference sections."""
+    with initialize_config_dir(config_dir=CONF_DIR, version_base=None):
+        return compose("config", overrides=[
+            "+experiment=speed", "preset=smoke", f"results_dir={results_dir}", "device=cpu", "models.edsr.channels=4",
+            "models.edsr.blocks=2", "models.rae.width=4", "experiment.models=[edsr,rae]", "experiment.input_hw=[16,24]",
+            "experiment.fast_paths=[fp32]", "experiment.repeats=1", "experiment.oidn=false",
+            "experiment.conv_stack_channels=0", "+experiment.deform.enabled=false", "+experiment.tiled.enabled=false",
+            *overrides])
+
+
 def test_weights_give_a_model_its_trained_weights_in_every_row_and_the_caption_names_them(tmp_path, monkeypatch):
     """experiment.weights: the rows of that model run the file's weights (unperturbed), the others untrained
     ones, and the caption says which; auto's note says a refusal on untrained weights is on them."""
     import bench.experiments.speed as speed
-    with initialize_config_dir(config_dir=CONF_DIR, version_base=None):
-        cfg = compose("config", overrides=[
-            "+experiment=speed", "preset=smoke", f"results_dir={tmp_path}", "device=cpu", "models.edsr.channels=4",
-            "models.edsr.blocks=2", "models.rae.width=4", "experiment.models=[edsr,rae]", "experiment.input_hw=[16,24]",
-            "experiment.fast_paths=[fp32]", "experiment.repeats=1", "experiment.oidn=false",
-            "experiment.conv_stack_channels=0", "+experiment.deform.enabled=false", "+experiment.tiled.enabled=false",
-            "experiment.train={batch:1,frames:2,crop:8}", "experiment.profile.models=[edsr]",
-            f"experiment.weights={{edsr:{tmp_path / 'edsr.pt'}}}"])                 # as on the command line
+    cfg = two_tiny_models(tmp_path, "experiment.train={batch:1,frames:2,crop:8}", "experiment.profile.models=[edsr]",
+                          f"experiment.weights={{edsr:{tmp_path / 'edsr.pt'}}}")      # as on the command line
     edsr = OmegaConf.to_container(cfg.models.edsr, resolve=True)
     saved = _exported(tmp_path / "edsr.pt", edsr)
     timed, stepped, profiled, on_untrained = {}, {}, {}, {}
@@ -431,13 +436,7 @@ def test_a_run_stopped_before_its_last_section_leaves_a_table_that_says_partial(
     scripts/gpu_job.sh reads to time it again; a run that finishes writes the caption without it."""
     import bench.experiments.speed as speed
     from bench.experiments.results_page import speed_weights
-    with initialize_config_dir(config_dir=CONF_DIR, version_base=None):
-        cfg = compose("config", overrides=[
-            "+experiment=speed", "preset=smoke", f"results_dir={tmp_path}", "device=cpu", "models.edsr.channels=4",
-            "models.edsr.blocks=2", "models.rae.width=4", "experiment.models=[edsr,rae]", "experiment.input_hw=[16,24]",
-            "experiment.fast_paths=[fp32]", "experiment.repeats=1", "experiment.oidn=false",
-            "experiment.conv_stack_channels=0", "+experiment.deform.enabled=false", "+experiment.tiled.enabled=false",
-            "+experiment.train.enabled=false", "experiment.profile.models=[]"])
+    cfg = two_tiny_models(tmp_path, "+experiment.train.enabled=false", "experiment.profile.models=[]")
     table_md = tmp_path / "speed" / device_tag("cpu") / "table.md"
     timed = speed.inference_rows
 
