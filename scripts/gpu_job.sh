@@ -112,11 +112,21 @@ step_tests() {
     tail -5 "$log"
 }
 
-# a record is done when it exists and does not say PARTIAL (a run stopped at its limit leaves one that does)
-finished() { [ -f "$1" ] && ! grep -q "^PARTIAL: " "$1"; }
+# a record is done when it exists and does not say PARTIAL (a run stopped at its limit leaves one that
+# does); a PARTIAL one is run again once only: a step that cannot finish within STEP_S would otherwise take
+# STEP_S of every later call and the steps after it never run (it is kept, and says PARTIAL)
+finished() {
+    [ -f "$1" ] || return 1
+    grep -q "^PARTIAL: " "$1" || return 0
+    [ "$(cat "$1.tries" 2>/dev/null || echo 0)" -lt 2 ] && return 1
+    echo "gpu_job: $1 is still PARTIAL after 2 tries: kept (raise STEP_S, or time less: SPEED_ARGS)"
+}
+# counted before the step runs: a call killed at its limit counts too
+tried() { mkdir -p "$(dirname "$1")"; echo $(( $(cat "$1.tries" 2>/dev/null || echo 0) + 1 )) > "$1.tries"; }
 
 step_speed() {
     if finished "results/gpu/speed/$tag/table.md"; then echo "gpu_job: speed table already there"; return; fi
+    tried "results/gpu/speed/$tag/table.md"
     local fused=0
     tests_passed && fused=1
     echo "gpu_job: speed with SRD_BENCH_FUSED_GPU=$fused"
@@ -138,6 +148,7 @@ step_sota() {
 step_sweep() {
     local record=results/gpu/profile/$tag-deform-sweep.md
     if finished "$record"; then echo "gpu_job: sweep already there ($record)"; return; fi
+    tried "$record"
     timeout "$(step_limit)" "$PYTHON" scripts/gpu_deform_sweep.py --device "$DEVICE" --out "$record"
     echo "gpu_job: sweep exit $?"
 }

@@ -19,6 +19,7 @@ Exit status 0 when every table checked regenerates and matches, 1 otherwise. Abo
 from __future__ import annotations
 
 import argparse
+import os
 import re
 import signal
 import subprocess
@@ -96,27 +97,40 @@ def regenerate(name: str, preset: str, split: str, work: Path, extra: list[str])
     with open(log, "w") as out:
         # SIGINT's default disposition in the child: where this script runs in the background of a
         # non-interactive shell, SIGINT is ignored, and the command would render on instead of stopping
-        # (and stopping its render workers) as Ctrl-C in a terminal does
+        # (and stopping its render workers) as Ctrl-C in a terminal does. Its own process group: a table that
+        # does not stop, or this script stopped, takes its render workers with it (killpg)
         proc = subprocess.Popen(command, cwd=REPO, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True,
-                                preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))
+                                preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL),
+                                start_new_session=True)
         why = ""
-        for line in proc.stdout:
-            out.write(line)
-            if RENDERING_BECAUSE in line:  # bench.experiments.table.render_what_runs says why
-                why = line.split(RENDERING_BECAUSE, 1)[1].strip()
-            if RENDERING in line:
-                proc.send_signal(signal.SIGINT)
-                try:
-                    out.write(proc.communicate(timeout=120)[0])
-                except subprocess.TimeoutExpired:  # it did not stop on SIGINT: nor does it outlive this script
-                    proc.kill()
-                    out.write(proc.communicate()[0])
-                shown = why if len(why) <= 400 else why[:400] + " ..."
-                return f"would render or train ({shown or 'see the log'}; log: {log})", None
-        proc.wait()
+        try:
+            for line in proc.stdout:
+                out.write(line)
+                if RENDERING_BECAUSE in line:  # bench.experiments.table.render_what_runs says why
+                    why = line.split(RENDERING_BECAUSE, 1)[1].strip()
+                if RENDERING in line:
+                    proc.send_signal(signal.SIGINT)
+                    try:
+                        out.write(proc.communicate(timeout=120)[0])
+                    except subprocess.TimeoutExpired:  # it did not stop on SIGINT
+                        _kill_group(proc)
+                        out.write(proc.communicate(timeout=30)[0])
+                    shown = why if len(why) <= 400 else why[:400] + " ..."
+                    return f"would render or train ({shown or 'see the log'}; log: {log})", None
+            proc.wait()
+        except BaseException:  # Ctrl-C or an error here: nothing of the table outlives this script
+            _kill_group(proc)
+            raise
     if proc.returncode != 0:
         return f"exit {proc.returncode} (log: {log})", None
     return "regenerated", where / "results" / ("" if split == "test" else split) / name
+
+
+def _kill_group(proc: subprocess.Popen) -> None:
+    try:
+        os.killpg(proc.pid, signal.SIGKILL)
+    except ProcessLookupError:  # gone already
+        pass
 
 
 def main(argv=None) -> int:

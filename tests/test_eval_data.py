@@ -312,7 +312,23 @@ def test_an_output_that_is_not_finite_on_a_frame_stops_the_table_instead_of_leav
     monkeypatch.setattr(bench.evaluate, "predict", nan_on_the_second_frame)
     out = smoke_table(*store(tmp_path, "null", trained / "data"))      # no archive: trained and scored here
     assert out.returncode == 2 and "Traceback" not in out.stderr, out.stderr[-3000:]
-    (line,) = [line for line in out.stderr.splitlines() if "whose scores are NaN" in line]
-    assert "eval Ours: the output is not finite on 1 of 2 frames (" in line and "frame 1)" in line
+    (line,) = [line for line in out.stderr.splitlines() if "score NaN" in line]
+    assert "eval Ours: 1 of 2 frames score NaN (" in line and "frame 1): the output or the reference" in line
     failed = [json.loads(p.read_text()) for p in (tmp_path / "runs" / "eval").glob("*/run.json")]
     assert [r["status"] for r in failed if r["label"] == "Ours"] == ["failed"]
+
+
+def test_fast_path_auto_does_not_train_again_only_to_choose_a_path(tmp_path, monkeypatch):
+    """A training the archive keeps without weights: auto measures an untrained copy instead of training
+    it again (the evaluation may be recorded already); with weights at hand it takes them."""
+    from bench import runs
+    from bench.experiments import evaluation
+    monkeypatch.setattr(evaluation, "trained_model", lambda *a, **k: ("trained model", None))
+    weightless = runs.Run("train", "0" * 16, tmp_path / "weightless", {})
+    (tmp_path / "weightless").mkdir()
+    assert evaluation._trained_weights(None, {}, None, 0, "x", False, [weightless]) is None
+    kept = runs.Run("train", "1" * 16, tmp_path / "kept", {})
+    (tmp_path / "kept").mkdir()
+    (tmp_path / "kept" / CHECKPOINT).write_bytes(b"weights")
+    assert evaluation._trained_weights(None, {}, None, 0, "x", False, [kept]) == "trained model"
+    assert evaluation._trained_weights(None, {}, None, 0, "x", False, [kept, weightless]) is None

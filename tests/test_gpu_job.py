@@ -91,11 +91,20 @@ def test_a_speed_table_or_sweep_stopped_at_its_limit_is_timed_again(tmp_path):
     record say PARTIAL until their last section is in (tests/test_speed.py), and the next call runs
     the step again instead of bringing back a table that lacks models."""
     script = (REPO / "scripts" / "gpu_job.sh").read_text()
-    (finished,) = [line for line in script.splitlines() if line.startswith("finished() ")]
+    start = script.index("finished() {")
+    functions = script[start:script.index("\n", script.index("tried() "))]     # the two, whole
     assert 'finished "results/gpu/speed/$tag/table.md"' in script and 'finished "$record"' in script
-    (tmp_path / "partial.md").write_text("PARTIAL: the run stopped before every section was timed. Speed on x\n")
+    assert 'tried "results/gpu/speed/$tag/table.md"' in script and 'tried "$record"' in script
+    (tmp_path / "partial.md").write_text("PARTIAL: not every section is timed yet. Speed on x\n")
     (tmp_path / "sweep.md").write_text("# sweep\n\n## fp32 (TF32 dots)\n\nPARTIAL: stopped before bf16 was timed.\n")
     (tmp_path / "done.md").write_text("Speed on x CPU; preset gpu widths, untrained weights.\n\n| a |\n")
-    said = {name: subprocess.run(["bash", "-c", f'{finished}\nfinished "$1"', "-", str(tmp_path / name)]).returncode
-            for name in ("missing.md", "partial.md", "sweep.md", "done.md")}
-    assert said == {"missing.md": 1, "partial.md": 1, "sweep.md": 1, "done.md": 0}
+
+    def finished(name, tries=0):
+        for _ in range(tries):   # a step started (and stopped at its limit) this many times
+            subprocess.run(["bash", "-c", f'{functions}\ntried "$1"', "-", str(tmp_path / name)], check=True)
+        return subprocess.run(["bash", "-c", f'{functions}\nfinished "$1"', "-", str(tmp_path / name)],
+                              capture_output=True, text=True).returncode
+    assert {name: finished(name) for name in ("missing.md", "partial.md", "sweep.md", "done.md")} == \
+        {"missing.md": 1, "partial.md": 1, "sweep.md": 1, "done.md": 0}
+    assert finished("partial.md", tries=1) == 1          # stopped once: run again
+    assert finished("partial.md", tries=1) == 0          # stopped twice: kept as it is, not a third time

@@ -243,8 +243,8 @@ def test_speed_experiment_writes_every_section(tmp_path):
     caption = (out / "table.md").read_text().splitlines()[0]
     assert "torch " + torch.__version__ in caption and "1 torch threads" in caption
     assert not caption.startswith("PARTIAL")                # every section is in
-    from bench.experiments.results_page import speed_weights    # what the results page says of the table
-    assert speed_weights(out / "table.md") == "untrained weights"
+    from bench.experiments.results_page import speed_table_label    # what the results page says of the table
+    assert speed_table_label(out / "table.md") == "untrained weights"
 
 
 @pytest.mark.parametrize("override,message", [
@@ -382,8 +382,8 @@ def test_weights_give_a_model_its_trained_weights_in_every_row_and_the_caption_n
     assert on_untrained == {"EDSR": False, "RAE": True}
     caption = (tmp_path / "speed" / device_tag("cpu") / "table.md").read_text().splitlines()[0]
     assert f"trained weights (EDSR {tmp_path / 'edsr.pt'}, training run 0123abcd, pu domain), untrained for RAE" in caption
-    from bench.experiments.results_page import speed_weights    # what the results page says of the table
-    assert speed_weights(tmp_path / "speed" / device_tag("cpu") / "table.md") == "trained weights for some models"
+    from bench.experiments.results_page import speed_table_label    # what the results page says of the table
+    assert speed_table_label(tmp_path / "speed" / device_tag("cpu") / "table.md") == "trained weights for some models"
 
 
 @pytest.mark.parametrize("weights,message", [
@@ -422,12 +422,12 @@ def test_auto_choice_says_a_refusal_on_untrained_weights_is_on_them(monkeypatch)
 
 
 def test_the_results_page_says_a_table_of_trained_weights_for_every_model_ran_trained_weights(tmp_path):
-    from bench.experiments.results_page import speed_weights
+    from bench.experiments.results_page import speed_table_label
     from bench.experiments.speed import weights_caption
     caption = weights_caption({"srd": (None, "ours.pt, training run 1, pu domain")}, ["srd"])
     assert caption == "trained weights (Ours ours.pt, training run 1, pu domain)"
     (tmp_path / "table.md").write_text(f"Speed on x CPU; preset cpu widths, {caption}. ms: wall clock\n")
-    assert speed_weights(tmp_path / "table.md") == "trained weights"
+    assert speed_table_label(tmp_path / "table.md") == "trained weights"
 
 
 def test_a_run_stopped_before_its_last_section_leaves_a_table_that_says_partial(tmp_path, monkeypatch):
@@ -435,7 +435,7 @@ def test_a_run_stopped_before_its_last_section_leaves_a_table_that_says_partial(
     keeps what it timed under a caption opening with PARTIAL, which the results page repeats and
     scripts/gpu_job.sh reads to time it again; a run that finishes writes the caption without it."""
     import bench.experiments.speed as speed
-    from bench.experiments.results_page import speed_weights
+    from bench.experiments.results_page import speed_table_label
     cfg = two_tiny_models(tmp_path, "+experiment.train.enabled=false", "experiment.profile.models=[]")
     table_md = tmp_path / "speed" / device_tag("cpu") / "table.md"
     timed = speed.inference_rows
@@ -449,15 +449,16 @@ def test_a_run_stopped_before_its_last_section_leaves_a_table_that_says_partial(
         run_experiment(cfg)
     assert table_md.read_text().startswith("PARTIAL: ")
     assert set(pd.read_csv(table_md.with_suffix(".csv")).method) == {"EDSR"}
-    assert speed_weights(table_md) == "untrained weights, PARTIAL (the run stopped before its last section)"
+    assert speed_table_label(table_md) == "untrained weights, PARTIAL (not every section timed)"
     monkeypatch.setattr(speed, "inference_rows", timed)
     run_experiment(cfg)
-    assert not table_md.read_text().startswith("PARTIAL") and speed_weights(table_md) == "untrained weights"
+    assert not table_md.read_text().startswith("PARTIAL") and speed_table_label(table_md) == "untrained weights"
     assert set(pd.read_csv(table_md.with_suffix(".csv")).method) == {"EDSR", "RAE"}
 
 
 def test_the_profile_takes_the_last_path_hooks_can_see_into():
     from bench.experiments.speed import profiled_path
-    assert profiled_path({}, ["fp32", "channels_last", "compile"]) == "channels_last"   # the YAML's "+ compile"
-    assert profiled_path({"fast_path": None}, ["compile"]) == "fp32"
-    assert profiled_path({"fast_path": "bf16"}, ["fp32", "compile"]) == "bf16"
+    assert profiled_path({"models": ["srd"]}, ["fp32", "channels_last", "compile"]) == "channels_last"  # "+ compile"
+    assert profiled_path({"models": ["srd"], "fast_path": None}, ["compile"]) == "fp32"
+    assert profiled_path({"models": ["srd"], "fast_path": "bf16"}, ["fp32", "compile"]) == "bf16"
+    assert profiled_path({"models": [], "fast_path": "compile"}, ["fp32"]) == "compile"   # nothing profiled

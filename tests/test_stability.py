@@ -118,6 +118,7 @@ def test_a_case_is_judged_against_its_scaled_reference_not_only_for_being_finite
     assert status({**odd, "error": "RuntimeError: The size of tensor a (7) must match"}) == \
         "FAIL (RuntimeError: The size of tensor a (7) must match)"
     assert status({**odd, "error": "IndexError: index 3 is out of bounds"}).startswith("FAIL (IndexError")
+    assert status({**odd, "error": "RuntimeError: a | b\nthe rest"}) == "FAIL (RuntimeError: a / b)"  # one cell
     lamp = {"case": "lamp 1e4x the exposure", "finite": True, "max |output|": 50.0}
     assert status({**lamp, "lamp energy": 1.05}) == "ok 50" and status({**lamp, "lamp energy": 1.29}) == \
         "FAIL (lamp energy 129%)"

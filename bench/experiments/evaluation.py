@@ -16,7 +16,9 @@ from bench.exrio import write_exr
 from bench.macs import count_params
 from bench.measure import AUTO, choose_fast_path, fused_kernels_used
 from bench.score import unscored_frames
+from bench.models.factory import build_model
 from bench.tasks import Task
+from bench.train import CHECKPOINT
 
 log = logging.getLogger("bench")
 
@@ -33,10 +35,10 @@ def evaluated(ctx: Context, cfg: dict, task: Task, seed: int, split: str, label:
     hdr = ctx.train.hdr
     scoring_ctx = evaluation_data(ctx)
     fast_path = ctx.eval.fast_path
-    if fast_path == AUTO:  # judged on the weights it will score: a path's error depends on them
-        if model is None:
-            model = (cascade_model(ctx, cfg, seed, label) if cascade else trained_model(ctx, cfg, task, seed, label))[0]
-        fast_path = measured_fast_path(ctx, cfg, model, task, split, label)
+    if fast_path == AUTO:
+        fast_path = measured_fast_path(ctx, cfg, task, split, label, model if model is not None else
+                                       _trained_weights(ctx, cfg, task, seed, label, cascade,
+                                                        stage_runs if cascade else [train_run]))
     identity, code = _evaluation_key(ctx, scoring_ctx, cfg, trained, split, fast_path,
                                      learned=train_run is not None or cascade)
     run = runs.begin(ctx.runs_dir, "eval", identity, seed=seed, device=ctx.device, label=label,
@@ -61,9 +63,9 @@ def evaluated(ctx: Context, cfg: dict, task: Task, seed: int, split: str, label:
                                       write_exr=write_exr, path=fast_path, tile=ctx.eval.tile)
         unscored = unscored_frames(per_image)
         if unscored:  # a mean would leave them out and the row would look better than the model is
-            raise UserError(f"eval {label}: the output is not finite on {len(unscored)} of {len(per_image)} frames "
-                            f"({', '.join(unscored[:3])}), whose scores are NaN: a table's means would leave them "
-                            f"out (eval.fast_path={fast_path}); the evaluation is recorded failed")
+            raise UserError(f"eval {label}: {len(unscored)} of {len(per_image)} frames score NaN ({', '.join(unscored[:3])}"
+                            f"): the output or the reference is not finite there, and a table's means would leave "
+                            f"them out (eval.fast_path={fast_path}); the evaluation is recorded failed")
     except BaseException as err:  # the record says so, never "running" forever
         runs.fail(run, f"{type(err).__name__}: {err}")
         raise
@@ -134,11 +136,24 @@ def archive_evaluation(ctx: Context, run: runs.Run) -> runs.Run:
     return run
 
 
-def measured_fast_path(ctx: Context, cfg: dict, model, task: Task, split: str, label: str) -> str:
-    """eval.fast_path=auto: the fastest correct path for `model` (with the weights it scores: a path's
-    accuracy depends on them, bench.measure) on this machine and one sequence of the split, cached in
-    <runs_dir>/fast_paths.json under the weights' digest. The evaluation's identity records the path."""
+def _trained_weights(ctx: Context, cfg: dict, task: Task, seed: int, label: str, cascade: bool, trainings):
+    """The row's model with the weights it scores, where they are at hand (in the store or the archive),
+    else None: a training the archive keeps without weights is not trained again only to choose a path."""
+    if not all((r.dir / CHECKPOINT).exists() or archived.has_weights(r.dir) for r in trainings):
+        return None
+    return (cascade_model(ctx, cfg, seed, label) if cascade else trained_model(ctx, cfg, task, seed, label))[0]
+
+
+def measured_fast_path(ctx: Context, cfg: dict, task: Task, split: str, label: str, model=None) -> str:
+    """eval.fast_path=auto: the fastest correct path on this machine and one sequence of the split, for
+    `model` with the weights it scores (a path's accuracy depends on them, bench.measure), or for an
+    untrained copy when they are not at hand (`_trained_weights`); cached in <runs_dir>/fast_paths.json
+    under the weights' digest. The evaluation's identity records the path."""
     item = dataset(evaluation_data(ctx), split, task, training=False)[0]
+    if model is None:
+        log.info("eval %s: fast_path=auto is measured on an untrained copy: the training's weights are not kept",
+                 label)
+        model = build_model(cfg, task.scale)
     model = model.to(ctx.device).eval()
     x, g = item[task.x][None].to(ctx.device), item[task.g][None].to(ctx.device)
     chosen, times = choose_fast_path(model, x, g, ctx.device, ctx.runs_dir / "fast_paths.json",

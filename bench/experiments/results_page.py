@@ -289,10 +289,11 @@ def stability_section(results_dir: Path, name: str = "stability", what: str = ""
                                     "largest output"], rows)
 
 
-def speed_weights(table_md: Path) -> str:
-    """Which weights a speed table ran, from its caption (`+experiment=speed`'s weights_caption)."""
+def speed_table_label(table_md: Path) -> str:
+    """What the page says of a speed table, from its caption: which weights it ran (`+experiment=speed`'s
+    weights_caption), and PARTIAL where not every section is in."""
     caption = table_md.read_text().split("\n", 1)[0] if table_md.exists() else ""
-    partial = ", PARTIAL (the run stopped before its last section)" if caption.startswith(PARTIAL_CAPTION) else ""
+    partial = ", PARTIAL (not every section timed)" if caption.startswith(PARTIAL_CAPTION) else ""
     if "widths, trained weights (" in caption:
         return "trained weights" + (" for some models" if "), untrained for " in caption else "") + partial
     return ("untrained weights" if "widths, untrained weights" in caption else "weights not said") + partial
@@ -308,7 +309,7 @@ def speed_section(results_dir: Path) -> list[str]:
         table = pd.read_csv(table_path)
         inference = table[table["section"] == "inference"]
         steps = table[table["section"] == "training step"]
-        lines += [f"{device}, {speed_weights(table_path.with_suffix('.md'))}: "
+        lines += [f"{device}, {speed_table_label(table_path.with_suffix('.md'))}: "
                   f"{_link(results_dir, f'speed/{device}/table.csv')}", ""]
         rows = []
         for model, paths in inference.groupby("method", sort=False):

@@ -627,6 +627,8 @@ def profiled_path(profile: dict, paths: Sequence[str]) -> str:
     into (not compiled). Checked before the first section is timed: a compiled or misspelt one ended in a
     traceback after every other section had run."""
     chosen = profile.get("fast_path")
+    if not profile.get("models"):  # nothing profiled: nothing to check
+        return chosen or REFERENCE
     if chosen is None:
         hookable = [p for p in paths if not parse_path(p).compile]
         return hookable[-1] if hookable else REFERENCE

@@ -299,7 +299,8 @@ def status(row, clean_relmse: float | None = None) -> str:
     energy of a lamp case's emitter; an all-black input gives at most BLACK_MAX."""
     error = row.get("error")
     if isinstance(error, str):  # a refusal with a message is an acceptable outcome, any other error is not
-        return "error (clear)" if error.split(":")[0] in REFUSALS else f"FAIL ({error[:80]})"
+        first_line = error.splitlines()[0].replace("|", "/")[:80] if error.strip() else "error"  # a Markdown cell
+        return "error (clear)" if error.split(":")[0] in REFUSALS else f"FAIL ({first_line})"
     train = row.get("train step")
     bad_train = isinstance(train, str) and not (train == "ok" or train.startswith("divergence detected"))
     if not row.get("finite") or bad_train:
