@@ -288,6 +288,17 @@ def test_the_caption_names_the_cpu_isa():
     assert isa in machine_caption("cpu")
 
 
+def test_the_caption_tells_two_cpus_of_one_model_name_apart():
+    """One cloud model name ("AMD EPYC") covered two hosts 1.4-2.2x apart: the caption names what
+    differs (x86 family, model, stepping, clock, L3)."""
+    from bench.experiments.speed import cpu_identity, machine_caption
+    info = "processor\t: 0\ncpu family\t: 25\nmodel\t\t: 17\nmodel name\t: AMD EPYC\nstepping\t: 1\ncpu MHz\t\t: 2596.132\n"
+    assert cpu_identity(info, "32768K") == "x86 family 25 model 17 stepping 1, 2596 MHz, L3 32768K"
+    assert cpu_identity("", "") == ""
+    if cpu_identity():                     # where /proc can be read, the caption carries it
+        assert f"({cpu_identity()})" in machine_caption("cpu")
+
+
 def test_a_gpu_caption_names_the_gpu_and_its_host_cpu_isa(monkeypatch):
     from bench.experiments.speed import machine_caption
     from bench.measure import cpu_isa

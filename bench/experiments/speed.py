@@ -91,6 +91,23 @@ def cpu_model() -> str:
     return name
 
 
+def cpu_identity(cpuinfo: str | None = None, l3: str | None = None) -> str:
+    """What tells two CPUs of one model name apart (/proc/cpuinfo: x86 family, model, stepping, clock; the
+    L3 cache): a cloud model name such as "AMD EPYC" covers hosts 1.4-2.2x apart in these tables. '' where
+    /proc cannot be read."""
+    with contextlib.suppress(OSError):
+        cpuinfo = Path("/proc/cpuinfo").read_text() if cpuinfo is None else cpuinfo
+        l3 = Path("/sys/devices/system/cpu/cpu0/cache/index3/size").read_text().strip() if l3 is None else l3
+    fields = {key: re.search(rf"^{key}\s*:\s*(.+)$", cpuinfo or "", re.MULTILINE) for key in
+              ("cpu family", "model", "stepping", "cpu MHz")}
+    said = {key: found.group(1).strip() for key, found in fields.items() if found}
+    parts = ([f"x86 family {said['cpu family']} model {said['model']} stepping {said.get('stepping', '?')}"]
+             if "cpu family" in said and "model" in said else [])
+    parts += [f"{float(said['cpu MHz']):.0f} MHz"] if "cpu MHz" in said else []
+    parts += [f"L3 {l3}"] if l3 else []
+    return ", ".join(parts)
+
+
 def device_tag(device: str) -> str:
     """A directory name for the machine: cpu-<cpu model>-<ISA> or cuda-<gpu model>, lower case (one
     cloud CPU model name covers AVX2-only and AVX512-BF16 hosts)."""
@@ -107,11 +124,16 @@ def machine_caption(device: str) -> str:
     if str(device).startswith("cuda"):
         # the host CPU runs the Python and the launches (and OIDN's row): its ISA belongs to the figures too
         where = (f"{torch.cuda.get_device_name(torch.device(device))} (CUDA {torch.version.cuda}), host CPU "
-                 f"{cpu_model().strip()}, {cpu_isa()}")
+                 f"{cpu_model().strip()}{_identified()}, {cpu_isa()}")
     else:
-        where = (f"{device_tag(device)[4:].removesuffix('-' + isa_tag())} CPU, {cpu_isa()}, {torch.get_num_threads()} torch threads, glibc malloc "
+        where = (f"{device_tag(device)[4:].removesuffix('-' + isa_tag())} CPU{_identified()}, {cpu_isa()}, {torch.get_num_threads()} torch threads, glibc malloc "
                  f"{'keeping freed memory' if freed_memory_kept() else 'default (mmap per big tensor)'}")
     return f"{where}, torch {torch.__version__}"
+
+
+def _identified() -> str:
+    identity = cpu_identity()
+    return f" ({identity})" if identity else ""
 
 
 def _status_kib(field: str) -> int:
