@@ -208,14 +208,13 @@ def add_parser(commands) -> None:
 
 
 def unscored_frames(per_image) -> list[str]:
-    """'<sequence> frame <n>' of each frame with a NaN per-frame score (a non-finite output; PSNR's +inf,
-    identical images, is a score, and the temporal relMSE of a sequence's first frame is not per-frame)."""
+    """'<sequence> frame <n>' of each frame with a NaN per-frame score (a non-finite output or reference;
+    PSNR's +inf, identical images, is a score, and the temporal relMSE is not a per-frame score)."""
     scores = [name for name in METRICS if name in per_image]
     if not scores:
         return []
     bad = per_image[per_image[scores].isna().any(axis=1)]
     return [f"{row.sequence} frame {row.frame}" for row in bad.itertuples()]
-
 
 
 def run(args) -> int:

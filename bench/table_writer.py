@@ -24,7 +24,7 @@ SCORED_ON = "preset {preset}, split {split}"
 SCORED_ON_PATTERN = r"[Pp]reset (\w+), split (\w+)"
 
 # Opens the caption of a table written section by section until its last section is in (the speed
-# table): a run stopped before then leaves a table that says so, and the GPU job times it again.
+# table): a run stopped before then leaves a table that says so, and the GPU job times it again (once).
 PARTIAL_CAPTION = "PARTIAL: not every section is timed yet (a run stopped part way leaves this)."
 
 

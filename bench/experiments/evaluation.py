@@ -7,16 +7,16 @@ from __future__ import annotations
 import logging
 
 from bench import archived, runs
+from bench.errors import UserError
 from bench.evaluate import LATER_SCORES, REQUIRED_SCORES, evaluate
 from bench.experiments.context import EVALUATION_CODE, TRAINING_CODE, Context, code_of
 from bench.experiments.datasets import dataset, evaluation_data, render_digest, split_fingerprint
 from bench.experiments.training import RecordedTraining, cascade_model, reused_trainings, trained_model
-from bench.errors import UserError
 from bench.exrio import write_exr
 from bench.macs import count_params
 from bench.measure import AUTO, choose_fast_path, fused_kernels_used
-from bench.score import unscored_frames
 from bench.models.factory import build_model
+from bench.score import unscored_frames
 from bench.tasks import Task
 from bench.train import CHECKPOINT
 
@@ -36,9 +36,9 @@ def evaluated(ctx: Context, cfg: dict, task: Task, seed: int, split: str, label:
     scoring_ctx = evaluation_data(ctx)
     fast_path = ctx.eval.fast_path
     if fast_path == AUTO:
-        fast_path = measured_fast_path(ctx, cfg, task, split, label, model if model is not None else
-                                       _trained_weights(ctx, cfg, task, seed, label, cascade,
-                                                        stage_runs if cascade else [train_run]))
+        if model is None:  # the weights it will score, where at hand (loaded once: they are scored below)
+            model = _trained_weights(ctx, cfg, task, seed, label, cascade, stage_runs if cascade else [train_run])
+        fast_path = measured_fast_path(ctx, cfg, task, split, label, model)
     identity, code = _evaluation_key(ctx, scoring_ctx, cfg, trained, split, fast_path,
                                      learned=train_run is not None or cascade)
     run = runs.begin(ctx.runs_dir, "eval", identity, seed=seed, device=ctx.device, label=label,
