@@ -27,6 +27,7 @@ from pathlib import Path
 import torch
 
 from bench.atomic import write_atomic
+from bench.runs import acquire
 from bench.evaluate import sync
 from bench.infer import REFERENCE, max_abs_diff, prepare
 from bench.nn import fused
@@ -161,11 +162,12 @@ def choose_fast_path(model, x: torch.Tensor, g: torch.Tensor | None, device: str
         raise RuntimeError(f"no fast path runs this model here: {times}")
     fastest = min(ran)[1]
     if cache is not None:
-        # read again: another process (jobs=N) may have added its choice since; never half a file
-        cached = {**_read_cache(cache), text: {"path": fastest, "ms": times}}
         try:
             Path(cache).parent.mkdir(parents=True, exist_ok=True)
-            write_atomic(Path(cache), lambda tmp: tmp.write_text(json.dumps(cached, indent=1, sort_keys=True)))
+            # read again under a lock: another process (jobs=N) may add its choice meanwhile; never half a file
+            with contextlib.closing(acquire(Path(f"{cache}.lock"), "writing the fast-path cache")):
+                cached = {**_read_cache(cache), text: {"path": fastest, "ms": times}}
+                write_atomic(Path(cache), lambda tmp: tmp.write_text(json.dumps(cached, indent=1, sort_keys=True)))
         except OSError as err:  # e.g. an unwritable HOME: the choice stands, it is only not remembered
             print(f"note: the fast path chosen ({fastest}) is not remembered in {cache} ({err.strerror}): it is "
                   "measured again next time, unless a fixed fast path is given or that folder is writable",

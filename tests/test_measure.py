@@ -207,3 +207,27 @@ def test_scripts_as_avx2_runs_a_command_as_on_a_cpu_with_avx2_only(tmp_path):
     march = re.search(r"^\s*-march=\s*(\S+)", target, re.MULTILINE)
     assert march and march.group(1) == "haswell", target[:2000]
     assert (tmp_path / "as_avx2" / "g++").exists()   # where the next run finds it: its builds stay cached
+
+
+def test_the_fast_path_cache_keeps_every_process_s_choice(tmp_path):
+    """jobs=N shards choose paths at once: a process writes the cache under a lock, reading it again there,
+    so a choice another process wrote meanwhile is kept (and no reader sees half a file). Here the test
+    holds the lock while a process measures, writes a choice of its own, then lets the process write."""
+    import contextlib
+    import select
+    from bench.runs import acquire
+    repo = Path(__file__).resolve().parent.parent
+    cache = tmp_path / "fast_paths.json"
+    script = ("import sys, torch; from bench import measure; from baselines.edsr import EDSR\n"
+              "torch.manual_seed(0); torch.set_num_threads(1); model = EDSR(channels=4, blocks=1)\n"
+              "x, g = torch.rand(1, 1, 3, 8, 8), torch.rand(1, 1, 7, 8, 8)\n"
+              "measure.choose_fast_path(model, x, g, 'cpu', sys.argv[1], {'model': 'the process'}, repeats=1)\n")
+    with contextlib.closing(acquire(Path(f"{cache}.lock"), "a test")):
+        proc = subprocess.Popen([sys.executable, "-c", script, str(cache)], cwd=repo, stdout=subprocess.PIPE,
+                                text=True, env={**os.environ, "PYTHONPATH": str(repo)})
+        ready, _, _ = select.select([proc.stdout], [], [], 120)
+        assert ready and "waiting for another process writing the fast-path cache" in proc.stdout.readline()
+        cache.write_text(json.dumps({"another process's choice": {"path": "fp32", "ms": {}}}))
+    assert proc.wait(timeout=120) == 0
+    kept = json.loads(cache.read_text())
+    assert "another process's choice" in kept and len(kept) == 2
