@@ -1,8 +1,9 @@
-"""Where the lamps' cost lies (docs/studies.md, emitters_causes), and what exposure_pass passes: three probes.
+"""Where the lamps' cost lies (docs/studies.md, emitters_causes), and what exposure_pass passes: four probes.
 
     PYTHONPATH=$PWD .venv/bin/python scripts/lamp_cost_probe.py bins library,living_room RUN...
     PYTHONPATH=$PWD .venv/bin/python scripts/lamp_cost_probe.py gradients RUN [ITEMS]
     PYTHONPATH=$PWD .venv/bin/python scripts/lamp_cost_probe.py passed [SPLIT]
+    PYTHONPATH=$PWD .venv/bin/python scripts/lamp_cost_probe.py knee [VALUE] [ITEMS] [FRAMES]
 
 `bins`: each training's outputs on the val sequences whose names start with one of the given prefixes,
 binned by the HR reference's luminance (linear radiance): per bin its share of the pixels, the mean
@@ -16,6 +17,12 @@ ratio. A lamp item whose gradient is several times an item's without would take 
 
 `passed`: the share of a split's LR pixels (default val) that exposure_pass passes through in part
 (bench.exposure.highlights above 0) and whole (1): what the network does not see trained or scored.
+
+`knee`: what the two candidate causes of emitters_causes act on. The radiance, as a multiple of the
+exposure, at network-domain VALUE (default 2, `train.loss_knee=2`) in the exposure domain; the values a
+lamp encodes to (bench.emitters.LOG10_LEVEL, 10x to 3e4x the exposure); the share of the HR reference's
+values and pixels above VALUE on the first FRAMES frames of the training split, each at its own
+exposure; and how much a pasted lamp raises a training crop's exposure (ITEMS items, median and range).
 
 RUN: a training's hash, from the run store (runs/) or the committed archive (bench.weights.export).
 Both need the cpu dataset (`python -m bench +experiment=data preset=cpu`).
@@ -35,10 +42,10 @@ from hydra import compose, initialize_config_dir
 
 import bench.losses
 from bench.cli import CONF_DIR, make_context
-from bench.emitters import with_emitter
+from bench.emitters import LOG10_LEVEL, first_frame_exposure, with_emitter
 from bench.errors import UserError
 from bench.evaluate import predict
-from bench.exposure import encode, frame_exposure, highlights
+from bench.exposure import decode, encode, frame_exposure, highlights
 from bench.experiments.datasets import dataset
 from bench.sanitize import sanitize_radiance
 from bench.tasks import get_task
@@ -127,6 +134,36 @@ def passed(split: str = "val") -> None:
     print(f"{split}: {pixels} LR pixels, passed in part {part / pixels:.4%}, whole {whole / pixels:.4%}")
 
 
+def knee(value: float = 2.0, items: int = 64, frames: int = 60) -> None:
+    ctx, task = _context(), get_task("srd")
+    unit = torch.ones(1, 1, 1, 1)
+    multiple = float(decode(torch.full((1, 1, 1, 1), value), "exposure", unit))
+    lamps = [float(encode(torch.full((1, 1, 1, 1), 10.0 ** e), "exposure", unit)) for e in LOG10_LEVEL]
+    print(f"network-domain value {value:g} (exposure domain) = radiance {multiple:.2f}x the frame's exposure; "
+          f"a lamp of {10 ** LOG10_LEVEL[0]:g}x to {10 ** LOG10_LEVEL[1]:.3g}x encodes to {lamps[0]:.2f}-{lamps[1]:.2f}")
+    whole = dataset(ctx, "train", task, training=False)
+    seen = values_above = pixels_above = values = pixels = 0
+    for i in range(len(whole)):
+        item = whole[i]
+        x, y = item[task.x][:, :3], item[task.y][:, :3]
+        encoded = encode(y, "exposure", frame_exposure(x, "exposure"))[:frames - seen]
+        values_above, values = values_above + int((encoded > value).sum()), values + encoded.numel()
+        pixels_above = pixels_above + int((encoded > value).any(-3).sum())
+        pixels, seen = pixels + encoded[:, 0].numel(), seen + len(encoded)
+        if seen >= frames:
+            break
+    print(f"train, first {seen} frames at their own exposure: HR reference above {value:g}: "
+          f"{values_above / values:.2%} of the values, {pixels_above / pixels:.2%} of the pixels (any channel)")
+    data = dataset(ctx, "train", task, training=True)
+    raises = []
+    for i in range(items):
+        item = data.item(random.Random(i).randrange(len(data)), i)
+        lamp = with_emitter(item, task, random.Random(f"lamp {i}"))
+        raises.append(first_frame_exposure(lamp[task.x]) / first_frame_exposure(item[task.x]))
+    print(f"{items} training crops ({ctx.train.crop} LR px) with a lamp pasted: exposure raised "
+          f"{statistics.median(raises):.2f}x (median), {min(raises):.2f}-{max(raises):.2f}x")
+
+
 if __name__ == "__main__":
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     commands = parser.add_subparsers(dest="command", required=True)
@@ -138,6 +175,10 @@ if __name__ == "__main__":
     grads.add_argument("items", nargs="?", type=int, default=16)
     share = commands.add_parser("passed", help="share of LR pixels exposure_pass passes through")
     share.add_argument("split", nargs="?", default="val")
+    at_knee = commands.add_parser("knee", help="what the loss knee and the lamp's exposure act on")
+    at_knee.add_argument("value", nargs="?", type=float, default=2.0)
+    at_knee.add_argument("items", nargs="?", type=int, default=64)
+    at_knee.add_argument("frames", nargs="?", type=int, default=60)
     args = parser.parse_args()
     torch.set_num_threads(1)
     try:
@@ -145,6 +186,8 @@ if __name__ == "__main__":
             bins(args.prefixes, args.runs)
         elif args.command == "gradients":
             gradients(args.run, args.items)
+        elif args.command == "knee":
+            knee(args.value, args.items, args.frames)
         else:
             passed(args.split)
     except UserError as err:  # a mistyped hash, data not rendered: one line, as `python -m bench` says it
