@@ -27,10 +27,10 @@ from pathlib import Path
 import torch
 
 from bench.atomic import write_atomic
-from bench.runs import acquire
 from bench.evaluate import sync
 from bench.infer import REFERENCE, max_abs_diff, prepare
 from bench.nn import fused
+from bench.runs import acquire
 
 TOLERANCE = 0.02       # max |fast - fp32| relative to fp32's output range: bf16 rounding passes, a bug does not
 AUTO = "auto"

@@ -66,6 +66,13 @@ def _model(run: str, runs_dir: Path):
     return model, meta["hdr"]
 
 
+def _with_lamps(data, task, items: int):
+    """`items` training items, each as drawn and with a lamp pasted (the same draws in every probe)."""
+    for i in range(items):
+        item = data.item(random.Random(i).randrange(len(data)), i)
+        yield item, with_emitter(item, task, random.Random(f"lamp {i}"))
+
+
 def bins(prefixes: str, run_hashes: list[str]) -> None:
     ctx, task = _context(), get_task("srd")
     data = dataset(ctx, "val", task, training=False)
@@ -110,9 +117,7 @@ def gradients(run: str, items: int = 16) -> None:
         return float(torch.sqrt(sum((p.grad.double() ** 2).sum() for p in model.parameters() if p.grad is not None)))
 
     rows = {t: [] for t in (*TERMS, "all")}
-    for i in range(items):
-        item = data.item(random.Random(i).randrange(len(data)), i)
-        lamp = with_emitter(item, task, random.Random(f"lamp {i}"))
+    for item, lamp in _with_lamps(data, task, items):
         for term in rows:
             only = None if term == "all" else term
             rows[term].append((grad_norm(item, only), grad_norm(lamp, only)))
@@ -155,11 +160,8 @@ def knee(value: float = 2.0, items: int = 64, frames: int = 60) -> None:
     print(f"train, first {seen} frames at their own exposure: HR reference above {value:g}: "
           f"{values_above / values:.2%} of the values, {pixels_above / pixels:.2%} of the pixels (any channel)")
     data = dataset(ctx, "train", task, training=True)
-    raises = []
-    for i in range(items):
-        item = data.item(random.Random(i).randrange(len(data)), i)
-        lamp = with_emitter(item, task, random.Random(f"lamp {i}"))
-        raises.append(first_frame_exposure(lamp[task.x]) / first_frame_exposure(item[task.x]))
+    raises = [first_frame_exposure(lamp[task.x]) / first_frame_exposure(item[task.x])
+              for item, lamp in _with_lamps(data, task, items)]
     print(f"{items} training crops ({ctx.train.crop} LR px) with a lamp pasted: exposure raised "
           f"{statistics.median(raises):.2f}x (median), {min(raises):.2f}-{max(raises):.2f}x")
 

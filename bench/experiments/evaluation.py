@@ -18,7 +18,6 @@ from bench.measure import AUTO, choose_fast_path, fused_kernels_used
 from bench.models.factory import build_model
 from bench.score import unscored_frames
 from bench.tasks import Task
-from bench.train import CHECKPOINT
 
 log = logging.getLogger("bench")
 
@@ -139,7 +138,7 @@ def archive_evaluation(ctx: Context, run: runs.Run) -> runs.Run:
 def _trained_weights(ctx: Context, cfg: dict, task: Task, seed: int, label: str, cascade: bool, trainings):
     """The row's model with the weights it scores, where they are at hand (in the store or the archive),
     else None: a training the archive keeps without weights is not trained again only to choose a path."""
-    if not all((r.dir / CHECKPOINT).exists() or archived.has_weights(r.dir) for r in trainings):
+    if not all(archived.has_weights(r.dir) for r in trainings):
         return None
     return (cascade_model(ctx, cfg, seed, label) if cascade else trained_model(ctx, cfg, task, seed, label))[0]
 

@@ -606,7 +606,7 @@ def run(ctx, name: str = "speed", models: list[str] = (), input_hw=(540, 960),
         except ValueError as err:
             raise UserError(f"experiment.fast_paths: {path!r}: {err}") from None
     _check_sections(conv_stack_channels, perturb, deform or {}, tiled or {})
-    profile = {**(profile or {}), "fast_path": profiled_path(profile or {}, fast_paths or PATHS)}
+    profile = {**(profile or {}), "fast_path": profiled_path(profile or {}, fast_paths or PATHS)}  # checked now
     trained = trained_models(weights, models, ctx.models)
     device = str(ctx.device)
     previous_threads = torch.get_num_threads()
@@ -623,7 +623,7 @@ def run(ctx, name: str = "speed", models: list[str] = (), input_hw=(540, 960),
     try:
         for section in _sections(ctx, models, tuple(input_hw), fast_paths or PATHS, repeats, warmup,
                                  train or {}, oidn, conv_stack_channels, deform or {}, tiled or {}, perturb,
-                                 profile or {}, trained, device):
+                                 profile, trained, device):
             rows += section
             table = _ratios(pd.DataFrame(rows, columns=COLUMNS))
             write_table(table, out_dir, digits=3, caption=f"{PARTIAL_CAPTION} {caption}")
