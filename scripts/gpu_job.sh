@@ -2,13 +2,16 @@
 # The GPU work as ONE call per machine start (the machine goes back about 30 s after a call, less than a
 # reply takes to read; docs/gpu.md, "The GPU job"; prepared here by scripts/gpu_prepare.sh). Run from the
 # repository root there, carrying .whl (and runs, from an earlier call):
-#     bash scripts/gpu_job.sh [tests] [speed] [profile] [sweep] [sota]     (no argument: tests speed sota)
+#     bash scripts/gpu_job.sh [tests] [render] [speed] [profile] [sweep] [sota]     (no argument: tests speed sota)
 # It installs the carried wheels, then runs the steps in order within JOB_S seconds in all (default 560,
 # for a run timeout_s of 600), each within STEP_S (default 540) and what is left; a step whose result is
 # already in the working tree is skipped (a speed table or sweep that says PARTIAL is not done), so the
 # next call, carrying what the last one brought back, goes on where it stopped:
 #   tests    tests/test_cuda.py and tests/test_fused_gpu.py with the fused kernels on
-#            -> results/gpu/cuda_tests/<device>.txt
+#            -> results/gpu/cuda_tests/<device>.txt (pytest-xdist's 4 workers where it is installed)
+#   render   (optional) the gpu data preset's first frames rendered twice with cuda_ad_rgb and once with
+#            llvm_ad_rgb: frames/s, compile, bit-identity, digests (scripts/gpu_render_probe.py)
+#            -> results/gpu/data/<device>-render-probe.md and .digests.json
 #   speed    +experiment=speed preset=gpu device=cuda, with the fused kernels on only if `tests` passed, and
 #            the training step of Ours and the conv stack also CUDA-graphed (train.compile=reduce-overhead)
 #            -> results/gpu/speed/<device>/
@@ -21,8 +24,8 @@
 #            -> results/gpu/sota/, runs/{train,eval}
 # Everything comes back in $OUT as at most 8 files: log.txt, results.tar.gz (results/gpu), and
 # runs.tar.gz.part-* (the unfinished trainings' run folders, 15 MiB parts). Unpack them here with
-# scripts/gpu_unpack.sh. Environment: PYTHON (.venv/bin/python where `make` made one, else python3), DEVICE (cuda), PRESET (gpu), JOB_S, STEP_S,
-# SPEED_ARGS, SOTA_ARGS, PROFILE_ARGS. tests/test_gpu_job.py (make test) dry-runs `tests sota` on a CPU at the
+# scripts/gpu_unpack.sh. Environment: PYTHON (.venv/bin/python where `make` made one, else python3), DEVICE (cuda), PRESET (gpu), JOB_S, STEP_S, RENDER_S,
+# SPEED_ARGS, SOTA_ARGS, PROFILE_ARGS, RENDER_ARGS. tests/test_gpu_job.py (make test) dry-runs `tests sota` on a CPU at the
 # smoke preset in a copy of the project. A dry run by hand (its records land in results/gpu: delete them after):
 #     DEVICE=cpu PROFILE_ARGS="--batch 1 --frames 2 --crop 16 --channels 8 --no-compile" OUT=/tmp/x \
 #         bash scripts/gpu_job.sh tests profile
@@ -33,9 +36,14 @@ DEVICE=${DEVICE:-cuda}
 PRESET=${PRESET:-gpu}
 JOB_S=${JOB_S:-560}
 STEP_S=${STEP_S:-540}
-SPEED_ARGS=${SPEED_ARGS:-experiment.train=null experiment.tiled.uhd=false}  # steps at the preset's size; no 4K tiles
+# the training steps at the preset's batch, frames and crop (each null: the preset's), no 4K tiles; not
+# experiment.train=null, which would also drop the compile the speed step asks for
+SPEED_ARGS=${SPEED_ARGS:-experiment.train.batch=null experiment.train.frames=null experiment.train.crop=null experiment.tiled.uhd=false}
+RENDER_ARGS=${RENDER_ARGS:---families 4 --compare llvm_ad_rgb}
+RENDER_S=${RENDER_S:-120}   # the render probe's share: a measurement, not the data
 SOTA_ARGS=${SOTA_ARGS:-}
 PROFILE_ARGS=${PROFILE_ARGS:-}
+VARIANT=$([ "$DEVICE" = cuda ] && echo cuda_ad_rgb || echo llvm_ad_rgb)
 STEPS=${*:-tests speed sota}
 PACK_S=20   # kept back for packing what comes back
 mkdir -p "$OUT"
@@ -98,14 +106,15 @@ tests_passed() { grep -q "^passed" "$tests_record" 2>/dev/null && grep -q "^kern
 step_tests() {
     if tests_passed; then echo "gpu_job: tests already passed with these kernels ($tests_record)"; return; fi
     mkdir -p "$(dirname "$tests_record")"
-    local log=/tmp/cuda_tests.log
-    SRD_BENCH_FUSED_GPU=1 timeout "$(step_limit)" "$PYTHON" -m pytest -q -p no:cacheprovider tests/test_cuda.py \
-        tests/test_fused_gpu.py > "$log" 2>&1
+    local log=/tmp/cuda_tests.log workers=()
+    "$PYTHON" -c "import xdist" 2>/dev/null && workers=(-n 4)   # the compiled-step tests compile in parallel
+    SRD_BENCH_FUSED_GPU=1 timeout "$(step_limit)" "$PYTHON" -m pytest -q -p no:cacheprovider "${workers[@]}" \
+        tests/test_cuda.py tests/test_fused_gpu.py > "$log" 2>&1
     local rc=$?
     [ -n "$gpu" ] || rc="no CUDA GPU: the CUDA tests skipped"   # never a "passed" without a GPU
     { [ "$rc" = 0 ] && echo passed || echo "failed ($rc)"
       echo "kernels: $kernels"
-      echo "command: SRD_BENCH_FUSED_GPU=1 pytest -q tests/test_cuda.py tests/test_fused_gpu.py"
+      echo "command: SRD_BENCH_FUSED_GPU=1 pytest -q ${workers[*]} tests/test_cuda.py tests/test_fused_gpu.py"
       echo "date: $(date -u +%FT%TZ)"
       echo "$versions"
       tail -40 "$log"; } > "$tests_record"
@@ -145,6 +154,20 @@ step_sota() {
     echo "gpu_job: sota exit $?"
 }
 
+step_render() {
+    local record=results/gpu/data/$tag-render-probe.md
+    if [ -f "$record" ]; then echo "gpu_job: render probe already there ($record)"; return; fi
+    "$PYTHON" -c "import mitsuba" 2>/dev/null || { echo "gpu_job: no mitsuba here (carry .whl): render skipped"; return; }
+    local limit
+    limit=$(step_limit)
+    limit=$((limit < RENDER_S ? limit : RENDER_S))
+    # no sequence starts after a third of the step's time in each of its two passes: the comparison
+    # variant and the digests come after them
+    timeout "$limit" "$PYTHON" scripts/gpu_render_probe.py --variant "$VARIANT" --seconds $((limit / 3)) \
+        --out "$record" $RENDER_ARGS
+    echo "gpu_job: render exit $?"
+}
+
 step_sweep() {
     local record=results/gpu/profile/$tag-deform-sweep.md
     if finished "$record"; then echo "gpu_job: sweep already there ($record)"; return; fi
@@ -166,8 +189,8 @@ step_profile() {
 
 for step in $STEPS; do
     case $step in
-        tests|speed|profile|sweep|sota) ;;
-        *) echo "gpu_job: unknown step $step (tests, speed, profile, sweep, sota)"; exit 2 ;;
+        tests|render|speed|profile|sweep|sota) ;;
+        *) echo "gpu_job: unknown step $step (tests, render, speed, profile, sweep, sota)"; exit 2 ;;
     esac
     if [ "$(step_limit)" -lt 30 ]; then echo "gpu_job: no time left for $step (JOB_S=$JOB_S)"; break; fi
     "step_$step"

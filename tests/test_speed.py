@@ -473,3 +473,21 @@ def test_the_profile_takes_the_last_path_hooks_can_see_into():
     assert profiled_path({"models": ["srd"], "fast_path": None}, ["compile"]) == "fp32"
     assert profiled_path({"models": ["srd"], "fast_path": "bf16"}, ["fp32", "compile"]) == "bf16"
     assert profiled_path({"models": [], "fast_path": "compile"}, ["fp32"]) == "compile"   # nothing profiled
+
+
+def test_a_training_step_that_fails_is_a_row_saying_why_and_the_table_goes_on(monkeypatch):
+    """A compiled step that does not trace on this machine (the speed step of scripts/gpu_job.sh runs
+    train.compile=reduce-overhead where it never ran before) is its row's note, not the end of the run."""
+    from bench.experiments import speed
+
+    def broken(*args, **kwargs):
+        raise RuntimeError("graph capture failed\nsecond line")
+    monkeypatch.setattr(speed, "timed_training_row", broken)
+    row = speed.training_row("Ours", TINY["edsr"](), {"batch": 2, "frames": 3, "crop": 8}, {"final": {"spatial": 1}},
+                             1e-3, "cpu", 1, 0, path="fp32, compiled (reduce-overhead)", compile="reduce-overhead")
+    assert row["note"] == "failed: RuntimeError: graph capture failed"
+    assert (row["section"], row["fast path"], row["size"]) == (
+        "training step", "fp32, compiled (reduce-overhead)", "2x3 frames of 8x8 LR")
+    assert "ms" not in row
+    table = speed._ratios(pd.DataFrame([row], columns=speed.COLUMNS))  # the ratios take a row without a time
+    assert table["ms"].isna().all()

@@ -347,8 +347,22 @@ def training_rows(label: str, model, train: dict, loss_weights: dict, lr: float,
 
 
 def training_row(label: str, model, train: dict, loss_weights: dict, lr: float, device, repeats, warmup,
-                 in_channels: int = 3, out_channels: int = 3, scale: int = 2, path: str = "fp32",
-                 bf16: bool = False, channels_last: bool = False, compile: str | None = None) -> dict:
+                 path: str = "fp32", **options) -> dict:
+    """`timed_training_row`, or a row saying why the step failed on this machine (a compiled step that
+    does not trace, no memory): the sections after it still run."""
+    try:
+        return timed_training_row(label, model, train, loss_weights, lr, device, repeats, warmup, path=path,
+                                  **options)
+    except Exception as err:  # noqa: BLE001 - as inference_rows: any failure of a path is that path's row
+        log.warning("speed: %s training step %s failed: %s", label, path, err)
+        size = f"{train['batch']}x{train['frames']} frames of {train['crop']}x{train['crop']} LR"
+        return _row("training step", label, path, size, "step",
+                    note=f"failed: {type(err).__name__}: {str(err).splitlines()[0][:120] if str(err) else ''}")
+
+
+def timed_training_row(label: str, model, train: dict, loss_weights: dict, lr: float, device, repeats, warmup,
+                       in_channels: int = 3, out_channels: int = 3, scale: int = 2, path: str = "fp32",
+                       bf16: bool = False, channels_last: bool = False, compile: str | None = None) -> dict:
     """Time of one optimisation step (forward, loss, backward, Adam) on a random batch of the training
     crop, fp32 (or as the trainer's train.precision=bf16, train.channels_last=true and train.compile=<mode>
     do: forward and loss under torch.compile, its first call, the compilation, timed apart). The loss is

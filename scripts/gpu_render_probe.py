@@ -1,0 +1,250 @@
+"""How fast, and how repeatably, a Mitsuba variant renders a data preset's frames (issue #62, item 3):
+one sequence of each of the first `--families` families of a split, rendered twice into two empty folders
+in one process with every buffer, then compared.
+
+- frames/s, and each frame's render seconds from its record (`time_s`, per buffer); the first frame of a
+  sequence against the median of its later ones gives the scene's set-up and kernel compile (the first
+  pass) or what a warm kernel cache leaves of it (the second);
+- bit-identity: every decoded layer of every frame of the two renders, compared (np.array_equal), and
+  the largest difference where they are not;
+- the frames' digests (sha256 of the decoded layers) in `<out>.digests.json`; where that file already
+  exists (committed by an earlier machine), the new digests are compared with it: the same frames on
+  another machine;
+- `--compare VARIANT` (e.g. llvm_ad_rgb): the first sequence's first `--compare-frames` frames rendered with
+  it too, timed, and the relative difference of each layer from the main variant's (they draw their
+  samples through other code, so the noisy layers differ by noise, the references by their error);
+- a projection of the whole preset's render time from the warm per-sample rates (each frame's noisy and
+  reference seconds per spp, times each split's frames and spp): a lead, not a measurement.
+
+Writes a Markdown record (`--out`, default results/<preset>/data/<device>-render-probe.md). On a CPU dry
+run: `python scripts/gpu_render_probe.py --data smoke --variant scalar_rgb --families 1 --out /tmp/p.md`.
+"""
+from __future__ import annotations
+
+import argparse
+import hashlib
+import json
+import statistics
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+import yaml
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+
+from bench import datagen, exrio, render  # noqa: E402
+from bench.datagen import BUFFERS, plan_sequences  # noqa: E402
+
+
+def first_of_each_family(spec: dict, split: str, families: int) -> list[dict]:
+    """The split's first planned sequence of each of its first `families` families."""
+    seen, jobs = set(), []
+    for job in plan_sequences(spec):
+        if job["split"] == split and job["family"] not in seen and len(seen) < families:
+            seen.add(job["family"])
+            jobs.append(job)
+    return jobs
+
+
+def render_pass(root: Path, jobs: list[dict], spec: dict, variant: str, deadline: float) -> list[dict]:
+    """Render each job's sequence into `root` (every buffer); per sequence: wall seconds and its frame
+    records. Stops before a sequence once `deadline` (time.monotonic) has passed."""
+    done = []
+    for job in jobs:
+        if time.monotonic() > deadline:
+            print(f"render_probe: deadline reached before {job['sequence']}", flush=True)
+            break
+        start = time.perf_counter()
+        records = datagen.render_sequence(root, job, spec, BUFFERS, variant=variant)
+        wall = time.perf_counter() - start
+        done.append({"job": job, "wall_s": wall, "records": records})
+        print(f"render_probe: {variant} {job['sequence']}: {len(records)} frames in {wall:.2f} s", flush=True)
+    return done
+
+
+def frame_layers(root: Path, split: str, sequence: str, frame: int) -> dict[str, np.ndarray]:
+    """Every layer of a frame's LR and HR files, decoded, keyed `lr.noisy`, `hr.ref`, ..."""
+    lr, hr, _ = datagen.frame_paths(root, split, sequence, frame)
+    return {f"{res}.{name}": value for res, path in (("lr", lr), ("hr", hr))
+            for name, value in exrio.read_exr(path).items()}
+
+
+def digest(layers: dict[str, np.ndarray]) -> str:
+    h = hashlib.sha256()
+    for name in sorted(layers):
+        h.update(name.encode())
+        h.update(np.ascontiguousarray(layers[name]).tobytes())
+    return h.hexdigest()[:16]
+
+
+def relative_difference(a: np.ndarray, b: np.ndarray) -> float:
+    a, b = a.astype(np.float64), b.astype(np.float64)
+    return float(np.linalg.norm(a - b) / max(np.linalg.norm(b), 1e-30))
+
+
+def frame_seconds(record: dict) -> float:
+    return float(sum(record["time_s"].values()))
+
+
+def sequence_row(first: dict, second: dict | None) -> dict:
+    """A table row: a sequence's first-frame and later-frame render seconds in both passes."""
+    def split(records):
+        times = [frame_seconds(r) for r in records]
+        return times[0], statistics.median(times[1:]) if len(times) > 1 else float("nan")
+    row = {"sequence": first["job"]["sequence"], "frames": len(first["records"]), "wall 1 s": first["wall_s"]}
+    row["first frame 1 s"], row["later frame 1 s"] = split(first["records"])
+    if second is not None:
+        row["wall 2 s"] = second["wall_s"]
+        row["first frame 2 s"], row["later frame 2 s"] = split(second["records"])
+    return row
+
+
+def per_spp_rates(passes: list[dict]) -> dict[str, float]:
+    """Median seconds per sample per frame of the later (warm) frames: noisy LR (with its gBuffer) and the
+    HR reference, the buffers whose cost grows with spp."""
+    rates = {"lr_noisy_s": [], "hr_ref_s": []}
+    for seq in passes:
+        for record in seq["records"][1:]:
+            if "lr_noisy_s" in record["time_s"]:
+                rates["lr_noisy_s"].append(record["time_s"]["lr_noisy_s"] / record["spp"])
+            if "hr_ref_s" in record["time_s"]:
+                rates["hr_ref_s"].append(record["time_s"]["hr_ref_s"] / record["ref_spp"])
+    return {k: statistics.median(v) for k, v in rates.items() if v}
+
+
+def projection(spec: dict, rates: dict[str, float]) -> list[str]:
+    """Lines: each split's frames and its render time projected from the warm rates (seconds per spp of a
+    whole frame: the LR noisy pass, gBuffer included, and the HR reference; the HR noisy pass is counted at
+    the HR rate and the LR reference at the LR rate)."""
+    lr, hr = rates.get("lr_noisy_s", float("nan")), rates.get("hr_ref_s", float("nan"))
+    lines, total = [f"- seconds per spp of a frame: LR {lr:.3g}, HR {hr:.3g}"], 0.0
+    for split, part in spec["splits"].items():
+        frames = int(part["sequences"]) * int(spec["seq_len"])
+        ref_spp = int(part.get("ref_spp") or spec["ref_spp"])
+        seconds = frames * (lr + hr) * (int(spec["spp"]) + ref_spp)
+        total += seconds
+        lines.append(f"- {split}: {frames} frames at ref {ref_spp} spp: about {seconds / 60:.1f} min")
+    lines.append(f"- all splits: about {total / 60:.1f} min on one such device, one sequence at a time")
+    return lines
+
+
+def compare_layers(a: dict, b: dict) -> tuple[int, int, float]:
+    """(identical layers, layers, largest relative difference among the others)."""
+    same, worst = 0, 0.0
+    for name in a:
+        if np.array_equal(a[name], b[name], equal_nan=True):
+            same += 1
+        else:
+            worst = max(worst, relative_difference(a[name], b[name]))
+    return same, len(a), worst
+
+
+def main(argv=None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0],
+                                     formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--data", default="gpu", help="conf/data/<name>.yaml (default gpu)")
+    parser.add_argument("--split", default="train")
+    parser.add_argument("--families", type=int, default=4, help="sequences rendered: one of each of the first N families")
+    parser.add_argument("--variant", default="cuda_ad_rgb")
+    parser.add_argument("--compare", default=None, help="another variant to render the first frames with (llvm_ad_rgb)")
+    parser.add_argument("--compare-frames", type=int, default=2)
+    parser.add_argument("--seconds", type=float, default=120.0, help="no sequence starts after this many seconds")
+    parser.add_argument("--out", type=Path, default=None)
+    args = parser.parse_args(argv)
+    spec = yaml.safe_load((ROOT / "conf" / "data" / f"{args.data}.yaml").read_text())
+    if args.split not in spec["splits"]:
+        parser.error(f"--split {args.split}: conf/data/{args.data}.yaml has {sorted(spec['splits'])}")
+    import mitsuba as mi
+    import drjit as dr
+    variant = render.use_variant(args.variant)
+    device = "cuda" if variant.startswith("cuda") else "cpu"
+    tag = "cpu" if device == "cpu" else "cuda"
+    if device == "cuda":
+        import torch
+        from bench.experiments.speed import device_tag
+        tag = device_tag("cuda") if torch.cuda.is_available() else "cuda-unknown"
+    out = args.out or ROOT / "results" / spec["name"] / "data" / f"{tag}-render-probe.md"
+    jobs = first_of_each_family(spec, args.split, args.families)
+    start = time.monotonic()
+    deadline = start + args.seconds
+    with tempfile.TemporaryDirectory() as tmp:
+        one, two = Path(tmp) / "one", Path(tmp) / "two"
+        first = render_pass(one, jobs, spec, variant, deadline)
+        second = render_pass(two, [s["job"] for s in first], spec, variant, deadline + args.seconds)
+        digests, identical, layers_total, worst = {}, 0, 0, 0.0
+        for seq in second:
+            sequence = seq["job"]["sequence"]
+            for frame in range(len(seq["records"])):
+                a = frame_layers(one, args.split, sequence, frame)
+                b = frame_layers(two, args.split, sequence, frame)
+                same, count, diff = compare_layers(a, b)
+                identical, layers_total, worst = identical + same, layers_total + count, max(worst, diff)
+                digests[f"{sequence}/{frame}"] = digest(a)
+        compared = []
+        if args.compare and first:
+            try:
+                render.use_variant(args.compare)
+                seq = first[0]["job"]
+                other = Path(tmp) / "other"
+                t0 = time.perf_counter()
+                records = datagen.render_sequence(other, seq, {**spec, "seq_len": args.compare_frames}, BUFFERS,
+                                                  variant=args.compare)
+                wall = time.perf_counter() - t0
+                for frame, record in enumerate(records):
+                    a = frame_layers(one, args.split, seq["sequence"], frame)
+                    b = frame_layers(other, args.split, seq["sequence"], frame)
+                    diffs = ", ".join(f"{name} {relative_difference(b[name], a[name]):.3g}" for name in sorted(a))
+                    compared.append(f"- frame {frame}: {frame_seconds(record):.2f} s render "
+                                    f"(against {frame_seconds(first[0]['records'][frame]):.2f} s); "
+                                    f"relative difference per layer: {diffs}")
+                compared.insert(0, f"{args.compare}: {len(records)} frames of {seq['sequence']} in {wall:.1f} s "
+                                   "(scene load and kernel compile included)")
+            except Exception as err:  # noqa: BLE001 - a variant this machine cannot run is a line saying so
+                compared = [f"{args.compare}: failed: {type(err).__name__}: {str(err).splitlines()[0][:200]}"]
+    digest_file = out.with_suffix(".digests.json")
+    earlier = json.loads(digest_file.read_text()) if digest_file.exists() else {}
+    shared = sorted(set(earlier.get("frames", {})) & set(digests))
+    matching = sum(earlier["frames"][k] == digests[k] for k in shared)
+    lines = [f"# Rendering `{args.data}` with {variant}",
+             "",
+             f"`python scripts/gpu_render_probe.py {' '.join(argv if argv is not None else sys.argv[1:])}`: "
+             f"mitsuba {mi.__version__}, drjit {dr.__version__}, {tag}; split {args.split}, "
+             f"{spec['lr_width']}x{spec['lr_height']} LR x{spec.get('scale', 2)}, {spec['spp']} spp, reference "
+             f"{spec['splits'][args.split].get('ref_spp') or spec['ref_spp']} spp, {spec['seq_len']} frames a sequence, every "
+             "buffer. Seconds: the frame records' render times (every buffer); wall: the sequence's, scene "
+             "load and EXR writes included. Pass 2 renders the same frames again in the same process.",
+             ""]
+    rows = [sequence_row(f, s) for f, s in zip(first, second + [None] * (len(first) - len(second)))]
+    if rows:
+        columns = list(rows[0])
+        lines += ["| " + " | ".join(columns) + " |", "|" + "---|" * len(columns)]
+        lines += ["| " + " | ".join(f"{r.get(c, float('nan')):.2f}" if isinstance(r.get(c), float) else str(r.get(c, "-"))
+                                    for c in columns) + " |" for r in rows]
+    frames = sum(len(s["records"]) for s in first)
+    rendered_s = sum(frame_seconds(r) for s in second for r in s["records"])
+    frames_two = sum(len(s["records"]) for s in second)
+    lines += ["",
+              f"- pass 1: {frames} frames in {sum(s['wall_s'] for s in first):.1f} s wall; pass 2: {frames_two} "
+              f"frames in {sum(s['wall_s'] for s in second):.1f} s wall, {frames_two / rendered_s if rendered_s else float('nan'):.2f} frames/s of render time",
+              f"- pass 1 against pass 2: {identical} of {layers_total} decoded layers bit-identical"
+              + (f"; largest relative difference of the others {worst:.3g}" if identical < layers_total else ""),
+              (f"- against `{digest_file.name}` as committed: {matching} of {len(shared)} frames' digests equal"
+               if shared else f"- digests: {len(digests)} frames written to `{digest_file.name}` (no earlier record to compare)"),
+              "",
+              "Projected render time of the whole preset (warm per-sample rates of the later frames, pass 2):",
+              *projection(spec, per_spp_rates(second or first)),
+              *([""] + compared if compared else [])]
+    out.parent.mkdir(parents=True, exist_ok=True)
+    out.write_text("\n".join(lines) + "\n")
+    if not earlier:
+        digest_file.write_text(json.dumps({"variant": variant, "device": tag, "frames": digests}, indent=1) + "\n")
+    print("\n".join(lines))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
