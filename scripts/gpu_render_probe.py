@@ -160,14 +160,21 @@ def main(argv=None) -> int:
         parser.error(f"--split {args.split}: conf/data/{args.data}.yaml has {sorted(spec['splits'])}")
     import mitsuba as mi
     import drjit as dr
-    variant = render.use_variant(args.variant)
-    device = "cuda" if variant.startswith("cuda") else "cpu"
+    device = "cuda" if args.variant.startswith("cuda") else "cpu"
     tag = "cpu" if device == "cpu" else "cuda"
     if device == "cuda":
         import torch
         from bench.experiments.speed import device_tag
         tag = device_tag("cuda") if torch.cuda.is_available() else "cuda-unknown"
     out = args.out or ROOT / "results" / spec["name"] / "data" / f"{tag}-render-probe.md"
+    try:
+        variant = render.use_variant(args.variant)
+    except Exception as err:  # noqa: BLE001 - a variant this machine cannot run (no OptiX, no LLVM) is the record
+        out.parent.mkdir(parents=True, exist_ok=True)
+        out.write_text(f"# Rendering `{args.data}` with {args.variant}\n\nmitsuba {mi.__version__}, drjit "
+                       f"{dr.__version__}, {tag}: the variant did not start: {type(err).__name__}: {err}\n")
+        print(out.read_text())
+        return 1
     jobs = first_of_each_family(spec, args.split, args.families)
     start = time.monotonic()
     deadline = start + args.seconds
