@@ -13,8 +13,8 @@ in one process with every buffer, then compared.
 - `--compare VARIANT` (e.g. llvm_ad_rgb): the first sequence's first `--compare-frames` frames rendered with
   it too, timed, and the relative difference of each layer from the main variant's (they draw their
   samples through other code, so the noisy layers differ by noise, the references by their error);
-- a projection of the whole preset's render time from the warm per-sample rates (each frame's noisy and
-  reference seconds per spp, times each split's frames and spp): a lead, not a measurement.
+- a projection of the whole preset's render time from the buffers' measured seconds (the references
+  scaled by each split's spp, each sequence's first-frame set-up added): a lead, not a measurement.
 
 Writes a Markdown record (`--out`, default results/<preset>/data/<device>-render-probe.md). On a CPU dry
 run: `python scripts/gpu_render_probe.py --data smoke --variant scalar_rgb --families 1 --out /tmp/p.md`.
@@ -103,44 +103,52 @@ def sequence_row(first: dict, second: dict | None) -> dict:
     return row
 
 
-def per_spp_rates(passes: list[dict]) -> dict[str, float]:
-    """Median seconds per sample per frame of the later (warm) frames: noisy LR (with its gBuffer) and the
-    HR reference, the buffers whose cost grows with spp."""
-    rates = {"lr_noisy_s": [], "hr_ref_s": []}
+def buffer_seconds(passes: list[dict]) -> dict[str, float]:
+    """Median seconds of each buffer (lr_noisy_s, lr_ref_s, hr_noisy_s, hr_ref_s: the records' `time_s`)
+    over the later frames of the sequences, and `first_frame_s`: the median over sequences of the first
+    frame's seconds beyond its sequence's later-frame median (the scene's set-up and kernel compile)."""
+    times: dict[str, list[float]] = {}
+    extra = []
     for seq in passes:
-        for record in seq["records"][1:]:
-            if "lr_noisy_s" in record["time_s"]:
-                rates["lr_noisy_s"].append(record["time_s"]["lr_noisy_s"] / record["spp"])
-            if "hr_ref_s" in record["time_s"]:
-                rates["hr_ref_s"].append(record["time_s"]["hr_ref_s"] / record["ref_spp"])
-    return {k: statistics.median(v) for k, v in rates.items() if v}
+        later = seq["records"][1:]
+        for record in later:
+            for name, value in record["time_s"].items():
+                times.setdefault(name, []).append(float(value))
+        if later:
+            extra.append(frame_seconds(seq["records"][0]) - statistics.median(frame_seconds(r) for r in later))
+    medians = {name: statistics.median(values) for name, values in times.items()}
+    if extra:
+        medians["first_frame_s"] = statistics.median(extra)
+    return medians
 
 
-def projection(spec: dict, rates: dict[str, float]) -> list[str]:
-    """Lines: each split's frames and its render time projected from the warm rates (seconds per spp of a
-    whole frame: the LR noisy pass, gBuffer included, and the HR reference; the HR noisy pass is counted at
-    the HR rate and the LR reference at the LR rate)."""
-    lr, hr = rates.get("lr_noisy_s", float("nan")), rates.get("hr_ref_s", float("nan"))
-    lines, total = [f"- seconds per spp of a frame: LR {lr:.3g}, HR {hr:.3g}"], 0.0
-    for split, part in spec["splits"].items():
-        frames = int(part["sequences"]) * int(spec["seq_len"])
+def projection(spec: dict, split: str, warm: dict[str, float], cold: dict[str, float]) -> list[str]:
+    """Lines: each split's render time projected from the measured buffers: per frame its noisy passes
+    as measured and its references scaled by the split's reference spp over the measured split's, plus
+    per sequence the first frame's extra seconds of the first pass (a scene not rendered before)."""
+    measured_ref = int(spec["splits"][split].get("ref_spp") or spec["ref_spp"])
+    noisy = warm.get("lr_noisy_s", 0.0) + warm.get("hr_noisy_s", 0.0)
+    ref = warm.get("lr_ref_s", 0.0) + warm.get("hr_ref_s", 0.0)
+    setup = cold.get("first_frame_s", 0.0)
+    lines = ["- per frame (median of the later frames, second pass): "
+             + ", ".join(f"{k} {v:.3f}" for k, v in sorted(warm.items()) if k != "first_frame_s")
+             + f"; per sequence, the first frame's extra seconds in the first pass: {setup:.2f}"]
+    total = 0.0
+    for name, part in spec["splits"].items():
+        sequences = int(part["sequences"])
+        frames = sequences * int(spec["seq_len"])
         ref_spp = int(part.get("ref_spp") or spec["ref_spp"])
-        seconds = frames * (lr + hr) * (int(spec["spp"]) + ref_spp)
+        seconds = frames * (noisy + ref * ref_spp / measured_ref) + sequences * setup
         total += seconds
-        lines.append(f"- {split}: {frames} frames at ref {ref_spp} spp: about {seconds / 60:.1f} min")
-    lines.append(f"- all splits: about {total / 60:.1f} min on one such device, one sequence at a time")
+        lines.append(f"- {name}: {sequences} sequences, {frames} frames at ref {ref_spp} spp: about {seconds / 60:.1f} min")
+    lines.append(f"- all splits: about {total / 60:.1f} min on one such device, one sequence at a time, in one process")
     return lines
 
 
-def compare_layers(a: dict, b: dict) -> tuple[int, int, float]:
-    """(identical layers, layers, largest relative difference among the others)."""
-    same, worst = 0, 0.0
-    for name in a:
-        if np.array_equal(a[name], b[name], equal_nan=True):
-            same += 1
-        else:
-            worst = max(worst, relative_difference(a[name], b[name]))
-    return same, len(a), worst
+def differing_layers(a: dict, b: dict) -> dict[str, float]:
+    """The layers of two decodings of a frame that are not bit-identical, with their relative difference."""
+    return {name: relative_difference(a[name], b[name]) for name in a
+            if not np.array_equal(a[name], b[name], equal_nan=True)}
 
 
 def main(argv=None) -> int:
@@ -182,14 +190,15 @@ def main(argv=None) -> int:
         one, two = Path(tmp) / "one", Path(tmp) / "two"
         first = render_pass(one, jobs, spec, variant, deadline)
         second = render_pass(two, [s["job"] for s in first], spec, variant, deadline + args.seconds)
-        digests, identical, layers_total, worst = {}, 0, 0, 0.0
+        digests, layers_total, differing = {}, 0, {}
         for seq in second:
             sequence = seq["job"]["sequence"]
             for frame in range(len(seq["records"])):
                 a = frame_layers(one, args.split, sequence, frame)
                 b = frame_layers(two, args.split, sequence, frame)
-                same, count, diff = compare_layers(a, b)
-                identical, layers_total, worst = identical + same, layers_total + count, max(worst, diff)
+                layers_total += len(a)
+                for name, diff in differing_layers(a, b).items():
+                    differing.setdefault(name, []).append(diff)
                 digests[f"{sequence}/{frame}"] = digest(a)
         compared = []
         if args.compare and first:
@@ -237,13 +246,14 @@ def main(argv=None) -> int:
     lines += ["",
               f"- pass 1: {frames} frames in {sum(s['wall_s'] for s in first):.1f} s wall; pass 2: {frames_two} "
               f"frames in {sum(s['wall_s'] for s in second):.1f} s wall, {frames_two / rendered_s if rendered_s else float('nan'):.2f} frames/s of render time",
-              f"- pass 1 against pass 2: {identical} of {layers_total} decoded layers bit-identical"
-              + (f"; largest relative difference of the others {worst:.3g}" if identical < layers_total else ""),
+              f"- pass 1 against pass 2: {layers_total - sum(map(len, differing.values()))} of {layers_total} decoded "
+              "layers bit-identical" + ("; the others, per layer (frames, largest relative difference): " + ", ".join(
+                  f"{name} ({len(d)}, {max(d):.3g})" for name, d in sorted(differing.items())) if differing else ""),
               (f"- against `{digest_file.name}` as committed: {matching} of {len(shared)} frames' digests equal"
                if shared else f"- digests: {len(digests)} frames written to `{digest_file.name}` (no earlier record to compare)"),
               "",
-              "Projected render time of the whole preset (warm per-sample rates of the later frames, pass 2):",
-              *projection(spec, per_spp_rates(second or first)),
+              "Projected render time of the whole preset (a lead, from the buffers' measured seconds):",
+              *projection(spec, args.split, buffer_seconds(second or first), buffer_seconds(first)),
               *([""] + compared if compared else [])]
     out.parent.mkdir(parents=True, exist_ok=True)
     out.write_text("\n".join(lines) + "\n")

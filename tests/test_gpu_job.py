@@ -2,6 +2,7 @@
 tiny frames, in a copy of the project (it writes results/gpu and runs/ where it runs): what a GPU machine
 would run, but for the device."""
 import io
+import json
 import os
 import shutil
 import subprocess
@@ -108,3 +109,54 @@ def test_a_speed_table_or_sweep_stopped_at_its_limit_is_timed_again(tmp_path):
         {"missing.md": 1, "partial.md": 1, "sweep.md": 1, "done.md": 0}
     assert finished("partial.md", tries=1) == 1          # stopped once: run again
     assert finished("partial.md", tries=1) == 0          # stopped twice: kept as it is, not a third time
+
+
+def test_the_speed_step_times_the_graphed_training_step_at_the_presets_batch(project, tmp_path):
+    """The speed step's overrides, as the job passes them, compose to a training section with the preset's
+    batch, frames and crop AND train.compile=reduce-overhead: its default SPEED_ARGS once nulled
+    experiment.train after the compile was set, and no graphed step was ever timed."""
+    from hydra import compose, initialize_config_dir
+    calls = tmp_path / "calls.txt"
+    wrapper = tmp_path / "python"   # python itself, but for `-m bench`, whose arguments it writes down
+    wrapper.write_text(f'#!/bin/bash\nif [ "$1 $2" = "-m bench" ]; then shift 2; echo "$@" >> {calls}; exit 0; fi\n'
+                       f'exec {sys.executable} "$@"\n')
+    wrapper.chmod(0o755)
+    env = dict(os.environ, PYTHON=str(wrapper), DEVICE="cpu", PRESET="gpu", OUT=str(tmp_path / "out"))
+    project = shutil.copytree(project, tmp_path / "project", ignore=shutil.ignore_patterns("runs", "results"))
+    done = subprocess.run(["bash", "scripts/gpu_job.sh", "speed"], cwd=project, env=env, capture_output=True,
+                          text=True, timeout=300)
+    assert done.returncode == 0, done.stdout[-2000:]
+    overrides = calls.read_text().split()
+    assert overrides[0] == "+experiment=speed"
+    with initialize_config_dir(config_dir=str(REPO / "conf"), version_base=None):
+        cfg = compose("config", overrides=overrides)
+    train = cfg.experiment.train
+    assert train.compile == "reduce-overhead" and list(train.compiled) == ["Ours"]
+    assert (train.batch, train.frames, train.crop) == (None, None, None)   # the preset's: 4 x 7 x 64
+    assert cfg.train.seq_len == 7 and cfg.train.crop == 64 and cfg.experiment.tiled.uhd is False
+
+
+def test_the_render_step_measures_the_variant_twice_and_keeps_the_digests(project, tmp_path):
+    """`render` (scripts/gpu_render_probe.py): on a CPU the LLVM variant stands in for cuda_ad_rgb; two
+    renders of the same frames in one process are compared layer by layer, the digests are kept, and a
+    second call with the record there skips the step. A variant that cannot start is the record."""
+    project = shutil.copytree(project, tmp_path / "project", ignore=shutil.ignore_patterns("runs", "results"))
+    env = dict(os.environ, PYTHON=sys.executable, DEVICE="cpu", OUT=str(tmp_path / "out"),
+               RENDER_ARGS="--data smoke --families 1")
+    done = subprocess.run(["bash", "scripts/gpu_job.sh", "render"], cwd=project, env=env, capture_output=True,
+                          text=True, timeout=300)
+    assert done.returncode == 0 and "gpu_job: render exit 0" in done.stdout, done.stdout[-3000:]
+    (record,) = (project / "results" / "gpu" / "data").glob("*-render-probe.md")
+    text = record.read_text()
+    assert "# Rendering `smoke` with llvm_ad_rgb" in text
+    assert "- pass 1 against pass 2: 30 of 30 decoded layers bit-identical" in text   # 3 frames x 10 layers
+    assert "- train: 32 sequences, 96 frames at ref 256 spp: about" in text
+    digests = json.loads(record.with_suffix(".digests.json").read_text())
+    assert digests["variant"] == "llvm_ad_rgb" and len(digests["frames"]) == 3
+    again = subprocess.run(["bash", "scripts/gpu_job.sh", "render"], cwd=project, env=env, capture_output=True,
+                           text=True, timeout=300)
+    assert "gpu_job: render probe already there" in again.stdout
+    failed = subprocess.run([sys.executable, "scripts/gpu_render_probe.py", "--data", "smoke", "--variant",
+                             "cuda_ad_rgb", "--out", str(tmp_path / "cuda.md")], cwd=project, capture_output=True,
+                            text=True, timeout=300)
+    assert failed.returncode == 1 and "the variant did not start" in (tmp_path / "cuda.md").read_text()

@@ -491,3 +491,23 @@ def test_a_training_step_that_fails_is_a_row_saying_why_and_the_table_goes_on(mo
     assert "ms" not in row
     table = speed._ratios(pd.DataFrame([row], columns=speed.COLUMNS))  # the ratios take a row without a time
     assert table["ms"].isna().all()
+
+
+def test_the_results_page_gives_the_compiled_step_beside_the_eager_one_and_the_conv_stacks(tmp_path):
+    """A speed table with the trainer's train.compile rows: the page's column names the mode, models not
+    compiled read '-', and the conv stack's steps (the 2x target of issue #62 is against it) follow."""
+    from bench.experiments.results_page import speed_section
+    from bench.experiments import speed
+    stack = "3x3 conv stack (4 x 8 ch)"
+    rows = [{"section": "inference", "method": m, "fast path": "fp32", "ms": ms} for m, ms in (("Ours", 28.4), ("EDSR", 26.8))]
+    rows += [{"section": "training step", "method": m, "fast path": p, "ms": ms} for m, p, ms in (
+        (stack, "fp32", 19.44), (stack, "fp32, compiled (reduce-overhead)", 14.68), ("Ours", "fp32", 140.9),
+        ("Ours", "fp32, compiled (reduce-overhead)", 37.48), ("EDSR", "fp32", 28.2))]
+    out = tmp_path / "speed" / "cuda-x"
+    out.mkdir(parents=True)
+    pd.DataFrame(rows, columns=speed.COLUMNS).to_csv(out / "table.csv", index=False)
+    text = "\n".join(speed_section(tmp_path))
+    assert "| model | fp32 ms/frame | auto (ms/frame) | training step ms | step ms, compiled (reduce-overhead) |" in text
+    assert "| Ours | 28.4 | - | 140.9 | 37.5 |" in text and "| EDSR | 26.8 | - | 28.2 | - |" in text
+    assert f"The {stack}, of Ours' MACs per pixel, for scale: a training step of 19.4 ms (fp32), 14.7 ms " \
+           "(fp32, compiled (reduce-overhead))." in text

@@ -309,6 +309,7 @@ def speed_section(results_dir: Path) -> list[str]:
         table = pd.read_csv(table_path)
         inference = table[table["section"] == "inference"]
         steps = table[table["section"] == "training step"]
+        compiled = steps[steps["fast path"].astype(str).str.contains("compiled")]
         lines += [f"{device}, {speed_table_label(table_path.with_suffix('.md'))}: "
                   f"{_link(results_dir, f'speed/{device}/table.csv')}", ""]
         rows = []
@@ -325,7 +326,17 @@ def speed_section(results_dir: Path) -> list[str]:
             step = steps[steps["method"] == model]["ms"]
             rows.append([model, _num(fp32.iloc[0], 1) if not fp32.empty else "-", auto,
                          _num(step.iloc[0], 1) if not step.empty else "-"])
-        lines += _markdown_table(["model", "fp32 ms/frame", "auto (ms/frame)", "training step ms"], rows)
+            if len(compiled):
+                graphed = compiled[compiled["method"] == model]["ms"]
+                rows[-1].append(_num(graphed.iloc[0], 1) if not graphed.empty else "-")
+        columns = ["model", "fp32 ms/frame", "auto (ms/frame)", "training step ms"]
+        if len(compiled):  # the trainer's train.compile, timed for some models and the conv stack
+            columns.append(f"step ms, {compiled['fast path'].iloc[0].split(', ', 1)[-1]}")
+        lines += _markdown_table(columns, rows)
+        stack = steps[steps["method"].astype(str).str.startswith("3x3 conv stack")]
+        if len(stack):
+            lines += [f"The {stack['method'].iloc[0]}, of Ours' MACs per pixel, for scale: a training step of "
+                      + ", ".join(f"{_num(r['ms'], 1)} ms ({r['fast path']})" for _, r in stack.iterrows()) + ".", ""]
     return lines
 
 
