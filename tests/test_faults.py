@@ -705,3 +705,28 @@ def test_a_full_disk_under_data_dir_names_data_dir(tmp_path):
     out, _ = _bench(tmp_path, env={"PYTHONPATH": os.pathsep.join([str(inject), str(REPO)])}).communicate(timeout=300)
     (line,) = [x for x in out.splitlines() if x.startswith("error:")]
     assert f"no space left on the device under data_dir={tmp_path / 'data'}" in line and "set data_dir=..." in line
+
+
+def test_a_row_whose_model_does_not_import_here_is_left_out_only_when_asked_and_the_caption_says_why(tmp_path, monkeypatch):
+    """OIDN needs pyoidn, which the GPU machine lacks (its wheel does not fit a call): with
+    experiment.leave_out_unavailable its rows are left out and named with the import's message (the GPU
+    job's sota step asks for it; tests/test_gpu_job.py checks the caption); without, the missing package
+    is an error before anything runs."""
+    import sys
+    from hydra import compose, initialize_config_dir
+    from omegaconf import OmegaConf
+    from bench.cli import CONF_DIR, make_context
+    from bench.experiments.table import selected_rows
+    monkeypatch.setitem(sys.modules, "pyoidn", None)            # `import pyoidn` raises ImportError
+    monkeypatch.delitem(sys.modules, "baselines.oidn", raising=False)
+    with initialize_config_dir(config_dir=CONF_DIR, version_base=None):
+        cfg = compose("config", overrides=["+experiment=sota", "preset=smoke", f"runs_dir={tmp_path}/runs"])
+    ctx = make_context(cfg)
+    rows = OmegaConf.to_container(cfg.experiment.rows)
+    with pytest.raises(UserError, match="baselines.oidn.OIDN"):
+        selected_rows(ctx, rows, "srd", None)
+    kept, unavailable = selected_rows(ctx, rows, "srd", ["EDSR"], leave_out_unavailable=True)
+    assert [r["label"] for r in kept] == ["Input bilinear", "RAE", "KPCN", "CFM", "Ours", "Input bicubic"]
+    assert list(unavailable) == ["OIDN at LR then bilinear", "OIDN at HR after bilinear"]
+    assert all(why.startswith("ModuleNotFoundError: ") and "pyoidn" in why and "\n" not in why  # as on a machine without it
+               for why in unavailable.values())

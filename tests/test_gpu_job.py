@@ -160,3 +160,23 @@ def test_the_render_step_measures_the_variant_twice_and_keeps_the_digests(projec
                              "cuda_ad_rgb", "--out", str(tmp_path / "cuda.md")], cwd=project, capture_output=True,
                             text=True, timeout=300)
     assert failed.returncode == 1 and "the variant did not start" in (tmp_path / "cuda.md").read_text()
+
+
+def test_on_a_machine_without_pyoidn_the_sota_step_writes_the_table_without_oidn_and_says_so(project, tmp_path):
+    """The GPU image has no pyoidn and its wheel (88 MB) does not fit a call: the job's Table 5 leaves
+    OIDN's two rows out, and its caption names them and the import's message, instead of failing at
+    its first row as it did."""
+    project = shutil.copytree(project, tmp_path / "project", ignore=shutil.ignore_patterns("runs", "results"))
+    shim = tmp_path / "shim"
+    shim.mkdir()
+    (shim / "pyoidn.py").write_text('raise ImportError("no pyoidn on this machine")\n')
+    env = dict(os.environ, PYTHON=sys.executable, DEVICE="cpu", PRESET="smoke", OUT=str(tmp_path / "out"),
+               SOTA_ARGS=TINY, PYTHONPATH=str(shim))
+    done = subprocess.run(["bash", "scripts/gpu_job.sh", "sota"], cwd=project, env=env, capture_output=True,
+                          text=True, timeout=600)
+    assert "gpu_job: sota exit 0" in done.stdout, done.stdout[-3000:]
+    table = (project / "results" / "gpu" / "sota" / "table.md").read_text()
+    assert "| Ours |" in table and "| OIDN" not in table
+    assert ("Left out because their model does not import on the machine that wrote this table "
+            "(experiment.leave_out_unavailable): OIDN at LR then bilinear (ImportError: no pyoidn on this machine); "
+            "OIDN at HR after bilinear (ImportError: no pyoidn on this machine).") in table

@@ -342,18 +342,40 @@ def render_what_runs(ctx: Context, name: str, rows: list[dict], task: str, split
     return drawn
 
 
-def selected_rows(ctx: Context, rows: list[dict], task: str, leave_out: list[str] | None) -> list[dict]:
-    """The table's rows, expanded, less those left out; a bad model, model argument or task name fails
-    here, before any rendering or training."""
+def selected_rows(ctx: Context, rows: list[dict], task: str, leave_out: list[str] | None,
+                  leave_out_unavailable: bool = False) -> tuple[list[dict], dict[str, str]]:
+    """The table's rows, expanded, less those left out, and {label: why} of the rows left out because
+    their model does not import on this machine (`leave_out_unavailable`; else that is an error like any
+    other); a bad model, model argument or task name fails here, before any rendering or training."""
     rows = expand_rows(rows, task)
     unknown = sorted(set(leave_out or []) - {r["label"] for r in rows})
     if unknown:
         raise UserError(f"experiment.leave_out: no row {unknown[0]!r} in this table "
                         f"(its rows: {', '.join(r['label'] for r in rows)})")
-    rows = [r for r in rows if r["label"] not in (leave_out or [])]
-    for r in rows:
-        build_model(model_config(ctx, r["model"], r.get("overrides")), get_task(r["task"]).scale)
-    return rows
+    kept, unavailable = [], {}
+    for r in (r for r in rows if r["label"] not in (leave_out or [])):
+        try:
+            build_model(model_config(ctx, r["model"], r.get("overrides")), get_task(r["task"]).scale)
+        except UserError as err:
+            missing = _import_error(err)
+            if not (leave_out_unavailable and missing):
+                raise
+            unavailable[r["label"]] = f"{type(missing).__name__}: {str(missing).splitlines()[0] if str(missing) else ''}"
+            log.warning("%s: left out, its model does not import here (%s)", r["label"], unavailable[r["label"]])
+            continue
+        kept.append(r)
+    return kept, unavailable
+
+
+def _import_error(err: BaseException) -> ImportError | None:
+    """The first ImportError raised behind a model that could not be built (a package this machine
+    lacks), if any: the deepest of the chain (Hydra wraps it in one of its own)."""
+    found = None
+    while err is not None:
+        if isinstance(err, ImportError):
+            found = err
+        err = err.__cause__ or err.__context__
+    return found
 
 
 def ready_data(ctx: Context, scoring_ctx: Context, name: str, rows: list[dict], task: str, split: str | None,
@@ -389,7 +411,8 @@ def domain_note(default: str, rows: list[dict]) -> str:
 
 
 def caption_notes(ctx: Context, scoring_ctx: Context, table: pd.DataFrame, rows: list[dict], split: str | None,
-                  leave_out: list[str] | None, gmac_column: bool, paper_table: str | None) -> str:
+                  leave_out: list[str] | None, gmac_column: bool, paper_table: str | None,
+                  unavailable: dict[str, str] | None = None) -> str:
     """What the caption says after the experiment's own caption: task, metrics, data, recipe and seeds,
     the paper's ordering, the references' check, renders, weights, VGG features, time columns. Takes the
     columns it reports on (renders, rounded, stale, vgg) out of `table`."""
@@ -411,6 +434,9 @@ def caption_notes(ctx: Context, scoring_ctx: Context, table: pd.DataFrame, rows:
     notes += split_note(ctx, split or ctx.eval.split)
     if leave_out:
         notes += f" Left out of this call (experiment.leave_out): {', '.join(leave_out)}."
+    if unavailable:
+        notes += (" Left out because their model does not import on the machine that wrote this table "
+                  f"(experiment.leave_out_unavailable): {'; '.join(f'{k} ({v})' for k, v in unavailable.items())}.")
     if gmac_column:
         notes += f" GMac: multiply-accumulates per 960x540 input frame at this preset's widths (budget {ctx.budget_gmac:g})."
     if paper_table:
@@ -434,14 +460,16 @@ def caption_notes(ctx: Context, scoring_ctx: Context, table: pd.DataFrame, rows:
 
 def run(ctx: Context, name: str, rows: list[dict], caption: str = "", task: str = "srd",
         split: str | None = None, paper_table: str | None = "auto", gmac_column: bool = False,
-        figure: bool = True, leave_out: list[str] | None = None) -> pd.DataFrame:
+        figure: bool = True, leave_out: list[str] | None = None,
+        leave_out_unavailable: bool = False) -> pd.DataFrame:
     """`paper_table`: the published table whose values go beside the rows that name a paper row
     (bench/paper_values.csv); "auto": the experiment's own, where the paper has one. `leave_out`: labels
     of rows this call does not compute, named in the caption (e.g. rows whose trainings cannot be loaded
-    or run here); the table has the others."""
+    or run here); the table has the others. `leave_out_unavailable`: rows whose model does not import
+    here (OIDN on a machine without pyoidn) are left out too, each named in the caption with why."""
     if paper_table not in ("auto", None, *TABLES):
         raise UserError(f"experiment.paper_table={paper_table!r}: expected auto, null or one of {', '.join(TABLES)}")
-    rows = selected_rows(ctx, rows, task, leave_out)
+    rows, unavailable = selected_rows(ctx, rows, task, leave_out, leave_out_unavailable)
     scoring_ctx = evaluation_data(ctx)
     drawn = ready_data(ctx, scoring_ctx, name, rows, task, split, figure)
     if ctx.shard:  # compute this shard's runs only; a run without a shard assembles the table from them
@@ -463,7 +491,7 @@ def run(ctx: Context, name: str, rows: list[dict], caption: str = "", task: str 
         table.insert(table.columns.get_loc(after) + 1, "GMac", [gmac(ctx, r) for r in rows])
     published = (name if name in TABLES else None) if paper_table == "auto" else paper_table
     table = with_paper(table, rows, published)
-    notes = caption_notes(ctx, scoring_ctx, table, rows, split, leave_out, gmac_column, published)
+    notes = caption_notes(ctx, scoring_ctx, table, rows, split, leave_out, gmac_column, published, unavailable)
     out_dir = ctx.results_dir / name
     curves = {label: hashes for label, hashes in zip(table["method"], table.pop("train runs")) if hashes}
     write_table(table.drop(columns=["reused"]), out_dir, caption=f"{caption} {notes}".strip(),
