@@ -9,8 +9,9 @@
 # next call, carrying what the last one brought back, goes on where it stopped:
 #   tests    tests/test_cuda.py and tests/test_fused_gpu.py with the fused kernels on
 #            -> results/gpu/cuda_tests/<device>.txt (pytest-xdist's 4 workers where it is installed)
-#   render   (optional) the gpu data preset's first frames rendered twice with cuda_ad_rgb and once with
-#            llvm_ad_rgb: frames/s, compile, bit-identity, digests (scripts/gpu_render_probe.py)
+#   render   (optional) the gpu data preset's first scenes rendered twice with cuda_ad_rgb, then by 4
+#            processes at once, and with llvm_ad_rgb: frames/s, set-up per scene, bit-identity, digests
+#            (scripts/gpu_render_probe.py; the .digests.json kept: a later machine's are compared with it)
 #            -> results/gpu/data/<device>-render-probe.md and .digests.json
 #   speed    +experiment=speed preset=gpu device=cuda, with the fused kernels on only if `tests` passed, and
 #            the training step of Ours and the conv stack also CUDA-graphed (train.compile=reduce-overhead)
@@ -39,8 +40,8 @@ STEP_S=${STEP_S:-540}
 # the training steps at the preset's batch, frames and crop (each null: the preset's), no 4K tiles; not
 # experiment.train=null, which would also drop the compile the speed step asks for
 SPEED_ARGS=${SPEED_ARGS:-experiment.train.batch=null experiment.train.frames=null experiment.train.crop=null experiment.tiled.uhd=false}
-RENDER_ARGS=${RENDER_ARGS:---families 4 --compare llvm_ad_rgb}
-RENDER_S=${RENDER_S:-120}   # the render probe's share: a measurement, not the data
+RENDER_ARGS=${RENDER_ARGS:---families 4 --per-family 2 --workers 4 --compare llvm_ad_rgb}
+RENDER_S=${RENDER_S:-180}   # the render probe's share: a measurement, not the data
 SOTA_ARGS=${SOTA_ARGS:-}
 PROFILE_ARGS=${PROFILE_ARGS:-}
 VARIANT=$([ "$DEVICE" = cuda ] && echo cuda_ad_rgb || echo llvm_ad_rgb)

@@ -1,6 +1,7 @@
 """How fast, and how repeatably, a Mitsuba variant renders a data preset's frames (issue #62, item 3):
-one sequence of each of the first `--families` families of a split, rendered twice into two empty folders
-in one process with every buffer, then compared.
+the first `--per-family` sequences of each of the first `--families` families of a split, rendered twice
+into two empty folders in one process with every buffer, then compared; with `--workers N`, a third time
+by N processes at once.
 
 - frames/s, and each frame's render seconds from its record (`time_s`, per buffer); the first frame of a
   sequence against the median of its later ones gives the scene's set-up and kernel compile (the first
@@ -40,14 +41,14 @@ from bench import datagen, exrio, render  # noqa: E402
 from bench.datagen import BUFFERS, plan_sequences  # noqa: E402
 
 
-def first_of_each_family(spec: dict, split: str, families: int) -> list[dict]:
-    """The split's first planned sequence of each of its first `families` families."""
-    seen, jobs = set(), []
-    for job in plan_sequences(spec):
-        if job["split"] == split and job["family"] not in seen and len(seen) < families:
-            seen.add(job["family"])
-            jobs.append(job)
-    return jobs
+def probe_spec(spec: dict, split: str, families: int, per_family: int) -> dict:
+    """`spec` with `split` cut to its first `families` families and `per_family` sequences of each: the
+    same scenes and camera paths as the preset's first sequences of those families (a sequence's scene
+    seed depends on its family and rank, not on how many the split has)."""
+    part = spec["splits"][split]
+    kept = list(part["families"])[:families]
+    return {**spec, "splits": {split: {**{k: v for k, v in part.items() if k != "sequence_ref_spp"},
+                                       "families": kept, "sequences": len(kept) * per_family}}}
 
 
 def render_pass(root: Path, jobs: list[dict], spec: dict, variant: str, deadline: float) -> list[dict]:
@@ -156,7 +157,12 @@ def main(argv=None) -> int:
                                      formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--data", default="gpu", help="conf/data/<name>.yaml (default gpu)")
     parser.add_argument("--split", default="train")
-    parser.add_argument("--families", type=int, default=4, help="sequences rendered: one of each of the first N families")
+    parser.add_argument("--families", type=int, default=4, help="the split's first N families")
+    parser.add_argument("--per-family", type=int, default=1,
+                        help="sequences of each (2: whether a family's second scene pays the first frame's set-up again)")
+    parser.add_argument("--workers", type=int, default=0,
+                        help="a third pass: the same sequences rendered by bench.datagen.build_dataset with N "
+                             "processes at once (throughput of several renders sharing the device)")
     parser.add_argument("--variant", default="cuda_ad_rgb")
     parser.add_argument("--compare", default=None, help="another variant to render the first frames with (llvm_ad_rgb)")
     parser.add_argument("--compare-frames", type=int, default=2)
@@ -183,7 +189,8 @@ def main(argv=None) -> int:
                        f"{dr.__version__}, {tag}: the variant did not start: {type(err).__name__}: {err}\n")
         print(out.read_text())
         return 1
-    jobs = first_of_each_family(spec, args.split, args.families)
+    probed = probe_spec(spec, args.split, args.families, args.per_family)
+    jobs = plan_sequences(probed)
     start = time.monotonic()
     deadline = start + args.seconds
     with tempfile.TemporaryDirectory() as tmp:
@@ -200,6 +207,20 @@ def main(argv=None) -> int:
                 for name, diff in differing_layers(a, b).items():
                     differing.setdefault(name, []).append(diff)
                 digests[f"{sequence}/{frame}"] = digest(a)
+        concurrent = []
+        if args.workers and len(first) == len(jobs) and time.monotonic() < deadline + args.seconds:
+            t0 = time.perf_counter()
+            frames = len(datagen.build_dataset(Path(tmp) / "workers", probed, BUFFERS, workers=args.workers,
+                                               progress=False, variant=variant, splits=[args.split]))
+            wall = time.perf_counter() - t0
+            one_process = sum(len(q["records"]) for q in first) / sum(q["wall_s"] for q in first)
+            concurrent = [f"- pass 3: the same {frames} frames by {args.workers} processes at once "
+                          f"(bench.datagen.build_dataset, workers={args.workers}): {wall:.1f} s wall, "
+                          f"{frames / wall:.2f} frames/s against pass 1's {one_process:.2f} in one process "
+                          "(each process loads Mitsuba and compiles its scenes' kernels, with Dr.Jit's kernel "
+                          "cache on disk as the first two passes left it)"]
+        elif args.workers:
+            concurrent = ["- pass 3 (workers) not run: the first passes did not finish within --seconds"]
         compared = []
         if args.compare and first:
             try:
@@ -249,6 +270,7 @@ def main(argv=None) -> int:
               f"- pass 1 against pass 2: {layers_total - sum(map(len, differing.values()))} of {layers_total} decoded "
               "layers bit-identical" + ("; the others, per layer (frames, largest relative difference): " + ", ".join(
                   f"{name} ({len(d)}, {max(d):.3g})" for name, d in sorted(differing.items())) if differing else ""),
+              *concurrent,
               (f"- against `{digest_file.name}` as committed: {matching} of {len(shared)} frames' digests equal"
                if shared else f"- digests: {len(digests)} frames written to `{digest_file.name}` (no earlier record to compare)"),
               "",
