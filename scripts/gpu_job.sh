@@ -14,7 +14,7 @@
 #            (scripts/gpu_render_probe.py; the .digests.json kept: a later machine's are compared with it)
 #            -> results/gpu/data/<device>-render-probe.md and .digests.json
 #   speed    +experiment=speed preset=gpu device=cuda, with the fused kernels on only if `tests` passed, and
-#            the training step of Ours and the conv stack also CUDA-graphed (train.compile=reduce-overhead)
+#            every model's training step and the conv stack's also CUDA-graphed (train.compile=reduce-overhead)
 #            -> results/gpu/speed/<device>/
 #   profile  (optional) Ours' training step under torch.profiler, eager and compiled
 #            (scripts/gpu_profile_step.py) -> results/gpu/profile/<device>.md
@@ -37,15 +37,22 @@ DEVICE=${DEVICE:-cuda}
 PRESET=${PRESET:-gpu}
 JOB_S=${JOB_S:-560}
 STEP_S=${STEP_S:-540}
-# the training steps at the preset's batch, frames and crop (each null: the preset's), no 4K tiles; not
-# experiment.train=null, which would also drop the compile the speed step asks for
-SPEED_ARGS=${SPEED_ARGS:-experiment.train.batch=null experiment.train.frames=null experiment.train.crop=null experiment.tiled.uhd=false}
+# the training steps at the preset's batch, frames and crop (each null: the preset's), every model's also
+# graphed (whether the gpu preset should train them so), no 4K tiles; not experiment.train=null, which
+# would also drop the compile the speed step asks for
+SPEED_ARGS=${SPEED_ARGS:-experiment.train.batch=null experiment.train.frames=null experiment.train.crop=null experiment.train.compiled=[Ours,EDSR,RAE,KPCN,CFM] experiment.tiled.uhd=false}
 RENDER_ARGS=${RENDER_ARGS:---families 4 --per-family 2 --workers 4 --compare llvm_ad_rgb}
 RENDER_S=${RENDER_S:-180}   # the render probe's share: a measurement, not the data
 SOTA_ARGS=${SOTA_ARGS:-}
 PROFILE_ARGS=${PROFILE_ARGS:-}
-VARIANT=$([ "$DEVICE" = cuda ] && echo cuda_ad_rgb || echo llvm_ad_rgb)
+VARIANT=$([[ $DEVICE == cuda* ]] && echo cuda_ad_rgb || echo llvm_ad_rgb)
 STEPS=${*:-tests speed sota}
+for step in $STEPS; do   # every name checked first: a typo after a long step would lose its packing
+    case $step in
+        tests|render|speed|profile|sweep|sota) ;;
+        *) echo "gpu_job: unknown step $step (tests, render, speed, profile, sweep, sota)"; exit 2 ;;
+    esac
+done
 PACK_S=20   # kept back for packing what comes back
 mkdir -p "$OUT"
 exec > >(tee -a "$OUT/log.txt") 2>&1
@@ -109,13 +116,13 @@ step_tests() {
     mkdir -p "$(dirname "$tests_record")"
     local log=/tmp/cuda_tests.log workers=()
     "$PYTHON" -c "import xdist" 2>/dev/null && workers=(-n 4)   # the compiled-step tests compile in parallel
-    SRD_BENCH_FUSED_GPU=1 timeout "$(step_limit)" "$PYTHON" -m pytest -q -p no:cacheprovider "${workers[@]}" \
+    SRD_BENCH_FUSED_GPU=1 timeout "$(step_limit)" "$PYTHON" -m pytest -q -p no:cacheprovider ${workers[@]+"${workers[@]}"} \
         tests/test_cuda.py tests/test_fused_gpu.py > "$log" 2>&1
     local rc=$?
     [ -n "$gpu" ] || rc="no CUDA GPU: the CUDA tests skipped"   # never a "passed" without a GPU
     { [ "$rc" = 0 ] && echo passed || echo "failed ($rc)"
       echo "kernels: $kernels"
-      echo "command: SRD_BENCH_FUSED_GPU=1 pytest -q ${workers[*]} tests/test_cuda.py tests/test_fused_gpu.py"
+      echo "command: SRD_BENCH_FUSED_GPU=1 pytest -q ${workers[*]+${workers[*]}} tests/test_cuda.py tests/test_fused_gpu.py"
       echo "date: $(date -u +%FT%TZ)"
       echo "$versions"
       tail -40 "$log"; } > "$tests_record"
@@ -159,15 +166,17 @@ step_sota() {
 
 step_render() {
     local record=results/gpu/data/$tag-render-probe.md
-    if [ -f "$record" ]; then echo "gpu_job: render probe already there ($record)"; return; fi
+    if finished "$record"; then echo "gpu_job: render probe already there ($record)"; return; fi
     "$PYTHON" -c "import mitsuba" 2>/dev/null || { echo "gpu_job: no mitsuba here (carry .whl): render skipped"; return; }
+    tried "$record"
     local limit
     limit=$(step_limit)
     limit=$((limit < RENDER_S ? limit : RENDER_S))
-    # no sequence starts after a third of the step's time in each of its two passes: the comparison
-    # variant and the digests come after them
-    timeout "$limit" "$PYTHON" scripts/gpu_render_probe.py --variant "$VARIANT" --seconds $((limit / 3)) \
-        --out "$record" $RENDER_ARGS
+    # passes 1 and 2 start no sequence after a quarter and a half of the step's time; the 4-process pass
+    # and the comparison then run only if they start before three quarters (the record says PARTIAL
+    # until they are in)
+    timeout "$limit" "$PYTHON" scripts/gpu_render_probe.py --data "$PRESET" --variant "$VARIANT" \
+        --seconds $((limit / 4)) --out "$record" $RENDER_ARGS
     echo "gpu_job: render exit $?"
 }
 
@@ -191,10 +200,6 @@ step_profile() {
 }
 
 for step in $STEPS; do
-    case $step in
-        tests|render|speed|profile|sweep|sota) ;;
-        *) echo "gpu_job: unknown step $step (tests, render, speed, profile, sweep, sota)"; exit 2 ;;
-    esac
     if [ "$(step_limit)" -lt 30 ]; then echo "gpu_job: no time left for $step (JOB_S=$JOB_S)"; break; fi
     "step_$step"
 done

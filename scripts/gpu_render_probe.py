@@ -38,6 +38,7 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
 from bench import datagen, exrio, render  # noqa: E402
+from bench.atomic import write_atomic  # noqa: E402
 from bench.datagen import BUFFERS, plan_sequences  # noqa: E402
 
 
@@ -82,7 +83,8 @@ def digest(layers: dict[str, np.ndarray]) -> str:
     return h.hexdigest()[:16]
 
 
-def relative_difference(a: np.ndarray, b: np.ndarray) -> float:
+def relative_l2(a: np.ndarray, b: np.ndarray) -> float:
+    """||a - b|| / ||b|| over the whole layer, in float64."""
     a, b = a.astype(np.float64), b.astype(np.float64)
     return float(np.linalg.norm(a - b) / max(np.linalg.norm(b), 1e-30))
 
@@ -148,8 +150,91 @@ def projection(spec: dict, split: str, warm: dict[str, float], cold: dict[str, f
 
 def differing_layers(a: dict, b: dict) -> dict[str, float]:
     """The layers of two decodings of a frame that are not bit-identical, with their relative difference."""
-    return {name: relative_difference(a[name], b[name]) for name in a
+    return {name: relative_l2(a[name], b[name]) for name in a
             if not np.array_equal(a[name], b[name], equal_nan=True)}
+
+
+PARTIAL = "PARTIAL: "   # the record's first line until its last stage is in (scripts/gpu_job.sh runs it again once)
+
+
+def write_record(out: Path, lines: list[str], partial: str | None) -> None:
+    """The record as it stands, atomically: a probe killed at its limit leaves what it measured, under a
+    first line saying what is missing."""
+    text = (f"{PARTIAL}{partial}\n" if partial else "") + "\n".join(lines) + "\n"
+    out.parent.mkdir(parents=True, exist_ok=True)
+    write_atomic(out, lambda tmp: tmp.write_text(text))
+
+
+def first_line(err: BaseException, width: int = 200) -> str:
+    return f"{type(err).__name__}: {(str(err).splitlines() or [''])[0][:width]}"
+
+
+def passes_section(first: list[dict], second: list[dict], layers_total: int, differing: dict) -> list[str]:
+    """The table of sequences and the lines on passes 1 and 2."""
+    lines = []
+    rows = [sequence_row(f, s) for f, s in zip(first, second + [None] * (len(first) - len(second)))]
+    if rows:
+        columns = list(rows[0])
+        lines += ["| " + " | ".join(columns) + " |", "|" + "---|" * len(columns)]
+        lines += ["| " + " | ".join(f"{r[c]:.2f}" if isinstance(r.get(c), float) else str(r.get(c, "-"))
+                                    for c in columns) + " |" for r in rows]
+    frames_one = sum(len(s["records"]) for s in first)
+    frames_two = sum(len(s["records"]) for s in second)
+    rendered_s = sum(frame_seconds(r) for s in second for r in s["records"])
+    same = layers_total - sum(map(len, differing.values()))
+    return lines + [
+        "",
+        f"- pass 1: {frames_one} frames in {sum(s['wall_s'] for s in first):.1f} s wall; pass 2: {frames_two} "
+        f"frames in {sum(s['wall_s'] for s in second):.1f} s wall, "
+        f"{frames_two / rendered_s if rendered_s else float('nan'):.2f} frames/s of render time",
+        f"- pass 1 against pass 2: {same} of {layers_total} decoded layers bit-identical"
+        + ("; the others, per layer (frames, largest relative difference): " + ", ".join(
+            f"{name} ({len(d)}, {max(d):.3g})" for name, d in sorted(differing.items())) if differing else "")]
+
+
+def digests_line(digest_file: Path, earlier: dict, digests: dict, variant: str) -> str:
+    if not earlier:
+        return f"- digests: {len(digests)} frames written to `{digest_file.name}` (no earlier record to compare)"
+    if earlier.get("variant") != variant:
+        return f"- `{digest_file.name}` holds {earlier.get('variant')}'s digests, not {variant}'s: not compared"
+    shared = sorted(set(earlier["frames"]) & set(digests))
+    matching = sum(earlier["frames"][k] == digests[k] for k in shared)
+    return (f"- against `{digest_file.name}` as committed (written on {earlier.get('device')}): {matching} of "
+            f"{len(shared)} frames' digests equal")
+
+
+def concurrent_pass(root: Path, probed: dict, split: str, workers: int, variant: str, first: list[dict]) -> str:
+    """Pass 3: the same sequences by `workers` processes at once (build_dataset), against pass 1."""
+    t0 = time.perf_counter()
+    frames = len(datagen.build_dataset(root, probed, BUFFERS, workers=workers, progress=False, variant=variant,
+                                       splits=[split]))
+    wall = time.perf_counter() - t0
+    one_process = sum(len(q["records"]) for q in first) / sum(q["wall_s"] for q in first)
+    return (f"- pass 3: the same {frames} frames by {workers} processes at once (bench.datagen.build_dataset, "
+            f"workers={workers}): {wall:.1f} s wall, {frames / wall:.2f} frames/s against pass 1's "
+            f"{one_process:.2f} in one process (each process loads Mitsuba and compiles its scenes' kernels, "
+            "with Dr.Jit's kernel cache on disk as the first two passes left it)")
+
+
+def compare_variant(root: Path, tmp: Path, spec: dict, split: str, other: str, frames: int, first: dict) -> list[str]:
+    """The first sequence's first `frames` frames rendered with variant `other`, against pass 1's."""
+    job = first["job"]
+    try:
+        render.use_variant(other)
+        t0 = time.perf_counter()
+        records = datagen.render_sequence(tmp, job, {**spec, "seq_len": frames}, BUFFERS, variant=other)
+        wall = time.perf_counter() - t0
+    except Exception as err:  # noqa: BLE001 - a variant this machine cannot run is a line saying so
+        return [f"{other}: failed: {first_line(err)}"]
+    lines = [f"{other}: {len(records)} frames of {job['sequence']} in {wall:.1f} s (scene load and kernel "
+             "compile included)"]
+    for frame, record in enumerate(records):
+        a = frame_layers(root, split, job["sequence"], frame)
+        b = frame_layers(tmp, split, job["sequence"], frame)
+        diffs = ", ".join(f"{name} {relative_l2(b[name], a[name]):.3g}" for name in sorted(a))
+        lines.append(f"- frame {frame}: {frame_seconds(record):.2f} s render (against "
+                     f"{frame_seconds(first['records'][frame]):.2f} s); relative L2 difference per layer: {diffs}")
+    return lines
 
 
 def main(argv=None) -> int:
@@ -166,33 +251,48 @@ def main(argv=None) -> int:
     parser.add_argument("--variant", default="cuda_ad_rgb")
     parser.add_argument("--compare", default=None, help="another variant to render the first frames with (llvm_ad_rgb)")
     parser.add_argument("--compare-frames", type=int, default=2)
-    parser.add_argument("--seconds", type=float, default=120.0, help="no sequence starts after this many seconds")
+    parser.add_argument("--seconds", type=float, default=120.0,
+                        help="no sequence of pass 1 starts after this many seconds, nor of pass 2 after twice "
+                             "that; pass 3 and the comparison run only if they start within three times that")
     parser.add_argument("--out", type=Path, default=None)
     args = parser.parse_args(argv)
     spec = yaml.safe_load((ROOT / "conf" / "data" / f"{args.data}.yaml").read_text())
     if args.split not in spec["splits"]:
         parser.error(f"--split {args.split}: conf/data/{args.data}.yaml has {sorted(spec['splits'])}")
+    for name, value, least in (("--families", args.families, 1), ("--per-family", args.per_family, 1),
+                               ("--workers", args.workers, 0), ("--compare-frames", args.compare_frames, 1)):
+        if value < least:
+            parser.error(f"{name} {value}: expected at least {least}")
+    if args.compare_frames > int(spec["seq_len"]):
+        parser.error(f"--compare-frames {args.compare_frames}: a sequence of {args.data} has {spec['seq_len']} frames")
     import mitsuba as mi
     import drjit as dr
-    device = "cuda" if args.variant.startswith("cuda") else "cpu"
-    tag = "cpu" if device == "cpu" else "cuda"
-    if device == "cuda":
+    tag = "cpu"
+    if args.variant.startswith("cuda"):
         import torch
         from bench.experiments.speed import device_tag
         tag = device_tag("cuda") if torch.cuda.is_available() else "cuda-unknown"
     out = args.out or ROOT / "results" / spec["name"] / "data" / f"{tag}-render-probe.md"
+    digest_file = out.with_suffix(".digests.json")
+    earlier = json.loads(digest_file.read_text()) if digest_file.exists() else {}
+    header = [f"# Rendering `{args.data}` with {args.variant}", ""]
     try:
         variant = render.use_variant(args.variant)
     except Exception as err:  # noqa: BLE001 - a variant this machine cannot run (no OptiX, no LLVM) is the record
-        out.parent.mkdir(parents=True, exist_ok=True)
-        out.write_text(f"# Rendering `{args.data}` with {args.variant}\n\nmitsuba {mi.__version__}, drjit "
-                       f"{dr.__version__}, {tag}: the variant did not start: {type(err).__name__}: {err}\n")
+        write_record(out, header + [f"mitsuba {mi.__version__}, drjit {dr.__version__}, {tag}: the variant did "
+                                    f"not start: {first_line(err, 400)}"], "the variant did not start")
         print(out.read_text())
         return 1
+    header += [f"`python scripts/gpu_render_probe.py {' '.join(argv if argv is not None else sys.argv[1:])}`: "
+               f"mitsuba {mi.__version__}, drjit {dr.__version__}, {tag}; split {args.split}, "
+               f"{spec['lr_width']}x{spec['lr_height']} LR x{spec.get('scale', 2)}, {spec['spp']} spp, reference "
+               f"{spec['splits'][args.split].get('ref_spp') or spec['ref_spp']} spp, {spec['seq_len']} frames a "
+               "sequence, every buffer. Seconds: the frame records' render times (every buffer); wall: the "
+               "sequence's, scene load and EXR writes included. Pass 2 renders the same frames again in the same "
+               "process.", ""]
     probed = probe_spec(spec, args.split, args.families, args.per_family)
     jobs = plan_sequences(probed)
-    start = time.monotonic()
-    deadline = start + args.seconds
+    deadline = time.monotonic() + args.seconds
     with tempfile.TemporaryDirectory() as tmp:
         one, two = Path(tmp) / "one", Path(tmp) / "two"
         first = render_pass(one, jobs, spec, variant, deadline)
@@ -207,81 +307,34 @@ def main(argv=None) -> int:
                 for name, diff in differing_layers(a, b).items():
                     differing.setdefault(name, []).append(diff)
                 digests[f"{sequence}/{frame}"] = digest(a)
-        concurrent = []
-        if args.workers and len(first) == len(jobs) and time.monotonic() < deadline + args.seconds:
-            t0 = time.perf_counter()
-            frames = len(datagen.build_dataset(Path(tmp) / "workers", probed, BUFFERS, workers=args.workers,
-                                               progress=False, variant=variant, splits=[args.split]))
-            wall = time.perf_counter() - t0
-            one_process = sum(len(q["records"]) for q in first) / sum(q["wall_s"] for q in first)
-            concurrent = [f"- pass 3: the same {frames} frames by {args.workers} processes at once "
-                          f"(bench.datagen.build_dataset, workers={args.workers}): {wall:.1f} s wall, "
-                          f"{frames / wall:.2f} frames/s against pass 1's {one_process:.2f} in one process "
-                          "(each process loads Mitsuba and compiles its scenes' kernels, with Dr.Jit's kernel "
-                          "cache on disk as the first two passes left it)"]
-        elif args.workers:
-            concurrent = ["- pass 3 (workers) not run: the first passes did not finish within --seconds"]
-        compared = []
-        if args.compare and first:
-            try:
-                render.use_variant(args.compare)
-                seq = first[0]["job"]
-                other = Path(tmp) / "other"
-                t0 = time.perf_counter()
-                records = datagen.render_sequence(other, seq, {**spec, "seq_len": args.compare_frames}, BUFFERS,
-                                                  variant=args.compare)
-                wall = time.perf_counter() - t0
-                for frame, record in enumerate(records):
-                    a = frame_layers(one, args.split, seq["sequence"], frame)
-                    b = frame_layers(other, args.split, seq["sequence"], frame)
-                    diffs = ", ".join(f"{name} {relative_difference(b[name], a[name]):.3g}" for name in sorted(a))
-                    compared.append(f"- frame {frame}: {frame_seconds(record):.2f} s render "
-                                    f"(against {frame_seconds(first[0]['records'][frame]):.2f} s); "
-                                    f"relative difference per layer: {diffs}")
-                compared.insert(0, f"{args.compare}: {len(records)} frames of {seq['sequence']} in {wall:.1f} s "
-                                   "(scene load and kernel compile included)")
-            except Exception as err:  # noqa: BLE001 - a variant this machine cannot run is a line saying so
-                compared = [f"{args.compare}: failed: {type(err).__name__}: {str(err).splitlines()[0][:200]}"]
-    digest_file = out.with_suffix(".digests.json")
-    earlier = json.loads(digest_file.read_text()) if digest_file.exists() else {}
-    shared = sorted(set(earlier.get("frames", {})) & set(digests))
-    matching = sum(earlier["frames"][k] == digests[k] for k in shared)
-    lines = [f"# Rendering `{args.data}` with {variant}",
-             "",
-             f"`python scripts/gpu_render_probe.py {' '.join(argv if argv is not None else sys.argv[1:])}`: "
-             f"mitsuba {mi.__version__}, drjit {dr.__version__}, {tag}; split {args.split}, "
-             f"{spec['lr_width']}x{spec['lr_height']} LR x{spec.get('scale', 2)}, {spec['spp']} spp, reference "
-             f"{spec['splits'][args.split].get('ref_spp') or spec['ref_spp']} spp, {spec['seq_len']} frames a sequence, every "
-             "buffer. Seconds: the frame records' render times (every buffer); wall: the sequence's, scene "
-             "load and EXR writes included. Pass 2 renders the same frames again in the same process.",
-             ""]
-    rows = [sequence_row(f, s) for f, s in zip(first, second + [None] * (len(first) - len(second)))]
-    if rows:
-        columns = list(rows[0])
-        lines += ["| " + " | ".join(columns) + " |", "|" + "---|" * len(columns)]
-        lines += ["| " + " | ".join(f"{r.get(c, float('nan')):.2f}" if isinstance(r.get(c), float) else str(r.get(c, "-"))
-                                    for c in columns) + " |" for r in rows]
-    frames = sum(len(s["records"]) for s in first)
-    rendered_s = sum(frame_seconds(r) for s in second for r in s["records"])
-    frames_two = sum(len(s["records"]) for s in second)
-    lines += ["",
-              f"- pass 1: {frames} frames in {sum(s['wall_s'] for s in first):.1f} s wall; pass 2: {frames_two} "
-              f"frames in {sum(s['wall_s'] for s in second):.1f} s wall, {frames_two / rendered_s if rendered_s else float('nan'):.2f} frames/s of render time",
-              f"- pass 1 against pass 2: {layers_total - sum(map(len, differing.values()))} of {layers_total} decoded "
-              "layers bit-identical" + ("; the others, per layer (frames, largest relative difference): " + ", ".join(
-                  f"{name} ({len(d)}, {max(d):.3g})" for name, d in sorted(differing.items())) if differing else ""),
-              *concurrent,
-              (f"- against `{digest_file.name}` as committed: {matching} of {len(shared)} frames' digests equal"
-               if shared else f"- digests: {len(digests)} frames written to `{digest_file.name}` (no earlier record to compare)"),
-              "",
-              "Projected render time of the whole preset (a lead, from the buffers' measured seconds):",
-              *projection(spec, args.split, buffer_seconds(second or first), buffer_seconds(first)),
-              *([""] + compared if compared else [])]
-    out.parent.mkdir(parents=True, exist_ok=True)
-    out.write_text("\n".join(lines) + "\n")
-    if not earlier:
-        digest_file.write_text(json.dumps({"variant": variant, "device": tag, "frames": digests}, indent=1) + "\n")
-    print("\n".join(lines))
+        if not earlier and digests:
+            write_atomic(digest_file, lambda tmp_file: tmp_file.write_text(
+                json.dumps({"variant": variant, "device": tag, "frames": digests}, indent=1) + "\n"))
+        parts = {"passes": passes_section(first, second, layers_total, differing), "pass 3": [],
+                 "digests": [digests_line(digest_file, earlier, digests, variant)],
+                 "projection": ["", "Projected render time of the whole preset (a lead, from the buffers' measured "
+                                "seconds):", *projection(spec, args.split, buffer_seconds(second or first),
+                                                        buffer_seconds(first))],
+                 "the comparison": []}
+        todo = [name for name, wanted in (("pass 3", args.workers), ("the comparison", args.compare)) if wanted]
+
+        def save():
+            write_record(out, header + [line for part in parts.values() for line in part],
+                         f"{' and '.join(todo)} not in yet" if todo else None)
+        save()
+        late = len(first) < len(jobs) or time.monotonic() > deadline + 2 * args.seconds
+        if args.workers:
+            parts["pass 3"] = ["- pass 3 not run: passes 1 and 2 took their time" if late else
+                               concurrent_pass(Path(tmp) / "workers", probed, args.split, args.workers, variant, first)]
+            todo.remove("pass 3")
+            save()
+        if args.compare:
+            parts["the comparison"] = [""] + (["The comparison not run: passes 1 and 2 took their time"] if late else
+                                              compare_variant(one, Path(tmp) / "other", spec, args.split, args.compare,
+                                                              args.compare_frames, first[0]))
+            todo.remove("the comparison")
+            save()
+    print(out.read_text())
     return 0
 
 

@@ -717,8 +717,10 @@ def test_a_row_whose_model_does_not_import_here_is_left_out_only_when_asked_and_
     from omegaconf import OmegaConf
     from bench.cli import CONF_DIR, make_context
     from bench.experiments.table import selected_rows
-    monkeypatch.setitem(sys.modules, "pyoidn", None)            # `import pyoidn` raises ImportError
-    monkeypatch.delitem(sys.modules, "baselines.oidn", raising=False)
+    import baselines
+    monkeypatch.setitem(sys.modules, "pyoidn", None)            # `import pyoidn` raises ModuleNotFoundError
+    monkeypatch.delitem(sys.modules, "baselines.oidn", raising=False)   # imported again, without pyoidn
+    monkeypatch.delattr(baselines, "oidn", raising=False)               # Hydra looks for the attribute first
     with initialize_config_dir(config_dir=CONF_DIR, version_base=None):
         cfg = compose("config", overrides=["+experiment=sota", "preset=smoke", f"runs_dir={tmp_path}/runs"])
     ctx = make_context(cfg)
@@ -730,3 +732,7 @@ def test_a_row_whose_model_does_not_import_here_is_left_out_only_when_asked_and_
     assert list(unavailable) == ["OIDN at LR then bilinear", "OIDN at HR after bilinear"]
     assert all(why.startswith("ModuleNotFoundError: ") and "pyoidn" in why and "\n" not in why  # as on a machine without it
                for why in unavailable.values())
+    for target in ("baselines.oidnn.OIDN", "torch.nn.NoSuchLayer"):   # typos, not a machine's lack: errors still
+        typo = [{"label": "typo", "model": "bilinear", "overrides": {"_target_": target}}]
+        with pytest.raises(UserError, match=target):
+            selected_rows(ctx, typo, "srd", None, leave_out_unavailable=True)

@@ -489,8 +489,9 @@ def test_a_training_step_that_fails_is_a_row_saying_why_and_the_table_goes_on(mo
     assert (row["section"], row["fast path"], row["size"]) == (
         "training step", "fp32, compiled (reduce-overhead)", "2x3 frames of 8x8 LR")
     assert "ms" not in row
-    table = speed._ratios(pd.DataFrame([row], columns=speed.COLUMNS))  # the ratios take a row without a time
-    assert table["ms"].isna().all()
+    stack = {"section": "training step", "method": "3x3 conv stack (4 x 8 ch)", "fast path": row["fast path"], "ms": 14.7}
+    table = speed._ratios(pd.DataFrame([stack, row], columns=speed.COLUMNS))  # a row without a time has no ratio
+    assert table["step / conv stack step"].tolist()[0] == 1.0 and pd.isna(table["step / conv stack step"].tolist()[1])
 
 
 def test_the_results_page_gives_the_compiled_step_beside_the_eager_one_and_the_conv_stacks(tmp_path):

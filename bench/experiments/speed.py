@@ -243,6 +243,11 @@ def _row(section, method, path, size, per, timing=None, **extra) -> dict:
     return row
 
 
+def failure_note(err: BaseException) -> str:
+    """A row's note for a path that failed here: the error's type and the first line of its message."""
+    return f"failed: {type(err).__name__}: {(str(err).splitlines() or [''])[0][:120]}"
+
+
 def _size(hw, scale=2) -> str:
     h, w = hw
     return f"{w}x{h} -> {scale * w}x{scale * h}" if scale > 1 else f"{w}x{h}"
@@ -273,7 +278,7 @@ def inference_rows(label: str, model, macs: int, x, g, paths, device, repeats, w
             del first, out
         except Exception as err:  # a path the machine cannot run (no compiler, no bf16) is a row saying so
             log.warning("speed: %s %s failed: %s", label, path, err)
-            row["note"] = f"failed: {type(err).__name__}: {str(err).splitlines()[0][:120]}"
+            row["note"] = failure_note(err)
         rows.append(row)
         log.info("speed: %s %s: %s ms/frame", label, path, row.get("ms"))
     return rows
@@ -356,8 +361,7 @@ def training_row(label: str, model, train: dict, loss_weights: dict, lr: float, 
     except Exception as err:  # noqa: BLE001 - as inference_rows: any failure of a path is that path's row
         log.warning("speed: %s training step %s failed: %s", label, path, err)
         size = f"{train['batch']}x{train['frames']} frames of {train['crop']}x{train['crop']} LR"
-        return _row("training step", label, path, size, "step",
-                    note=f"failed: {type(err).__name__}: {str(err).splitlines()[0][:120] if str(err) else ''}")
+        return _row("training step", label, path, size, "step", note=failure_note(err))
 
 
 def timed_training_row(label: str, model, train: dict, loss_weights: dict, lr: float, device, repeats, warmup,

@@ -367,15 +367,19 @@ def selected_rows(ctx: Context, rows: list[dict], task: str, leave_out: list[str
     return kept, unavailable
 
 
-def _import_error(err: BaseException) -> ImportError | None:
-    """The first ImportError raised behind a model that could not be built (a package this machine
-    lacks), if any: the deepest of the chain (Hydra wraps it in one of its own)."""
-    found = None
-    while err is not None:
+def _import_error(err: BaseException) -> ModuleNotFoundError | None:
+    """The package this machine lacks behind a model that could not be built: the deepest ImportError of
+    the chain (Hydra wraps the first in one of its own), if it is a ModuleNotFoundError of a whole package
+    outside this project (a misspelt `_target_` or a broken import in bench or baselines is an error)."""
+    seen, deepest = set(), None
+    while err is not None and id(err) not in seen:   # a chain that loops (raise e from e) ends
+        seen.add(id(err))
         if isinstance(err, ImportError):
-            found = err
+            deepest = err
         err = err.__cause__ or err.__context__
-    return found
+    # a package: a top-level name (a dotted one is a module missing from a package that is there, a typo)
+    name = deepest.name or "" if isinstance(deepest, ModuleNotFoundError) else ""
+    return deepest if name and "." not in name and name not in ("bench", "baselines") else None
 
 
 def ready_data(ctx: Context, scoring_ctx: Context, name: str, rows: list[dict], task: str, split: str | None,
