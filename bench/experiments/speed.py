@@ -403,6 +403,8 @@ def timed_training_row(label: str, model, train: dict, loss_weights: dict, lr: f
     if compile is not None:
         compile_s = time_call(step, device, 1, 0)["ms"] / 1000  # the first call compiles
         note += f"; first call (compile) {compile_s:.0f} s"
+        if compile == "reduce-overhead" and torch.device(device).type == "cuda":
+            note += "; peak MiB leaves out the CUDA graphs' memory pool, taken when they were captured"
     timing = time_call(step, device, repeats, warmup)
     return _row("training step", label, path, f"{batch}x{frames} frames of {crop}x{crop} LR", "step", timing,
                 **{"peak MiB": peak_memory_mib(step, device), "note": note})
