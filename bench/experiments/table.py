@@ -378,7 +378,7 @@ def _import_error(err: BaseException) -> ModuleNotFoundError | None:
             deepest = err
         err = err.__cause__ or err.__context__
     # a package: a top-level name (a dotted one is a module missing from a package that is there, a typo)
-    name = deepest.name or "" if isinstance(deepest, ModuleNotFoundError) else ""
+    name = (deepest.name or "") if isinstance(deepest, ModuleNotFoundError) else ""
     return deepest if name and "." not in name and name not in ("bench", "baselines") else None
 
 
