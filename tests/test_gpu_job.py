@@ -102,8 +102,10 @@ def test_a_speed_table_or_sweep_stopped_at_its_limit_is_timed_again(tmp_path):
     script = (REPO / "scripts" / "gpu_job.sh").read_text()
     start = script.index("finished() {")
     functions = script[start:script.index("\n", script.index("tried() "))]     # the two, whole
-    assert 'finished "results/gpu/speed/$tag/table.md"' in script and 'finished "$record"' in script
-    assert 'tried "results/gpu/speed/$tag/table.md"' in script and 'tried "$record"' in script
+    assert 'finished "results/gpu/speed/$tag/table.md"' in script and 'tried "results/gpu/speed/$tag/table.md"' in script
+    for step in ("step_sweep", "step_render"):   # the deform sweep's record and the render probe's
+        body = script[script.index(f"{step}() {{"):script.index("\n}\n", script.index(f"{step}() {{"))]
+        assert 'if finished "$record"' in body and 'tried "$record"' in body, step
     (tmp_path / "partial.md").write_text("PARTIAL: not every section is timed yet. Speed on x\n")
     (tmp_path / "sweep.md").write_text("# sweep\n\n## fp32 (TF32 dots)\n\nPARTIAL: stopped before bf16 was timed.\n")
     (tmp_path / "done.md").write_text("Speed on x CPU; preset gpu widths, untrained weights.\n\n| a |\n")
@@ -148,8 +150,8 @@ def test_the_render_step_measures_the_variant_twice_and_keeps_the_digests(projec
     """`render` (scripts/gpu_render_probe.py): on a CPU the LLVM variant stands in for cuda_ad_rgb; two
     renders of the same frames in one process are compared layer by layer, then by two processes at once
     and against another variant (here the same one: no difference); the digests are kept and a later
-    run compares its own with them; a second call with the record there skips the step. A variant that
-    cannot start is a PARTIAL record (tried again once)."""
+    run compares its own with them (a second call skips the step: finished(), tested below). A variant
+    that cannot start is a PARTIAL record (tried again once)."""
     project = shutil.copytree(project, tmp_path / "project", ignore=shutil.ignore_patterns("runs", "results"))
     env = dict(os.environ, PYTHON=sys.executable, DEVICE="cpu", PRESET="smoke", OUT=str(tmp_path / "out"),
                RENDER_ARGS="--families 1 --workers 2 --compare llvm_ad_rgb --compare-frames 1")
@@ -165,9 +167,6 @@ def test_the_render_step_measures_the_variant_twice_and_keeps_the_digests(projec
     assert "relative L2 difference per layer: hr.albedo 0, " in text                   # llvm against llvm
     digests = json.loads(record.with_suffix(".digests.json").read_text())
     assert digests["variant"] == "llvm_ad_rgb" and len(digests["frames"]) == 3
-    again = subprocess.run(["bash", "scripts/gpu_job.sh", "render"], cwd=project, env=env, capture_output=True,
-                           text=True, timeout=300)
-    assert "gpu_job: render probe already there" in again.stdout
     later = subprocess.run([sys.executable, "scripts/gpu_render_probe.py", "--data", "smoke", "--families", "1",
                             "--variant", "llvm_ad_rgb", "--out", str(record)], cwd=project, capture_output=True,
                            text=True, timeout=300)
