@@ -115,7 +115,8 @@ step_tests() {
     if tests_passed; then echo "gpu_job: tests already passed with these kernels ($tests_record)"; return; fi
     mkdir -p "$(dirname "$tests_record")"
     local log=/tmp/cuda_tests.log workers=()
-    "$PYTHON" -c "import xdist" 2>/dev/null && workers=(-n 4)   # the compiled-step tests compile in parallel
+    # on a GPU the compiled-step tests compile in parallel; without one (a dry run) 4 workers only start up
+    [ -n "$gpu" ] && "$PYTHON" -c "import xdist" 2>/dev/null && workers=(-n 4)
     SRD_BENCH_FUSED_GPU=1 timeout "$(step_limit)" "$PYTHON" -m pytest -q -p no:cacheprovider ${workers[@]+"${workers[@]}"} \
         tests/test_cuda.py tests/test_fused_gpu.py > "$log" 2>&1
     local rc=$?
