@@ -45,7 +45,8 @@ from bench.datagen import BUFFERS, plan_sequences  # noqa: E402
 def probe_spec(spec: dict, split: str, families: int, per_family: int) -> dict:
     """`spec` with `split` cut to its first `families` families and `per_family` sequences of each: the
     same scenes and camera paths as the preset's first sequences of those families (a sequence's scene
-    seed depends on its family and rank, not on how many the split has)."""
+    seed depends on its family and rank, not on how many the split has); every pass renders it, so its
+    sequences get the split's own reference spp (`sequence_ref_spp`, naming sequences it may not keep, is dropped)."""
     part = spec["splits"][split]
     kept = list(part["families"])[:families]
     return {**spec, "splits": {split: {**{k: v for k, v in part.items() if k != "sequence_ref_spp"},
@@ -295,8 +296,8 @@ def main(argv=None) -> int:
     deadline = time.monotonic() + args.seconds
     with tempfile.TemporaryDirectory() as tmp:
         one, two = Path(tmp) / "one", Path(tmp) / "two"
-        first = render_pass(one, jobs, spec, variant, deadline)
-        second = render_pass(two, [s["job"] for s in first], spec, variant, deadline + args.seconds)
+        first = render_pass(one, jobs, probed, variant, deadline)
+        second = render_pass(two, [s["job"] for s in first], probed, variant, deadline + args.seconds)
         digests, layers_total, differing = {}, 0, {}
         for seq in second:
             sequence = seq["job"]["sequence"]
@@ -330,7 +331,7 @@ def main(argv=None) -> int:
             save()
         if args.compare:
             parts["the comparison"] = [""] + (["The comparison not run: passes 1 and 2 took their time"] if late else
-                                              compare_variant(one, Path(tmp) / "other", spec, args.split, args.compare,
+                                              compare_variant(one, Path(tmp) / "other", probed, args.split, args.compare,
                                                               args.compare_frames, first[0]))
             todo.remove("the comparison")
             save()
