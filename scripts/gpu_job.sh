@@ -2,7 +2,7 @@
 # The GPU work as ONE call per machine start (the machine goes back about 30 s after a call, less than a
 # reply takes to read; docs/gpu.md, "The GPU job"; prepared here by scripts/gpu_prepare.sh). Run from the
 # repository root there, carrying .whl (and runs, from an earlier call):
-#     bash scripts/gpu_job.sh [tests] [render] [speed] [profile] [sweep] [sota]     (no argument: tests speed sota)
+#     bash scripts/gpu_job.sh [tests] [render] [speed] [concurrency] [profile] [sweep] [sota]   (none: tests speed sota)
 # It installs the carried wheels, then runs the steps in order within JOB_S seconds in all (default 560,
 # for a run timeout_s of 600), each within STEP_S (default 540) and what is left; a step whose result is
 # already in the working tree is skipped (a speed table or sweep that says PARTIAL is not done), so the
@@ -16,6 +16,8 @@
 #   speed    +experiment=speed preset=gpu device=cuda, with the fused kernels on only if `tests` passed, and
 #            every model's training step and the conv stack's also CUDA-graphed (train.compile=reduce-overhead)
 #            -> results/gpu/speed/<device>/
+#   concurrency (optional) 1, 2 and 4 processes taking training steps at once, per model, eager and graphed:
+#            what jobs=N can gain (scripts/gpu_step_concurrency.py) -> results/gpu/profile/<device>-concurrency.md
 #   profile  (optional) Ours' training step under torch.profiler, eager and compiled
 #            (scripts/gpu_profile_step.py) -> results/gpu/profile/<device>.md
 #   sweep    (optional) the fused deformable conv's tile sizes against nn.Conv2d (scripts/gpu_deform_sweep.py)
@@ -26,7 +28,7 @@
 # Everything comes back in $OUT as at most 8 files: log.txt, results.tar.gz (results/gpu), and
 # runs.tar.gz.part-* (the unfinished trainings' run folders, 15 MiB parts). Unpack them here with
 # scripts/gpu_unpack.sh. Environment: PYTHON (.venv/bin/python where `make` made one, else python3), DEVICE (cuda), PRESET (gpu), JOB_S, STEP_S, RENDER_S,
-# SPEED_ARGS, SOTA_ARGS, PROFILE_ARGS, RENDER_ARGS. tests/test_gpu_job.py (make test) dry-runs `tests sota` on a CPU at the
+# SPEED_ARGS, SOTA_ARGS, PROFILE_ARGS, RENDER_ARGS, CONCURRENCY_ARGS. tests/test_gpu_job.py (make test) dry-runs `tests sota` on a CPU at the
 # smoke preset in a copy of the project. A dry run by hand (its records land in results/gpu: delete them after):
 #     DEVICE=cpu PROFILE_ARGS="--batch 1 --frames 2 --crop 16 --channels 8 --no-compile" OUT=/tmp/x \
 #         bash scripts/gpu_job.sh tests profile
@@ -43,14 +45,15 @@ STEP_S=${STEP_S:-540}
 SPEED_ARGS=${SPEED_ARGS:-experiment.train.batch=null experiment.train.frames=null experiment.train.crop=null experiment.train.compiled=[Ours,EDSR,RAE,KPCN,CFM] experiment.tiled.uhd=false}
 RENDER_ARGS=${RENDER_ARGS:---families 4 --per-family 2 --workers 4 --compare llvm_ad_rgb}
 RENDER_S=${RENDER_S:-180}   # the render probe's share: a measurement, not the data
+CONCURRENCY_ARGS=${CONCURRENCY_ARGS:---models srd edsr rae kpcn cfm --processes 1 2 4 --compile none reduce-overhead}
 SOTA_ARGS=${SOTA_ARGS:-}
 PROFILE_ARGS=${PROFILE_ARGS:-}
 VARIANT=$([[ $DEVICE == cuda* ]] && echo cuda_ad_rgb || echo llvm_ad_rgb)
 STEPS=${*:-tests speed sota}
 for step in $STEPS; do   # every name checked first: a typo after a long step would lose its packing
     case $step in
-        tests|render|speed|profile|sweep|sota) ;;
-        *) echo "gpu_job: unknown step $step (tests, render, speed, profile, sweep, sota)"; exit 2 ;;
+        tests|render|speed|concurrency|profile|sweep|sota) ;;
+        *) echo "gpu_job: unknown step $step (tests, render, speed, concurrency, profile, sweep, sota)"; exit 2 ;;
     esac
 done
 PACK_S=20   # kept back for packing what comes back
@@ -179,6 +182,18 @@ step_render() {
     timeout "$limit" "$PYTHON" scripts/gpu_render_probe.py --data "$PRESET" --variant "$VARIANT" \
         --seconds $((limit / 4)) --out "$record" $RENDER_ARGS
     echo "gpu_job: render exit $?"
+}
+
+step_concurrency() {
+    local record=results/gpu/profile/$tag-concurrency.md
+    if finished "$record"; then echo "gpu_job: concurrency already there ($record)"; return; fi
+    tried "$record"
+    local fused=0
+    tests_passed && fused=1
+    # the record is rewritten after each configuration, under a PARTIAL line until the last
+    SRD_BENCH_FUSED_GPU=$fused timeout "$(step_limit)" "$PYTHON" scripts/gpu_step_concurrency.py --device "$DEVICE" \
+        --preset "$PRESET" --out "$record" $CONCURRENCY_ARGS
+    echo "gpu_job: concurrency exit $?"
 }
 
 step_sweep() {

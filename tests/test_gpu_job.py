@@ -103,7 +103,7 @@ def test_a_speed_table_or_sweep_stopped_at_its_limit_is_timed_again(tmp_path):
     start = script.index("finished() {")
     functions = script[start:script.index("\n", script.index("tried() "))]     # the two, whole
     assert 'finished "results/gpu/speed/$tag/table.md"' in script and 'tried "results/gpu/speed/$tag/table.md"' in script
-    for step in ("step_sweep", "step_render"):   # the deform sweep's record and the render probe's
+    for step in ("step_sweep", "step_render", "step_concurrency"):   # the records of the sweep and the probes
         body = script[script.index(f"{step}() {{"):script.index("\n}\n", script.index(f"{step}() {{"))]
         assert 'if finished "$record"' in body and 'tried "$record"' in body, step
     (tmp_path / "partial.md").write_text("PARTIAL: not every section is timed yet. Speed on x\n")
@@ -178,3 +178,24 @@ def test_the_render_step_measures_the_variant_twice_and_keeps_the_digests(projec
                                 text=True, timeout=300)
         said = (tmp_path / "cuda.md").read_text()
         assert failed.returncode == 1 and said.startswith("PARTIAL: the variant did not start"), said
+
+
+def test_the_concurrency_probe_times_processes_at_once_and_names_a_failure(tmp_path):
+    """scripts/gpu_step_concurrency.py (the job's `concurrency` step): two processes at once take training
+    steps of a model, each on its share of the cores; the record gives their ms/step and aggregate
+    steps/s, and is whole (no PARTIAL line) once every configuration is in. A path that fails in its
+    processes is its row, said, not a hang at the barrier. (One process alone, the ratio's base, is the
+    same code with a barrier of one: left out here for make test's time.)"""
+    out = tmp_path / "concurrency.md"
+    done = subprocess.run([sys.executable, "scripts/gpu_step_concurrency.py", "--device", "cpu", "--preset", "smoke",
+                           "--models", "edsr", "--processes", "2", "--compile", "bogus", "none", "--steps", "2",
+                           "--warmup", "1", "--timeout", "120", "--out", str(out)], cwd=REPO, capture_output=True,
+                          text=True, timeout=300)
+    assert done.returncode == 0, done.stdout[-2000:] + done.stderr[-2000:]
+    text = out.read_text()
+    assert text.startswith("# Training steps of several processes at once on cpu-")
+    rows = [line.split(" | ") for line in text.splitlines() if line.startswith("| EDSR |")]
+    assert [(r[1], r[2]) for r in rows] == [("bogus", "2"), ("none", "2")]
+    assert rows[0][6].startswith("failed: RuntimeError: Unrecognized mode=bogus")
+    assert rows[1][3] == "1" and float(rows[1][4]) > 0 and float(rows[1][5]) > 0   # 2 cores shared out
+    assert rows[1][6] == "- |"                                                       # no one-process row

@@ -367,10 +367,29 @@ def training_row(label: str, model, train: dict, loss_weights: dict, lr: float, 
 def timed_training_row(label: str, model, train: dict, loss_weights: dict, lr: float, device, repeats, warmup,
                        in_channels: int = 3, out_channels: int = 3, scale: int = 2, path: str = "fp32",
                        bf16: bool = False, channels_last: bool = False, compile: str | None = None) -> dict:
-    """Time of one optimisation step (forward, loss, backward, Adam) on a random batch of the training
-    crop, fp32 (or as the trainer's train.precision=bf16, train.channels_last=true and train.compile=<mode>
-    do: forward and loss under torch.compile, its first call, the compilation, timed apart). The loss is
-    the trainer's weighted loss without the perceptual term (no VGG here)."""
+    """Time of one optimisation step (`training_step`), fp32 or as the trainer's options ask; a compiled
+    step's first call, the compilation, is timed apart."""
+    step = training_step(model, train, loss_weights, lr, device, in_channels, out_channels, scale, bf16,
+                         channels_last, compile)
+    batch, frames, crop = train["batch"], train["frames"], train["crop"]
+    note = "Adam, trainer loss without perceptual"
+    if compile is not None:
+        compile_s = time_call(step, device, 1, 0)["ms"] / 1000  # the first call compiles
+        note += f"; first call (compile) {compile_s:.0f} s"
+        if compile == "reduce-overhead" and torch.device(device).type == "cuda":
+            note += "; peak MiB leaves out the CUDA graphs' memory pool, taken when they were captured"
+    timing = time_call(step, device, repeats, warmup)
+    return _row("training step", label, path, f"{batch}x{frames} frames of {crop}x{crop} LR", "step", timing,
+                **{"peak MiB": peak_memory_mib(step, device), "note": note})
+
+
+def training_step(model, train: dict, loss_weights: dict, lr: float, device, in_channels: int = 3,
+                  out_channels: int = 3, scale: int = 2, bf16: bool = False, channels_last: bool = False,
+                  compile: str | None = None):
+    """One optimisation step (forward, loss, backward, Adam at `lr`) of a copy of `model` on a random
+    batch of the training crop (`train`: batch, frames, crop), as a call: fp32, or as the trainer's
+    train.precision=bf16, train.channels_last=true and train.compile=<mode> do (forward and loss under
+    torch.compile). The loss is the trainer's weighted loss without the perceptual term (no VGG here)."""
     model = copy.deepcopy(model).train()
     batch, frames, crop = train["batch"], train["frames"], train["crop"]
     x, g = random_frames(batch, frames, (crop, crop), device, seed=1, in_channels=in_channels)
@@ -398,16 +417,7 @@ def timed_training_row(label: str, model, train: dict, loss_weights: dict, lr: f
             loss = traced(x, g)
         loss.backward()
         optimizer.step()
-
-    note = "Adam, trainer loss without perceptual"
-    if compile is not None:
-        compile_s = time_call(step, device, 1, 0)["ms"] / 1000  # the first call compiles
-        note += f"; first call (compile) {compile_s:.0f} s"
-        if compile == "reduce-overhead" and torch.device(device).type == "cuda":
-            note += "; peak MiB leaves out the CUDA graphs' memory pool, taken when they were captured"
-    timing = time_call(step, device, repeats, warmup)
-    return _row("training step", label, path, f"{batch}x{frames} frames of {crop}x{crop} LR", "step", timing,
-                **{"peak MiB": peak_memory_mib(step, device), "note": note})
+    return step
 
 
 def oidn_row(out_hw, device, repeats, warmup) -> dict | None:

@@ -1,0 +1,163 @@
+"""Several trainings on one device at once (issue #62, item 2): N processes each take the same number of
+training steps of a model at the same time, and their aggregate steps/s is set against one process
+alone. A table's trainings (rows x seeds) are independent runs, so this is what `jobs=N` can gain on a GPU
+whose single training leaves it idle between launches (eager: busy 18% for Ours on an H200,
+results/gpu/profile/) or on a CPU whose one training does not use its cores.
+
+Each process builds the model at the preset's widths and times `bench.experiments.speed.training_step`:
+a random batch of the preset's training crop, the trainer's loss without the perceptual term, Adam;
+training data are not read (at the gpu preset they are held on the device, docs/gpu.md). The processes
+take warm-up steps (and compile, with --compile), wait for each other at a barrier, then time --steps
+steps each; the aggregate is their steps over the wall time from the first start to the last end. On a
+CPU each process gets its share of the cores as threads (bench.scheduler.threads_per_job).
+
+    python scripts/gpu_step_concurrency.py --device cuda --models srd edsr --processes 1 2 4 \
+        --compile none reduce-overhead --out results/gpu/profile/cuda-nvidia-h200-concurrency.md
+    python scripts/gpu_step_concurrency.py --device cpu --preset smoke --models edsr --processes 1 2 \
+        --steps 3 --out /tmp/c.md
+"""
+from __future__ import annotations
+
+import argparse
+import multiprocessing
+import statistics
+import threading
+import sys
+import time
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+
+PARTIAL = "PARTIAL: "   # the record's first line until every configuration is in (scripts/gpu_job.sh)
+
+
+def composed(preset: str, overrides: list[str]) -> dict:
+    """The suite's config at `preset` with Hydra `overrides`, resolved to plain values."""
+    from hydra import compose, initialize_config_dir
+    from omegaconf import OmegaConf
+    from bench.cli import CONF_DIR
+    with initialize_config_dir(config_dir=CONF_DIR, version_base=None):
+        return OmegaConf.to_container(compose("config", overrides=[f"preset={preset}", *overrides]), resolve=True)
+
+
+def worker(model_cfg: dict, train: dict, loss: dict, lr: float, device: str, threads: int, warmup: int,
+           steps: int, compile: str | None, barrier, results) -> None:
+    """One process: build, warm up (compile), wait for the others, time `steps` steps; puts (start, end)
+    wall-clock seconds, or the error's first line."""
+    import torch
+    try:
+        torch.set_num_threads(threads)
+        from bench.experiments.speed import build, training_step
+        step = training_step(build(model_cfg, device, perturb=0.02), train, loss, lr, device, compile=compile)
+        sync = torch.cuda.synchronize if device.startswith("cuda") else (lambda: None)
+        for _ in range(warmup):
+            step()
+        sync()
+    except Exception as err:  # noqa: BLE001 - a configuration that fails here is that row, said
+        barrier.abort()
+        results.put(f"{type(err).__name__}: {(str(err).splitlines() or [''])[0][:160]}")
+        return
+    try:
+        barrier.wait()
+    except threading.BrokenBarrierError:  # another process failed: its message is the row's
+        results.put("another process of this configuration failed first")
+        return
+    start = time.time()   # wall clock: comparable between the processes
+    for _ in range(steps):
+        step()
+    sync()
+    results.put((start, time.time()))
+
+
+def measure(model_cfg: dict, train: dict, loss: dict, lr: float, device: str, processes: int, warmup: int,
+            steps: int, compile: str | None, timeout: float) -> dict:
+    """Run `processes` workers at once; per-process ms/step and aggregate steps/s, or why it failed."""
+    from bench.scheduler import threads_per_job
+    spawn = multiprocessing.get_context("spawn")
+    barrier, results = spawn.Barrier(processes, timeout=timeout), spawn.Queue()
+    threads = threads_per_job(processes)
+    workers = [spawn.Process(target=worker, args=(model_cfg, train, loss, lr, device, threads, warmup, steps,
+                                                 compile, barrier, results)) for _ in range(processes)]
+    for w in workers:
+        w.start()
+    got = []
+    try:
+        for _ in workers:
+            got.append(results.get(timeout=timeout))
+    except Exception:  # noqa: BLE001 - queue.Empty: a worker died without a word
+        got.append("no answer within the timeout (a worker died or hung)")
+    for w in workers:
+        w.join(timeout=5)
+        if w.is_alive():
+            w.kill()
+    failed = [g for g in got if isinstance(g, str) and not g.startswith("another process")] or \
+        [g for g in got if isinstance(g, str)]
+    if failed:
+        return {"failed": failed[0]}
+    wall = max(end for _, end in got) - min(start for start, _ in got)
+    return {"ms": statistics.mean((end - start) / steps * 1000 for start, end in got),
+            "steps/s": processes * steps / wall, "threads": threads}
+
+
+def main(argv=None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0],
+                                     formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--device", default="cuda")
+    parser.add_argument("--preset", default="gpu", help="the widths, batch, frames, crop and lr (conf/preset)")
+    parser.add_argument("--models", nargs="+", default=["srd", "edsr", "rae", "kpcn", "cfm"])
+    parser.add_argument("--processes", nargs="+", type=int, default=[1, 2, 4])
+    parser.add_argument("--compile", nargs="+", default=["none"],
+                        help="paths: none (eager) and/or a torch.compile mode, as the trainer's train.compile")
+    parser.add_argument("--steps", type=int, default=20)
+    parser.add_argument("--warmup", type=int, default=3)
+    parser.add_argument("--timeout", type=float, default=600.0, help="seconds a configuration may take")
+    parser.add_argument("--set", nargs="*", default=[], metavar="KEY=VALUE", help="Hydra overrides (models.edsr.channels=8)")
+    parser.add_argument("--out", type=Path, required=True)
+    args = parser.parse_args(argv)
+    for name, values, least in (("--processes", args.processes, 1), ("--steps", [args.steps], 1),
+                                ("--warmup", [args.warmup], 1)):
+        if min(values) < least:
+            parser.error(f"{name}: expected at least {least}")
+    cfg = composed(args.preset, args.set)
+    unknown = [m for m in args.models if m not in cfg["models"]]
+    if unknown:
+        parser.error(f"--models: no model {unknown[0]!r}; models: {', '.join(cfg['models'])}")
+    from bench.atomic import write_atomic
+    from bench.experiments.speed import LABELS, device_tag
+    import torch
+    train = {"batch": cfg["train"]["batch_size"], "frames": cfg["train"]["seq_len"], "crop": cfg["train"]["crop"]}
+    where = device_tag(args.device)
+    header = [f"# Training steps of several processes at once on {where}", "",
+              f"`python scripts/gpu_step_concurrency.py {' '.join(argv if argv is not None else sys.argv[1:])}`: "
+              f"preset {args.preset} widths, {train['batch']} x {train['frames']} frames of {train['crop']}x"
+              f"{train['crop']} LR a step, the trainer's loss without perceptual, Adam; torch {torch.__version__}. "
+              f"Each process: {args.warmup} warm-up steps, then {args.steps} timed once all are warm. ms/step: "
+              "the processes' mean; steps/s: all processes' steps over the wall time from the first start to "
+              "the last end; x one: steps/s against one process on the same path.", "",
+              "| model | path | processes | threads each | ms/step | steps/s | x one |", "|---|---|---|---|---|---|---|"]
+    # every model eager first: a compiled path's configurations each compile again (from the Inductor cache)
+    rows, todo = [], [(m, c, n) for c in args.compile for m in args.models for n in sorted(set(args.processes))]
+    alone = {}
+    for done, (name, path, processes) in enumerate(todo, 1):
+        compile = None if path == "none" else path
+        got = measure(cfg["models"][name], train, cfg["train"]["loss"], cfg["train"]["lr"], args.device, processes,
+                      args.warmup, args.steps, compile, args.timeout)
+        label = LABELS.get(name, name)
+        if "failed" in got:
+            rows.append(f"| {label} | {path} | {processes} | - | - | - | failed: {got['failed']} |")
+        else:
+            alone.setdefault((name, path), got["steps/s"] if processes == 1 else None)
+            one = alone.get((name, path))
+            rows.append(f"| {label} | {path} | {processes} | {got['threads']} | {got['ms']:.1f} | {got['steps/s']:.2f} | "
+                        + (f"{got['steps/s'] / one:.2f}" if one else "-") + " |")
+        print(rows[-1], flush=True)
+        partial = f"{PARTIAL}{done} of {len(todo)} configurations timed\n" if done < len(todo) else ""
+        text = partial + "\n".join(header + rows) + "\n"
+        args.out.parent.mkdir(parents=True, exist_ok=True)
+        write_atomic(args.out, lambda tmp: tmp.write_text(text))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
