@@ -20,6 +20,8 @@ from __future__ import annotations
 
 import argparse
 import multiprocessing
+import os
+import queue
 import statistics
 import threading
 import sys
@@ -41,12 +43,20 @@ def composed(preset: str, overrides: list[str]) -> dict:
         return OmegaConf.to_container(compose("config", overrides=[f"preset={preset}", *overrides]), resolve=True)
 
 
-def worker(model_cfg: dict, train: dict, loss: dict, lr: float, device: str, threads: int, warmup: int,
-           steps: int, compile: str | None, barrier, results) -> None:
+TEST_EXIT = "SRD_BENCH_TEST_WORKER_EXIT"   # "<processes>:<rank>": that worker exits after warming up (tests)
+
+
+def _said(err: BaseException) -> str:
+    return f"{type(err).__name__}: {(str(err).splitlines() or [''])[0][:160]}"
+
+
+def worker(rank: int, model_cfg: dict, train: dict, loss: dict, lr: float, device: str, threads: int,
+           warmup: int, steps: int, compile: str | None, barrier, results) -> None:
     """One process: build, warm up (compile), wait for the others, time `steps` steps; puts (start, end)
-    wall-clock seconds, or the error's first line."""
-    import torch
+    wall-clock seconds, or the error's first line (then the others are released from the barrier)."""
+    os.environ["TORCHINDUCTOR_COMPILE_THREADS"] = str(threads)   # N processes compiling share the cores
     try:
+        import torch
         torch.set_num_threads(threads)
         from bench.experiments.speed import build, training_step
         step = training_step(build(model_cfg, device, perturb=0.02), train, loss, lr, device, compile=compile)
@@ -56,48 +66,74 @@ def worker(model_cfg: dict, train: dict, loss: dict, lr: float, device: str, thr
         sync()
     except Exception as err:  # noqa: BLE001 - a configuration that fails here is that row, said
         barrier.abort()
-        results.put(f"{type(err).__name__}: {(str(err).splitlines() or [''])[0][:160]}")
+        results.put(_said(err))
         return
+    if os.environ.get(TEST_EXIT) == f"{barrier.parties}:{rank}":
+        os._exit(3)   # a worker that dies without a word (tests/test_gpu_job.py)
     try:
         barrier.wait()
-    except threading.BrokenBarrierError:  # another process failed: its message is the row's
-        results.put("another process of this configuration failed first")
+    except threading.BrokenBarrierError:
+        results.put("released: another process of this configuration failed, died or timed out first")
         return
-    start = time.time()   # wall clock: comparable between the processes
-    for _ in range(steps):
-        step()
-    sync()
-    results.put((start, time.time()))
+    try:
+        start = time.time()   # wall clock: comparable between the processes
+        for _ in range(steps):
+            step()
+        sync()
+        results.put((start, time.time()))
+    except Exception as err:  # noqa: BLE001 - out of memory, a graph replay: the row, not a hang
+        results.put(_said(err))
 
 
 def measure(model_cfg: dict, train: dict, loss: dict, lr: float, device: str, processes: int, warmup: int,
             steps: int, compile: str | None, timeout: float) -> dict:
-    """Run `processes` workers at once; per-process ms/step and aggregate steps/s, or why it failed."""
+    """Run `processes` workers at once; per-process ms/step and aggregate steps/s, or why it failed.
+    Never waits past `timeout` in all: a worker that dies without a word releases the others."""
     from bench.scheduler import threads_per_job
     spawn = multiprocessing.get_context("spawn")
     barrier, results = spawn.Barrier(processes, timeout=timeout), spawn.Queue()
     threads = threads_per_job(processes)
-    workers = [spawn.Process(target=worker, args=(model_cfg, train, loss, lr, device, threads, warmup, steps,
-                                                 compile, barrier, results)) for _ in range(processes)]
+    workers = [spawn.Process(target=worker, args=(rank, model_cfg, train, loss, lr, device, threads, warmup, steps,
+                                                 compile, barrier, results)) for rank in range(processes)]
     for w in workers:
         w.start()
-    got = []
-    try:
-        for _ in workers:
-            got.append(results.get(timeout=timeout))
-    except Exception:  # noqa: BLE001 - queue.Empty: a worker died without a word
-        got.append("no answer within the timeout (a worker died or hung)")
+    got, deadline = [], time.monotonic() + timeout
+    while len(got) < processes:
+        if time.monotonic() > deadline:
+            barrier.abort()
+            got.append(f"no answer from every process within --timeout {timeout:g} s")
+            break
+        try:
+            got.append(results.get(timeout=2))
+            continue
+        except queue.Empty:
+            pass
+        dead = [w.exitcode for w in workers if w.exitcode not in (None, 0)]
+        if dead:
+            barrier.abort()   # the others stop waiting for it, and say so
+            if len(got) + len(dead) >= processes:   # every process has answered or died
+                got.append(f"a process exited with code {dead[0]} without a word")
+                break
     for w in workers:
         w.join(timeout=5)
         if w.is_alive():
             w.kill()
-    failed = [g for g in got if isinstance(g, str) and not g.startswith("another process")] or \
-        [g for g in got if isinstance(g, str)]
-    if failed:
-        return {"failed": failed[0]}
+            w.join()
+    said = [g for g in got if isinstance(g, str)]
+    if said:   # the cause before the processes it released
+        return {"failed": ([g for g in said if not g.startswith("released:")] or said)[0]}
     wall = max(end for _, end in got) - min(start for start, _ in got)
     return {"ms": statistics.mean((end - start) / steps * 1000 for start, end in got),
             "steps/s": processes * steps / wall, "threads": threads}
+
+
+def done_rows(out: Path) -> dict[tuple[str, str, str], str]:
+    """The rows of a PARTIAL record at `out`, by (model label, path, processes): a job step stopped at its
+    limit goes on from them instead of timing them again."""
+    if not out.exists() or not out.read_text().startswith(PARTIAL):
+        return {}
+    rows = [line for line in out.read_text().splitlines() if line.startswith("| ") and not line.startswith("| model")]
+    return {tuple(cell.strip() for cell in line.split("|")[1:4]): line for line in rows}
 
 
 def main(argv=None) -> int:
@@ -111,14 +147,16 @@ def main(argv=None) -> int:
                         help="paths: none (eager) and/or a torch.compile mode, as the trainer's train.compile")
     parser.add_argument("--steps", type=int, default=20)
     parser.add_argument("--warmup", type=int, default=3)
-    parser.add_argument("--timeout", type=float, default=600.0, help="seconds a configuration may take")
+    parser.add_argument("--timeout", type=float, default=300.0, help="seconds a configuration may take in all")
     parser.add_argument("--set", nargs="*", default=[], metavar="KEY=VALUE", help="Hydra overrides (models.edsr.channels=8)")
     parser.add_argument("--out", type=Path, required=True)
     args = parser.parse_args(argv)
+    compiled = any(path != "none" for path in args.compile)
+    # reduce-overhead's first two calls warm up and record the graphs: they must not be timed
     for name, values, least in (("--processes", args.processes, 1), ("--steps", [args.steps], 1),
-                                ("--warmup", [args.warmup], 1)):
+                                ("--warmup", [args.warmup], 3 if compiled else 1)):
         if min(values) < least:
-            parser.error(f"{name}: expected at least {least}")
+            parser.error(f"{name}: expected at least {least}" + (" with --compile" if name == "--warmup" else ""))
     cfg = composed(args.preset, args.set)
     unknown = [m for m in args.models if m not in cfg["models"]]
     if unknown:
@@ -137,17 +175,24 @@ def main(argv=None) -> int:
               "the last end; x one: steps/s against one process on the same path.", "",
               "| model | path | processes | threads each | ms/step | steps/s | x one |", "|---|---|---|---|---|---|---|"]
     # every model eager first: a compiled path's configurations each compile again (from the Inductor cache)
-    rows, todo = [], [(m, c, n) for c in args.compile for m in args.models for n in sorted(set(args.processes))]
-    alone = {}
+    todo = [(m, c, n) for c in args.compile for m in args.models for n in sorted(set(args.processes))]
+    kept = done_rows(args.out)   # a step stopped at its limit goes on where it stopped
+    rows, alone = [], {}
     for done, (name, path, processes) in enumerate(todo, 1):
-        compile = None if path == "none" else path
-        got = measure(cfg["models"][name], train, cfg["train"]["loss"], cfg["train"]["lr"], args.device, processes,
-                      args.warmup, args.steps, compile, args.timeout)
         label = LABELS.get(name, name)
+        if (label, path, str(processes)) in kept:
+            rows.append(kept[(label, path, str(processes))])
+            cells = [c.strip() for c in rows[-1].split("|")]
+            if processes == 1 and cells[6] != "-":
+                alone[(name, path)] = float(cells[6])
+            continue
+        got = measure(cfg["models"][name], train, cfg["train"]["loss"], cfg["train"]["lr"], args.device, processes,
+                      args.warmup, args.steps, None if path == "none" else path, args.timeout)
         if "failed" in got:
             rows.append(f"| {label} | {path} | {processes} | - | - | - | failed: {got['failed']} |")
         else:
-            alone.setdefault((name, path), got["steps/s"] if processes == 1 else None)
+            if processes == 1:
+                alone[(name, path)] = got["steps/s"]
             one = alone.get((name, path))
             rows.append(f"| {label} | {path} | {processes} | {got['threads']} | {got['ms']:.1f} | {got['steps/s']:.2f} | "
                         + (f"{got['steps/s'] / one:.2f}" if one else "-") + " |")

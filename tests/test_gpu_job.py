@@ -180,22 +180,30 @@ def test_the_render_step_measures_the_variant_twice_and_keeps_the_digests(projec
         assert failed.returncode == 1 and said.startswith("PARTIAL: the variant did not start"), said
 
 
-def test_the_concurrency_probe_times_processes_at_once_and_names_a_failure(tmp_path):
-    """scripts/gpu_step_concurrency.py (the job's `concurrency` step): two processes at once take training
-    steps of a model, each on its share of the cores; the record gives their ms/step and aggregate
-    steps/s, and is whole (no PARTIAL line) once every configuration is in. A path that fails in its
-    processes is its row, said, not a hang at the barrier. (One process alone, the ratio's base, is the
-    same code with a barrier of one: left out here for make test's time.)"""
+def test_the_concurrency_probe_goes_on_from_a_partial_record_and_a_dead_worker_is_its_row(tmp_path):
+    """scripts/gpu_step_concurrency.py (the job's `concurrency` step): the configurations a PARTIAL record
+    already holds are kept (a step stopped at its limit goes on), two processes at once take training
+    steps, each on its share of the cores, against the kept one-process row; the record is whole once
+    every configuration is in. A worker that dies without a word after warming up releases the others
+    at the barrier and is its configuration's row, not a hang."""
+    from bench.scheduler import threads_per_job
     out = tmp_path / "concurrency.md"
-    done = subprocess.run([sys.executable, "scripts/gpu_step_concurrency.py", "--device", "cpu", "--preset", "smoke",
-                           "--models", "edsr", "--processes", "2", "--compile", "bogus", "none", "--steps", "2",
-                           "--warmup", "1", "--timeout", "120", "--out", str(out)], cwd=REPO, capture_output=True,
+    out.write_text("PARTIAL: 1 of 2 configurations timed\n# earlier\n\n| model | path | processes | threads each | "
+                   "ms/step | steps/s | x one |\n|---|---|---|---|---|---|---|\n| EDSR | none | 1 | 2 | 50.0 | 20.00 | 1.00 |\n")
+    command = [sys.executable, "scripts/gpu_step_concurrency.py", "--device", "cpu", "--preset", "smoke", "--models",
+               "edsr", "--steps", "2", "--warmup", "1", "--timeout", "120"]
+    done = subprocess.run(command + ["--processes", "1", "2", "--out", str(out)], cwd=REPO, capture_output=True,
                           text=True, timeout=300)
     assert done.returncode == 0, done.stdout[-2000:] + done.stderr[-2000:]
     text = out.read_text()
-    assert text.startswith("# Training steps of several processes at once on cpu-")
-    rows = [line.split(" | ") for line in text.splitlines() if line.startswith("| EDSR |")]
-    assert [(r[1], r[2]) for r in rows] == [("bogus", "2"), ("none", "2")]
-    assert rows[0][6].startswith("failed: RuntimeError: Unrecognized mode=bogus")
-    assert rows[1][3] == "1" and float(rows[1][4]) > 0 and float(rows[1][5]) > 0   # 2 cores shared out
-    assert rows[1][6] == "- |"                                                       # no one-process row
+    assert text.startswith("# Training steps of several processes at once on cpu-")      # whole: no PARTIAL
+    rows = [[c.strip() for c in line.split("|")[1:-1]] for line in text.splitlines() if line.startswith("| EDSR |")]
+    assert rows[0] == ["EDSR", "none", "1", "2", "50.0", "20.00", "1.00"]                  # kept, not timed again
+    assert rows[1][:4] == ["EDSR", "none", "2", str(threads_per_job(2))] and float(rows[1][4]) > 0
+    assert float(rows[1][6]) == pytest.approx(float(rows[1][5]) / 20.0, abs=0.01)        # against the kept row
+    dies = subprocess.run(command + ["--processes", "1", "--out", str(tmp_path / "dies.md")], cwd=REPO,
+                          capture_output=True, text=True, timeout=300,
+                          env=dict(os.environ, SRD_BENCH_TEST_WORKER_EXIT="1:0"))
+    assert dies.returncode == 0, dies.stdout[-2000:] + dies.stderr[-2000:]
+    assert "| EDSR | none | 1 | - | - | - | failed: a process exited with code 3 without a word |" in \
+        (tmp_path / "dies.md").read_text()
