@@ -39,6 +39,12 @@ AUTO = "auto"
 FUSED_GPU = "SRD_BENCH_FUSED_GPU"
 
 
+def error_summary(err: BaseException, width: int | None = None) -> str:
+    """An error in one line for a table's cell or a log: its type and the first line of its message (at
+    most `width` characters of it)."""
+    return f"{type(err).__name__}: {(str(err).splitlines() or [''])[0][:width]}"
+
+
 @contextlib.contextmanager
 def fused_kernels_on_cuda():
     """Inside, a command's CUDA calls take the fused Triton kernels (bench/nn/triton_kernels.py) for the
@@ -149,7 +155,7 @@ def choose_fast_path(model, x: torch.Tensor, g: torch.Tensor | None, device: str
             run = prepare(model, name)
             timed = time_call(lambda: run(x, g), device, repeats=repeats, warmup=1)
         except Exception as err:  # a path this machine cannot run (no compiler, say) is not a candidate
-            times[name] = f"failed: {type(err).__name__}: {str(err).splitlines()[0][:120] if str(err) else ''}"
+            times[name] = f"failed: {error_summary(err, 120)}"
             continue
         out = timed["result"]["final"].float()
         if reference is None:

@@ -23,9 +23,11 @@ DOWN, UP = "\u2193", "\u2191"
 SCORED_ON = "preset {preset}, split {split}"
 SCORED_ON_PATTERN = r"[Pp]reset (\w+), split (\w+)"
 
-# Opens the caption of a table written section by section until its last section is in (the speed
-# table): a run stopped before then leaves a table that says so, and the GPU job times it again (once).
-PARTIAL_CAPTION = "PARTIAL: not every section is timed yet (a run stopped part way leaves this)."
+# Opens a record written part by part until its last part is in (the speed table's caption, the GPU
+# probes' and the deform sweep's first line): a run stopped before then leaves a record that says so, and
+# scripts/gpu_job.sh (which greps for it) runs the step again, once.
+PARTIAL = "PARTIAL: "
+PARTIAL_CAPTION = f"{PARTIAL}not every section is timed yet (a run stopped part way leaves this)."
 
 
 def read_table(path: str | Path) -> pd.DataFrame:

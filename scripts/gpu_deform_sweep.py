@@ -16,6 +16,7 @@ import torch
 
 from bench.experiments.speed import device_tag
 from bench.measure import time_call
+from bench.table_writer import PARTIAL
 from bench.nn import fused
 from bench.nn.deform import DeformConv2d
 
@@ -101,7 +102,7 @@ def main() -> None:
         os.makedirs(os.path.dirname(os.path.abspath(args.out)), exist_ok=True)
         # after each dtype: a call stopped at its limit keeps the first, marked PARTIAL until the last is in
         # (scripts/gpu_job.sh runs the sweep again then)
-        partial = [] if dtype == dtypes[-1] else ["PARTIAL: stopped before bf16 was timed.", ""]
+        partial = [] if dtype == dtypes[-1] else [f"{PARTIAL}stopped before bf16 was timed.", ""]
         with open(args.out, "w") as f:
             f.write("\n".join(lines + partial) + "\n")
     print("\n".join(lines))

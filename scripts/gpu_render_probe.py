@@ -40,6 +40,8 @@ sys.path.insert(0, str(ROOT))
 from bench import datagen, exrio, render  # noqa: E402
 from bench.atomic import write_atomic  # noqa: E402
 from bench.datagen import BUFFERS, plan_sequences  # noqa: E402
+from bench.measure import error_summary  # noqa: E402
+from bench.table_writer import PARTIAL  # noqa: E402
 
 
 def probe_spec(spec: dict, split: str, families: int, per_family: int) -> dict:
@@ -155,19 +157,12 @@ def differing_layers(a: dict, b: dict) -> dict[str, float]:
             if not np.array_equal(a[name], b[name], equal_nan=True)}
 
 
-PARTIAL = "PARTIAL: "   # the record's first line until its last stage is in (scripts/gpu_job.sh runs it again once)
-
-
 def write_record(out: Path, lines: list[str], partial: str | None) -> None:
     """The record as it stands, atomically: a probe killed at its limit leaves what it measured, under a
     first line saying what is missing."""
     text = (f"{PARTIAL}{partial}\n" if partial else "") + "\n".join(lines) + "\n"
     out.parent.mkdir(parents=True, exist_ok=True)
     write_atomic(out, lambda tmp: tmp.write_text(text))
-
-
-def first_line(err: BaseException, width: int = 200) -> str:
-    return f"{type(err).__name__}: {(str(err).splitlines() or [''])[0][:width]}"
 
 
 def passes_section(first: list[dict], second: list[dict], layers_total: int, differing: dict) -> list[str]:
@@ -226,7 +221,7 @@ def compare_variant(root: Path, tmp: Path, spec: dict, split: str, other: str, f
         records = datagen.render_sequence(tmp, job, {**spec, "seq_len": frames}, BUFFERS, variant=other)
         wall = time.perf_counter() - t0
     except Exception as err:  # noqa: BLE001 - a variant this machine cannot run is a line saying so
-        return [f"{other}: failed: {first_line(err)}"]
+        return [f"{other}: failed: {error_summary(err, 200)}"]
     lines = [f"{other}: {len(records)} frames of {job['sequence']} in {wall:.1f} s (scene load and kernel "
              "compile included)"]
     for frame, record in enumerate(records):
@@ -281,7 +276,7 @@ def main(argv=None) -> int:
         variant = render.use_variant(args.variant)
     except Exception as err:  # noqa: BLE001 - a variant this machine cannot run (no OptiX, no LLVM) is the record
         write_record(out, header + [f"mitsuba {mi.__version__}, drjit {dr.__version__}, {tag}: the variant did "
-                                    f"not start: {first_line(err, 400)}"], "the variant did not start")
+                                    f"not start: {error_summary(err, 400)}"], "the variant did not start")
         print(out.read_text())
         return 1
     header += [f"`python scripts/gpu_render_probe.py {' '.join(argv if argv is not None else sys.argv[1:])}`: "

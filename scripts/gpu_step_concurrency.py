@@ -31,7 +31,8 @@ from pathlib import Path
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-PARTIAL = "PARTIAL: "   # the record's first line until every configuration is in (scripts/gpu_job.sh)
+from bench.table_writer import PARTIAL  # noqa: E402   the first line until every configuration is in
+
 
 
 def composed(preset: str, overrides: list[str]) -> dict:
@@ -46,15 +47,12 @@ def composed(preset: str, overrides: list[str]) -> dict:
 TEST_EXIT = "SRD_BENCH_TEST_WORKER_EXIT"   # "<processes>:<rank>": that worker exits after warming up (tests)
 
 
-def _said(err: BaseException) -> str:
-    return f"{type(err).__name__}: {(str(err).splitlines() or [''])[0][:160]}"
-
-
 def worker(rank: int, model_cfg: dict, train: dict, loss: dict, lr: float, device: str, threads: int,
            warmup: int, steps: int, compile: str | None, barrier, results) -> None:
     """One process: build, warm up (compile), wait for the others, time `steps` steps; puts (start, end)
     wall-clock seconds, or the error's first line (then the others are released from the barrier)."""
     os.environ["TORCHINDUCTOR_COMPILE_THREADS"] = str(threads)   # N processes compiling share the cores
+    from bench.measure import error_summary   # a failure to import this far is a death, said by the parent
     try:
         import torch
         torch.set_num_threads(threads)
@@ -66,7 +64,7 @@ def worker(rank: int, model_cfg: dict, train: dict, loss: dict, lr: float, devic
         sync()
     except Exception as err:  # noqa: BLE001 - a configuration that fails here is that row, said
         barrier.abort()
-        results.put(_said(err))
+        results.put(error_summary(err, 160))
         return
     if os.environ.get(TEST_EXIT) == f"{barrier.parties}:{rank}":
         os._exit(3)   # a worker that dies without a word (tests/test_gpu_job.py)
@@ -82,7 +80,7 @@ def worker(rank: int, model_cfg: dict, train: dict, loss: dict, lr: float, devic
         sync()
         results.put((start, time.time()))
     except Exception as err:  # noqa: BLE001 - out of memory, a graph replay: the row, not a hang
-        results.put(_said(err))
+        results.put(error_summary(err, 160))
 
 
 def measure(model_cfg: dict, train: dict, loss: dict, lr: float, device: str, processes: int, warmup: int,

@@ -54,7 +54,7 @@ from bench.infer import (REFERENCE, frames_channels_last, freed_memory_kept, max
 from bench.losses import weighted_loss
 from bench.experiments.macs import frame_inputs, frame_macs
 from bench.macs import macs_at
-from bench.measure import candidate_paths, choose_fast_path, cpu_flags, cpu_isa, time_call
+from bench.measure import candidate_paths, choose_fast_path, cpu_flags, cpu_isa, error_summary, time_call
 from bench.models.factory import build_model
 from bench.nn import DeformConv2d, eager_gather, fused, grid_sample_training, inference_sampler, training_sampler
 from bench.table_writer import PARTIAL_CAPTION, write_table
@@ -243,11 +243,6 @@ def _row(section, method, path, size, per, timing=None, **extra) -> dict:
     return row
 
 
-def failure_note(err: BaseException) -> str:
-    """A row's note for a path that failed here: the error's type and the first line of its message."""
-    return f"failed: {type(err).__name__}: {(str(err).splitlines() or [''])[0][:120]}"
-
-
 def _size(hw, scale=2) -> str:
     h, w = hw
     return f"{w}x{h} -> {scale * w}x{scale * h}" if scale > 1 else f"{w}x{h}"
@@ -278,7 +273,7 @@ def inference_rows(label: str, model, macs: int, x, g, paths, device, repeats, w
             del first, out
         except Exception as err:  # a path the machine cannot run (no compiler, no bf16) is a row saying so
             log.warning("speed: %s %s failed: %s", label, path, err)
-            row["note"] = failure_note(err)
+            row["note"] = f"failed: {error_summary(err, 120)}"
         rows.append(row)
         log.info("speed: %s %s: %s ms/frame", label, path, row.get("ms"))
     return rows
@@ -361,7 +356,7 @@ def training_row(label: str, model, train: dict, loss_weights: dict, lr: float, 
     except Exception as err:  # noqa: BLE001 - as inference_rows: any failure of a path is that path's row
         log.warning("speed: %s training step %s failed: %s", label, path, err)
         size = f"{train['batch']}x{train['frames']} frames of {train['crop']}x{train['crop']} LR"
-        return _row("training step", label, path, size, "step", note=failure_note(err))
+        return _row("training step", label, path, size, "step", note=f"failed: {error_summary(err, 120)}")
 
 
 def timed_training_row(label: str, model, train: dict, loss_weights: dict, lr: float, device, repeats, warmup,

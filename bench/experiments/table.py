@@ -36,6 +36,7 @@ from bench.experiments.macs import frame_inputs
 from bench.experiments.row import row
 from bench.experiments.training import scoring_only_error, training_records, untrained
 from bench.macs import count_macs, on_meta
+from bench.measure import error_summary
 from bench.exposure import NAMES
 from bench.metrics import HIGHER_IS_BETTER, LOWER_IS_BETTER, RELMSE_FORMULA
 from bench.models.factory import build_model, is_learned
@@ -360,7 +361,7 @@ def selected_rows(ctx: Context, rows: list[dict], task: str, leave_out: list[str
             missing = _import_error(err)
             if not (leave_out_unavailable and missing):
                 raise
-            unavailable[r["label"]] = f"{type(missing).__name__}: {str(missing).splitlines()[0] if str(missing) else ''}"
+            unavailable[r["label"]] = error_summary(missing)
             log.warning("%s: left out, its model does not import here (%s)", r["label"], unavailable[r["label"]])
             continue
         kept.append(r)
