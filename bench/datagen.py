@@ -38,11 +38,9 @@ import zlib
 from concurrent.futures import ProcessPoolExecutor, as_completed
 
 import numpy as np
-import pandas as pd
-import torch
 from tqdm import tqdm
 
-from bench import exrio, metrics, render, scenes
+from bench import exrio, render, scenes
 from bench.atomic import write_atomic
 from bench.errors import UserError
 from bench.tasks import BUFFERS, GBUF_LAYERS
@@ -499,6 +497,8 @@ def refine_reference(scene, camera, width, height, ref, spp_now, target_spp, see
 
 def _error_of_mean(a, b):
     """bench.metrics.reference_error of two HxWx3 renders with as many samples each."""
+    import torch  # here, not at the top: a render worker that renders no halves starts without torch (~1.5 s)
+    from bench import metrics
     a, b = (torch.from_numpy(np.ascontiguousarray(x)).permute(2, 0, 1) for x in (a, b))
     return float(metrics.reference_error(a, b))
 
@@ -773,6 +773,7 @@ def rebuild_manifest(root, spec):
 
 def manifest_frame(records):
     """Flatten frame records into a DataFrame (nested timing and seed dicts become columns)."""
+    import pandas as pd  # here, not at the top: render workers never need it
     return pd.json_normalize(records, sep=".")
 
 
