@@ -262,6 +262,9 @@ def test_speed_experiment_writes_every_section(tmp_path):
     ("experiment.weights=[]", "experiment.weights=[]: expected {model: weights file}"),   # not taken for "none"
     ("experiment.profile.fast_path=compile", "experiment.profile.fast_path=compile: hooks do not see inside"),
     ("experiment.profile.fast_path=fp16", "experiment.profile.fast_path: 'fp16': unknown fast path switch"),
+    ("experiment.models=[srd,bilinear]", "experiment.models: 'bilinear' has nothing to train; the speed table"),
+    ("experiment.models=[oidn_lr]", "experiment.models: 'oidn_lr' has nothing to train; the speed table"),
+    ("experiment.models=[srdd]", "experiment.models: no model 'srdd'; models: srd, "),
 ])
 def test_a_bad_section_value_is_one_line_before_anything_is_timed(tmp_path, override, message):
     with initialize_config_dir(config_dir=CONF_DIR, version_base=None):

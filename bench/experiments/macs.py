@@ -20,7 +20,7 @@ import torch
 from bench.errors import UserError
 from bench.experiments.context import model_config
 from bench.macs import audit, closest_width, count_macs, count_params, on_meta
-from bench.models.factory import build_model
+from bench.models.factory import build_model, is_learned
 from bench.paper import BUDGET_GMAC, GMAC_INPUT_HW, paper_values
 from bench.table_writer import write_table
 
@@ -50,10 +50,13 @@ def frame_inputs(cfg: dict, input_hw: tuple[int, int]):
                            torch.zeros(1, 1, g_ch, h, w, device=device))
 
 
-def frame_macs(cfg: dict, input_hw: tuple[int, int]) -> pd.DataFrame:
-    """bench.macs rows (layer, macs, ...) of one LR frame through `cfg`'s model at scale 2, counted on the
-    meta device: what the audit counts, for the tables that report MACs beside a time (speed)."""
-    return count_macs(*on_meta(lambda: build_model(cfg, 2), frame_inputs(cfg, input_hw)))
+def frame_macs(cfg: dict, input_hw: tuple[int, int], scale: int = 2) -> pd.DataFrame | None:
+    """bench.macs rows (layer, macs, ...) of one LR frame through `cfg`'s model at `scale`, counted on
+    the meta device: what the audit counts, for the tables that report MACs beside a score or a time
+    (table's GMac column, speed). None for a model with nothing to train (interpolation, OIDN): the
+    budget leaves those out."""
+    model, inputs = on_meta(lambda: build_model(cfg, scale), frame_inputs(cfg, input_hw))
+    return count_macs(model, inputs) if is_learned(model) else None
 
 
 def audit_row(name: str, cfg: dict, budget_macs: float, input_hw, tolerance: float = 0.05

@@ -55,7 +55,7 @@ from bench.losses import weighted_loss
 from bench.experiments.macs import frame_inputs, frame_macs
 from bench.macs import macs_at
 from bench.measure import candidate_paths, choose_fast_path, cpu_flags, cpu_isa, error_summary, time_call
-from bench.models.factory import build_model
+from bench.models.factory import build_model, is_learned
 from bench.nn import DeformConv2d, eager_gather, fused, grid_sample_training, inference_sampler, training_sampler
 from bench.table_writer import PARTIAL_CAPTION, write_table
 from bench.weights import load_exported
@@ -620,6 +620,11 @@ def run(ctx, name: str = "speed", models: list[str] = (), input_hw=(540, 960),
     unknown = [m for m in models if m not in ctx.models]
     if unknown:  # before the first section is timed
         raise UserError(f"experiment.models: no model {unknown[0]!r}; models: {', '.join(ctx.models)}")
+    for m in models:
+        with torch.device("meta"):   # no memory: only whether it has parameters
+            if not is_learned(build_model(ctx.models[m], 2)):
+                raise UserError(f"experiment.models: {m!r} has nothing to train; the speed table times learned "
+                                f"models (OIDN has its own row: experiment.oidn)")
     if not (len(input_hw) == 2 and all(isinstance(n, int) and n >= 8 for n in input_hw)):
         raise UserError(f"experiment.input_hw={list(input_hw)}: expected [height, width], each an integer >= 8")
     for key, count, least in (("repeats", repeats, 1), ("warmup", warmup, 0)):

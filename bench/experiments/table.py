@@ -32,14 +32,13 @@ from bench.experiments.context import Context, model_config, row_setting, split_
 from bench.experiments.datasets import ensure_data, evaluation_data, frame_records, splits_on_disk
 from bench.experiments.evaluation import evaluation_recorded
 from bench.experiments.figure import crop_figure, curve_figure
-from bench.experiments.macs import frame_inputs
+from bench.experiments.macs import frame_macs
 from bench.experiments.row import row
 from bench.experiments.training import scoring_only_error, training_records, untrained
-from bench.macs import count_macs, on_meta
 from bench.measure import error_summary
 from bench.exposure import NAMES
 from bench.metrics import HIGHER_IS_BETTER, LOWER_IS_BETTER, RELMSE_FORMULA
-from bench.models.factory import build_model, is_learned
+from bench.models.factory import build_model
 from bench.paper import TABLES, paper_values
 from bench.table_writer import SCORED_ON, listed_evaluations, write_table
 from bench.tasks import CASCADE_STAGES, TASKS, get_task
@@ -179,11 +178,8 @@ def passes_for(rows: list[dict], default_task: str) -> set[str]:
 
 def gmac(ctx: Context, r: dict, input_hw=(540, 960)) -> float | None:
     """Analytic GMac of a row's model per 960x540 LR frame (None for non-learned rows)."""
-    cfg = model_config(ctx, r["model"], r.get("overrides"))
-    model, inputs = on_meta(lambda: build_model(cfg, get_task(r["task"]).scale), frame_inputs(cfg, input_hw))
-    if not is_learned(model):
-        return None
-    return float(count_macs(model, inputs)["macs"].sum()) / 1e9
+    layers = frame_macs(model_config(ctx, r["model"], r.get("overrides")), input_hw, get_task(r["task"]).scale)
+    return None if layers is None else float(layers["macs"].sum()) / 1e9
 
 
 def with_paper(table: pd.DataFrame, rows: list[dict], paper_table: str | None) -> pd.DataFrame:
