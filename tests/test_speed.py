@@ -444,30 +444,52 @@ def test_the_results_page_says_a_table_of_trained_weights_for_every_model_ran_tr
     assert speed_table_label(tmp_path / "table.md") == "trained weights"
 
 
-def test_a_run_stopped_before_its_last_section_leaves_a_table_that_says_partial(tmp_path, monkeypatch):
+def test_a_run_stopped_before_its_last_section_leaves_a_table_that_says_partial_and_the_next_goes_on(tmp_path,
+                                                                                                     monkeypatch):
     """The table is rewritten after every section: one stopped part way (a GPU job's step at its limit)
     keeps what it timed under a caption opening with PARTIAL, which the results page repeats and
-    scripts/gpu_job.sh reads to time it again; a run that finishes writes the caption without it."""
+    scripts/gpu_job.sh reads to run the step again. The next run of the same settings and code times only
+    the sections not in yet (a speed table too long for one call is finished by the next), and says so
+    in the caption without PARTIAL; a run of other settings times every section again."""
     import bench.experiments.speed as speed
     from bench.experiments.results_page import speed_table_label
     cfg = two_tiny_models(tmp_path, "+experiment.train.enabled=false", "experiment.profile.models=[]")
     table_md = tmp_path / "speed" / device_tag("cpu") / "table.md"
-    timed = speed.inference_rows
+    kept = table_md.parent / speed.PARTIAL_SECTIONS
+    timed, seen = speed.inference_rows, []
 
     def stops_at_rae(label, *args):
         if label == "RAE":
             raise KeyboardInterrupt  # as SIGINT, or the trainer's SIGTERM handler, would stop it
         return timed(label, *args)
+
+    def counted(label, *args):
+        seen.append(label)
+        return timed(label, *args)
     monkeypatch.setattr(speed, "inference_rows", stops_at_rae)
     with pytest.raises(KeyboardInterrupt):
         run_experiment(cfg)
     assert table_md.read_text().startswith("PARTIAL: ")
-    assert set(pd.read_csv(table_md.with_suffix(".csv")).method) == {"EDSR"}
+    first = pd.read_csv(table_md.with_suffix(".csv"))
+    assert set(first.method) == {"EDSR"} and kept.exists()
     assert speed_table_label(table_md) == "untrained weights, PARTIAL (not every section timed)"
-    monkeypatch.setattr(speed, "inference_rows", timed)
+    monkeypatch.setattr(speed, "inference_rows", counted)
     run_experiment(cfg)
+    assert seen == ["RAE"]                                              # EDSR's section kept, not timed again
     assert not table_md.read_text().startswith("PARTIAL") and speed_table_label(table_md) == "untrained weights"
-    assert set(pd.read_csv(table_md.with_suffix(".csv")).method) == {"EDSR", "RAE"}
+    assert table_md.read_text().split("\n")[0].endswith(
+        "Resumed: EDSR timed by an earlier run of these settings and code, which was interrupted.")
+    whole = pd.read_csv(table_md.with_suffix(".csv"))
+    assert set(whole.method) == {"EDSR", "RAE"} and not kept.exists()
+    assert whole[whole.method == "EDSR"]["ms"].tolist() == first["ms"].tolist()
+    monkeypatch.setattr(speed, "inference_rows", stops_at_rae)
+    with pytest.raises(KeyboardInterrupt):
+        run_experiment(cfg)
+    monkeypatch.setattr(speed, "inference_rows", counted)
+    seen.clear()
+    run_experiment(two_tiny_models(tmp_path, "+experiment.train.enabled=false", "experiment.profile.models=[]",
+                                   "experiment.repeats=2"))        # other settings: nothing kept
+    assert seen == ["EDSR", "RAE"] and "Resumed" not in table_md.read_text() and not kept.exists()
 
 
 def test_the_profile_takes_the_last_path_hooks_can_see_into():

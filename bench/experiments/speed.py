@@ -34,6 +34,8 @@ from __future__ import annotations
 import contextlib
 import copy
 import functools
+import hashlib
+import json
 import logging
 import platform
 import re
@@ -47,6 +49,8 @@ import pandas as pd
 import torch
 import torch.nn as nn
 
+from bench import runs
+from bench.atomic import write_atomic
 from bench.errors import UserError
 from bench.evaluate import sync
 from bench.infer import (REFERENCE, frames_channels_last, freed_memory_kept, max_abs_diff, parse_path, prepare, release_free_memory,
@@ -68,6 +72,9 @@ COLUMNS = ["section", "method", "fast path", "size", "per", "ms", "ms min", "ms 
            "peak MiB", "time / OIDN", "GMac/s / conv stack", "step / conv stack step", "time / plain conv",
            "max abs diff",
            "max rel diff", "note"]
+# beside a PARTIAL table: the rows of its finished sections and the settings they were timed with, read by
+# the next run of the same settings, which times only the rest (kept_sections); removed once it is whole
+PARTIAL_SECTIONS = "partial_sections.json"
 
 
 # ------------------------------------------------------------------------------ machine
@@ -340,9 +347,14 @@ def training_rows(label: str, model, train: dict, loss_weights: dict, lr: float,
             if default != "fused":
                 rows.append(training_row(label, model, train, loss_weights, lr, device, repeats, warmup,
                                          path="fp32, fused sampler"))
-            # the trainer's train.precision=bf16 and train.channels_last=true
+            # the trainer's train.precision=bf16 and train.channels_last=true, eager and, where asked, compiled:
+            # eager, that step is host-bound; graphed, its convolutions are what is left to gain on
             rows.append(training_row(label, model, train, loss_weights, lr, device, repeats, warmup,
                                      path="bf16+channels_last, fused sampler", bf16=True, channels_last=True))
+            if train.get("compile") and label in train.get("compiled", ()):
+                rows.append(training_row(label, model, train, loss_weights, lr, device, repeats, warmup,
+                                         path=f"bf16+channels_last, fused sampler, compiled ({train['compile']})",
+                                         bf16=True, channels_last=True, compile=train["compile"]))
     return rows
 
 
@@ -649,20 +661,54 @@ def run(ctx, name: str = "speed", models: list[str] = (), input_hw=(540, 960),
         "or bench.infer fast path (bf16 = autocast bfloat16); diffs vs the fp32 output (tiled: vs untiled); peak MiB: "
         "memory one call adds; note: the path fast_path=auto picks on this machine. Ratios: model time / OIDN at the output size; model GMac/s / a 3x3 conv stack of "
         "the proposed model's GMac on the same path; deformable conv time / nn.Conv2d of the same shape.")
-    rows, table = [], None
+    settings = settings_key(ctx, caption, models=list(models), input_hw=list(input_hw), fast_paths=fast_paths,
+                            repeats=repeats, warmup=warmup, threads=threads, train=train, oidn=oidn,
+                            conv_stack_channels=conv_stack_channels, deform=deform, tiled=tiled, perturb=perturb,
+                            profile=profile, weights=weights)
+    kept = kept_sections(out_dir, settings)
+    done, table = {}, None
     try:
-        for section in _sections(ctx, models, tuple(input_hw), fast_paths or PATHS, repeats, warmup,
-                                 train or {}, oidn, conv_stack_channels, deform or {}, tiled or {}, perturb,
-                                 profile, trained, device):
-            rows += section
-            table = _ratios(pd.DataFrame(rows, columns=COLUMNS))
+        for key, compute in _sections(ctx, models, tuple(input_hw), fast_paths or PATHS, repeats, warmup,
+                                      train or {}, oidn, conv_stack_channels, deform or {}, tiled or {}, perturb,
+                                      profile, trained, device):
+            if key in kept:
+                log.info("speed: %s as the interrupted run with these settings timed it", key)
+            done[key] = kept[key] if key in kept else compute()
+            table = _ratios(pd.DataFrame([r for rows in done.values() for r in rows], columns=COLUMNS))
             write_table(table, out_dir, digits=3, caption=f"{PARTIAL_CAPTION} {caption}")
+            write_atomic(out_dir / PARTIAL_SECTIONS, lambda tmp: tmp.write_text(
+                json.dumps({"settings": settings, "sections": done}, default=float) + "\n"))
         if table is not None:  # every section is in: the caption loses its PARTIAL
-            write_table(table, out_dir, digits=3, caption=caption)
+            reused = [key for key in done if key in kept]
+            write_table(table, out_dir, digits=3, caption=caption + (
+                f" Resumed: {', '.join(reused)} timed by an earlier run of these settings and code, which was "
+                "interrupted." if reused else ""))
+        (out_dir / PARTIAL_SECTIONS).unlink(missing_ok=True)
     finally:
         torch.set_num_threads(previous_threads)
     log.info("speed: table in %s", out_dir)
     return table
+
+
+def settings_key(ctx, caption: str, **arguments) -> str:
+    """What a section's rows depend on: the experiment's arguments, the caption (machine, preset, weights),
+    the models' configurations and the training recipe, and the code (runs.code_fingerprint)."""
+    described = {"arguments": arguments, "caption": caption, "device": str(ctx.device),
+                 "models": {m: ctx.models[m] for m in arguments["models"] + ["srd"] if m in ctx.models},
+                 "recipe": ctx.train, "code": runs.code_fingerprint(["bench.experiments.speed"])}
+    return hashlib.sha256(json.dumps(described, sort_keys=True, default=repr).encode()).hexdigest()[:16]
+
+
+def kept_sections(out_dir: Path, settings: str) -> dict[str, list[dict]]:
+    """{section: rows} an interrupted run of the same settings left (PARTIAL_SECTIONS), else {}: a speed
+    table too long for one call (a GPU machine's) is finished by the next instead of started again."""
+    try:
+        recorded = json.loads((out_dir / PARTIAL_SECTIONS).read_text())
+    except (OSError, ValueError):
+        return {}
+    if not isinstance(recorded, dict) or recorded.get("settings") != settings:
+        return {}
+    return recorded.get("sections") or {}
 
 
 def weights_caption(trained: dict, models: Sequence[str]) -> str:
@@ -722,40 +768,44 @@ def _check_sections(conv_stack_channels, perturb, deform: dict, tiled: dict) -> 
 
 def _sections(ctx, models, input_hw, paths, repeats, warmup, train, oidn, stack_channels, deform, tiled,
               perturb, profile, trained, device):
-    """Rows, section by section: the reference points first (quick, and every ratio needs them), then
-    one model at a time."""
+    """(name, compute) of each section, in order: the reference points first (quick, and every ratio
+    needs them), then one model at a time; compute() times the section and returns its rows."""
     if oidn:
-        row = oidn_row((2 * input_hw[0], 2 * input_hw[1]), device, repeats, warmup)
-        yield [row] if row else []
-    train_crop = {"batch": ctx.train.batch_size, "frames": ctx.train.seq_len, "crop": ctx.train.crop,
-                  **{k: v for k, v in train.items() if v is not None}}
+        yield "OIDN", lambda: [row for row in [oidn_row((2 * input_hw[0], 2 * input_hw[1]), device, repeats, warmup)]
+                               if row]
+    train = {"batch": ctx.train.batch_size, "frames": ctx.train.seq_len, "crop": ctx.train.crop,
+             **{k: v for k, v in train.items() if v is not None}}
     layers_of = functools.cache(lambda name: frame_macs(ctx.models[name], input_hw))  # srd's counted once
     if stack_channels and "srd" in ctx.models:
-        ours_macs = int(layers_of("srd")["macs"].sum())
-        yield conv_stack_rows(ours_macs, input_hw, stack_channels, paths, device, repeats, warmup,
-                              train_crop if train_crop.get("enabled", True) else None, ctx.train.lr)
+        yield "conv stack", lambda: conv_stack_rows(int(layers_of("srd")["macs"].sum()), input_hw, stack_channels,
+                                                    paths, device, repeats, warmup,
+                                                    train if train.get("enabled", True) else None, ctx.train.lr)
     if deform.get("enabled", True):
-        yield deform_rows(deform.get("channels", 32), [tuple(s) for s in deform.get("sizes", [[270, 480], [540, 960]])],
-                          device, repeats, warmup)
-    x, g = random_frames(1, 1, input_hw, device)
-    train = train_crop
+        yield "deformable conv", lambda: deform_rows(
+            deform.get("channels", 32), [tuple(s) for s in deform.get("sizes", [[270, 480], [540, 960]])],
+            device, repeats, warmup)
     tile_models = (tiled.get("models") or models) if tiled.get("enabled", True) else []
     for name in models:
-        cfg = ctx.models[name]
-        label = LABELS.get(name, name)
-        model = trained[name][0].to(device) if name in trained else build(cfg, device, perturb)
-        layers = layers_of(name)
-        macs = int(layers["macs"].sum())
-        rows = inference_rows(label, model, macs, x, g, paths, device, repeats, warmup)
-        note_auto_choice(rows, model, x, g, device, repeats, untrained=name not in trained)
-        if train.get("enabled", True):
-            rows += training_rows(label, model, train, ctx.train.loss, ctx.train.lr, device,
-                                  repeats, warmup)
-        if name in (profile.get("models") or []):
-            rows += profile_rows(label, model, layers, x, g, profile["fast_path"], device, repeats, warmup)
-        if name in tile_models:
-            untiled = prepare(model)(x, g)
-            uhd = tuple(tiled.get("uhd_input_hw", (1080, 1920))) if tiled.get("uhd", True) else None
-            rows += tiled_rows(label, model, x, g, tiled.get("tile", 512), tiled.get("overlap", 128), device,
-                               repeats, warmup, untiled, uhd)
-        yield rows
+        yield LABELS.get(name, name), functools.partial(
+            _model_rows, ctx, name, layers_of(name), input_hw, paths, repeats, warmup, train, perturb, profile,
+            trained, device, tiled if name in tile_models else None)
+
+
+def _model_rows(ctx, name, layers, input_hw, paths, repeats, warmup, train, perturb, profile, trained, device,
+                tiled) -> list[dict]:
+    """A model's section: its inference rows (and auto's choice), training steps, profile and tiles."""
+    x, g = random_frames(1, 1, input_hw, device)
+    label = LABELS.get(name, name)
+    model = trained[name][0].to(device) if name in trained else build(ctx.models[name], device, perturb)
+    rows = inference_rows(label, model, int(layers["macs"].sum()), x, g, paths, device, repeats, warmup)
+    note_auto_choice(rows, model, x, g, device, repeats, untrained=name not in trained)
+    if train.get("enabled", True):
+        rows += training_rows(label, model, train, ctx.train.loss, ctx.train.lr, device, repeats, warmup)
+    if name in (profile.get("models") or []):
+        rows += profile_rows(label, model, layers, x, g, profile["fast_path"], device, repeats, warmup)
+    if tiled is not None:
+        untiled = prepare(model)(x, g)
+        uhd = tuple(tiled.get("uhd_input_hw", (1080, 1920))) if tiled.get("uhd", True) else None
+        rows += tiled_rows(label, model, x, g, tiled.get("tile", 512), tiled.get("overlap", 128), device,
+                           repeats, warmup, untiled, uhd)
+    return rows
