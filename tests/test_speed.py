@@ -490,6 +490,14 @@ def test_a_run_stopped_before_its_last_section_leaves_a_table_that_says_partial_
     run_experiment(two_tiny_models(tmp_path, "+experiment.train.enabled=false", "experiment.profile.models=[]",
                                    "experiment.repeats=2"))        # other settings: nothing kept
     assert seen == ["EDSR", "RAE"] and "Resumed" not in table_md.read_text() and not kept.exists()
+    monkeypatch.setattr(speed, "inference_rows", stops_at_rae)
+    with pytest.raises(KeyboardInterrupt):
+        run_experiment(cfg)
+    monkeypatch.setattr(speed, "inference_rows", counted)
+    monkeypatch.setenv("SRD_BENCH_FUSED_GPU", "1")       # the GPU job's kernels switched on since: nothing kept
+    seen.clear()
+    run_experiment(cfg)
+    assert seen == ["EDSR", "RAE"] and "Resumed" not in table_md.read_text()
 
 
 def test_the_profile_takes_the_last_path_hooks_can_see_into():

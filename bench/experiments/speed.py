@@ -37,6 +37,7 @@ import functools
 import hashlib
 import json
 import logging
+import os
 import platform
 import re
 import statistics
@@ -692,8 +693,10 @@ def run(ctx, name: str = "speed", models: list[str] = (), input_hw=(540, 960),
 
 def settings_key(ctx, caption: str, **arguments) -> str:
     """What a section's rows depend on: the experiment's arguments, the caption (machine, preset, weights),
-    the models' configurations and the training recipe, and the code (runs.code_fingerprint)."""
+    the models' configurations and the training recipe, the code (runs.code_fingerprint) and whether CUDA
+    calls take the fused kernels (the GPU job switches them on once its kernel tests pass)."""
     described = {"arguments": arguments, "caption": caption, "device": str(ctx.device),
+                 "fused on CUDA": os.environ.get("SRD_BENCH_FUSED_GPU", "0"),
                  "models": {m: ctx.models[m] for m in arguments["models"] + ["srd"] if m in ctx.models},
                  "recipe": ctx.train, "code": runs.code_fingerprint(["bench.experiments.speed"])}
     return hashlib.sha256(json.dumps(described, sort_keys=True, default=repr).encode()).hexdigest()[:16]
