@@ -265,6 +265,7 @@ def test_speed_experiment_writes_every_section(tmp_path):
     ("experiment.models=[srd,bilinear]", "experiment.models: 'bilinear' has nothing to train; the speed table"),
     ("experiment.models=[oidn_lr]", "experiment.models: 'oidn_lr' has nothing to train; the speed table"),
     ("experiment.models=[srdd]", "experiment.models: no model 'srdd'; models: srd, "),
+    ("experiment.models=[edsr,rae,edsr]", "experiment.models: 'edsr' is listed twice"),
 ])
 def test_a_bad_section_value_is_one_line_before_anything_is_timed(tmp_path, override, message):
     with initialize_config_dir(config_dir=CONF_DIR, version_base=None):
@@ -536,11 +537,18 @@ def test_the_results_page_gives_the_compiled_step_beside_the_eager_one_and_the_c
     rows = [{"section": "inference", "method": m, "fast path": "fp32", "ms": ms} for m, ms in (("Ours", 28.4), ("EDSR", 26.8))]
     rows += [{"section": "training step", "method": m, "fast path": p, "ms": ms} for m, p, ms in (
         (stack, "fp32", 19.44), (stack, "fp32, compiled (reduce-overhead)", 14.68), ("Ours", "fp32", 140.9),
-        ("Ours", "fp32, compiled (reduce-overhead)", 37.48), ("EDSR", "fp32", 28.2))]
+        ("Ours", "bf16+channels_last, fused sampler, compiled (reduce-overhead)", 29.4),  # CUDA's bf16 graphed step
+        ("Ours", "fp32, compiled (reduce-overhead)", 37.48), ("EDSR", "fp32", 28.2),
+        ("Ours", "fp32, grid_sample sampler", 150.0))]
     out = tmp_path / "speed" / "cuda-x"
     out.mkdir(parents=True)
-    pd.DataFrame(rows, columns=speed.COLUMNS).to_csv(out / "table.csv", index=False)
-    text = "\n".join(speed_section(tmp_path))
+    table = speed._ratios(pd.DataFrame(rows, columns=speed.COLUMNS))
+    # against the stack's step on its own path, else its fp32 step compiled the same way, else its eager one
+    assert table["step / conv stack step"].dropna().round(3).tolist() == [
+        1.0, 1.0, round(140.9 / 19.44, 3), round(29.4 / 14.68, 3), round(37.48 / 14.68, 3), round(28.2 / 19.44, 3),
+        round(150.0 / 19.44, 3)]
+    table.to_csv(out / "table.csv", index=False)
+    text = "\n".join(speed_section(tmp_path))   # its graphed column: the fp32 graphed step, not bf16's
     assert "| model | fp32 ms/frame | auto (ms/frame) | training step ms | step ms, compiled (reduce-overhead) |" in text
     assert "| Ours | 28.4 | - | 140.9 | 37.5 |" in text and "| EDSR | 26.8 | - | 28.2 | - |" in text
     assert f"The {stack}, of Ours' MACs per pixel, for scale: a training step of 19.4 ms (fp32), 14.7 ms " \

@@ -603,7 +603,8 @@ def profile_rows(label: str, model, macs_table: pd.DataFrame, x, g, path: str, d
 def _ratios(table: pd.DataFrame) -> pd.DataFrame:
     """time / OIDN for every per-frame inference row of OIDN's output size (not the 4K tiles: OIDN is timed
     at 1080p only); GMac/s / conv stack per fast path; a training step against the conv stack's step on
-    the same path (compiled against compiled), else its fp32 one."""
+    the same path, else (a compiled step on another path: bf16) its fp32 one compiled the same way, else
+    its eager fp32 one."""
     oidn = table[table["method"].str.startswith("OIDN")]
     if len(oidn):
         output_size = table["size"].astype(str).str.split("-> ").str[-1]
@@ -616,10 +617,13 @@ def _ratios(table: pd.DataFrame) -> pd.DataFrame:
         gmacs / stack.get(path, float("nan")) for gmacs, path in table.loc[inference, ["GMac/s", "fast path"]].to_numpy()]
     steps = table["section"] == "training step"
     stack_steps = table[steps & table["method"].str.startswith("3x3 conv stack")].set_index("fast path")["ms"]
-    if len(stack_steps):  # against the stack's step on the same path (compiled), else its eager fp32 one
-        eager = stack_steps.get("fp32", float("nan"))
+    if len(stack_steps):
+        def stack_step(path: str) -> float:
+            compiled = re.search(r"compiled \(.*\)$", path)
+            fp32 = f"fp32, {compiled.group(0)}" if compiled else "fp32"
+            return stack_steps.get(path, stack_steps.get(fp32, float("nan")))
         table.loc[steps, "step / conv stack step"] = [
-            ms / stack_steps.get(path, eager) for ms, path in table.loc[steps, ["ms", "fast path"]].to_numpy()]
+            ms / stack_step(str(path)) for ms, path in table.loc[steps, ["ms", "fast path"]].to_numpy()]
     return table
 
 
@@ -633,6 +637,9 @@ def run(ctx, name: str = "speed", models: list[str] = (), input_hw=(540, 960),
     unknown = [m for m in models if m not in ctx.models]
     if unknown:  # before the first section is timed
         raise UserError(f"experiment.models: no model {unknown[0]!r}; models: {', '.join(ctx.models)}")
+    twice = [m for i, m in enumerate(models) if m in models[:i]]
+    if twice:  # a model's section is named by it
+        raise UserError(f"experiment.models: {twice[0]!r} is listed twice")
     for m in models:
         with torch.device("meta"):   # no memory: only whether it has parameters
             if not is_learned(build_model(ctx.models[m], 2)):
@@ -662,10 +669,10 @@ def run(ctx, name: str = "speed", models: list[str] = (), input_hw=(540, 960),
         "or bench.infer fast path (bf16 = autocast bfloat16); diffs vs the fp32 output (tiled: vs untiled); peak MiB: "
         "memory one call adds; note: the path fast_path=auto picks on this machine. Ratios: model time / OIDN at the output size; model GMac/s / a 3x3 conv stack of "
         "the proposed model's GMac on the same path; deformable conv time / nn.Conv2d of the same shape.")
-    settings = settings_key(ctx, caption, models=list(models), input_hw=list(input_hw), fast_paths=fast_paths,
-                            repeats=repeats, warmup=warmup, threads=threads, train=train, oidn=oidn,
-                            conv_stack_channels=conv_stack_channels, deform=deform, tiled=tiled, perturb=perturb,
-                            profile=profile, weights=weights)
+    settings = settings_key(ctx, caption, trained, models=list(models), input_hw=list(input_hw),
+                            fast_paths=fast_paths, repeats=repeats, warmup=warmup, threads=threads, train=train,
+                            oidn=oidn, conv_stack_channels=conv_stack_channels, deform=deform, tiled=tiled,
+                            perturb=perturb, profile=profile, weights=weights)
     kept = kept_sections(out_dir, settings)
     done, table = {}, None
     try:
@@ -691,14 +698,22 @@ def run(ctx, name: str = "speed", models: list[str] = (), input_hw=(540, 960),
     return table
 
 
-def settings_key(ctx, caption: str, **arguments) -> str:
-    """What a section's rows depend on: the experiment's arguments, the caption (machine, preset, weights),
-    the models' configurations and the training recipe, the code (runs.code_fingerprint) and whether CUDA
-    calls take the fused kernels (the GPU job switches them on once its kernel tests pass)."""
-    described = {"arguments": arguments, "caption": caption, "device": str(ctx.device),
-                 "fused on CUDA": os.environ.get("SRD_BENCH_FUSED_GPU", "0"),
-                 "models": {m: ctx.models[m] for m in arguments["models"] + ["srd"] if m in ctx.models},
-                 "recipe": ctx.train, "code": runs.code_fingerprint(["bench.experiments.speed"])}
+def settings_key(ctx, caption: str, trained: dict, **arguments) -> str:
+    """What a section's rows depend on: the experiment's arguments; the caption (machine, threads, preset,
+    weights) without the clock, which /proc gives as the current one where the CPU scales it; the
+    trained weights' values; the models' configurations and the training recipe; the code they run
+    (bench.experiments.speed's imports, the models' modules and the fused kernels, which are loaded by
+    name); and the switches of the CPU and GPU kernels (the GPU job turns the fused ones on once its
+    kernel tests pass)."""
+    names = list(dict.fromkeys(arguments["models"] + ["srd"]))
+    configs = {m: ctx.models[m] for m in names if m in ctx.models}
+    weights = {m: hashlib.sha256(b"".join(t.detach().cpu().numpy().tobytes() for t in model.state_dict().values()
+                                          )).hexdigest() for m, (model, _) in trained.items()}
+    code = runs.code_fingerprint(["bench.experiments.speed", "bench.nn.triton_kernels",
+                                  *(cfg["_target_"] for cfg in configs.values())])
+    described = {"arguments": arguments, "caption": re.sub(r"\d+ MHz", "MHz", caption), "device": str(ctx.device),
+                 "switches": {k: os.environ.get(k) for k in ("SRD_BENCH_FUSED_GPU", "SRD_BENCH_NATIVE")},
+                 "weights": weights, "models": configs, "recipe": ctx.train, "code": code}
     return hashlib.sha256(json.dumps(described, sort_keys=True, default=repr).encode()).hexdigest()[:16]
 
 
@@ -710,6 +725,7 @@ def kept_sections(out_dir: Path, settings: str) -> dict[str, list[dict]]:
     except (OSError, ValueError):
         return {}
     if not isinstance(recorded, dict) or recorded.get("settings") != settings:
+        log.info("speed: %s is of other settings or code: every section is timed again", out_dir / PARTIAL_SECTIONS)
         return {}
     return recorded.get("sections") or {}
 
