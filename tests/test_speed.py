@@ -385,7 +385,7 @@ def test_weights_give_a_model_its_trained_weights_in_every_row_and_the_caption_n
     saved = _exported(tmp_path / "edsr.pt", edsr)
     timed, stepped, profiled, on_untrained = {}, {}, {}, {}
     monkeypatch.setattr(speed, "inference_rows", lambda label, model, *a: timed.setdefault(label, model) and [])
-    monkeypatch.setattr(speed, "training_rows", lambda label, model, *a: stepped.setdefault(label, model) and [])
+    monkeypatch.setattr(speed, "training_steps", lambda label, model, *a: stepped.setdefault(label, model) and [])
     monkeypatch.setattr(speed, "profile_rows", lambda label, model, *a: profiled.setdefault(label, model) and [])
     monkeypatch.setattr(speed, "note_auto_choice", lambda rows, model, *a, untrained: on_untrained.setdefault(
         type(model).__name__, untrained))
@@ -447,56 +447,55 @@ def test_the_results_page_says_a_table_of_trained_weights_for_every_model_ran_tr
 
 def test_a_run_stopped_before_its_last_section_leaves_a_table_that_says_partial_and_the_next_goes_on(tmp_path,
                                                                                                      monkeypatch):
-    """The table is rewritten after every section: one stopped part way (a GPU job's step at its limit)
-    keeps what it timed under a caption opening with PARTIAL, which the results page repeats and
-    scripts/gpu_job.sh reads to run the step again. The next run of the same settings and code times only
-    the sections not in yet (a speed table too long for one call is finished by the next), and says so
-    in the caption without PARTIAL; a run of other settings times every section again."""
+    """The table is rewritten after every section (a model's inference, each of its training steps, ...):
+    one stopped part way (a GPU job's step at its limit) keeps what it timed under a caption opening with
+    PARTIAL, which the results page repeats and scripts/gpu_job.sh reads to run the step again. The next
+    run of the same settings and code times only the sections not in yet (a speed table too long for one
+    call is finished by the next), and says so in the caption without PARTIAL; a run of other settings,
+    or with the fused kernels switched on since, times every section again."""
     import bench.experiments.speed as speed
     from bench.experiments.results_page import speed_table_label
-    cfg = two_tiny_models(tmp_path, "+experiment.train.enabled=false", "experiment.profile.models=[]")
+    cfg = two_tiny_models(tmp_path, "experiment.train={batch:1,frames:2,crop:8}", "experiment.profile.models=[]")
     table_md = tmp_path / "speed" / device_tag("cpu") / "table.md"
     kept = table_md.parent / speed.PARTIAL_SECTIONS
-    timed, seen = speed.inference_rows, []
+    timed, seen = speed.training_row, []
 
-    def stops_at_rae(label, *args):
+    def stops_at_rae(label, *args, **options):
         if label == "RAE":
             raise KeyboardInterrupt  # as SIGINT, or the trainer's SIGTERM handler, would stop it
-        return timed(label, *args)
+        return timed(label, *args, **options)
 
-    def counted(label, *args):
+    def counted(label, *args, **options):
         seen.append(label)
-        return timed(label, *args)
-    monkeypatch.setattr(speed, "inference_rows", stops_at_rae)
-    with pytest.raises(KeyboardInterrupt):
-        run_experiment(cfg)
+        return timed(label, *args, **options)
+
+    def stopped_at_raes_training_step():
+        monkeypatch.setattr(speed, "training_row", stops_at_rae)
+        with pytest.raises(KeyboardInterrupt):
+            run_experiment(cfg)
+        monkeypatch.setattr(speed, "training_row", counted)
+        seen.clear()
+    stopped_at_raes_training_step()
     assert table_md.read_text().startswith("PARTIAL: ")
     first = pd.read_csv(table_md.with_suffix(".csv"))
-    assert set(first.method) == {"EDSR"} and kept.exists()
+    assert sorted(zip(first.section, first.method)) == [("inference", "EDSR"), ("inference", "RAE"),
+                                                        ("training step", "EDSR")] and kept.exists()
     assert speed_table_label(table_md) == "untrained weights, PARTIAL (not every section timed)"
-    monkeypatch.setattr(speed, "inference_rows", counted)
     run_experiment(cfg)
-    assert seen == ["RAE"]                                              # EDSR's section kept, not timed again
+    assert seen == ["RAE"]                                       # the sections in were kept, not timed again
     assert not table_md.read_text().startswith("PARTIAL") and speed_table_label(table_md) == "untrained weights"
     assert table_md.read_text().split("\n")[0].endswith(
-        "Resumed: EDSR timed by an earlier run of these settings and code, which was interrupted.")
+        "Resumed: EDSR inference; EDSR training step (fp32); RAE inference timed by an earlier run of these settings "
+        "and code, which was interrupted.")
     whole = pd.read_csv(table_md.with_suffix(".csv"))
-    assert set(whole.method) == {"EDSR", "RAE"} and not kept.exists()
-    assert whole[whole.method == "EDSR"]["ms"].tolist() == first["ms"].tolist()
-    monkeypatch.setattr(speed, "inference_rows", stops_at_rae)
-    with pytest.raises(KeyboardInterrupt):
-        run_experiment(cfg)
-    monkeypatch.setattr(speed, "inference_rows", counted)
-    seen.clear()
-    run_experiment(two_tiny_models(tmp_path, "+experiment.train.enabled=false", "experiment.profile.models=[]",
-                                   "experiment.repeats=2"))        # other settings: nothing kept
+    assert len(whole) == len(first) + 1 and not kept.exists()
+    assert whole.iloc[:len(first)]["ms"].tolist() == first["ms"].tolist()   # as they were timed
+    stopped_at_raes_training_step()
+    run_experiment(two_tiny_models(tmp_path, "experiment.train={batch:1,frames:2,crop:8}",
+                                   "experiment.profile.models=[]", "experiment.repeats=2"))   # other settings
     assert seen == ["EDSR", "RAE"] and "Resumed" not in table_md.read_text() and not kept.exists()
-    monkeypatch.setattr(speed, "inference_rows", stops_at_rae)
-    with pytest.raises(KeyboardInterrupt):
-        run_experiment(cfg)
-    monkeypatch.setattr(speed, "inference_rows", counted)
+    stopped_at_raes_training_step()
     monkeypatch.setenv("SRD_BENCH_FUSED_GPU", "1")       # the GPU job's kernels switched on since: nothing kept
-    seen.clear()
     run_experiment(cfg)
     assert seen == ["EDSR", "RAE"] and "Resumed" not in table_md.read_text()
 

@@ -326,37 +326,39 @@ def note_auto_choice(rows: list[dict], model, x, g, device, repeats, untrained: 
     return chosen
 
 
-def training_rows(label: str, model, train: dict, loss_weights: dict, lr: float, device, repeats, warmup) -> list[dict]:
-    """The training step with the deformable convs' default training sampler (compiled on CPU; on CUDA
-    the fused kernels, the entry points' default) and, for models that have deformable convs, with
-    the grid_sample sampler and, on CUDA, the fused Triton kernels (deformable conv and CFM)."""
-    rows = [training_row(label, model, train, loss_weights, lr, device, repeats, warmup)]
-    if train.get("compile") and label in train.get("compiled", ()):  # the trainer's train.compile
-        rows.append(training_row(label, model, train, loss_weights, lr, device, repeats, warmup,
-                                 path=f"fp32, compiled ({train['compile']})", compile=train["compile"]))
+def training_steps(label: str, model, train: dict, loss_weights: dict, lr: float, device, repeats, warmup):
+    """(path, compute) of each training step the table times, compute() giving its row: the step with the
+    deformable convs' default training sampler (compiled on CPU; on CUDA the fused kernels, the entry
+    points' default), also as the trainer's train.compile where asked; for models that have deformable
+    convs, with the grid_sample sampler and, on CUDA, the fused Triton kernels (deformable conv and CFM)."""
+    step = functools.partial(training_row, label, model, train, loss_weights, lr, device, repeats, warmup)
+    mode = train.get("compile") if label in train.get("compiled", ()) else None  # the trainer's train.compile
+    yield "fp32", step
+    if mode:
+        yield f"fp32, compiled ({mode})", functools.partial(step, path=f"fp32, compiled ({mode})", compile=mode)
     deform = next((m for m in model.modules() if isinstance(m, DeformConv2d)), None)
     if deform is None:
-        return rows
+        return
     probe = torch.empty(1, device=device)
     default = training_sampler(probe, deform.weight)
     if default != "grid_sample":
-        with grid_sample_training(), fused.forced(False):
-            rows.append(training_row(label, model, train, loss_weights, lr, device, repeats, warmup,
-                                     path="fp32, grid_sample sampler"))
+        def grid_sample_step():
+            with grid_sample_training(), fused.forced(False):
+                return step(path="fp32, grid_sample sampler")
+        yield "fp32, grid_sample sampler", grid_sample_step
     if probe.is_cuda and fused.available():
-        with fused.on_cuda():
-            if default != "fused":
-                rows.append(training_row(label, model, train, loss_weights, lr, device, repeats, warmup,
-                                         path="fp32, fused sampler"))
-            # the trainer's train.precision=bf16 and train.channels_last=true, eager and, where asked, compiled:
-            # eager, that step is host-bound; graphed, its convolutions are what is left to gain on
-            rows.append(training_row(label, model, train, loss_weights, lr, device, repeats, warmup,
-                                     path="bf16+channels_last, fused sampler", bf16=True, channels_last=True))
-            if train.get("compile") and label in train.get("compiled", ()):
-                rows.append(training_row(label, model, train, loss_weights, lr, device, repeats, warmup,
-                                         path=f"bf16+channels_last, fused sampler, compiled ({train['compile']})",
-                                         bf16=True, channels_last=True, compile=train["compile"]))
-    return rows
+        def fused_step(path, **options):
+            with fused.on_cuda():
+                return step(path=path, **options)
+        if default != "fused":
+            yield "fp32, fused sampler", functools.partial(fused_step, "fp32, fused sampler")
+        # the trainer's train.precision=bf16 and train.channels_last=true, eager and, where asked, compiled:
+        # eager, that step is host-bound; graphed, its convolutions are what is left to gain on
+        path = "bf16+channels_last, fused sampler"
+        yield path, functools.partial(fused_step, path, bf16=True, channels_last=True)
+        if mode:
+            yield f"{path}, compiled ({mode})", functools.partial(fused_step, f"{path}, compiled ({mode})", bf16=True,
+                                                                 channels_last=True, compile=mode)
 
 
 def training_row(label: str, model, train: dict, loss_weights: dict, lr: float, device, repeats, warmup,
@@ -689,7 +691,7 @@ def run(ctx, name: str = "speed", models: list[str] = (), input_hw=(540, 960),
         if table is not None:  # every section is in: the caption loses its PARTIAL
             reused = [key for key in done if key in kept]
             write_table(table, out_dir, digits=3, caption=caption + (
-                f" Resumed: {', '.join(reused)} timed by an earlier run of these settings and code, which was "
+                f" Resumed: {'; '.join(reused)} timed by an earlier run of these settings and code, which was "
                 "interrupted." if reused else ""))
         (out_dir / PARTIAL_SECTIONS).unlink(missing_ok=True)
     finally:
@@ -788,7 +790,8 @@ def _check_sections(conv_stack_channels, perturb, deform: dict, tiled: dict) -> 
 def _sections(ctx, models, input_hw, paths, repeats, warmup, train, oidn, stack_channels, deform, tiled,
               perturb, profile, trained, device):
     """(name, compute) of each section, in order: the reference points first (quick, and every ratio
-    needs them), then one model at a time; compute() times the section and returns its rows."""
+    needs them), then one model at a time, in sections small enough that a run stopped part way keeps
+    most of what it timed; compute() times the section and returns its rows."""
     if oidn:
         yield "OIDN", lambda: [row for row in [oidn_row((2 * input_hw[0], 2 * input_hw[1]), device, repeats, warmup)]
                                if row]
@@ -804,27 +807,34 @@ def _sections(ctx, models, input_hw, paths, repeats, warmup, train, oidn, stack_
             deform.get("channels", 32), [tuple(s) for s in deform.get("sizes", [[270, 480], [540, 960]])],
             device, repeats, warmup)
     tile_models = (tiled.get("models") or models) if tiled.get("enabled", True) else []
-    for name in models:
-        yield LABELS.get(name, name), functools.partial(
-            _model_rows, ctx, name, layers_of(name), input_hw, paths, repeats, warmup, train, perturb, profile,
-            trained, device, tiled if name in tile_models else None)
-
-
-def _model_rows(ctx, name, layers, input_hw, paths, repeats, warmup, train, perturb, profile, trained, device,
-                tiled) -> list[dict]:
-    """A model's section: its inference rows (and auto's choice), training steps, profile and tiles."""
     x, g = random_frames(1, 1, input_hw, device)
-    label = LABELS.get(name, name)
-    model = trained[name][0].to(device) if name in trained else build(ctx.models[name], device, perturb)
+    for name in models:   # each model's inference, each training step, profile and tiles: sections of their own
+        label = LABELS.get(name, name)
+        model = trained[name][0].to(device) if name in trained else build(ctx.models[name], device, perturb)
+        yield f"{label} inference", functools.partial(_inference_section, label, model, layers_of(name), x, g, paths,
+                                                      device, repeats, warmup, untrained=name not in trained)
+        if train.get("enabled", True):
+            for path, step in training_steps(label, model, train, ctx.train.loss, ctx.train.lr, device, repeats,
+                                             warmup):
+                yield f"{label} training step ({path})", lambda step=step: [step()]
+        if name in (profile.get("models") or []):
+            yield f"{label} profile", functools.partial(profile_rows, label, model, layers_of(name), x, g,
+                                                        profile["fast_path"], device, repeats, warmup)
+        if name in tile_models:
+            yield f"{label} tiles", functools.partial(_tiles_section, label, model, x, g, tiled, device, repeats,
+                                                      warmup)
+
+
+def _inference_section(label, model, layers, x, g, paths, device, repeats, warmup, untrained: bool) -> list[dict]:
+    """A model's inference rows, each fast path, and the path fast_path=auto picks noted on them."""
     rows = inference_rows(label, model, int(layers["macs"].sum()), x, g, paths, device, repeats, warmup)
-    note_auto_choice(rows, model, x, g, device, repeats, untrained=name not in trained)
-    if train.get("enabled", True):
-        rows += training_rows(label, model, train, ctx.train.loss, ctx.train.lr, device, repeats, warmup)
-    if name in (profile.get("models") or []):
-        rows += profile_rows(label, model, layers, x, g, profile["fast_path"], device, repeats, warmup)
-    if tiled is not None:
-        untiled = prepare(model)(x, g)
-        uhd = tuple(tiled.get("uhd_input_hw", (1080, 1920))) if tiled.get("uhd", True) else None
-        rows += tiled_rows(label, model, x, g, tiled.get("tile", 512), tiled.get("overlap", 128), device,
-                           repeats, warmup, untiled, uhd)
+    note_auto_choice(rows, model, x, g, device, repeats, untrained=untrained)
     return rows
+
+
+def _tiles_section(label, model, x, g, tiled: dict, device, repeats, warmup) -> list[dict]:
+    """Tiled inference against untiled, at the table's size and, where asked, at a 3840x2160 output."""
+    untiled = prepare(model)(x, g)
+    uhd = tuple(tiled.get("uhd_input_hw", (1080, 1920))) if tiled.get("uhd", True) else None
+    return tiled_rows(label, model, x, g, tiled.get("tile", 512), tiled.get("overlap", 128), device, repeats, warmup,
+                      untiled, uhd)
