@@ -134,19 +134,20 @@ step_tests() {
 }
 
 # a record is done when it exists and does not say PARTIAL (a run stopped at its limit leaves one that
-# does); a PARTIAL one is run again once only: a step that cannot finish within STEP_S would otherwise take
-# STEP_S of every later call and the steps after it never run (it is kept, and says PARTIAL)
+# does); a PARTIAL one is run again $2 times in all (default 2): a step that cannot finish within STEP_S
+# would otherwise take STEP_S of every later call and the steps after it never run (it is kept, and says
+# PARTIAL). The speed table goes on from its last section, so each of its tries adds to it: it gets 4
 finished() {
     [ -f "$1" ] || return 1
     grep -q "^PARTIAL: " "$1" || return 0
-    [ "$(cat "$1.tries" 2>/dev/null || echo 0)" -lt 2 ] && return 1
-    echo "gpu_job: $1 is still PARTIAL after 2 tries: kept (raise STEP_S, or time less: SPEED_ARGS)"
+    [ "$(cat "$1.tries" 2>/dev/null || echo 0)" -lt "${2:-2}" ] && return 1
+    echo "gpu_job: $1 is still PARTIAL after ${2:-2} tries: kept (remove $1.tries to go on; or raise STEP_S, or time less)"
 }
 # counted before the step runs: a call killed at its limit counts too
 tried() { mkdir -p "$(dirname "$1")"; echo $(( $(cat "$1.tries" 2>/dev/null || echo 0) + 1 )) > "$1.tries"; }
 
 step_speed() {
-    if finished "results/gpu/speed/$tag/table.md"; then echo "gpu_job: speed table already there"; return; fi
+    if finished "results/gpu/speed/$tag/table.md" 4; then echo "gpu_job: speed table already there"; return; fi
     tried "results/gpu/speed/$tag/table.md"
     local fused=0
     tests_passed && fused=1

@@ -102,7 +102,8 @@ def test_a_speed_table_or_sweep_stopped_at_its_limit_is_timed_again(tmp_path):
     script = (REPO / "scripts" / "gpu_job.sh").read_text()
     start = script.index("finished() {")
     functions = script[start:script.index("\n", script.index("tried() "))]     # the two, whole
-    assert 'finished "results/gpu/speed/$tag/table.md"' in script and 'tried "results/gpu/speed/$tag/table.md"' in script
+    # the speed table goes on from its last section (tests/test_speed.py): it gets 4 tries, the others 2
+    assert 'finished "results/gpu/speed/$tag/table.md" 4;' in script and 'tried "results/gpu/speed/$tag/table.md"' in script
     for step in ("step_sweep", "step_render", "step_concurrency"):   # the records of the sweep and the probes
         body = script[script.index(f"{step}() {{"):script.index("\n}\n", script.index(f"{step}() {{"))]
         assert 'if finished "$record"' in body and 'tried "$record"' in body, step
@@ -110,15 +111,17 @@ def test_a_speed_table_or_sweep_stopped_at_its_limit_is_timed_again(tmp_path):
     (tmp_path / "sweep.md").write_text("# sweep\n\n## fp32 (TF32 dots)\n\nPARTIAL: stopped before bf16 was timed.\n")
     (tmp_path / "done.md").write_text("Speed on x CPU; preset gpu widths, untrained weights.\n\n| a |\n")
 
-    def finished(name, tries=0):
+    def finished(name, tries=0, *cap):
         for _ in range(tries):   # a step started (and stopped at its limit) this many times
             subprocess.run(["bash", "-c", f'{functions}\ntried "$1"', "-", str(tmp_path / name)], check=True)
-        return subprocess.run(["bash", "-c", f'{functions}\nfinished "$1"', "-", str(tmp_path / name)],
+        return subprocess.run(["bash", "-c", f'{functions}\nfinished "$@"', "-", str(tmp_path / name), *cap],
                               capture_output=True, text=True).returncode
     assert {name: finished(name) for name in ("missing.md", "partial.md", "sweep.md", "done.md")} == \
         {"missing.md": 1, "partial.md": 1, "sweep.md": 1, "done.md": 0}
     assert finished("partial.md", tries=1) == 1          # stopped once: run again
     assert finished("partial.md", tries=1) == 0          # stopped twice: kept as it is, not a third time
+    assert finished("partial.md", 0, "4") == 1           # with 4 tries (the speed table's): two more
+    assert finished("partial.md", 2, "4") == 0
 
 
 def test_the_speed_step_times_the_graphed_training_step_at_the_presets_batch(project, tmp_path):
