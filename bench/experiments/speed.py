@@ -709,8 +709,9 @@ def settings_key(ctx, caption: str, trained: dict, **arguments) -> str:
     kernel tests pass)."""
     names = list(dict.fromkeys(arguments["models"] + ["srd"]))
     configs = {m: ctx.models[m] for m in names if m in ctx.models}
-    weights = {m: hashlib.sha256(b"".join(t.detach().cpu().numpy().tobytes() for t in model.state_dict().values()
-                                          )).hexdigest() for m, (model, _) in trained.items()}
+    weights = {m: hashlib.sha256(b"".join(t.detach().cpu().double().numpy().tobytes()  # any dtype, bf16 too
+                                          for t in model.state_dict().values())).hexdigest()
+               for m, (model, _) in trained.items()}
     code = runs.code_fingerprint(["bench.experiments.speed", "bench.nn.triton_kernels",
                                   *(cfg["_target_"] for cfg in configs.values())])
     described = {"arguments": arguments, "caption": re.sub(r"\d+ MHz", "MHz", caption), "device": str(ctx.device),
