@@ -152,7 +152,9 @@ step_speed() {
     local fused=0
     tests_passed && fused=1
     echo "gpu_job: speed with SRD_BENCH_FUSED_GPU=$fused"
+    # results/gpu whatever the preset: what the job checks and packs (a dry run's smoke table included)
     SRD_BENCH_FUSED_GPU=$fused timeout "$(step_limit)" "$PYTHON" -m bench +experiment=speed preset="$PRESET" device="$DEVICE" \
+        results_dir=results/gpu \
         experiment.oidn=false experiment.train.compile=reduce-overhead $SPEED_ARGS
 }
 
@@ -165,6 +167,7 @@ step_sota() {
     # pyoidn, whose wheel (88 MB) does not fit a call: where it does not import they are left out, and the
     # caption names them
     SRD_BENCH_FUSED_GPU=$fused timeout "$(step_limit)" "$PYTHON" -m bench +experiment=sota preset="$PRESET" \
+        results_dir=results/gpu runs_archive=results/gpu/runs \
         device="$DEVICE" +experiment.leave_out_unavailable=true $SOTA_ARGS
     echo "gpu_job: sota exit $?"
 }

@@ -15,8 +15,7 @@ import pytest
 REPO = Path(__file__).resolve().parent.parent
 TINY = ("data.lr_width=8 data.lr_height=6 data.spp=1 data.ref_spp=4 data.seq_len=2 data.max_depth=4 "
         "data.splits.train.sequences=1 data.splits.val.sequences=1 ~data.splits.generalization train.steps=2 "
-        "train.crop=4 train.seq_len=2 train.batch_size=1 train.val_sequences=1 workers=1 progress=false "
-        "results_dir=results/gpu runs_archive=results/gpu/runs")  # the gpu preset's archive, as the job packs it
+        "train.crop=4 train.seq_len=2 train.batch_size=1 train.val_sequences=1 workers=1 progress=false")
 
 
 @pytest.fixture(scope="module")
@@ -147,6 +146,7 @@ def test_the_speed_step_times_the_graphed_training_step_at_the_presets_batch(pro
     assert train.compile == "reduce-overhead" and list(train.compiled) == ["Ours", "EDSR", "RAE", "KPCN", "CFM"]
     assert (train.batch, train.frames, train.crop) == (None, None, None)   # the preset's: 4 x 7 x 64
     assert (cfg.train.batch_size, cfg.train.seq_len, cfg.train.crop) == (4, 7, 64) and cfg.experiment.tiled.uhd is False
+    assert cfg.results_dir == "results/gpu"          # where the job looks for it and packs it, at any preset
 
 
 def test_the_render_step_measures_the_variant_twice_and_keeps_the_digests(project, tmp_path):
