@@ -30,6 +30,14 @@ PARTIAL = "PARTIAL: "
 PARTIAL_CAPTION = f"{PARTIAL}not every section is timed yet (a run stopped part way leaves this)."
 
 
+def write_record(out: Path, lines: list[str], missing: str | None) -> None:
+    """A Markdown record as it stands, atomically, under a first line saying what is `missing` until
+    nothing is: a probe or sweep killed at its limit leaves what it measured, marked PARTIAL."""
+    text = (f"{PARTIAL}{missing}\n" if missing else "") + "\n".join(lines) + "\n"
+    out.parent.mkdir(parents=True, exist_ok=True)
+    write_atomic(out, lambda tmp: tmp.write_text(text))
+
+
 def read_table(path: str | Path) -> pd.DataFrame:
     """A table.csv as `write_table` wrote it, its `runs` column as text: a single seed's hash of digits
     would otherwise read back as a number."""

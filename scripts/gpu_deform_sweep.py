@@ -11,12 +11,13 @@ calls after warm-up (bench.measure.time_call, synchronised). Writes a markdown t
 import argparse
 import itertools
 import os
+from pathlib import Path
 
 import torch
 
 from bench.experiments.speed import device_tag
 from bench.measure import time_call
-from bench.table_writer import PARTIAL
+from bench.table_writer import write_record
 from bench.nn import fused
 from bench.nn.deform import DeformConv2d
 
@@ -99,12 +100,9 @@ def main() -> None:
             print(lines[-1], flush=True)
         kernels._blocks, kernels.NUM_WARPS = blocks, warps
         lines.append("")
-        os.makedirs(os.path.dirname(os.path.abspath(args.out)), exist_ok=True)
         # after each dtype: a call stopped at its limit keeps the first, marked PARTIAL until the last is in
         # (scripts/gpu_job.sh runs the sweep again then)
-        partial = [] if dtype == dtypes[-1] else [f"{PARTIAL}stopped before bf16 was timed.", ""]
-        with open(args.out, "w") as f:
-            f.write("\n".join(lines + partial) + "\n")
+        write_record(Path(args.out), lines, None if dtype == dtypes[-1] else "stopped before bf16 was timed.")
     print("\n".join(lines))
 
 

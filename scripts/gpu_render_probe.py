@@ -41,7 +41,7 @@ from bench import datagen, exrio, render  # noqa: E402
 from bench.atomic import write_atomic  # noqa: E402
 from bench.datagen import BUFFERS, plan_sequences  # noqa: E402
 from bench.measure import error_summary  # noqa: E402
-from bench.table_writer import PARTIAL  # noqa: E402
+from bench.table_writer import write_record  # noqa: E402
 
 
 def probe_spec(spec: dict, split: str, families: int, per_family: int) -> dict:
@@ -155,14 +155,6 @@ def differing_layers(a: dict, b: dict) -> dict[str, float]:
     """The layers of two decodings of a frame that are not bit-identical, with their relative difference."""
     return {name: relative_l2(a[name], b[name]) for name in a
             if not np.array_equal(a[name], b[name], equal_nan=True)}
-
-
-def write_record(out: Path, lines: list[str], partial: str | None) -> None:
-    """The record as it stands, atomically: a probe killed at its limit leaves what it measured, under a
-    first line saying what is missing."""
-    text = (f"{PARTIAL}{partial}\n" if partial else "") + "\n".join(lines) + "\n"
-    out.parent.mkdir(parents=True, exist_ok=True)
-    write_atomic(out, lambda tmp: tmp.write_text(text))
 
 
 def passes_section(first: list[dict], second: list[dict], layers_total: int, differing: dict) -> list[str]:

@@ -31,7 +31,7 @@ from pathlib import Path
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from bench.table_writer import PARTIAL  # noqa: E402   the first line until every configuration is in
+from bench.table_writer import PARTIAL, write_record  # noqa: E402   PARTIAL: the first line until every configuration is in
 
 
 
@@ -159,7 +159,6 @@ def main(argv=None) -> int:
     unknown = [m for m in args.models if m not in cfg["models"]]
     if unknown:
         parser.error(f"--models: no model {unknown[0]!r}; models: {', '.join(cfg['models'])}")
-    from bench.atomic import write_atomic
     from bench.experiments.speed import LABELS, device_tag
     import torch
     train = {"batch": cfg["train"]["batch_size"], "frames": cfg["train"]["seq_len"], "crop": cfg["train"]["crop"]}
@@ -195,10 +194,7 @@ def main(argv=None) -> int:
             rows.append(f"| {label} | {path} | {processes} | {got['threads']} | {got['ms']:.1f} | {got['steps/s']:.2f} | "
                         + (f"{got['steps/s'] / one:.2f}" if one else "-") + " |")
         print(rows[-1], flush=True)
-        partial = f"{PARTIAL}{done} of {len(todo)} configurations timed\n" if done < len(todo) else ""
-        text = partial + "\n".join(header + rows) + "\n"
-        args.out.parent.mkdir(parents=True, exist_ok=True)
-        write_atomic(args.out, lambda tmp: tmp.write_text(text))
+        write_record(args.out, header + rows, f"{done} of {len(todo)} configurations timed" if done < len(todo) else None)
     return 0
 
 
