@@ -59,7 +59,7 @@ from bench.infer import (REFERENCE, frames_channels_last, freed_memory_kept, max
 from bench.losses import weighted_loss
 from bench.experiments.macs import frame_inputs, frame_macs
 from bench.macs import macs_at
-from bench.measure import candidate_paths, choose_fast_path, cpu_flags, cpu_isa, error_summary, time_call
+from bench.measure import FUSED_GPU, candidate_paths, choose_fast_path, cpu_flags, cpu_isa, error_summary, time_call
 from bench.models.factory import build_model, is_learned
 from bench.nn import DeformConv2d, eager_gather, fused, grid_sample_training, inference_sampler, training_sampler
 from bench.table_writer import PARTIAL_CAPTION, write_table
@@ -715,7 +715,7 @@ def settings_key(ctx, caption: str, trained: dict, **arguments) -> str:
     code = runs.code_fingerprint(["bench.experiments.speed", "bench.nn.triton_kernels",
                                   *(cfg["_target_"] for cfg in configs.values())])
     described = {"arguments": arguments, "caption": re.sub(r"\d+ MHz", "MHz", caption), "device": str(ctx.device),
-                 "switches": {k: os.environ.get(k) for k in ("SRD_BENCH_FUSED_GPU", "SRD_BENCH_NATIVE")},
+                 "switches": {k: os.environ.get(k) for k in (FUSED_GPU, "SRD_BENCH_NATIVE")},
                  "weights": weights, "models": configs, "recipe": ctx.train, "code": code}
     return hashlib.sha256(json.dumps(described, sort_keys=True, default=repr).encode()).hexdigest()[:16]
 
