@@ -1,5 +1,6 @@
-"""Measurements of this machine: the one timing loop, the CPU's vector features, the fast path
-chosen by measurement (`fast_path=auto`), and the fused GPU kernels taken where they were tested.
+"""Measurements of this machine: the one timing loop, whether bf16 is native here (bench.machine names
+the CPU and its ISA), the fast path chosen by measurement (`fast_path=auto`), and the fused GPU kernels
+taken where they were tested.
 
 `choose_fast_path` times the candidate paths of bench.infer on the input a model will see and returns
 the fastest whose output stays within `TOLERANCE` of fp32's. Candidates are the paths this device runs
@@ -17,8 +18,6 @@ import contextlib
 import hashlib
 import json
 import os
-import platform
-import re
 import statistics
 import sys
 import time
@@ -29,6 +28,7 @@ import torch
 from bench.atomic import write_atomic
 from bench.evaluate import sync
 from bench.infer import REFERENCE, max_abs_diff, prepare
+from bench.machine import cpu_flags, cpu_isa, cpu_model
 from bench.nn import fused
 from bench.runs import acquire
 
@@ -96,29 +96,6 @@ def time_call(fn, device: str, repeats: int = 5, warmup: int = 1) -> dict:
     return {"ms": statistics.median(times), "ms min": min(times), "ms max": max(times), "result": result}
 
 
-def cpu_flags() -> set[str]:
-    """The CPU's feature flags (/proc/cpuinfo); empty where that cannot be read."""
-    try:
-        found = re.search(r"^flags\s*:\s*(.+)$", Path("/proc/cpuinfo").read_text(), re.MULTILINE)
-    except OSError:
-        return set()
-    return set(found.group(1).split()) if found else set()
-
-
-def cpu_isa(flags: set[str] | None = None) -> str:
-    """The vector ISA that decides the fast paths, in words: whether bf16 runs natively (AVX512-BF16 or
-    AMX) or is emulated (AVX2 only, where it is several times slower than fp32)."""
-    flags = cpu_flags() if flags is None else flags
-    if not flags:
-        return f"ISA unknown ({platform.machine()})"
-    native = [name for flag, name in (("avx512_bf16", "AVX512-BF16"), ("amx_bf16", "AMX-BF16")) if flag in flags]
-    if native:
-        return " + ".join(native) + " (bf16 native)"
-    if "avx512f" in flags:
-        return "AVX-512 without BF16 (bf16 emulated)"
-    return "AVX2 only (bf16 emulated)" if "avx2" in flags else "no AVX2 (bf16 emulated)"
-
-
 def native_bf16(device: str, flags: set[str] | None = None) -> bool:
     if str(device).startswith("cuda"):
         return True
@@ -140,7 +117,7 @@ def choose_fast_path(model, x: torch.Tensor, g: torch.Tensor | None, device: str
     if not any(True for _ in model.parameters()):
         return REFERENCE, {}
     key = {**key, "weights": weights_digest(model),
-           "cpu": platform.processor() or platform.machine(), "isa": cpu_isa(), "device": str(device),
+           "cpu": cpu_model(), "isa": cpu_isa(), "device": str(device),
            "input": list(x.shape), "threads": torch.get_num_threads(), "torch": torch.__version__}
     if str(device).startswith("cuda"):  # the fused kernels or the eager samplers: other times, other errors
         key["fused"] = fused.applies(x, 0)

@@ -2,7 +2,7 @@
 # Runs a command on an AVX-512 host with the vector ISA an AVX2-only CPU (most laptops) would get, to time
 # it where no such machine is at hand:  scripts/as_avx2.sh make test
 # What it caps at AVX2:
-# - /proc/cpuinfo loses its avx512*/amx* flags: the suite's own ISA checks (bench.measure) see AVX2 only,
+# - /proc/cpuinfo loses its avx512*/amx* flags: the suite's own ISA checks (bench.machine) see AVX2 only,
 #   so bf16 counts as emulated, and the tests of AVX-512 code paths skip as they would there;
 # - ATen and Inductor (ATEN_CPU_CAPABILITY), oneDNN, MKL, OpenBLAS and numpy's SIMD dispatch;
 # - every C++ build that asks for -march=native (bench/nn/native.py, Inductor) gets -march=haswell.

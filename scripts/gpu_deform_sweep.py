@@ -15,7 +15,7 @@ from pathlib import Path
 
 import torch
 
-from bench.experiments.speed import device_tag
+from bench.machine import device_tag
 from bench.measure import time_call
 from bench.table_writer import write_record
 from bench.nn import fused

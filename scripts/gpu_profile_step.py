@@ -17,7 +17,8 @@ import torch.nn.functional as F
 import yaml
 from torch.profiler import ProfilerActivity, profile
 
-from bench.experiments.speed import device_tag, random_frames
+from bench.experiments.speed import random_frames
+from bench.machine import device_tag
 from bench.models.factory import build_model
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))

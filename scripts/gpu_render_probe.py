@@ -258,7 +258,7 @@ def main(argv=None) -> int:
     tag = "cpu"
     if args.variant.startswith("cuda"):
         import torch
-        from bench.experiments.speed import device_tag
+        from bench.machine import device_tag
         tag = device_tag("cuda") if torch.cuda.is_available() else "cuda-unknown"
     out = args.out or ROOT / "results" / spec["name"] / "data" / f"{tag}-render-probe.md"
     digest_file = out.with_suffix(".digests.json")

@@ -159,7 +159,8 @@ def main(argv=None) -> int:
     unknown = [m for m in args.models if m not in cfg["models"]]
     if unknown:
         parser.error(f"--models: no model {unknown[0]!r}; models: {', '.join(cfg['models'])}")
-    from bench.experiments.speed import LABELS, device_tag
+    from bench.experiments.speed import LABELS
+    from bench.machine import device_tag
     import torch
     train = {"batch": cfg["train"]["batch_size"], "frames": cfg["train"]["seq_len"], "crop": cfg["train"]["crop"]}
     where = device_tag(args.device)

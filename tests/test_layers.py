@@ -227,7 +227,7 @@ def require_cpu_kernels():
 
 def _runs_here(march: str) -> bool:
     """This CPU runs code built for `march` (x86-64 levels by their /proc/cpuinfo flags)."""
-    from bench.measure import cpu_flags
+    from bench.machine import cpu_flags
     needs = {"x86-64": set(), "x86-64-v3": {"avx2", "fma", "bmi2", "movbe"},
              "x86-64-v4": {"avx512f", "avx512bw", "avx512cd", "avx512dq", "avx512vl"}}
     flags = cpu_flags()

@@ -21,7 +21,8 @@ from baselines.rae import RAE
 from bench.cli import CONF_DIR, run_experiment
 from bench.errors import UserError
 from bench.experiments.macs import audit_row
-from bench.experiments.speed import PATHS, device_tag, peak_memory_mib
+from bench.experiments.speed import PATHS, peak_memory_mib
+from bench.machine import device_tag
 from bench.infer import (FastPath, frames_channels_last, parse_path, prepare, receptive_radius, tiled_predict)
 from bench.models.srd import SRDNet
 
@@ -159,16 +160,6 @@ def test_peak_memory_sees_a_large_allocation():
     assert peak_memory_mib(lambda: torch.ones(64 * 2 ** 20 // 4).add_(1), "cpu") > 48
 
 
-def test_device_tag_is_a_directory_name_that_names_the_isa():
-    from bench.experiments.speed import isa_tag
-    tag = device_tag("cpu")
-    assert tag.startswith("cpu-") and tag == tag.lower() and "/" not in tag and " " not in tag
-    assert tag.endswith("-" + isa_tag())
-    assert isa_tag({"avx2", "avx512f", "avx512_bf16"}) == "avx512-bf16"
-    assert isa_tag({"avx2", "avx512f"}) == "avx512" and isa_tag({"sse2", "avx2"}) == "avx2"
-    assert isa_tag({"sse2"}) == "no-avx2" and isa_tag({"avx512_bf16", "amx_bf16"}) == "amx"
-
-
 def test_speed_experiment_writes_every_section(tmp_path):
     overrides = ["preset=smoke", f"runs_dir={tmp_path / 'runs'}", f"results_dir={tmp_path / 'results'}",
                  "device=cpu", "models.srd.channels=4", "models.srd.cond_channels=4", "models.edsr.channels=4",
@@ -286,7 +277,7 @@ def test_keep_freed_memory_applies_once_on_glibc():
 
 def test_the_caption_names_the_cpu_isa():
     from bench.experiments.speed import machine_caption
-    from bench.measure import cpu_isa
+    from bench.machine import cpu_isa
     isa = cpu_isa()
     assert any(name in isa for name in ("AVX512-BF16", "AMX-BF16", "AVX-512", "AVX2", "no AVX2", "ISA unknown"))
     assert isa in machine_caption("cpu")
@@ -295,17 +286,15 @@ def test_the_caption_names_the_cpu_isa():
 def test_the_caption_tells_two_cpus_of_one_model_name_apart():
     """One cloud model name ("AMD EPYC") covered two hosts 1.4-2.2x apart: the caption names what
     differs (x86 family, model, stepping, clock, L3)."""
-    from bench.experiments.speed import cpu_identity, machine_caption
-    info = "processor\t: 0\ncpu family\t: 25\nmodel\t\t: 17\nmodel name\t: AMD EPYC\nstepping\t: 1\ncpu MHz\t\t: 2596.132\n"
-    assert cpu_identity(info, "32768K") == "x86 family 25 model 17 stepping 1, 2596 MHz, L3 32768K"
-    assert cpu_identity("", "") == ""
+    from bench.experiments.speed import machine_caption
+    from bench.machine import cpu_identity
     if cpu_identity():                     # where /proc can be read, the caption carries it
         assert f"({cpu_identity()})" in machine_caption("cpu")
 
 
 def test_a_gpu_caption_names_the_gpu_and_its_host_cpu_isa(monkeypatch):
     from bench.experiments.speed import machine_caption
-    from bench.measure import cpu_isa
+    from bench.machine import cpu_isa
     monkeypatch.setattr(torch.cuda, "get_device_name", lambda device=None: "NVIDIA H200")
     caption = machine_caption("cuda")
     assert caption.startswith("NVIDIA H200 (CUDA ") and cpu_isa() in caption

@@ -9,7 +9,7 @@ import pytest
 from hydra import compose, initialize_config_dir
 
 from bench.cli import CONF_DIR, run_experiment
-from bench.experiments.speed import device_tag
+from bench.machine import device_tag
 from bench.experiments.time_curves import (BRUTE_FORCE, brute_force_spp, equal_time_table, fit_curve, loglog_slope,
                                            pareto_front, reference_noise_slope, rising_steps, slope_ok, speedup_table)
 from bench.experiments.timing import _reference_spp, hr_lr_ratio, paper_axis, paper_equal_time, render_table, speed_ms

@@ -31,14 +31,12 @@ here, and whether that is the fastest of the paths this table measured: a benchm
 """
 from __future__ import annotations
 
-import contextlib
 import copy
 import functools
 import hashlib
 import json
 import logging
 import os
-import platform
 import re
 import statistics
 import time
@@ -59,7 +57,8 @@ from bench.infer import (REFERENCE, frames_channels_last, freed_memory_kept, max
 from bench.losses import weighted_loss
 from bench.experiments.macs import frame_inputs, frame_macs
 from bench.macs import macs_at
-from bench.measure import FUSED_GPU, candidate_paths, choose_fast_path, cpu_flags, cpu_isa, error_summary, time_call
+from bench.machine import cpu_identity, cpu_isa, cpu_model, device_tag, gpu_model, isa_tag
+from bench.measure import FUSED_GPU, candidate_paths, choose_fast_path, error_summary, time_call
 from bench.models.factory import build_model, is_learned
 from bench.nn import DeformConv2d, eager_gather, fused, grid_sample_training, inference_sampler, training_sampler
 from bench.table_writer import PARTIAL_CAPTION, write_table
@@ -80,58 +79,11 @@ PARTIAL_SECTIONS = "partial_sections.json"
 
 # ------------------------------------------------------------------------------ machine
 
-def isa_tag(flags: set[str] | None = None) -> str:
-    """The CPU's vector ISA as a name part: amx, avx512-bf16, avx512, avx2 or no-avx2 (the speed of
-    every path, bf16 above all, depends on it more than on the model name)."""
-    flags = cpu_flags() if flags is None else flags
-    for flag, tag in (("amx_bf16", "amx"), ("avx512_bf16", "avx512-bf16"), ("avx512f", "avx512"), ("avx2", "avx2")):
-        if flag in flags:
-            return tag
-    return "no-avx2" if flags else "isa-unknown"
-
-
-def cpu_model() -> str:
-    """This CPU's model name, as /proc/cpuinfo gives it."""
-    name = platform.processor() or "unknown"
-    with contextlib.suppress(OSError):
-        found = re.search(r"model name\s*:\s*(.+)", Path("/proc/cpuinfo").read_text())
-        name = found.group(1) if found else name
-    return name
-
-
-def cpu_identity(cpuinfo: str | None = None, l3: str | None = None) -> str:
-    """What tells two CPUs of one model name apart (/proc/cpuinfo: x86 family, model, stepping, clock; the
-    L3 cache): a cloud model name such as "AMD EPYC" covers hosts 1.4-2.2x apart in these tables. '' where
-    /proc cannot be read."""
-    with contextlib.suppress(OSError):
-        cpuinfo = Path("/proc/cpuinfo").read_text() if cpuinfo is None else cpuinfo
-        l3 = Path("/sys/devices/system/cpu/cpu0/cache/index3/size").read_text().strip() if l3 is None else l3
-    fields = {key: re.search(rf"^{key}\s*:\s*(.+)$", cpuinfo or "", re.MULTILINE) for key in
-              ("cpu family", "model", "stepping", "cpu MHz")}
-    said = {key: found.group(1).strip() for key, found in fields.items() if found}
-    parts = ([f"x86 family {said['cpu family']} model {said['model']} stepping {said.get('stepping', '?')}"]
-             if "cpu family" in said and "model" in said else [])
-    parts += [f"{float(said['cpu MHz']):.0f} MHz"] if "cpu MHz" in said else []
-    parts += [f"L3 {l3}"] if l3 else []
-    return ", ".join(parts)
-
-
-def device_tag(device: str) -> str:
-    """A directory name for the machine: cpu-<cpu model>-<ISA> or cuda-<gpu model>, lower case (one
-    cloud CPU model name covers AVX2-only and AVX512-BF16 hosts)."""
-    name = torch.cuda.get_device_name(torch.device(device)) if str(device).startswith("cuda") else cpu_model()
-    slug = re.sub(r"\(r\)|\(tm\)|cpu|processor|@.*|\d+-core", " ", name.lower())
-    slug = re.sub(r"[^a-z0-9]+", "-", slug).strip("-")
-    if str(device).startswith("cuda"):
-        return f"cuda-{slug or 'unknown'}"
-    return f"cpu-{slug or 'unknown'}-{isa_tag()}"
-
-
 def machine_caption(device: str) -> str:
     """Device, ISA, library and thread settings of this run, for the caption."""
     if str(device).startswith("cuda"):
         # the host CPU runs the Python and the launches (and OIDN's row): its ISA belongs to the figures too
-        where = (f"{torch.cuda.get_device_name(torch.device(device))} (CUDA {torch.version.cuda}), host CPU "
+        where = (f"{gpu_model(device)} (CUDA {torch.version.cuda}), host CPU "
                  f"{cpu_model().strip()}{_identified()}, {cpu_isa()}")
     else:
         where = (f"{device_tag(device)[4:].removesuffix('-' + isa_tag())} CPU{_identified()}, {cpu_isa()}, {torch.get_num_threads()} torch threads, glibc malloc "

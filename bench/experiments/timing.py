@@ -64,13 +64,14 @@ from bench.errors import UserError
 from bench.evaluate import predict
 from bench.experiments.context import Context, model_config, with_training
 from bench.experiments.datasets import ensure_data
-from bench.experiments.speed import LABELS, cpu_model, device_tag
+from bench.experiments.speed import LABELS
 from bench.experiments.table import domain_note
 from bench.experiments.time_curves import (BRUTE_FORCE, EXPECTED_SLOPE, SPEEDUP_COLUMNS, add_speedups, average,
                                            brute_force_spp, equal_time_table, loglog_slope, plot,
                                            reference_noise_slope, rising_steps, slope_ok, speedup_table)
 from bench.experiments.training import trained_model, training_records, untrained, working_split
-from bench.measure import cpu_isa, time_call
+from bench.machine import cpu_isa, cpu_model, device_tag, gpu_model
+from bench.measure import time_call
 from bench.metrics import HIGHER_IS_BETTER, LOWER_IS_BETTER, METRICS, RELMSE_FORMULA, mse
 from bench.models.factory import build_model, is_learned
 from bench.table_writer import write_table
@@ -319,7 +320,7 @@ def _skipped_note(skipped: list[str]) -> str:
 def _host(device: str) -> str:
     """The machine every time here was measured on, its ISA named (bf16 is emulated without AVX512-BF16),
     and the GPU where the networks ran on one (renders and OIDN stay on the CPU)."""
-    gpu = f", networks on {torch.cuda.get_device_name(torch.device(device))}" if device.startswith("cuda") else ""
+    gpu = f", networks on {gpu_model(device)}" if device.startswith("cuda") else ""
     return f"host {socket.gethostname()} ({cpu_model().strip()}, {cpu_isa()}, {os.cpu_count()} CPUs{gpu})"
 
 
