@@ -1,6 +1,9 @@
 """bench.machine: a machine named from /proc/cpuinfo without torch; the ISA in words and as a tag."""
+import os
+import re
 import subprocess
 import sys
+from pathlib import Path
 
 import pytest
 
@@ -53,3 +56,34 @@ def test_naming_the_machine_imports_no_torch():
 def test_the_fast_path_chooser_reads_the_same_flags(flags):
     from bench import measure
     assert measure.native_bf16("cpu", flags) == ("native" in machine.cpu_isa(flags))
+
+
+def test_time_make_test_times_a_clean_clone_at_the_commit_and_names_the_machine(tmp_path):
+    """scripts/time_make_test.sh, which measures the README's `make test` figure: it runs `make test` in a
+    fresh clone at the commit asked for, with an empty Inductor cache, and reports pytest's summary, make's
+    status and this machine. Here `make` is a stand-in that says where it ran and fails one test."""
+    repo = Path(__file__).resolve().parent.parent
+    bin_dir = tmp_path / "bin"
+    bin_dir.mkdir()
+    (bin_dir / "make").write_text(
+        '#!/bin/bash\necho "target $1 at $(git rev-parse --short HEAD) in $PWD"\n'
+        'echo "inductor cache $TORCHINDUCTOR_CACHE_DIR holds $(ls -A "$TORCHINDUCTOR_CACHE_DIR" 2>/dev/null | wc -l)"\n'
+        'echo "1 failed, 2 passed, 3 skipped in 0.50s"\nexit 1\n')
+    (bin_dir / "make").chmod(0o755)
+    root = subprocess.run(["git", "rev-list", "--max-parents=0", "HEAD"], cwd=repo, capture_output=True, text=True,
+                          check=True).stdout.split()[0]
+    first = subprocess.run(["git", "rev-parse", "--short", root], cwd=repo, capture_output=True, text=True,
+                           check=True).stdout.strip()
+    done = subprocess.run(["bash", str(repo / "scripts" / "time_make_test.sh"), root], capture_output=True, text=True,
+                          timeout=120, env={**os.environ, "PATH": f"{bin_dir}:{os.environ['PATH']}",
+                                            "TMPDIR": str(tmp_path)})
+    assert done.returncode == 1, done.stdout + done.stderr                    # make's status
+    lines = done.stdout.splitlines()
+    assert re.fullmatch(rf"make test at {first}: \d+ s wall, rc 1; pytest: 1 failed, 2 passed, 3 skipped in 0.50s",
+                        lines[0]), lines
+    assert lines[1].startswith(f"on {machine.cpu_model().strip()} (") and machine.cpu_isa() in lines[1]
+    assert "load average before: " in lines[1]
+    (log,) = tmp_path.glob("srd-bench-make-test.*/make-test.log")
+    ran = log.read_text()
+    assert f"target test at {first} in {log.parent / 'clone'}" in ran and "holds 0" in ran
+    assert sorted(p.name for p in log.parent.iterdir()) == ["make-test.log"]  # the clone is gone
