@@ -84,7 +84,8 @@ import hashlib, sys, traceback
 from pathlib import Path
 try:
     import torch
-    from bench.experiments.speed import device_tag
+    import bench.experiments.speed  # noqa: F401 - what the steps import: a missing package stops the job here
+    from bench.machine import device_tag
     from bench.runs import source_hash
 except Exception as err:  # noqa: BLE001 - any failure to import is this one message, as before
     traceback.print_exc()
