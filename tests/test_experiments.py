@@ -459,8 +459,9 @@ def test_claim_verdicts_pair_seeds_and_sequences_with_holm_and_scene_robustness(
     reversed_and_missing = {"claim": "a reversal decides", "better": "t:B", "worse": ["t:A", "t:D"]}
     table = claims.run(ctx, "claims", [reversed_and_missing], "PSNR", tables=None)
     assert set(table["verdict"]) == {"reversed"} and list(table.columns[-1:]) == ["basis"]
-    with pytest.raises(UserError, match="none of the claims' rows are recorded"):
-        claims.run(ctx, "claims", missing[1:], "PSNR", tables=None)
+    with pytest.raises(UserError, match="none of the claims' rows are recorded") as said:
+        claims.run(ctx, "claims", [missing[1], {**missing[1], "claim": "the same table again"}], "PSNR", tables=None)
+    assert str(said.value).count("does not exist") == 1 and "+experiment=all preset=" in str(said.value)
 
 
 def test_reference_check_counts_frames_whose_reference_error_is_below_a_tenth_of_the_best_rows():

@@ -328,7 +328,9 @@ def run(ctx: Context, name: str, claims: list[dict], metric: str, tables: list[s
             differences.append(d)
             keys.append(comparison_key(better, worse))
     if all(d is None for d in differences):   # not one pair recorded: nothing to judge
-        raise UserError("claims: none of the claims' rows are recorded: " + "; ".join(r["basis"] for r in rows))
+        reasons = dict.fromkeys(r["basis"] for r in rows)  # each once: a missing table is every claim's reason
+        raise UserError("claims: none of the claims' rows are recorded: " + "; ".join(reasons)
+                        + f" (`python -m bench +experiment=all preset={ctx.preset}` runs every table)")
     table = pd.DataFrame(rows)
     families = sorted({family_of(q) for d in differences if d is not None for q in d.columns})
     p_holm, verdicts = judged_verdicts(differences, keys)
