@@ -1,7 +1,8 @@
 """This machine, named: the CPU's model, feature flags and vector ISA, and a directory tag for what
 describes one machine (speed tables, the GPU records). Python's standard library only (torch is imported
 to name a GPU, where one is asked for), so the speed experiment, the fast-path chooser and the GPU scripts
-name a machine one way, and a script that only needs the name loads nothing heavy."""
+name a machine one way, and a script that only needs the name loads nothing heavy. (bench/nn/native.py keys
+its -march=native builds on the model name and flags itself: bench/nn may not import this module.)"""
 from __future__ import annotations
 
 import contextlib

@@ -460,8 +460,14 @@ def test_claim_verdicts_pair_seeds_and_sequences_with_holm_and_scene_robustness(
     table = claims.run(ctx, "claims", [reversed_and_missing], "PSNR", tables=None)
     assert set(table["verdict"]) == {"reversed"} and list(table.columns[-1:]) == ["basis"]
     with pytest.raises(UserError, match="none of the claims' rows are recorded") as said:
-        claims.run(ctx, "claims", [missing[1], {**missing[1], "claim": "the same table again"}], "PSNR", tables=None)
-    assert str(said.value).count("does not exist") == 1 and "+experiment=all preset=" in str(said.value)
+        claims.run(ctx, "claims", missing[1:] + [{**missing[1], "claim": "the same table again"}], "PSNR", tables=None)
+    said = str(said.value)   # each reason once, and the command that runs the paper tables
+    assert said.count("other/table.csv does not exist") == 1 and "no row 'BB'" in said
+    assert said.endswith(f"(`python -m bench +experiment=all preset={ctx.preset}` runs every paper table)")
+    study = {"claim": "a study's comparison", "better": "studies/s2:A", "worse": "studies/s2:B"}
+    with pytest.raises(UserError, match=r"run `python -m bench \+study=s2 preset=") as said:   # not +experiment=
+        claims.run(ctx, "studies/v", [study], "PSNR", tables=None)
+    assert "+experiment=all" not in str(said.value)
 
 
 def test_reference_check_counts_frames_whose_reference_error_is_below_a_tenth_of_the_best_rows():

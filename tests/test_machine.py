@@ -53,7 +53,7 @@ def test_naming_the_machine_imports_no_torch():
 
 
 @pytest.mark.parametrize("flags", [AVX2, AVX512_BF16])
-def test_the_fast_path_chooser_reads_the_same_flags(flags):
+def test_bf16_is_native_for_the_chooser_where_the_isa_in_words_says_so(flags):
     from bench import measure
     assert measure.native_bf16("cpu", flags) == ("native" in machine.cpu_isa(flags))
 
@@ -68,7 +68,7 @@ def test_time_make_test_times_a_clean_clone_at_the_commit_and_names_the_machine(
     (bin_dir / "make").write_text(
         '#!/bin/bash\necho "target $1 at $(git rev-parse --short HEAD) in $PWD"\n'
         'echo "inductor cache $TORCHINDUCTOR_CACHE_DIR holds $(ls -A "$TORCHINDUCTOR_CACHE_DIR" 2>/dev/null | wc -l)"\n'
-        'echo "1 failed, 2 passed, 3 skipped in 0.50s"\nexit 1\n')
+        'echo "====== 1 failed, 2 passed, 3 skipped in 0.50s ======"\nexit 2\n')  # make's status for a failed recipe
     (bin_dir / "make").chmod(0o755)
     root = subprocess.run(["git", "rev-list", "--max-parents=0", "HEAD"], cwd=repo, capture_output=True, text=True,
                           check=True).stdout.split()[0]
@@ -77,9 +77,9 @@ def test_time_make_test_times_a_clean_clone_at_the_commit_and_names_the_machine(
     done = subprocess.run(["bash", str(repo / "scripts" / "time_make_test.sh"), root], capture_output=True, text=True,
                           timeout=120, env={**os.environ, "PATH": f"{bin_dir}:{os.environ['PATH']}",
                                             "TMPDIR": str(tmp_path)})
-    assert done.returncode == 1, done.stdout + done.stderr                    # make's status
+    assert done.returncode == 2, done.stdout + done.stderr                    # make's status
     lines = done.stdout.splitlines()
-    assert re.fullmatch(rf"make test at {first}: \d+ s wall, rc 1; pytest: 1 failed, 2 passed, 3 skipped in 0.50s",
+    assert re.fullmatch(rf"make test at {first}: \d+ s wall, rc 2; pytest: 1 failed, 2 passed, 3 skipped in 0.50s",
                         lines[0]), lines
     assert lines[1].startswith(f"on {machine.cpu_model().strip()} (") and machine.cpu_isa() in lines[1]
     assert "load average before: " in lines[1]
@@ -87,3 +87,6 @@ def test_time_make_test_times_a_clean_clone_at_the_commit_and_names_the_machine(
     ran = log.read_text()
     assert f"target test at {first} in {log.parent / 'clone'}" in ran and "holds 0" in ran
     assert sorted(p.name for p in log.parent.iterdir()) == ["make-test.log"]  # the clone is gone
+    bad = subprocess.run(["bash", str(repo / "scripts" / "time_make_test.sh"), "no-such-commit"], capture_output=True,
+                         text=True, timeout=60, env={**os.environ, "TMPDIR": str(tmp_path / "bad")})
+    assert bad.returncode == 3 and "time_make_test: no commit no-such-commit" in bad.stderr   # not make's 2

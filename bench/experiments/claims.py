@@ -47,12 +47,22 @@ ALPHA = 0.05          # family-wise error over the table's distinct comparisons 
 class MissingRow(LookupError):
     """A claim's row is not in the recorded tables (its table not run, or run before the row existed)."""
 
+    def __init__(self, message: str, table_not_run: str | None = None):
+        super().__init__(message)
+        self.table_not_run = table_not_run
+
+
+def command_of(name: str, preset: str) -> str:
+    """The command that writes table `name` (a paper table's or a study's)."""
+    choice = f"+study={name.removeprefix('studies/')}" if name.startswith("studies/") else f"+experiment={name}"
+    return f"python -m bench {choice} preset={preset}"
+
 
 def _table(ctx: Context, name: str, cache: dict) -> pd.DataFrame:
     if name not in cache:
         path = ctx.results_dir / name / "table.csv"
         if not path.exists():
-            raise MissingRow(f"{path} does not exist: run `python -m bench +experiment={name} preset={ctx.preset}`")
+            raise MissingRow(f"{path} does not exist: run `{command_of(name, ctx.preset)}`", table_not_run=name)
         cache[name] = read_table(path)
     return cache[name]
 
@@ -66,8 +76,7 @@ def _row(ctx: Context, ref: str, cache: dict) -> pd.Series:
         raise MissingRow(f"no row {label!r} in {ctx.results_dir / name / 'table.csv'}"
                          + (f" (did you mean {close[0]!r}?)" if close else
                             f" (its rows: {', '.join(map(repr, table['method']))})")
-                         + f"; a row its config has gained since: rerun `python -m bench +experiment={name} "
-                         f"preset={ctx.preset}`")
+                         + f"; a row its config has gained since: rerun `{command_of(name, ctx.preset)}`")
     return found.iloc[0]
 
 
@@ -301,7 +310,7 @@ def run(ctx: Context, name: str, claims: list[dict], metric: str, tables: list[s
         claims = [c for c in claims if _tables_of(c) <= set(tables)]
         if not claims:
             raise UserError(f"claims: no claim is made of rows of only {tables}")
-    cache, rows, differences, keys = {}, [], [], []
+    cache, rows, differences, keys, not_run = {}, [], [], [], set()
     for claim in claims:
         pairs = [(claim["better"], worse) for worse in
                  ([claim["worse"]] if isinstance(claim["worse"], str) else claim["worse"])]
@@ -311,6 +320,7 @@ def run(ctx: Context, name: str, claims: list[dict], metric: str, tables: list[s
                 better, worse = _row(ctx, better_ref, cache), _row(ctx, worse_ref, cache)
             except MissingRow as missing:  # judged when its table has it; the others still are
                 log.warning("claims: %r not judged: %s", claim["claim"], missing)
+                not_run.add(missing.table_not_run)
                 rows.append({**row, f"{metric} 2SE verdict": NOT_RUN, "basis": str(missing)})
                 differences.append(None)
                 keys.append(None)
@@ -328,9 +338,10 @@ def run(ctx: Context, name: str, claims: list[dict], metric: str, tables: list[s
             differences.append(d)
             keys.append(comparison_key(better, worse))
     if all(d is None for d in differences):   # not one pair recorded: nothing to judge
-        reasons = dict.fromkeys(r["basis"] for r in rows)  # each once: a missing table is every claim's reason
-        raise UserError("claims: none of the claims' rows are recorded: " + "; ".join(reasons)
-                        + f" (`python -m bench +experiment=all preset={ctx.preset}` runs every table)")
+        reasons = "; ".join(dict.fromkeys(r["basis"] for r in rows))  # each once: a table not run is many claims' reason
+        paper_tables = {t for t in not_run if t and not t.startswith("studies/")}
+        every = f" (`python -m bench +experiment=all preset={ctx.preset}` runs every paper table)" if paper_tables else ""
+        raise UserError(f"claims: none of the claims' rows are recorded: {reasons}{every}")
     table = pd.DataFrame(rows)
     families = sorted({family_of(q) for d in differences if d is not None for q in d.columns})
     p_holm, verdicts = judged_verdicts(differences, keys)
