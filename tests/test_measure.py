@@ -183,7 +183,7 @@ def test_both_entry_points_enter_the_fused_kernels_default(monkeypatch, tmp_path
 
 
 def test_scripts_as_avx2_runs_a_command_as_on_a_cpu_with_avx2_only(tmp_path):
-    """scripts/as_avx2.sh, with which the README's AVX2 figure for `make test` was timed on an AVX-512 host:
+    """scripts/as_avx2.sh, with which docs/testing.md's AVX2 figure for `make test` was timed on an AVX-512 host:
     the suite's ISA check, Inductor's vector ISA and every -march=native C++ build see AVX2 only, and the
     compiler wrapper still reads as gcc to Inductor (named otherwise, Inductor compiles another way and
     the suite took 25% longer)."""
