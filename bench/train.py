@@ -249,6 +249,40 @@ def update_ema(ema_model, model, decay: float, step: int) -> None:
         e.copy_(b)
 
 
+def compiled_as(recipe: Recipe, loss_fn):
+    """`loss_fn`, or where recipe.compile names a mode its torch.compile'd form: forward over the frames and
+    the losses as one traced graph, backward as its compiled gradient (Adam and the EMA stay eager: a few
+    foreach kernels). Called once per process: each call compiles anew."""
+    return loss_fn if recipe.compile is None else torch.compile(loss_fn, mode=recipe.compile)
+
+
+def step_loss(loss_fn, net, batch: dict, task: Task | None, recipe: Recipe, features=None):
+    """One step's loss and its parts, `loss_fn` (`batch_loss`, through `compiled_as`) under bf16 autocast
+    where the recipe trains in bf16."""
+    if recipe.compile is not None:  # CUDA graphs: this step may reuse the previous step's buffers
+        torch.compiler.cudagraph_mark_step_begin()
+    device_type = next(iter(batch.values())).device.type
+    with torch.autocast(device_type, dtype=torch.bfloat16, enabled=recipe.precision == "bf16"):
+        return loss_fn(net, batch, task, recipe.loss, recipe.hdr, features, recipe.loss_knee)
+
+
+def update_weights(model, optimizer, ema_model, loss: torch.Tensor, recipe: Recipe, step: int) -> torch.Tensor:
+    """From step `step`'s loss to the next weights: backward, the gradients clipped to
+    recipe.clip_grad_norm, Adam at the step's learning rate, the EMA. Returns the gradient norm before
+    the clip. The trainer and the speed table's training rows (bench.experiments.speed) both call this."""
+    optimizer.zero_grad(set_to_none=True)
+    loss.backward()
+    grad_norm = torch.nn.utils.get_total_norm([p.grad for p in model.parameters() if p.grad is not None])
+    if recipe.clip_grad_norm:
+        torch.nn.utils.clip_grads_with_norm_(model.parameters(), recipe.clip_grad_norm, grad_norm)
+    for group in optimizer.param_groups:
+        group["lr"] = lr_at(step, recipe)
+    optimizer.step()
+    if ema_model is not None:
+        update_ema(ema_model, model, recipe.ema, step)
+    return grad_norm
+
+
 @dataclass
 class _State:
     step: int = 0
@@ -360,9 +394,7 @@ def train(model, dataset, task: Task, out_dir: str | Path, recipe: Recipe, *, fe
         state.val_curve.append(_validation_point(state, validate, scored))  # models with input_residual)
     # every rank resumed from the same checkpoint; unused parameters (a head without loss) get no gradient
     net = model if ranks == 1 else torch.nn.parallel.DistributedDataParallel(model, find_unused_parameters=True)
-    # compiled: forward over the frames and the losses as one traced graph, backward as its compiled
-    # gradient (Adam and the EMA stay eager: a few foreach kernels); compiled once per process
-    step_loss = batch_loss if recipe.compile is None else torch.compile(batch_loss, mode=recipe.compile)
+    loss_fn = compiled_as(recipe, batch_loss)
     bar = tqdm(total=recipe.steps, initial=state.step, desc=f"train {type(model).__name__}",
                disable=None if progress else True, dynamic_ncols=True, leave=False, mininterval=1.0)
     log_lines = progress and bar.disable  # no bar (not a terminal): a log line every LOG_EVERY_S
@@ -389,28 +421,16 @@ def train(model, dataset, task: Task, out_dir: str | Path, recipe: Recipe, *, fe
             if recipe.channels_last:
                 batch = {k: frames_channels_last(v) for k, v in batch.items()}
             data_s += time.perf_counter() - t0
-            for group in optimizer.param_groups:
-                group["lr"] = lr_at(step, recipe)
-            if recipe.compile is not None:  # CUDA graphs: this step may reuse the previous step's buffers
-                torch.compiler.cudagraph_mark_step_begin()
-            with torch.autocast(torch.device(device).type, dtype=torch.bfloat16, enabled=recipe.precision == "bf16"):
-                loss, parts = step_loss(net, batch, task, recipe.loss, recipe.hdr, features, recipe.loss_knee)
+            loss, parts = step_loss(loss_fn, net, batch, task, recipe, features)
             # copies: a CUDA graph's outputs are overwritten by its next replay, and these wait for read_back
             reported = {"loss": loss.detach().clone(), **{k: v.detach().clone() for k, v in parts.items()}}
             stopping = bool(stop)  # decided here, once per step: with several ranks, the same on all
             if ranks > 1:  # the global batch's loss (a mean of equal shares), and a stop asked on any rank
                 means = distributed.mean_over_ranks(torch.stack([*reported.values(), loss.new_tensor(len(stop))]))
                 reported, stopping = dict(zip(reported, means[:-1])), bool(means[-1] > 0)
-            optimizer.zero_grad(set_to_none=True)
-            loss.backward()
-            grad_norm = torch.nn.utils.get_total_norm([p.grad for p in model.parameters() if p.grad is not None])
-            if recipe.clip_grad_norm:
-                torch.nn.utils.clip_grads_with_norm_(model.parameters(), recipe.clip_grad_norm, grad_norm)
             # the losses stay on the device until `read_back` (no host sync per step): a non-finite step is
             # found and named there, before any checkpoint or validation could take its weights
-            optimizer.step()
-            if ema_model is not None:
-                update_ema(ema_model, model, recipe.ema, step)
+            grad_norm = update_weights(model, optimizer, ema_model, loss, recipe, step)
             state.step += 1
             state.train_s += time.perf_counter() - t0
             unread.append((state.step, optimizer.param_groups[0]["lr"],

@@ -5,8 +5,8 @@ whose single training leaves it idle between launches (eager: busy 18% for Ours 
 results/gpu/profile/) or on a CPU whose one training does not use its cores.
 
 Each process builds the model at the preset's widths and times `bench.experiments.speed.training_step`:
-a random batch of the preset's training crop, the trainer's loss without the perceptual term, Adam;
-training data are not read (at the gpu preset they are held on the device, docs/gpu.md). The processes
+the trainer's step (bench.train: HDR encode, the loss without its perceptual term, gradient clip, Adam,
+EMA) on a random batch of the preset's training crop, as the preset's recipe trains; training data are not read (at the gpu preset they are held on the device, docs/gpu.md). The processes
 take warm-up steps (and compile, with --compile), wait for each other at a barrier, then time --steps
 steps each; the aggregate is their steps over the wall time from the first start to the last end. On a
 CPU each process gets its share of the cores as threads (bench.scheduler.threads_per_job).
@@ -26,6 +26,7 @@ import statistics
 import threading
 import sys
 import time
+from dataclasses import replace
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -47,17 +48,17 @@ def composed(preset: str, overrides: list[str]) -> dict:
 TEST_EXIT = "SRD_BENCH_TEST_WORKER_EXIT"   # "<processes>:<rank>": that worker exits after warming up (tests)
 
 
-def worker(rank: int, model_cfg: dict, train: dict, loss: dict, lr: float, device: str, threads: int,
-           warmup: int, steps: int, compile: str | None, barrier, results) -> None:
+def worker(rank: int, model_cfg: dict, recipe, device: str, threads: int, warmup: int, steps: int,
+           compile: str | None, barrier, results) -> None:
     """One process: build, warm up (compile), wait for the others, time `steps` steps; puts (start, end)
     wall-clock seconds, or the error's first line (then the others are released from the barrier)."""
     os.environ["TORCHINDUCTOR_COMPILE_THREADS"] = str(threads)   # N processes compiling share the cores
-    from bench.measure import error_summary   # a failure to import this far is a death, said by the parent
+    from bench.errors import error_summary   # a failure to import this far is a death, said by the parent
     try:
         import torch
         torch.set_num_threads(threads)
         from bench.experiments.speed import build, training_step
-        step = training_step(build(model_cfg, device, perturb=0.02), train, loss, lr, device, compile=compile)
+        step = training_step(build(model_cfg, device, perturb=0.02), replace(recipe, compile=compile), device)
         sync = torch.cuda.synchronize if device.startswith("cuda") else (lambda: None)
         for _ in range(warmup):
             step()
@@ -83,16 +84,16 @@ def worker(rank: int, model_cfg: dict, train: dict, loss: dict, lr: float, devic
         results.put(error_summary(err, 160))
 
 
-def measure(model_cfg: dict, train: dict, loss: dict, lr: float, device: str, processes: int, warmup: int,
-            steps: int, compile: str | None, timeout: float) -> dict:
+def measure(model_cfg: dict, recipe, device: str, processes: int, warmup: int, steps: int, compile: str | None,
+            timeout: float) -> dict:
     """Run `processes` workers at once; per-process ms/step and aggregate steps/s, or why it failed.
     Never waits past `timeout` in all: a worker that dies without a word releases the others."""
     from bench.scheduler import threads_per_job
     spawn = multiprocessing.get_context("spawn")
     barrier, results = spawn.Barrier(processes, timeout=timeout), spawn.Queue()
     threads = threads_per_job(processes)
-    workers = [spawn.Process(target=worker, args=(rank, model_cfg, train, loss, lr, device, threads, warmup, steps,
-                                                 compile, barrier, results)) for rank in range(processes)]
+    workers = [spawn.Process(target=worker, args=(rank, model_cfg, recipe, device, threads, warmup, steps, compile,
+                                                 barrier, results)) for rank in range(processes)]
     for w in workers:
         w.start()
     got, deadline = [], time.monotonic() + timeout
@@ -161,13 +162,15 @@ def main(argv=None) -> int:
         parser.error(f"--models: no model {unknown[0]!r}; models: {', '.join(cfg['models'])}")
     from bench.experiments.speed import LABELS
     from bench.machine import device_tag
+    from bench.train import Recipe
     import torch
-    train = {"batch": cfg["train"]["batch_size"], "frames": cfg["train"]["seq_len"], "crop": cfg["train"]["crop"]}
+    recipe = Recipe.from_config(cfg["train"])
     where = device_tag(args.device)
     header = [f"# Training steps of several processes at once on {where}", "",
               f"`python scripts/gpu_step_concurrency.py {' '.join(argv if argv is not None else sys.argv[1:])}`: "
-              f"preset {args.preset} widths, {train['batch']} x {train['frames']} frames of {train['crop']}x"
-              f"{train['crop']} LR a step, the trainer's loss without perceptual, Adam; torch {torch.__version__}. "
+              f"preset {args.preset} widths and recipe, {recipe.batch_size} x {recipe.seq_len} frames of {recipe.crop}x"
+              f"{recipe.crop} LR a step, the trainer's step (HDR encode, loss without perceptual, clip, Adam, EMA); "
+              f"torch {torch.__version__}. "
               f"Each process: {args.warmup} warm-up steps, then {args.steps} timed once all are warm. ms/step: "
               "the processes' mean; steps/s: all processes' steps over the wall time from the first start to "
               "the last end; x one: steps/s against one process on the same path.", "",
@@ -184,8 +187,8 @@ def main(argv=None) -> int:
             if processes == 1 and cells[6] != "-":
                 alone[(name, path)] = float(cells[6])
             continue
-        got = measure(cfg["models"][name], train, cfg["train"]["loss"], cfg["train"]["lr"], args.device, processes,
-                      args.warmup, args.steps, None if path == "none" else path, args.timeout)
+        got = measure(cfg["models"][name], recipe, args.device, processes, args.warmup, args.steps,
+                      None if path == "none" else path, args.timeout)
         if "failed" in got:
             rows.append(f"| {label} | {path} | {processes} | - | - | - | failed: {got['failed']} |")
         else:

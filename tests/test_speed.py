@@ -5,6 +5,8 @@ channels_last, within 5% of the output's range for bf16 (bfloat16 keeps ~3 signi
 errors add up through a few dozen layers). Tiled inference must equal untiled inference for conv-only
 models once the overlap covers the receptive radius, and stream recurrent models tile by tile.
 """
+import copy
+import dataclasses
 import platform
 import re
 from pathlib import Path
@@ -25,6 +27,7 @@ from bench.experiments.speed import PATHS, peak_memory_mib
 from bench.machine import device_tag
 from bench.infer import (FastPath, frames_channels_last, parse_path, prepare, receptive_radius, tiled_predict)
 from bench.models.srd import SRDNet
+from conftest import config_recipe
 
 TINY = {
     "srd": lambda: SRDNet(channels=4, cond_channels=4),
@@ -505,8 +508,8 @@ def test_a_training_step_that_fails_is_a_row_saying_why_and_the_table_goes_on(mo
     def broken(*args, **kwargs):
         raise RuntimeError("graph capture failed\nsecond line")
     monkeypatch.setattr(speed, "timed_training_row", broken)
-    row = speed.training_row("Ours", TINY["edsr"](), {"batch": 2, "frames": 3, "crop": 8}, {"final": {"spatial": 1}},
-                             1e-3, "cpu", 1, 0, path="fp32, compiled (reduce-overhead)", compile="reduce-overhead")
+    row = speed.training_row("Ours", TINY["edsr"](), config_recipe(batch_size=2, seq_len=3, crop=8), "cpu", 1, 0,
+                             path="fp32, compiled (reduce-overhead)", compile="reduce-overhead")
     assert row["note"] == "failed: RuntimeError: graph capture failed"
     assert (row["section"], row["fast path"], row["size"]) == (
         "training step", "fp32, compiled (reduce-overhead)", "2x3 frames of 8x8 LR")
@@ -514,6 +517,49 @@ def test_a_training_step_that_fails_is_a_row_saying_why_and_the_table_goes_on(mo
     stack = {"section": "training step", "method": "3x3 conv stack (4 x 8 ch)", "fast path": row["fast path"], "ms": 14.7}
     table = speed._ratios(pd.DataFrame([stack, row], columns=speed.COLUMNS))  # a row without a time has no ratio
     assert table["step / conv stack step"].tolist()[0] == 1.0 and pd.isna(table["step / conv stack step"].tolist()[1])
+
+
+def test_the_speed_tables_training_step_is_the_trainers_step(tmp_path, monkeypatch):
+    """What a training row times is one step of bench.train.train: on the same batch, one step of
+    speed.training_step leaves the weights one step of the trainer leaves (HDR encode, the loss, a gradient
+    clip that bites, Adam), and it updates an EMA as the trainer does. The conv stack's step takes the
+    same update after its L1 loss."""
+    import bench.train
+    from bench.experiments import speed
+    from bench.tasks import get_task
+    task = get_task("srd")
+    recipe = config_recipe(steps=1, batch_size=2, seq_len=2, crop=8, schedule="constant", clip_grad_norm=1e-9,
+                           emitters=0.0, fireflies=0.0, colour_permute=False)
+    recipe = dataclasses.replace(recipe, loss={h: {**w, "perceptual": 0} for h, w in recipe.loss.items()})
+    assert recipe.ema and recipe.hdr != "clamp"   # the config's EMA and HDR domain are what is compared
+    x, g = speed.random_frames(2, 2, (8, 8), "cpu", seed=1)   # the batch training_step draws
+    y = torch.rand(2, 2, 3, 16, 16, generator=torch.Generator().manual_seed(2))
+
+    class OneBatch:
+        def __len__(self):
+            return 1
+
+        def item(self, index, draw):   # draw: the item's slot in the batch, at step 0
+            return {task.x: x[draw], task.g: g[draw], task.y: y[draw], task.mid: y[draw]}
+
+    torch.manual_seed(0)
+    initial = TINY["edsr"]()
+    trained = copy.deepcopy(initial)
+    bench.train.train(trained, OneBatch(), task, tmp_path, recipe, progress=False)
+    by_trainer = torch.load(tmp_path / bench.train.CHECKPOINT, weights_only=False)["model"]
+    emas = []
+    monkeypatch.setattr(bench.train, "update_ema", lambda *args: emas.append(args[-1]))
+    stepped = copy.deepcopy(initial)
+    speed.training_step(stepped, recipe, "cpu")()
+    for name, value in stepped.state_dict().items():
+        torch.testing.assert_close(value, by_trainer[name], rtol=1e-5, atol=1e-7, msg=name)
+    assert any(not torch.equal(value, initial.state_dict()[name]) for name, value in by_trainer.items())
+    unclipped = copy.deepcopy(initial)   # the clip bites: without it, the step is another
+    speed.training_step(unclipped, dataclasses.replace(recipe, clip_grad_norm=None), "cpu")()
+    assert any(not torch.allclose(value, by_trainer[name]) for name, value in unclipped.state_dict().items())
+    assert emas == [0, 0]
+    step = speed.training_step(speed.ConvStack(4, 2), recipe, "cpu", stack_channels=4)
+    assert step().ndim == 0 and step().item() >= 0 and emas == [0, 0, 0, 1]
 
 
 def test_the_results_page_gives_the_compiled_step_beside_the_eager_one_and_the_conv_stacks(tmp_path):

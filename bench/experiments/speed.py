@@ -6,7 +6,8 @@ Per model (the configured widths of ctx.models), one LR frame at `input_hw` (def
 compile): warm ms per frame (median, min, max of `repeats` calls after `warmup`), achieved GMac/s
 (analytic MACs of bench.macs counted on the meta device, divided by the median time), peak memory of
 one call, and the largest difference from the fp32 output (every fast path is checked in the run that
-times it). Then one training step (forward, loss, backward, Adam) at the training crop.
+times it). Then one step of the trainer (bench.train: HDR encode, forward, loss, backward, gradient
+clip, Adam, EMA) at the training crop.
 
 Reference points, same run, same threads: Intel OIDN (pyoidn, albedo + normal) denoising one frame at
 the OUTPUT size; a plain stack of 3x3 convs + ReLU with the proposed model's MACs at the same input
@@ -34,6 +35,7 @@ from __future__ import annotations
 import copy
 import functools
 import hashlib
+import itertools
 import json
 import logging
 import os
@@ -42,6 +44,7 @@ import statistics
 import time
 from collections import defaultdict
 from collections.abc import Mapping, Sequence
+from dataclasses import replace
 from pathlib import Path
 
 import pandas as pd
@@ -50,18 +53,19 @@ import torch.nn as nn
 
 from bench import runs
 from bench.atomic import write_atomic
-from bench.errors import UserError
+from bench.errors import UserError, error_summary
 from bench.evaluate import sync
 from bench.infer import (REFERENCE, frames_channels_last, freed_memory_kept, max_abs_diff, parse_path, prepare, release_free_memory,
                          tiled_predict)
-from bench.losses import weighted_loss
 from bench.experiments.macs import frame_inputs, frame_macs
 from bench.macs import macs_at
 from bench.machine import cpu_identity, cpu_isa, cpu_model, device_tag, gpu_model, isa_tag
-from bench.measure import FUSED_GPU, candidate_paths, choose_fast_path, error_summary, time_call
+from bench.measure import FUSED_GPU, candidate_paths, choose_fast_path, time_call
 from bench.models.factory import build_model, is_learned
 from bench.nn import DeformConv2d, eager_gather, fused, grid_sample_training, inference_sampler, training_sampler
 from bench.table_writer import PARTIAL_CAPTION, write_table
+from bench.tasks import get_task
+from bench.train import Recipe, batch_loss, compiled_as, step_loss, update_weights
 from bench.weights import load_exported
 
 log = logging.getLogger("bench")
@@ -278,16 +282,17 @@ def note_auto_choice(rows: list[dict], model, x, g, device, repeats, untrained: 
     return chosen
 
 
-def training_steps(label: str, model, train: dict, loss_weights: dict, lr: float, device, repeats, warmup):
+def training_steps(label: str, model, recipe: Recipe, compiled: str | None, device, repeats, warmup):
     """(path, compute) of each training step the table times, compute() giving its row: the step with the
     deformable convs' default training sampler (compiled on CPU; on CUDA the fused kernels, the entry
-    points' default), also as the trainer's train.compile where asked; for models that have deformable
-    convs, with the grid_sample sampler and, on CUDA, the fused Triton kernels (deformable conv and CFM)."""
-    step = functools.partial(training_row, label, model, train, loss_weights, lr, device, repeats, warmup)
-    mode = train.get("compile") if label in train.get("compiled", ()) else None  # the trainer's train.compile
+    points' default), also compiled in mode `compiled` (the trainer's train.compile) where given; for models
+    that have deformable convs, with the grid_sample sampler and, on CUDA, the fused Triton kernels
+    (deformable conv and CFM). `recipe`: the trainer's, at the table's batch, frames and crop."""
+    step = functools.partial(training_row, label, model, recipe, device, repeats, warmup)
     yield "fp32", step
-    if mode:
-        yield f"fp32, compiled ({mode})", functools.partial(step, path=f"fp32, compiled ({mode})", compile=mode)
+    if compiled:
+        yield f"fp32, compiled ({compiled})", functools.partial(step, path=f"fp32, compiled ({compiled})",
+                                                                compile=compiled)
     deform = next((m for m in model.modules() if isinstance(m, DeformConv2d)), None)
     if deform is None:
         return
@@ -308,78 +313,86 @@ def training_steps(label: str, model, train: dict, loss_weights: dict, lr: float
         # eager, that step is host-bound; graphed, its convolutions are what is left to gain on
         path = "bf16+channels_last, fused sampler"
         yield path, functools.partial(fused_step, path, bf16=True, channels_last=True)
-        if mode:
-            yield f"{path}, compiled ({mode})", functools.partial(fused_step, f"{path}, compiled ({mode})", bf16=True,
-                                                                 channels_last=True, compile=mode)
+        if compiled:
+            yield f"{path}, compiled ({compiled})", functools.partial(
+                fused_step, f"{path}, compiled ({compiled})", bf16=True, channels_last=True, compile=compiled)
 
 
-def training_row(label: str, model, train: dict, loss_weights: dict, lr: float, device, repeats, warmup,
-                 path: str = "fp32", **options) -> dict:
+def training_row(label: str, model, recipe: Recipe, device, repeats, warmup, path: str = "fp32",
+                 **options) -> dict:
     """`timed_training_row`, or a row saying why the step failed on this machine (a compiled step that
     does not trace, no memory): the sections after it still run."""
     try:
-        return timed_training_row(label, model, train, loss_weights, lr, device, repeats, warmup, path=path,
-                                  **options)
+        return timed_training_row(label, model, recipe, device, repeats, warmup, path=path, **options)
     except Exception as err:  # noqa: BLE001 - as inference_rows: any failure of a path is that path's row
         log.warning("speed: %s training step %s failed: %s", label, path, err)
-        size = f"{train['batch']}x{train['frames']} frames of {train['crop']}x{train['crop']} LR"
-        return _row("training step", label, path, size, "step", note=f"failed: {error_summary(err, 120)}")
+        return _row("training step", label, path, _step_size(recipe), "step",
+                    note=f"failed: {error_summary(err, 120)}")
 
 
-def timed_training_row(label: str, model, train: dict, loss_weights: dict, lr: float, device, repeats, warmup,
-                       in_channels: int = 3, out_channels: int = 3, scale: int = 2, path: str = "fp32",
-                       bf16: bool = False, channels_last: bool = False, compile: str | None = None) -> dict:
-    """Time of one optimisation step (`training_step`), fp32 or as the trainer's options ask; a compiled
+def _step_size(recipe: Recipe) -> str:
+    return f"{recipe.batch_size}x{recipe.seq_len} frames of {recipe.crop}x{recipe.crop} LR"
+
+
+def timed_training_row(label: str, model, recipe: Recipe, device, repeats, warmup, stack_channels: int | None = None,
+                       path: str = "fp32", bf16: bool = False, channels_last: bool = False,
+                       compile: str | None = None) -> dict:
+    """Time of one training step (`training_step`), fp32 or as the trainer's options ask; a compiled
     step's first call, the compilation, is timed apart."""
-    step = training_step(model, train, loss_weights, lr, device, in_channels, out_channels, scale, bf16,
-                         channels_last, compile)
-    batch, frames, crop = train["batch"], train["frames"], train["crop"]
-    note = "Adam, trainer loss without perceptual"
+    recipe = replace(recipe, precision="bf16" if bf16 else "fp32", channels_last=channels_last, compile=compile)
+    step = training_step(copy.deepcopy(model), recipe, device, stack_channels)  # the table's model untouched
+    note = STACK_STEP if stack_channels else TRAINER_STEP
     if compile is not None:
         compile_s = time_call(step, device, 1, 0)["ms"] / 1000  # the first call compiles
         note += f"; first call (compile) {compile_s:.0f} s"
         if compile == "reduce-overhead" and torch.device(device).type == "cuda":
             note += "; peak MiB leaves out the CUDA graphs' memory pool, taken when they were captured"
     timing = time_call(step, device, repeats, warmup)
-    return _row("training step", label, path, f"{batch}x{frames} frames of {crop}x{crop} LR", "step", timing,
+    return _row("training step", label, path, _step_size(recipe), "step", timing,
                 **{"peak MiB": peak_memory_mib(step, device), "note": note})
 
 
-def training_step(model, train: dict, loss_weights: dict, lr: float, device, in_channels: int = 3,
-                  out_channels: int = 3, scale: int = 2, bf16: bool = False, channels_last: bool = False,
-                  compile: str | None = None):
-    """One optimisation step (forward, loss, backward, Adam at `lr`) of a copy of `model` on a random
-    batch of the training crop (`train`: batch, frames, crop), as a call: fp32, or as the trainer's
-    train.precision=bf16, train.channels_last=true and train.compile=<mode> do (forward and loss under
-    torch.compile). The loss is the trainer's weighted loss without the perceptual term (no VGG here)."""
-    model = copy.deepcopy(model).train()
-    batch, frames, crop = train["batch"], train["frames"], train["crop"]
-    x, g = random_frames(batch, frames, (crop, crop), device, seed=1, in_channels=in_channels)
-    if channels_last:
+# what a training row's step is (its note): the trainer's, or the conv stack's (16 or 32 channels in and
+# out, not radiance, so an L1 loss stands in for the trainer's)
+TRAINER_STEP = "the trainer's step: HDR encode, loss without perceptual, clip, Adam, EMA"
+STACK_STEP = "L1 loss, then the trainer's clip, Adam, EMA"
+
+
+def training_step(model, recipe: Recipe, device, stack_channels: int | None = None):
+    """The trainer's step of `model` (trained in place), as a call returning its loss, on a random batch of
+    `recipe`'s batch, frames and crop: bench.train's step_loss (HDR encode and the weighted loss, bf16,
+    channels_last and compiled as the recipe says; no perceptual term: no VGG here), then its
+    update_weights (backward, gradient clip, Adam, EMA). With `stack_channels`, the conv stack's step
+    instead: `stack_channels` channels in and out at scale 1, an L1 loss, the same update."""
+    model.train()
+    ema_model = copy.deepcopy(model).eval().requires_grad_(False) if recipe.ema else None
+    optimizer = torch.optim.Adam(model.parameters(), lr=recipe.lr, betas=tuple(recipe.betas))
+    recipe = replace(recipe, loss={head: {**w, "perceptual": 0} for head, w in recipe.loss.items()})
+    task = None if stack_channels else get_task("srd")
+    channels, scale = (stack_channels, 1) if stack_channels else (3, task.scale)
+    frames, crop = (recipe.batch_size, recipe.seq_len), recipe.crop
+    x, g = random_frames(*frames, (crop, crop), device, seed=1, in_channels=channels)
+    if recipe.channels_last:
         model, x, g = model.to(memory_format=torch.channels_last), frames_channels_last(x), frames_channels_last(g)
-    target = torch.rand(batch, frames, out_channels, scale * crop, scale * crop,
+    target = torch.rand(*frames, channels, scale * crop, scale * crop,
                         generator=torch.Generator().manual_seed(2)).to(device)
-    optimizer = torch.optim.Adam(model.parameters(), lr=lr)
-    weights = {name: {**w, "perceptual": 0} for name, w in loss_weights.items()}
-
-    def forward_loss(x, g):
-        out = model(x, g)
-        loss, _ = weighted_loss(out["final"], target, weights["final"])
-        if out.get("intermediate") is not None and any(weights["intermediate"].values()):
-            loss = loss + weighted_loss(out["intermediate"], target, weights["intermediate"])[0]
-        return loss
-
-    traced = forward_loss if compile is None else torch.compile(forward_loss, mode=compile)
+    if task is None:
+        batch, loss_fn = {"x": x, "y": target}, compiled_as(recipe, _stack_loss)
+    else:
+        batch = {task.x: x, task.g: g, task.y: target, **({task.mid: target} if task.mid else {})}
+        loss_fn = compiled_as(recipe, batch_loss)
+    steps = itertools.count()
 
     def step():
-        optimizer.zero_grad(set_to_none=True)
-        if compile is not None:
-            torch.compiler.cudagraph_mark_step_begin()
-        with torch.autocast(torch.device(device).type, dtype=torch.bfloat16, enabled=bf16):
-            loss = traced(x, g)
-        loss.backward()
-        optimizer.step()
+        loss, _ = step_loss(loss_fn, model, batch, task, recipe)
+        update_weights(model, optimizer, ema_model, loss, recipe, next(steps))
+        return loss
     return step
+
+
+def _stack_loss(net, batch, *_):
+    """The conv stack's loss, in batch_loss's form (total, parts)."""
+    return (net(batch["x"])["final"] - batch["y"]).abs().mean(), {}
 
 
 def oidn_row(out_hw, device, repeats, warmup) -> dict | None:
@@ -398,10 +411,11 @@ def oidn_row(out_hw, device, repeats, warmup) -> dict | None:
 
 
 def conv_stack_rows(target_macs: int, hw, channels: int, paths, device, repeats, warmup,
-                    train: dict | None, lr: float) -> list[dict]:
-    """The dense-conv reference at the proposed model's MACs, per fast path; with `train`, also its
-    training step (forward, L1, backward, Adam at `lr`: train.lr, as the models' timed steps take) at the
-    training crop: the same MACs per LR pixel as the proposed model's forward."""
+                    recipe: Recipe | None, compiled: str | None) -> list[dict]:
+    """The dense-conv reference at the proposed model's MACs, per fast path; with `recipe` (the trainer's,
+    at the table's batch, frames and crop), also its training step (`training_step`: L1 loss, then the
+    trainer's update) at that crop, the same MACs per LR pixel as the proposed model's forward, and
+    compiled in mode `compiled` where given."""
     depth = conv_stack_depth(target_macs, hw, channels)
     torch.manual_seed(0)
     stack = ConvStack(channels, depth).to(device).eval()
@@ -411,13 +425,11 @@ def conv_stack_rows(target_macs: int, hw, channels: int, paths, device, repeats,
     rows = inference_rows(label, stack, macs, x, None, paths, device, repeats, warmup)
     for row in rows:
         row["section"], row["size"] = "reference", _size(hw, 1)
-    if train:
-        rows.append(training_row(label, stack, train, {"final": {"spatial": 1}}, lr, device, repeats, warmup,
-                                 in_channels=channels, out_channels=channels, scale=1))
-        if train.get("compile"):  # the same path as Ours' compiled row, for their ratio
-            rows.append(training_row(label, stack, train, {"final": {"spatial": 1}}, lr, device, repeats, warmup,
-                                     in_channels=channels, out_channels=channels, scale=1,
-                                     path=f"fp32, compiled ({train['compile']})", compile=train["compile"]))
+    if recipe is not None:
+        rows.append(training_row(label, stack, recipe, device, repeats, warmup, stack_channels=channels))
+        if compiled:  # the same path as Ours' compiled row, for their ratio
+            rows.append(training_row(label, stack, recipe, device, repeats, warmup, stack_channels=channels,
+                                     path=f"fp32, compiled ({compiled})", compile=compiled))
     return rows
 
 
@@ -748,13 +760,15 @@ def _sections(ctx, models, input_hw, paths, repeats, warmup, train, oidn, stack_
     if oidn:
         yield "OIDN", lambda: [row for row in [oidn_row((2 * input_hw[0], 2 * input_hw[1]), device, repeats, warmup)]
                                if row]
-    train = {"batch": ctx.train.batch_size, "frames": ctx.train.seq_len, "crop": ctx.train.crop,
-             **{k: v for k, v in train.items() if v is not None}}
+    # the trainer's recipe at the table's batch, frames and crop (null: the preset's); no training rows if disabled
+    recipe = replace(ctx.train, **{field: train[key] for key, field in (("batch", "batch_size"), ("frames", "seq_len"),
+                                                                       ("crop", "crop")) if train.get(key) is not None}
+                     ) if train.get("enabled", True) else None
+    compiled = train.get("compile")
     layers_of = functools.cache(lambda name: frame_macs(ctx.models[name], input_hw))  # srd's counted once
     if stack_channels and "srd" in ctx.models:
         yield "conv stack", lambda: conv_stack_rows(int(layers_of("srd")["macs"].sum()), input_hw, stack_channels,
-                                                    paths, device, repeats, warmup,
-                                                    train if train.get("enabled", True) else None, ctx.train.lr)
+                                                    paths, device, repeats, warmup, recipe, compiled)
     if deform.get("enabled", True):
         yield "deformable conv", lambda: deform_rows(
             deform.get("channels", 32), [tuple(s) for s in deform.get("sizes", [[270, 480], [540, 960]])],
@@ -766,9 +780,9 @@ def _sections(ctx, models, input_hw, paths, repeats, warmup, train, oidn, stack_
         model = trained[name][0].to(device) if name in trained else build(ctx.models[name], device, perturb)
         yield f"{label} inference", functools.partial(_inference_section, label, model, layers_of(name), x, g, paths,
                                                       device, repeats, warmup, untrained=name not in trained)
-        if train.get("enabled", True):
-            for path, step in training_steps(label, model, train, ctx.train.loss, ctx.train.lr, device, repeats,
-                                             warmup):
+        if recipe is not None:
+            for path, step in training_steps(label, model, recipe, compiled if label in train.get("compiled", ()) else None,
+                                             device, repeats, warmup):
                 yield f"{label} training step ({path})", lambda step=step: [step()]
         if name in (profile.get("models") or []):
             yield f"{label} profile", functools.partial(profile_rows, label, model, layers_of(name), x, g,
