@@ -26,7 +26,6 @@ from pathlib import Path
 import torch
 
 from bench.atomic import write_atomic
-from bench.errors import error_summary
 from bench.evaluate import sync
 from bench.infer import REFERENCE, max_abs_diff, prepare
 from bench.machine import cpu_flags, cpu_isa, cpu_model
@@ -38,6 +37,12 @@ AUTO = "auto"
 
 
 FUSED_GPU = "SRD_BENCH_FUSED_GPU"
+
+
+def error_summary(err: BaseException, width: int | None = None) -> str:
+    """An error in one line for a table's cell or a log: its type and the first line of its message (at
+    most `width` characters of it)."""
+    return f"{type(err).__name__}: {(str(err).splitlines() or [''])[0][:width]}"
 
 
 @contextlib.contextmanager

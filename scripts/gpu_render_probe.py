@@ -40,7 +40,7 @@ sys.path.insert(0, str(ROOT))
 from bench import datagen, exrio, render  # noqa: E402
 from bench.atomic import write_atomic  # noqa: E402
 from bench.datagen import BUFFERS, plan_sequences  # noqa: E402
-from bench.errors import error_summary  # noqa: E402
+from bench.measure import error_summary  # noqa: E402
 from bench.table_writer import write_record  # noqa: E402
 
 

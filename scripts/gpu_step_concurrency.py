@@ -53,7 +53,7 @@ def worker(rank: int, model_cfg: dict, recipe, device: str, threads: int, warmup
     """One process: build, warm up (compile), wait for the others, time `steps` steps; puts (start, end)
     wall-clock seconds, or the error's first line (then the others are released from the barrier)."""
     os.environ["TORCHINDUCTOR_COMPILE_THREADS"] = str(threads)   # N processes compiling share the cores
-    from bench.errors import error_summary   # a failure to import this far is a death, said by the parent
+    from bench.measure import error_summary   # a failure to import this far is a death, said by the parent
     try:
         import torch
         torch.set_num_threads(threads)

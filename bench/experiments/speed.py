@@ -53,14 +53,14 @@ import torch.nn as nn
 
 from bench import runs
 from bench.atomic import write_atomic
-from bench.errors import UserError, error_summary
+from bench.errors import UserError
 from bench.evaluate import sync
 from bench.infer import (REFERENCE, frames_channels_last, freed_memory_kept, max_abs_diff, parse_path, prepare, release_free_memory,
                          tiled_predict)
 from bench.experiments.macs import frame_inputs, frame_macs
 from bench.macs import macs_at
 from bench.machine import cpu_identity, cpu_isa, cpu_model, device_tag, gpu_model, isa_tag
-from bench.measure import FUSED_GPU, candidate_paths, choose_fast_path, time_call
+from bench.measure import FUSED_GPU, candidate_paths, choose_fast_path, error_summary, time_call
 from bench.models.factory import build_model, is_learned
 from bench.nn import DeformConv2d, eager_gather, fused, grid_sample_training, inference_sampler, training_sampler
 from bench.table_writer import PARTIAL_CAPTION, write_table

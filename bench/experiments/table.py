@@ -27,7 +27,7 @@ from pathlib import Path
 import pandas as pd
 
 from bench import archived, runs
-from bench.errors import UserError, error_summary
+from bench.errors import UserError
 from bench.experiments.context import Context, model_config, row_setting, split_note, training_splits
 from bench.experiments.datasets import ensure_data, evaluation_data, frame_records, splits_on_disk
 from bench.experiments.evaluation import evaluation_recorded
@@ -35,6 +35,7 @@ from bench.experiments.figure import crop_figure, curve_figure
 from bench.experiments.macs import frame_macs
 from bench.experiments.row import row
 from bench.experiments.training import scoring_only_error, training_records, untrained
+from bench.measure import error_summary
 from bench.exposure import NAMES
 from bench.metrics import HIGHER_IS_BETTER, LOWER_IS_BETTER, RELMSE_FORMULA
 from bench.models.factory import build_model
