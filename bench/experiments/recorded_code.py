@@ -11,7 +11,11 @@ frames: equal numbers mean the change moves none, whatever the frames.
 The subprocess runs `python -m bench.experiments.replay JOB OUT` with the copy on its path: JOB is a
 pickle of `replay.replay`'s arguments, OUT receives what it returns. The harness (today's experiments)
 imports every model module; another model's, which the run's fingerprint does not name, is taken at the
-run's recorded git commit, so that it imports what the rebuilt files define (`rebuild`).
+run's recorded git commit, so that it imports what the rebuilt files define (`rebuild`). Every other
+file stays today's (bench/measure.py, the experiments): such a file may import from a fingerprinted one
+only names its recorded versions define too. Moving a function into a fingerprinted module that one of
+them imports fails every replay on the import, and adopt checks nothing (error_summary into bench/errors.py
+did: it stays in bench/measure.py).
 """
 from __future__ import annotations
 
