@@ -249,10 +249,24 @@ def update_ema(ema_model, model, decay: float, step: int) -> None:
         e.copy_(b)
 
 
+def training_start(model, recipe: Recipe, device: str):
+    """What a training starts from: `model` on `device` in training mode and the recipe's memory format,
+    then its EMA copy (None without train.ema), in that layout too (the EMA's foreach update needs the
+    same strides), and Adam over its parameters. The trainer and the speed table's training rows
+    (bench.experiments.speed) both start here."""
+    model.to(device).train()
+    if recipe.channels_last:
+        model.to(memory_format=torch.channels_last)
+    ema_model = copy.deepcopy(model).eval().requires_grad_(False) if recipe.ema else None
+    optimizer = torch.optim.Adam(model.parameters(), lr=recipe.lr, betas=tuple(recipe.betas))
+    return ema_model, optimizer
+
+
 def compiled_as(recipe: Recipe, loss_fn):
     """`loss_fn`, or where recipe.compile names a mode its torch.compile'd form: forward over the frames and
     the losses as one traced graph, backward as its compiled gradient (Adam and the EMA stay eager: a few
-    foreach kernels). Called once per process: each call compiles anew."""
+    foreach kernels). Dynamo's caches are per function: a process that compiles `loss_fn` in more than 8
+    settings resets them between settings (bench.experiments.speed does)."""
     return loss_fn if recipe.compile is None else torch.compile(loss_fn, mode=recipe.compile)
 
 
@@ -377,11 +391,7 @@ def train(model, dataset, task: Task, out_dir: str | Path, recipe: Recipe, *, fe
     if recipe.batch_size % ranks:
         raise UserError(f"train.batch_size={recipe.batch_size} is not divisible by the {ranks} processes")
     writes = rank == 0  # the one process that writes checkpoints and curves
-    model.to(device).train()
-    if recipe.channels_last:
-        model.to(memory_format=torch.channels_last)
-    ema_model = copy.deepcopy(model).eval().requires_grad_(False) if recipe.ema else None
-    optimizer = torch.optim.Adam(model.parameters(), lr=recipe.lr, betas=tuple(recipe.betas))
+    ema_model, optimizer = training_start(model, recipe, device)
     state = _resume(ckpt_path, model, ema_model, optimizer, device)
     resumed_from = state.step
     if ranks > 1 and distributed.mean_over_ranks(torch.tensor([float(state.step)])).item() != state.step:

@@ -6,10 +6,12 @@ results/gpu/profile/) or on a CPU whose one training does not use its cores.
 
 Each process builds the model at the preset's widths and times `bench.experiments.speed.training_step`:
 the trainer's step (bench.train: HDR encode, the loss without its perceptual term, gradient clip, Adam,
-EMA) on a random batch of the preset's training crop, as the preset's recipe trains; training data are not read (at the gpu preset they are held on the device, docs/gpu.md). The processes
-take warm-up steps (and compile, with --compile), wait for each other at a barrier, then time --steps
-steps each; the aggregate is their steps over the wall time from the first start to the last end. On a
-CPU each process gets its share of the cores as threads (bench.scheduler.threads_per_job).
+EMA) at the preset's recipe, in fp32 and the standard memory layout as the speed table's fp32 rows, on
+a random batch of the preset's training crop; training data are not read (at the gpu preset they are
+held on the device, docs/gpu.md). The processes take warm-up steps (and compile, with --compile), wait
+for each other at a barrier, then time --steps steps each; the aggregate is their steps over the wall
+time from the first start to the last end. On a CPU each process gets its share of the cores as threads
+(bench.scheduler.threads_per_job).
 
     python scripts/gpu_step_concurrency.py --device cuda --models srd edsr --processes 1 2 4 \
         --compile none reduce-overhead --out results/gpu/profile/cuda-nvidia-h200-concurrency.md
@@ -58,7 +60,8 @@ def worker(rank: int, model_cfg: dict, recipe, device: str, threads: int, warmup
         import torch
         torch.set_num_threads(threads)
         from bench.experiments.speed import build, training_step
-        step = training_step(build(model_cfg, device, perturb=0.02), replace(recipe, compile=compile), device)
+        recipe = replace(recipe, precision="fp32", channels_last=False, compile=compile)   # the speed table's fp32
+        step = training_step(build(model_cfg, device, perturb=0.02), recipe, device)
         sync = torch.cuda.synchronize if device.startswith("cuda") else (lambda: None)
         for _ in range(warmup):
             step()
@@ -169,7 +172,7 @@ def main(argv=None) -> int:
     header = [f"# Training steps of several processes at once on {where}", "",
               f"`python scripts/gpu_step_concurrency.py {' '.join(argv if argv is not None else sys.argv[1:])}`: "
               f"preset {args.preset} widths and recipe, {recipe.batch_size} x {recipe.seq_len} frames of {recipe.crop}x"
-              f"{recipe.crop} LR a step, the trainer's step (HDR encode, loss without perceptual, clip, Adam, EMA); "
+              f"{recipe.crop} LR a step, the trainer's step in fp32 (HDR encode, loss without perceptual, clip, Adam, EMA); "
               f"torch {torch.__version__}. "
               f"Each process: {args.warmup} warm-up steps, then {args.steps} timed once all are warm. ms/step: "
               "the processes' mean; steps/s: all processes' steps over the wall time from the first start to "

@@ -27,7 +27,7 @@ from bench.experiments.speed import PATHS, peak_memory_mib
 from bench.machine import device_tag
 from bench.infer import (FastPath, frames_channels_last, parse_path, prepare, receptive_radius, tiled_predict)
 from bench.models.srd import SRDNet
-from conftest import config_recipe
+from conftest import config_recipe, perturbed
 
 TINY = {
     "srd": lambda: SRDNet(channels=4, cond_channels=4),
@@ -393,6 +393,22 @@ def test_weights_give_a_model_its_trained_weights_in_every_row_and_the_caption_n
     assert speed_table_label(tmp_path / "speed" / device_tag("cpu") / "table.md") == "trained weights for some models"
 
 
+def test_the_training_rows_take_the_tables_batch_and_a_null_takes_the_default(tmp_path, monkeypatch):
+    """experiment.train's batch, frames and crop replace the trainer's recipe's for every training row, and
+    a null value is the default: rows on (enabled), no compiled row (compile, compiled)."""
+    import bench.experiments.speed as speed
+    cfg = two_tiny_models(tmp_path, "experiment.train={batch:1,frames:2,crop:8,compile:null,compiled:null}",
+                          "+experiment.train.enabled=null", "experiment.profile.models=[]")
+    stepped = {}
+    monkeypatch.setattr(speed, "inference_rows", lambda *a: [])
+    monkeypatch.setattr(speed, "note_auto_choice", lambda *a, untrained: None)
+    monkeypatch.setattr(speed, "training_steps", lambda label, model, recipe, mode, *a: stepped.setdefault(
+        label, (recipe.batch_size, recipe.seq_len, recipe.crop, recipe.lr, mode)) and [])
+    run_experiment(cfg)
+    lr = OmegaConf.to_container(cfg.train, resolve=True)["lr"]
+    assert stepped == {"EDSR": (1, 2, 8, lr, None), "RAE": (1, 2, 8, lr, None)}
+
+
 @pytest.mark.parametrize("weights,message", [
     ("W", "experiment.weights='W': expected {model: weights file}"),
     ({"edsr": None}, "experiment.weights.edsr=None: expected the path of a weights file"),
@@ -544,6 +560,7 @@ def test_the_speed_tables_training_step_is_the_trainers_step(tmp_path, monkeypat
 
     torch.manual_seed(0)
     initial = TINY["edsr"]()
+    perturbed(initial)   # its zero output conv would leave every other weight without a gradient
     trained = copy.deepcopy(initial)
     bench.train.train(trained, OneBatch(), task, tmp_path, recipe, progress=False)
     by_trainer = torch.load(tmp_path / bench.train.CHECKPOINT, weights_only=False)["model"]
@@ -553,13 +570,34 @@ def test_the_speed_tables_training_step_is_the_trainers_step(tmp_path, monkeypat
     speed.training_step(stepped, recipe, "cpu")()
     for name, value in stepped.state_dict().items():
         torch.testing.assert_close(value, by_trainer[name], rtol=1e-5, atol=1e-7, msg=name)
-    assert any(not torch.equal(value, initial.state_dict()[name]) for name, value in by_trainer.items())
+    assert all(not torch.equal(value, initial.state_dict()[name]) for name, value in by_trainer.items())
     unclipped = copy.deepcopy(initial)   # the clip bites: without it, the step is another
     speed.training_step(unclipped, dataclasses.replace(recipe, clip_grad_norm=None), "cpu")()
     assert any(not torch.allclose(value, by_trainer[name]) for name, value in unclipped.state_dict().items())
     assert emas == [0, 0]
     step = speed.training_step(speed.ConvStack(4, 2), recipe, "cpu", stack_channels=4)
     assert step().ndim == 0 and step().item() >= 0 and emas == [0, 0, 0, 1]
+
+
+def test_a_training_row_times_the_step_its_path_names_and_its_note_says_what_the_step_does(monkeypatch):
+    """timed_training_row hands the path's precision, memory layout and compile mode to the step it times
+    (the trainer's recipe otherwise), and the row's note names the update the recipe takes."""
+    from bench.experiments import speed
+    asked = []
+
+    def recorded(model, recipe, device, stack_channels=None):
+        asked.append((recipe.precision, recipe.channels_last, recipe.compile, recipe.lr, stack_channels))
+        return lambda: None
+    monkeypatch.setattr(speed, "training_step", recorded)
+    recipe = config_recipe(batch_size=2, seq_len=3, crop=8)
+    row = speed.timed_training_row("Ours", TINY["edsr"](), recipe, "cpu", 1, 0, path="p", bf16=True,
+                                   channels_last=True, compile="default")
+    plain = speed.timed_training_row("stack", TINY["edsr"](), dataclasses.replace(recipe, ema=None), "cpu", 1, 0,
+                                     stack_channels=4)
+    assert asked == [("bf16", True, "default", recipe.lr, None), ("fp32", False, None, recipe.lr, 4)]
+    assert row["note"].startswith("the trainer's step: HDR encode, loss without perceptual, clip, Adam, EMA; "
+                                  "first call (compile) ")
+    assert plain["note"] == "L1 loss, then the trainer's clip, Adam"
 
 
 def test_the_results_page_gives_the_compiled_step_beside_the_eager_one_and_the_conv_stacks(tmp_path):

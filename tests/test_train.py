@@ -139,6 +139,22 @@ def test_ema_update_follows_its_formula():
     assert torch.allclose(a.weight, 0.9 * before + 0.1 * b.weight.detach())
 
 
+
+def test_a_training_starts_with_its_ema_in_its_models_memory_format():
+    """training_start (the trainer's and the speed table's): with train.channels_last the model's convs are
+    channels-last and so are the EMA copy's, made after (the EMA's foreach update takes same-strided
+    lists); without an EMA, none; Adam at the recipe's lr and betas."""
+    from bench.train import training_start
+    model = EDSR(channels=4, blocks=1)
+    ema, optimizer = training_start(model, config_recipe(channels_last=True, lr=3e-4, betas=[0.8, 0.9]), "cpu")
+    weights = [p for p in model.parameters() if p.ndim == 4]
+    assert weights and all(p.is_contiguous(memory_format=torch.channels_last) and not p.is_contiguous() for p in weights)
+    assert [p.stride() for p in ema.parameters()] == [p.stride() for p in model.parameters()]
+    assert model.training and not ema.training and not any(p.requires_grad for p in ema.parameters())
+    assert optimizer.param_groups[0]["lr"] == 3e-4 and optimizer.param_groups[0]["betas"] == (0.8, 0.9)
+    assert training_start(model, config_recipe(ema=None), "cpu")[0] is None
+
+
 def test_gradient_clipping_bounds_the_update_norm(tmp_path):
     _train(SyntheticSequences(), tmp_path / "c", steps=3, clip_grad_norm=1e-3)
     curve = torch.load(tmp_path / "c" / CHECKPOINT, weights_only=False)["curve"]

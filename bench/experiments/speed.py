@@ -65,7 +65,7 @@ from bench.models.factory import build_model, is_learned
 from bench.nn import DeformConv2d, eager_gather, fused, grid_sample_training, inference_sampler, training_sampler
 from bench.table_writer import PARTIAL_CAPTION, write_table
 from bench.tasks import get_task
-from bench.train import Recipe, batch_loss, compiled_as, step_loss, update_weights
+from bench.train import Recipe, batch_loss, compiled_as, step_loss, training_start, update_weights
 from bench.weights import load_exported
 
 log = logging.getLogger("bench")
@@ -340,8 +340,10 @@ def timed_training_row(label: str, model, recipe: Recipe, device, repeats, warmu
     """Time of one training step (`training_step`), fp32 or as the trainer's options ask; a compiled
     step's first call, the compilation, is timed apart."""
     recipe = replace(recipe, precision="bf16" if bf16 else "fp32", channels_last=channels_last, compile=compile)
+    if compile is not None:  # a compilation of its own: Dynamo stops compiling a function after 8 settings
+        torch._dynamo.reset()
     step = training_step(copy.deepcopy(model), recipe, device, stack_channels)  # the table's model untouched
-    note = STACK_STEP if stack_channels else TRAINER_STEP
+    note = step_note(recipe, stack_channels)
     if compile is not None:
         compile_s = time_call(step, device, 1, 0)["ms"] / 1000  # the first call compiles
         note += f"; first call (compile) {compile_s:.0f} s"
@@ -352,35 +354,39 @@ def timed_training_row(label: str, model, recipe: Recipe, device, repeats, warmu
                 **{"peak MiB": peak_memory_mib(step, device), "note": note})
 
 
-# what a training row's step is (its note): the trainer's, or the conv stack's (16 or 32 channels in and
-# out, not radiance, so an L1 loss stands in for the trainer's)
-TRAINER_STEP = "the trainer's step: HDR encode, loss without perceptual, clip, Adam, EMA"
-STACK_STEP = "L1 loss, then the trainer's clip, Adam, EMA"
+def step_note(recipe: Recipe, stack_channels: int | None = None) -> str:
+    """What a training row's step does (its note): the trainer's, or the conv stack's, whose channels in
+    and out are not radiance, so an L1 loss stands in for the trainer's."""
+    update = ", ".join(part for part, on in (("clip", recipe.clip_grad_norm), ("Adam", True), ("EMA", recipe.ema))
+                       if on)
+    if stack_channels:
+        return f"L1 loss, then the trainer's {update}"
+    return f"the trainer's step: HDR encode, loss without perceptual, {update}"
 
 
 def training_step(model, recipe: Recipe, device, stack_channels: int | None = None):
     """The trainer's step of `model` (trained in place), as a call returning its loss, on a random batch of
-    `recipe`'s batch, frames and crop: bench.train's step_loss (HDR encode and the weighted loss, bf16,
-    channels_last and compiled as the recipe says; no perceptual term: no VGG here), then its
-    update_weights (backward, gradient clip, Adam, EMA). With `stack_channels`, the conv stack's step
-    instead: `stack_channels` channels in and out at scale 1, an L1 loss, the same update."""
-    model.train()
-    ema_model = copy.deepcopy(model).eval().requires_grad_(False) if recipe.ema else None
-    optimizer = torch.optim.Adam(model.parameters(), lr=recipe.lr, betas=tuple(recipe.betas))
+    `recipe`'s batch, frames and crop: bench.train's training_start (memory format, EMA, Adam), step_loss
+    (HDR encode and the weighted loss, bf16 and compiled as the recipe says; no perceptual term: no VGG
+    here) and update_weights (backward, gradient clip, Adam, EMA). With `stack_channels`, the conv
+    stack's step instead: `stack_channels` channels in and out at scale 1, an L1 loss, the same update.
+    The exposure each frame is encoded at is computed in the step, as the trainer does for every item but
+    the lamp items of train.emitters_exposure=without."""
+    ema_model, optimizer = training_start(model, recipe, device)
     recipe = replace(recipe, loss={head: {**w, "perceptual": 0} for head, w in recipe.loss.items()})
     task = None if stack_channels else get_task("srd")
     channels, scale = (stack_channels, 1) if stack_channels else (3, task.scale)
-    frames, crop = (recipe.batch_size, recipe.seq_len), recipe.crop
-    x, g = random_frames(*frames, (crop, crop), device, seed=1, in_channels=channels)
-    if recipe.channels_last:
-        model, x, g = model.to(memory_format=torch.channels_last), frames_channels_last(x), frames_channels_last(g)
-    target = torch.rand(*frames, channels, scale * crop, scale * crop,
+    sequences, crop = (recipe.batch_size, recipe.seq_len), recipe.crop
+    x, g = random_frames(*sequences, (crop, crop), device, seed=1, in_channels=channels)
+    target = torch.rand(*sequences, channels, scale * crop, scale * crop,
                         generator=torch.Generator().manual_seed(2)).to(device)
     if task is None:
         batch, loss_fn = {"x": x, "y": target}, compiled_as(recipe, _stack_loss)
     else:
         batch = {task.x: x, task.g: g, task.y: target, **({task.mid: target} if task.mid else {})}
         loss_fn = compiled_as(recipe, batch_loss)
+    if recipe.channels_last:  # as the trainer lays out every buffer of a batch
+        batch = {k: frames_channels_last(v) for k, v in batch.items()}
     steps = itertools.count()
 
     def step():
@@ -752,6 +758,12 @@ def _check_sections(conv_stack_channels, perturb, deform: dict, tiled: dict) -> 
         size("tiled.uhd_input_hw", tiled["uhd_input_hw"])
 
 
+def table_recipe(recipe: Recipe, train: dict) -> Recipe:
+    """The trainer's `recipe` at the table's `experiment.train` batch, frames and crop, where it gives them."""
+    named = {"batch": "batch_size", "frames": "seq_len", "crop": "crop"}
+    return replace(recipe, **{field: train[key] for key, field in named.items() if key in train})
+
+
 def _sections(ctx, models, input_hw, paths, repeats, warmup, train, oidn, stack_channels, deform, tiled,
               perturb, profile, trained, device):
     """(name, compute) of each section, in order: the reference points first (quick, and every ratio
@@ -760,10 +772,8 @@ def _sections(ctx, models, input_hw, paths, repeats, warmup, train, oidn, stack_
     if oidn:
         yield "OIDN", lambda: [row for row in [oidn_row((2 * input_hw[0], 2 * input_hw[1]), device, repeats, warmup)]
                                if row]
-    # the trainer's recipe at the table's batch, frames and crop (null: the preset's); no training rows if disabled
-    recipe = replace(ctx.train, **{field: train[key] for key, field in (("batch", "batch_size"), ("frames", "seq_len"),
-                                                                       ("crop", "crop")) if train.get(key) is not None}
-                     ) if train.get("enabled", True) else None
+    train = {k: v for k, v in train.items() if v is not None}   # null: the default
+    recipe = table_recipe(ctx.train, train) if train.get("enabled", True) else None
     compiled = train.get("compile")
     layers_of = functools.cache(lambda name: frame_macs(ctx.models[name], input_hw))  # srd's counted once
     if stack_channels and "srd" in ctx.models:
@@ -781,8 +791,8 @@ def _sections(ctx, models, input_hw, paths, repeats, warmup, train, oidn, stack_
         yield f"{label} inference", functools.partial(_inference_section, label, model, layers_of(name), x, g, paths,
                                                       device, repeats, warmup, untrained=name not in trained)
         if recipe is not None:
-            for path, step in training_steps(label, model, recipe, compiled if label in train.get("compiled", ()) else None,
-                                             device, repeats, warmup):
+            mode = compiled if label in train.get("compiled", ()) else None
+            for path, step in training_steps(label, model, recipe, mode, device, repeats, warmup):
                 yield f"{label} training step ({path})", lambda step=step: [step()]
         if name in (profile.get("models") or []):
             yield f"{label} profile", functools.partial(profile_rows, label, model, layers_of(name), x, g,
