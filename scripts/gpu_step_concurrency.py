@@ -163,7 +163,7 @@ def main(argv=None) -> int:
     unknown = [m for m in args.models if m not in cfg["models"]]
     if unknown:
         parser.error(f"--models: no model {unknown[0]!r}; models: {', '.join(cfg['models'])}")
-    from bench.experiments.speed import LABELS
+    from bench.experiments.speed import LABELS, step_note
     from bench.machine import device_tag
     from bench.train import Recipe
     import torch
@@ -172,7 +172,7 @@ def main(argv=None) -> int:
     header = [f"# Training steps of several processes at once on {where}", "",
               f"`python scripts/gpu_step_concurrency.py {' '.join(argv if argv is not None else sys.argv[1:])}`: "
               f"preset {args.preset} widths and recipe, {recipe.batch_size} x {recipe.seq_len} frames of {recipe.crop}x"
-              f"{recipe.crop} LR a step, the trainer's step in fp32 (HDR encode, loss without perceptual, clip, Adam, EMA); "
+              f"{recipe.crop} LR a step, {step_note(recipe)}, in fp32; "
               f"torch {torch.__version__}. "
               f"Each process: {args.warmup} warm-up steps, then {args.steps} timed once all are warm. ms/step: "
               "the processes' mean; steps/s: all processes' steps over the wall time from the first start to "

@@ -397,7 +397,7 @@ def test_the_training_rows_take_the_tables_batch_and_a_null_takes_the_default(tm
     """experiment.train's batch, frames and crop replace the trainer's recipe's for every training row, and
     a null value is the default: rows on (enabled), no compiled row (compile, compiled)."""
     import bench.experiments.speed as speed
-    cfg = two_tiny_models(tmp_path, "experiment.train={batch:1,frames:2,crop:8,compile:null,compiled:null}",
+    cfg = two_tiny_models(tmp_path, "experiment.train={batch:1,frames:null,crop:8,compile:null,compiled:null}",
                           "+experiment.train.enabled=null", "experiment.profile.models=[]")
     stepped = {}
     monkeypatch.setattr(speed, "inference_rows", lambda *a: [])
@@ -405,8 +405,9 @@ def test_the_training_rows_take_the_tables_batch_and_a_null_takes_the_default(tm
     monkeypatch.setattr(speed, "training_steps", lambda label, model, recipe, mode, *a: stepped.setdefault(
         label, (recipe.batch_size, recipe.seq_len, recipe.crop, recipe.lr, mode)) and [])
     run_experiment(cfg)
-    lr = OmegaConf.to_container(cfg.train, resolve=True)["lr"]
-    assert stepped == {"EDSR": (1, 2, 8, lr, None), "RAE": (1, 2, 8, lr, None)}
+    trainer = OmegaConf.to_container(cfg.train, resolve=True)
+    lr, frames = trainer["lr"], trainer["seq_len"]
+    assert stepped == {"EDSR": (1, frames, 8, lr, None), "RAE": (1, frames, 8, lr, None)}
 
 
 @pytest.mark.parametrize("weights,message", [
@@ -577,6 +578,13 @@ def test_the_speed_tables_training_step_is_the_trainers_step(tmp_path, monkeypat
     assert emas == [0, 0]
     step = speed.training_step(speed.ConvStack(4, 2), recipe, "cpu", stack_channels=4)
     assert step().ndim == 0 and step().item() >= 0 and emas == [0, 0, 0, 1]
+    batches = []   # with train.channels_last, every buffer of the batch is laid out as the trainer lays it
+    real_step_loss = speed.step_loss
+    monkeypatch.setattr(speed, "step_loss", lambda loss_fn, net, batch, *a: batches.append(batch)
+                        or real_step_loss(loss_fn, net, batch, *a))
+    speed.training_step(copy.deepcopy(initial), dataclasses.replace(recipe, channels_last=True), "cpu")()
+    assert sorted(batches[0]) == sorted(task.buffers()) and all(
+        frames_channels_last(v).stride() == v.stride() and not v.is_contiguous() for v in batches[0].values())
 
 
 def test_a_training_row_times_the_step_its_path_names_and_its_note_says_what_the_step_does(monkeypatch):
@@ -589,12 +597,15 @@ def test_a_training_row_times_the_step_its_path_names_and_its_note_says_what_the
         asked.append((recipe.precision, recipe.channels_last, recipe.compile, recipe.lr, stack_channels))
         return lambda: None
     monkeypatch.setattr(speed, "training_step", recorded)
+    resets = []   # a compiled row compiles afresh: Dynamo stops compiling one function after 8 settings
+    monkeypatch.setattr(torch._dynamo, "reset", lambda: resets.append(len(asked)))
     recipe = config_recipe(batch_size=2, seq_len=3, crop=8)
     row = speed.timed_training_row("Ours", TINY["edsr"](), recipe, "cpu", 1, 0, path="p", bf16=True,
                                    channels_last=True, compile="default")
     plain = speed.timed_training_row("stack", TINY["edsr"](), dataclasses.replace(recipe, ema=None), "cpu", 1, 0,
                                      stack_channels=4)
     assert asked == [("bf16", True, "default", recipe.lr, None), ("fp32", False, None, recipe.lr, 4)]
+    assert resets == [0]                                   # before the compiled row's step, not the eager one's
     assert row["note"].startswith("the trainer's step: HDR encode, loss without perceptual, clip, Adam, EMA; "
                                   "first call (compile) ")
     assert plain["note"] == "L1 loss, then the trainer's clip, Adam"

@@ -139,7 +139,6 @@ def test_ema_update_follows_its_formula():
     assert torch.allclose(a.weight, 0.9 * before + 0.1 * b.weight.detach())
 
 
-
 def test_a_training_starts_with_its_ema_in_its_models_memory_format():
     """training_start (the trainer's and the speed table's): with train.channels_last the model's convs are
     channels-last and so are the EMA copy's, made after (the EMA's foreach update takes same-strided
