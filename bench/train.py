@@ -252,8 +252,8 @@ def update_ema(ema_model, model, decay: float, step: int) -> None:
 def training_start(model, recipe: Recipe, device: str):
     """What a training starts from: `model` on `device` in training mode and the recipe's memory format,
     then its EMA copy (None without train.ema), in that layout too (the EMA's foreach update takes its
-    fast path only over the same strides), and Adam over its parameters. The trainer and the speed table's training rows
-    (bench.experiments.speed) both start here."""
+    fast path only over the same strides), and Adam over its parameters. The trainer and the speed
+    table's training rows (bench.experiments.speed) both start here."""
     model.to(device).train()
     if recipe.channels_last:
         model.to(memory_format=torch.channels_last)

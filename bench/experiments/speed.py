@@ -759,10 +759,10 @@ def _check_sections(conv_stack_channels, perturb, deform: dict, tiled: dict) -> 
 
 
 def table_recipe(recipe: Recipe, train: dict) -> Recipe:
-    """The trainer's `recipe` at the table's `experiment.train` batch, frames and crop, where it gives them
-    (null: the recipe's)."""
+    """The trainer's `recipe` at the batch, frames and crop that `train` (experiment.train, its nulls left
+    out by `_sections`: null is the recipe's) gives."""
     named = {"batch": "batch_size", "frames": "seq_len", "crop": "crop"}
-    return replace(recipe, **{field: train[key] for key, field in named.items() if train.get(key) is not None})
+    return replace(recipe, **{field: train[key] for key, field in named.items() if key in train})
 
 
 def _sections(ctx, models, input_hw, paths, repeats, warmup, train, oidn, stack_channels, deform, tiled,
