@@ -2,7 +2,7 @@
 # The GPU work as ONE call per machine start (the machine goes back about 30 s after a call, less than a
 # reply takes to read; docs/gpu.md, "The GPU job"; prepared here by scripts/gpu_prepare.sh). Run from the
 # repository root there, carrying .whl (and runs, from an earlier call):
-#     bash scripts/gpu_job.sh [tests] [render] [speed] [concurrency] [profile] [sweep] [sota]   (none: tests speed sota)
+#     bash scripts/gpu_job.sh [tests] [render] [speed] [concurrency] [profile] [sweep] [plan] [sota]   (none: tests speed sota)
 # It installs the carried wheels, then runs the steps in order within JOB_S seconds in all (default 560,
 # for a run timeout_s of 600), each within STEP_S (default 540) and what is left; a step whose result is
 # already in the working tree is skipped (a speed table or sweep that says PARTIAL is not done), so the
@@ -22,6 +22,9 @@
 #            (scripts/gpu_profile_step.py) -> results/gpu/profile/<device>.md
 #   sweep    (optional) the fused deformable conv's tile sizes against nn.Conv2d (scripts/gpu_deform_sweep.py)
 #            -> results/gpu/profile/<device>-deform-sweep.md
+#   plan     (optional) what Table 5 at the preset costs here, projected from the render probe's and the speed
+#            table's rates with the scoring timed on this host's CPU (scripts/gpu_speedrun_plan.py)
+#            -> results/gpu/profile/<device>-speedrun-plan.md
 #   sota     +experiment=sota preset=gpu device=cuda $SOTA_ARGS (rendering: needs the mitsuba wheel),
 #            interrupted at its limit and resumed from its checkpoints by the next call (carry `runs`)
 #            -> results/gpu/sota/, runs/{train,eval}
@@ -52,8 +55,8 @@ VARIANT=$([[ $DEVICE == cuda* ]] && echo cuda_ad_rgb || echo llvm_ad_rgb)
 STEPS=${*:-tests speed sota}
 for step in $STEPS; do   # every name checked first: a typo after a long step would lose its packing
     case $step in
-        tests|render|speed|concurrency|profile|sweep|sota) ;;
-        *) echo "gpu_job: unknown step $step (tests, render, speed, concurrency, profile, sweep, sota)"; exit 2 ;;
+        tests|render|speed|concurrency|profile|sweep|plan|sota) ;;
+        *) echo "gpu_job: unknown step $step (tests, render, speed, concurrency, profile, sweep, plan, sota)"; exit 2 ;;
     esac
 done
 PACK_S=20   # kept back for packing what comes back
@@ -207,6 +210,13 @@ step_sweep() {
     tried "$record"
     timeout "$(step_limit)" "$PYTHON" scripts/gpu_deform_sweep.py --device "$DEVICE" --out "$record"
     echo "gpu_job: sweep exit $?"
+}
+
+step_plan() {
+    local record=results/gpu/profile/$tag-speedrun-plan.md
+    if [ -f "$record" ]; then echo "gpu_job: plan already there ($record)"; return; fi
+    timeout "$(step_limit)" "$PYTHON" scripts/gpu_speedrun_plan.py --preset "$PRESET" --machine "$tag" --out "$record"
+    echo "gpu_job: plan exit $?"
 }
 
 step_profile() {

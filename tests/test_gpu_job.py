@@ -149,6 +149,31 @@ def test_the_speed_step_times_the_graphed_training_step_at_the_presets_batch(pro
     assert cfg.results_dir == "results/gpu"          # where the job looks for it and packs it, at any preset
 
 
+def test_the_plan_step_projects_table_5_from_this_machines_records_once(project, tmp_path):
+    """`plan` reads the render probe and speed table recorded under the machine's own tag (here the
+    committed H200 records, named for this CPU) and writes its projection; a second call keeps it."""
+    from bench.machine import device_tag
+    project = shutil.copytree(project, tmp_path / "project", ignore=shutil.ignore_patterns("runs", "results"))
+    shutil.copytree(REPO / "results" / "cpu" / "claims", project / "results" / "cpu" / "claims")
+    tag = device_tag("cpu")
+    data, speed = project / "results" / "gpu" / "data", project / "results" / "gpu" / "speed" / tag
+    data.mkdir(parents=True)
+    speed.mkdir(parents=True)
+    shutil.copy(REPO / "results/gpu/data/cuda-nvidia-h200-render-probe.md", data / f"{tag}-render-probe.md")
+    shutil.copy(REPO / "results/gpu/speed/cuda-nvidia-h200/table.csv", speed / "table.csv")
+    env = dict(os.environ, PYTHON=sys.executable, DEVICE="cpu", PRESET="smoke", OUT=str(tmp_path / "out"))
+    done = subprocess.run(["bash", "scripts/gpu_job.sh", "plan"], cwd=project, env=env, capture_output=True,
+                          text=True, timeout=300)
+    assert done.returncode == 0 and "gpu_job: plan exit 0" in done.stdout, done.stdout[-2000:] + done.stderr[-2000:]
+    record = project / "results" / "gpu" / "profile" / f"{tag}-speedrun-plan.md"
+    text = record.read_text()
+    assert text.startswith(f"# sota at preset smoke on {tag}, projected") and "| render | train: " in text
+    assert "steps x 136.3 ms" in text and "total: " in text and "power at 0.1 dB" in text   # Ours' eager step
+    again = subprocess.run(["bash", "scripts/gpu_job.sh", "plan"], cwd=project, env=env, capture_output=True,
+                           text=True, timeout=300)
+    assert "gpu_job: plan already there" in again.stdout and record.read_text() == text
+
+
 def test_the_render_step_measures_the_variant_twice_and_keeps_the_digests(project, tmp_path):
     """`render` (scripts/gpu_render_probe.py): on a CPU the LLVM variant stands in for cuda_ad_rgb; two
     renders of the same frames in one process are compared layer by layer, then by two processes at once
