@@ -1,55 +1,49 @@
-"""Where Ours' training step spends its time: torch.profiler over a few steps (forward, L1 loss,
-backward, Adam) eager and under torch.compile, at the gpu preset's training batch. Writes a markdown
+"""Where Ours' training step spends its time: torch.profiler over a few steps of the trainer's step
+(`bench.experiments.speed.training_step`: HDR encode, the loss without its perceptual term, backward, clip,
+Adam, EMA, as the speed table times it) eager and under torch.compile, at the preset's recipe (the gpu
+preset's batch 4 x 7 frames of 64x64 LR unless --batch, --frames, --crop say otherwise). Writes a markdown
 table: wall ms per step, the GPU kernels' ms per step (the profiler's own per-kernel totals, device
 time of kernels only, each kernel counted once), and the GPU busy share (kernels / wall). A busy share
 far under 1 means the step is host-bound (launches, Python), not GPU-bound; the host column then says
-where the host's time goes. `--reduce-overhead` adds torch.compile's CUDA-graph mode. On a machine
-without CUDA it profiles the CPU and says so (no GPU columns).
+where the host's time goes. `--reduce-overhead` adds torch.compile's CUDA-graph mode (the trainer's
+train.compile=reduce-overhead). On a machine without CUDA it profiles the CPU and says so (no GPU columns).
     python scripts/gpu_profile_step.py --device cuda --out results/gpu/profile/<device>.md
     python scripts/gpu_profile_step.py --device cpu --batch 1 --frames 2 --crop 16 --channels 8 --out /tmp/p.md
 """
 import argparse
 import os
+import sys
 import time
+from dataclasses import replace
 
 import torch
-import torch.nn.functional as F
-import yaml
 from torch.profiler import ProfilerActivity, profile
 
-from bench.experiments.speed import random_frames
-from bench.machine import device_tag
-from bench.models.factory import build_model
-
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+sys.path.insert(0, os.path.join(ROOT, "scripts"))
+
+from bench.experiments.speed import step_note, training_step  # noqa: E402
+from bench.machine import device_tag  # noqa: E402
+from bench.models.factory import build_model  # noqa: E402
+from bench.train import Recipe  # noqa: E402
+from gpu_step_concurrency import composed  # noqa: E402
+
+MODES = {"eager": None, "torch.compile": "default", "reduce-overhead": "reduce-overhead"}  # path -> train.compile
 
 
-def ours(channels: int | None) -> torch.nn.Module:
-    """Ours (conf/model/srd.yaml) at scale 2, its width overridden by `channels`."""
-    with open(os.path.join(ROOT, "conf/model/srd.yaml")) as f:
-        cfg = yaml.safe_load(f)
-    if channels:
-        cfg["channels"] = channels
+def ours(cfg: dict, channels: int | None) -> torch.nn.Module:
+    """Ours at the preset's width, or `channels`, at scale 2."""
     torch.manual_seed(0)
-    return build_model(cfg, 2)
+    return build_model({**cfg["models"]["srd"], **({"channels": channels} if channels else {})}, 2)
 
 
-def make_step(model, x, g, target, mode: str):
-    optimizer = torch.optim.Adam(model.parameters(), lr=1e-4)
-    if mode == "eager":
-        forward = model
-    else:
-        forward = torch.compile(model, mode="reduce-overhead" if mode == "reduce-overhead" else None)
-
-    def step():
-        optimizer.zero_grad(set_to_none=True)
-        out = forward(x, g)
-        loss = F.l1_loss(out["final"], target)
-        if out.get("intermediate") is not None:
-            loss = loss + F.l1_loss(out["intermediate"], target)
-        loss.backward()
-        optimizer.step()
-    return step
+def make_step(model, recipe: Recipe, device: str, mode: str):
+    """The trainer's step of `model` at `recipe`, compiled as `mode` says (Dynamo reset first: each mode
+    compiles on its own)."""
+    recipe = replace(recipe, compile=MODES[mode], precision="fp32", channels_last=False)
+    if MODES[mode] is not None:
+        torch._dynamo.reset()
+    return training_step(model, recipe, device)
 
 
 def synchronize(device: str) -> None:
@@ -92,9 +86,10 @@ def profile_step(step, device: str, warmup: int, steps: int) -> dict:
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--device", default="cuda")
-    parser.add_argument("--batch", type=int, default=4)
-    parser.add_argument("--frames", type=int, default=7)    # the gpu preset's seq_len
-    parser.add_argument("--crop", type=int, default=64)     # the gpu preset's LR crop
+    parser.add_argument("--preset", default="gpu", help="the recipe and Ours' width (conf/preset)")
+    parser.add_argument("--batch", type=int, default=None, help="sequences a step (default: the preset's)")
+    parser.add_argument("--frames", type=int, default=None, help="frames a sequence (default: the preset's)")
+    parser.add_argument("--crop", type=int, default=None, help="LR crop (default: the preset's)")
     parser.add_argument("--channels", type=int, default=None, help="Ours' width (default conf/model/srd.yaml)")
     parser.add_argument("--warmup", type=int, default=3)
     parser.add_argument("--steps", type=int, default=5)
@@ -103,20 +98,23 @@ def main() -> None:
     parser.add_argument("--out", required=True)
     args = parser.parse_args()
     device = args.device if args.device != "cuda" or torch.cuda.is_available() else "cpu"
-    x, g = random_frames(args.batch, args.frames, (args.crop, args.crop), device, seed=1)
-    target = torch.rand(args.batch, args.frames, 3, 2 * args.crop, 2 * args.crop, device=device)
+    cfg = composed(args.preset, [])
+    recipe = Recipe.from_config(cfg["train"])
+    recipe = replace(recipe, **{field: value for field, value in (("batch_size", args.batch), ("seq_len", args.frames),
+                                                                   ("crop", args.crop)) if value is not None})
     rows = {}
     modes = ["eager"] + ([] if args.no_compile else ["torch.compile"]) + (["reduce-overhead"] if args.reduce_overhead else [])
     for mode in modes:
-        model = ours(args.channels).to(device).train()
         try:
-            rows[mode] = profile_step(make_step(model, x, g, target, mode), device, args.warmup, args.steps)
+            rows[mode] = profile_step(make_step(ours(cfg, args.channels), recipe, device, mode), device,
+                                      args.warmup, args.steps)
         except Exception as error:  # a mode that fails here is a finding, not the end of the profile
             rows[mode] = {"wall ms/step": f"failed: {str(error).splitlines()[0][:100]}"}
     columns = max(rows.values(), key=len)
     lines = [f"# Ours' training step under torch.profiler on {device_tag(device)}", "",
              f"`{' '.join(['python scripts/gpu_profile_step.py'] + [a for a in os.sys.argv[1:]])}`: batch "
-             f"{args.batch} x {args.frames} frames of {args.crop}x{args.crop} LR, L1 loss, Adam; mean of "
+             f"{recipe.batch_size} x {recipe.seq_len} frames of {recipe.crop}x{recipe.crop} LR at preset "
+             f"{args.preset}, {step_note(recipe)}, fp32; mean of "
              f"{args.steps} steps after {args.warmup}; SRD_BENCH_FUSED_GPU={os.environ.get('SRD_BENCH_FUSED_GPU', '0')}; "
              f"torch {torch.__version__}." + ("" if device == "cuda" else " No CUDA here: CPU only, no GPU columns."), "",
              "| path | " + " | ".join(columns) + " |", "|---" * (len(columns) + 1) + "|"]

@@ -235,3 +235,21 @@ def test_the_concurrency_probe_goes_on_from_a_partial_record_and_a_dead_worker_i
     assert dies.returncode == 0, dies.stdout[-2000:] + dies.stderr[-2000:]
     assert "| EDSR | none | 1 | - | - | - | failed: a process exited with code 3 without a word |" in \
         (tmp_path / "dies.md").read_text()
+
+
+def test_the_profile_script_profiles_the_trainers_step_at_the_presets_recipe(tmp_path):
+    """scripts/gpu_profile_step.py profiles bench.experiments.speed.training_step (the trainer's step, as
+    the speed table times it), at the preset's recipe unless told otherwise; no CUDA here: CPU columns."""
+    out = tmp_path / "profile.md"
+    done = subprocess.run([sys.executable, "scripts/gpu_profile_step.py", "--device", "cpu", "--preset", "smoke",
+                           "--frames", "2", "--crop", "16", "--channels", "8", "--steps", "1", "--warmup", "1",
+                           "--no-compile", "--out", str(out)], cwd=REPO, capture_output=True, text=True, timeout=300,
+                          env=dict(os.environ, PYTHONPATH=str(REPO)))
+    assert done.returncode == 0, done.stderr[-2000:]
+    from hydra import compose, initialize_config_dir
+    with initialize_config_dir(config_dir=str(REPO / "conf"), version_base=None):
+        batch = compose("config", overrides=["preset=smoke"]).train.batch_size
+    text = out.read_text()
+    assert (f"batch {batch} x 2 frames of 16x16 LR at preset smoke, the trainer's step: HDR encode, loss without "
+            "perceptual, clip, Adam, EMA, fp32") in text and "No CUDA here" in text
+    assert "\n| eager | " in text and "\n| torch.compile |" not in text
