@@ -129,12 +129,17 @@ def measure(model_cfg: dict, recipe, device: str, processes: int, warmup: int, s
             "steps/s": processes * steps / wall, "threads": threads}
 
 
-def done_rows(out: Path) -> dict[tuple[str, str, str], str]:
-    """The rows of a PARTIAL record at `out`, by (model label, path, processes): a job step stopped at its
-    limit goes on from them instead of timing them again."""
+def done_rows(out: Path, title: str, settings: str) -> dict[tuple[str, str, str], str]:
+    """The rows of a PARTIAL record at `out` of the same machine (`title`) and `settings`, by (model label,
+    path, processes): a job step stopped at its limit goes on from them instead of timing them again. A
+    record of other settings is timed again, whole."""
     if not out.exists() or not out.read_text().startswith(PARTIAL):
         return {}
-    rows = [line for line in out.read_text().splitlines() if line.startswith("| ") and not line.startswith("| model")]
+    text = out.read_text()
+    if f"\n{title}\n" not in text or f"`: {settings} ms/step" not in text:
+        print(f"{out}: a PARTIAL record of another machine or other settings: every configuration is timed again")
+        return {}
+    rows = [line for line in text.splitlines() if line.startswith("| ") and not line.startswith("| model")]
     return {tuple(cell.strip() for cell in line.split("|")[1:4]): line for line in rows}
 
 
@@ -169,18 +174,19 @@ def main(argv=None) -> int:
     import torch
     recipe = Recipe.from_config(cfg["train"])
     where = device_tag(args.device)
+    # what a row depends on (the command line may differ: more processes, another --out)
+    settings = (f"preset {args.preset} widths and recipe" + (f" with {' '.join(args.set)}" if args.set else "")
+                + f", {recipe.batch_size} x {recipe.seq_len} frames of {recipe.crop}x{recipe.crop} LR a step, "
+                f"{step_note(recipe)}, in fp32; torch {torch.__version__}. Each process: {args.warmup} warm-up "
+                f"steps, then {args.steps} timed once all are warm.")
     header = [f"# Training steps of several processes at once on {where}", "",
               f"`python scripts/gpu_step_concurrency.py {' '.join(argv if argv is not None else sys.argv[1:])}`: "
-              f"preset {args.preset} widths and recipe, {recipe.batch_size} x {recipe.seq_len} frames of {recipe.crop}x"
-              f"{recipe.crop} LR a step, {step_note(recipe)}, in fp32; "
-              f"torch {torch.__version__}. "
-              f"Each process: {args.warmup} warm-up steps, then {args.steps} timed once all are warm. ms/step: "
-              "the processes' mean; steps/s: all processes' steps over the wall time from the first start to "
-              "the last end; x one: steps/s against one process on the same path.", "",
+              f"{settings} ms/step: the processes' mean; steps/s: all processes' steps over the wall time from the "
+              "first start to the last end; x one: steps/s against one process on the same path.", "",
               "| model | path | processes | threads each | ms/step | steps/s | x one |", "|---|---|---|---|---|---|---|"]
     # every model eager first: a compiled path's configurations each compile again (from the Inductor cache)
     todo = [(m, c, n) for c in args.compile for m in args.models for n in sorted(set(args.processes))]
-    kept = done_rows(args.out)   # a step stopped at its limit goes on where it stopped
+    kept = done_rows(args.out, f"# Training steps of several processes at once on {where}", settings)
     rows, alone = [], {}
     for done, (name, path, processes) in enumerate(todo, 1):
         label = LABELS.get(name, name)
