@@ -117,6 +117,21 @@ def compare(d: np.ndarray, level: float = 0.95) -> Comparison:
     return Comparison(diff, se, float(df), diff - half, diff + half, p)
 
 
+
+def power(diff: float, sd_seed: float, sd_sequence: float, sd_residual: float, seeds: int, sequences: int,
+          alpha: float = 0.05, draws: int = 500, seed: int = 0) -> float:
+    """The rate at which `compare` calls a true mean difference `diff` significant (p < `alpha`, before
+    Holm) over `draws` designs d[s, q] = diff + B[s] + A[q] + E[s, q] drawn with these standard deviations
+    (the model above, normal): the test's power there, within about sqrt(power (1 - power) / draws)."""
+    rng = np.random.default_rng(seed)
+    hits = 0
+    for _ in range(draws):
+        d = (diff + sd_seed * rng.standard_normal((seeds, 1)) + sd_sequence * rng.standard_normal((1, sequences))
+             + sd_residual * rng.standard_normal((seeds, sequences)))
+        hits += compare(d).p < alpha
+    return hits / draws
+
+
 def holm(p_values) -> np.ndarray:
     """Holm's step-down adjusted p-values (family-wise error), in the input order; NaN stays NaN and is
     not counted among the tests."""

@@ -22,8 +22,9 @@
 #            (scripts/gpu_profile_step.py) -> results/gpu/profile/<device>.md
 #   sweep    (optional) the fused deformable conv's tile sizes against nn.Conv2d (scripts/gpu_deform_sweep.py)
 #            -> results/gpu/profile/<device>-deform-sweep.md
-#   plan     (optional) what Table 5 at the preset costs here, projected from the render probe's and the speed
-#            table's rates with the scoring timed on this host's CPU (scripts/gpu_speedrun_plan.py)
+#   plan     (optional) what Table 5 at the preset (with $SOTA_ARGS) costs here, projected from the render
+#            probe's and the speed table's rates with the scoring timed on this host's CPU
+#            (scripts/gpu_speedrun_plan.py)
 #            -> results/gpu/profile/<device>-speedrun-plan.md
 #   sota     +experiment=sota preset=gpu device=cuda $SOTA_ARGS (rendering: needs the mitsuba wheel),
 #            interrupted at its limit and resumed from its checkpoints by the next call (carry `runs`)
@@ -215,7 +216,9 @@ step_sweep() {
 step_plan() {
     local record=results/gpu/profile/$tag-speedrun-plan.md
     if [ -f "$record" ]; then echo "gpu_job: plan already there ($record)"; return; fi
-    timeout "$(step_limit)" "$PYTHON" scripts/gpu_speedrun_plan.py --preset "$PRESET" --machine "$tag" --out "$record"
+    # SOTA_ARGS too: the projection is of the table the sota step would run
+    timeout "$(step_limit)" "$PYTHON" scripts/gpu_speedrun_plan.py --preset "$PRESET" --machine "$tag" --out "$record" \
+        ${SOTA_ARGS:+--set $SOTA_ARGS}
     echo "gpu_job: plan exit $?"
 }
 

@@ -90,7 +90,7 @@ def main() -> None:
     parser.add_argument("--batch", type=int, default=None, help="sequences a step (default: the preset's)")
     parser.add_argument("--frames", type=int, default=None, help="frames a sequence (default: the preset's)")
     parser.add_argument("--crop", type=int, default=None, help="LR crop (default: the preset's)")
-    parser.add_argument("--channels", type=int, default=None, help="Ours' width (default conf/model/srd.yaml)")
+    parser.add_argument("--channels", type=int, default=None, help="Ours' width (default: the preset's)")
     parser.add_argument("--warmup", type=int, default=3)
     parser.add_argument("--steps", type=int, default=5)
     parser.add_argument("--no-compile", action="store_true")

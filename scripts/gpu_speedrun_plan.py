@@ -2,178 +2,184 @@
 for sizing the preset to the speedrun (issue #62: Table 5 from a bare machine in 13 minutes, two calls),
 not a run. Each phase names where its rate comes from:
 
-- rendering: the render probe's seconds per buffer (`results/gpu/data/<machine>-render-probe.md`: the
-  later frames' noisy passes as measured, the references scaled by each split's spp over the probe's, the
-  frames by their pixels over the probe's) plus each sequence's first-frame set-up; divided by the probe's
-  measured gain of `workers` processes at once when the preset renders with that many (else none);
-- training: the speed table's training step (`results/gpu/speed/<machine>/table.csv`: the trainer's step
-  at the preset's batch, frames and crop) on the path the preset trains (eager, or `train.compile`'s with
-  its first call's compile, once per training: the Inductor cache on disk is not counted on), times steps
-  and seeds; the learning curve's scoring every `val_every` steps;
+- rendering: the splits the table renders (every training's frames and the working split its learning
+  curve reads, bench.experiments.context.training_splits, and the scored split), from the render probe's
+  seconds per buffer (`results/gpu/data/<machine>-render-probe.md`: the later frames' noisy passes scaled
+  by spp over the probe's, the references by each split's reference spp, both by the frames' pixels) plus
+  each sequence's first-frame set-up, in one process. Several processes are not projected: the probe's
+  4-process pass had Dr.Jit's kernel cache warm on disk, so its gains over a cold and a warm single
+  process bracket what they buy; the record says both;
+- training: the speed table's training step (`results/gpu/speed/<machine>/table.csv`: the trainer's step,
+  at the preset's widths, batch, frames and crop) on the path the preset trains (fp32, eager or
+  `train.compile=reduce-overhead` with its first call's compile once per training: Inductor's cache on
+  disk is not counted on), times steps and seeds; and the learning curve's scoring at its points;
 - scoring: the metrics of one output frame (`bench.metrics.all_metrics`, on the host's CPU), timed here
-  on random frames of the preset's HR size. Run on the GPU machine, it times that host; elsewhere it is
-  an estimate that names the CPU it ran on. Inference on the GPU is left out (the speed table: about
-  1 ms a frame at this size);
-- the power of the claims' paired test at a difference (default 0.1 dB) with the preset's seeds and
-  scored sequences, from each claim pair's PSNR variance components in `results/cpu/claims/table.csv`
-  (seed, sequence, residual: docs/claims_statistics.md), Satterthwaite's df, two-sided 5%, before Holm.
-  At the gpu preset's size the components are not known: the cpu preset's stand in.
+  on random frames of the preset's HR size (median of 3 calls). Run on the GPU machine (the job's `plan`
+  step), it times that host; elsewhere it is an estimate that names the CPU it ran on. Inference on the
+  GPU is left out (the speed table: about 1 ms a frame at this size);
+- the power of the claims' paired test at a difference (default 0.1 dB) with the preset's seeds and scored
+  sequences (`bench.stats.power`: compare() on simulated designs), from each claim pair's PSNR variance
+  components in `results/cpu/claims/table.csv` (docs/claims_statistics.md). At the gpu preset's size the
+  components are not known: the cpu preset's stand in.
 
-Not in the projection: installing the wheels and starting Python (the job's log), decoding the training
-frames into GPU memory, checkpoints, and OIDN (left out on the GPU image).
+Rows whose model does not import here are left out, as the GPU job's sota step leaves them (OIDN without
+pyoidn). Not in the projection: installing the wheels and starting Python (the job's log), decoding the
+training frames into GPU memory, checkpoints.
 
     python scripts/gpu_speedrun_plan.py                      # Table 5 at preset gpu on cuda-nvidia-h200
-    python scripts/gpu_speedrun_plan.py --set train.steps=400 data.splits.test.sequences=30
+    python scripts/gpu_speedrun_plan.py --set train.steps=400 data.splits.train.sequences=30
 """
 from __future__ import annotations
 
 import argparse
 import math
 import re
+import statistics
 import sys
 import time
 from pathlib import Path
+from types import SimpleNamespace
 
 import pandas as pd
 
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
-sys.path.insert(0, str(ROOT / "scripts"))
 
-from gpu_step_concurrency import composed  # noqa: E402
+PATHS = {None: "fp32", "reduce-overhead": "fp32, compiled (reduce-overhead)"}   # train.compile -> speed table path
 
-COMPILED = "fp32, compiled (reduce-overhead)"
+
+def composed(preset: str, overrides: list[str]) -> dict:
+    """The config at `preset` with `overrides`, its eval split resolved as the entry point resolves it
+    (bench.cli.apply_split), as plain values."""
+    from hydra import compose, initialize_config_dir
+    from omegaconf import OmegaConf
+    from bench.cli import CONF_DIR, apply_split
+    with initialize_config_dir(config_dir=CONF_DIR, version_base=None):
+        cfg = compose("config", overrides=[f"preset={preset}", *overrides])
+    apply_split(cfg)
+    return OmegaConf.to_container(cfg, resolve=True)
 
 
 def render_rates(record: Path) -> dict:
     """The render probe's measured rates: its frame size and spp, seconds per buffer of a later frame,
-    the first frame's extra seconds per sequence, and its N-process pass's gain over one process."""
+    the first frame's extra seconds per sequence, and its passes' wall seconds."""
     text = record.read_text()
     size = re.search(r"(\d+)x(\d+) LR x(\d+), (\d+) spp, reference (\d+) spp", text)
     per_frame = re.search(r"per frame \(median[^)]*\): (.*); per sequence, the first frame's extra seconds "
                           r"in the first pass: ([\d.]+)", text)
     if not size or not per_frame:
         raise ValueError(f"{record}: no probe settings or per-buffer seconds (a PARTIAL record?)")
-    buffers = {k: float(v) for k, v in re.findall(r"(\w+_s) ([\d.]+)", per_frame.group(1))}
-    workers = re.search(r"by (\d+) processes at once.*?([\d.]+) frames/s against pass 1's ([\d.]+) in one", text)
-    return {"lr": (int(size.group(1)), int(size.group(2))), "scale": int(size.group(3)), "spp": int(size.group(4)),
-            "ref_spp": int(size.group(5)), "buffers": buffers, "setup_s": float(per_frame.group(2)),
-            "workers": int(workers.group(1)) if workers else 1,
-            "workers_gain": float(workers.group(2)) / float(workers.group(3)) if workers else 1.0}
+    walls = dict(re.findall(r"(pass \d): \d+ frames in ([\d.]+) s wall", text))
+    workers = re.search(r"pass 3: the same \d+ frames by (\d+) processes at once[^:]*: ([\d.]+) s wall", text)
+    return {"lr": (int(size.group(1)), int(size.group(2))), "spp": int(size.group(4)),
+            "ref_spp": int(size.group(5)),
+            "buffers": {k: float(v) for k, v in re.findall(r"(\w+_s) ([\d.]+)", per_frame.group(1))},
+            "setup_s": float(per_frame.group(2)), "walls": {k: float(v) for k, v in walls.items()},
+            "workers": (int(workers.group(1)), float(workers.group(2))) if workers else None}
 
 
-def step_rates(table: Path) -> dict[str, dict]:
-    """Per model label: its eager fp32 training step (ms), its graphed one and the seconds its first call
-    compiled (from the row's note), as the speed table timed them."""
-    rows = pd.read_csv(table)
-    rows = rows[rows["section"] == "training step"]
-    rates: dict[str, dict] = {}
+def step_rates(table_dir: Path, preset: str, size: str, path: str) -> dict[str, dict]:
+    """Per model label, its training step (ms) on `path` at `size` and, for a compiled path, the seconds its
+    first call compiled (from the row's note), as the speed table timed them at `preset`'s widths."""
+    if f"preset {preset} widths" not in (table_dir / "table.md").read_text().split("\n\n")[0]:
+        raise ValueError(f"{table_dir}: not timed at preset {preset}'s widths")
+    rows = pd.read_csv(table_dir / "table.csv")
+    rows = rows[(rows["section"] == "training step") & (rows["size"] == size) & (rows["fast path"] == path)]
+    rates = {}
     for _, row in rows.iterrows():
-        rate = rates.setdefault(row["method"], {})
-        if row["fast path"] == "fp32":
-            rate["eager_ms"] = float(row["ms"])
-        elif row["fast path"] == COMPILED:
-            rate["compiled_ms"] = float(row["ms"])
-            found = re.search(r"first call \(compile\) ([\d.]+) s", str(row["note"]))
-            rate["compile_s"] = float(found.group(1)) if found else math.nan
+        compiled = re.search(r"first call \(compile\) ([\d.]+) s", str(row["note"]))
+        rates[row["method"]] = {"ms": float(row["ms"]), "compile_s": float(compiled.group(1)) if compiled else 0.0}
     return rates
 
 
-def scoring_ms(hr_hw: tuple[int, int], names=None, frames: int = 7) -> float:
-    """Milliseconds to score one output frame of `hr_hw` with `bench.metrics.all_metrics` on this host's
-    CPU (the second of two calls on a random sequence of `frames` frames)."""
+def scoring_ms(hr_hw: tuple[int, int], names=None, frames: int = 7, calls: int = 3) -> float:
+    """Milliseconds to score one output frame of `hr_hw` with `bench.metrics.all_metrics` (`names`: only
+    these) on this host's CPU: the median of `calls` calls after one, on a random sequence of `frames`."""
     import torch
     from bench.metrics import all_metrics
     generator = torch.Generator().manual_seed(0)
     pred, ref = (2 * torch.rand(frames, 3, *hr_hw, generator=generator) for _ in range(2))
     all_metrics(pred, ref, names)
-    start = time.perf_counter()
-    all_metrics(pred, ref, names)
-    return 1000 * (time.perf_counter() - start) / frames
+    times = []
+    for _ in range(calls):
+        start = time.perf_counter()
+        all_metrics(pred, ref, names)
+        times.append(time.perf_counter() - start)
+    return 1000 * statistics.median(times) / frames
 
 
-def split_seconds(spec: dict, name: str, rates: dict, workers: int) -> tuple[float, str]:
-    """A split's projected render seconds, and how they were projected."""
-    part = spec["splits"][name]
-    sequences, frames = int(part["sequences"]), int(part["sequences"]) * int(spec["seq_len"])
-    ref_spp = int(part.get("ref_spp") or spec["ref_spp"])
-    pixels = spec["lr_width"] * spec["lr_height"] / (rates["lr"][0] * rates["lr"][1])
-    b = rates["buffers"]
-    noisy = (b.get("lr_noisy_s", 0) + b.get("hr_noisy_s", 0)) * spec["spp"] / rates["spp"]
-    ref = (b.get("lr_ref_s", 0) + b.get("hr_ref_s", 0)) * ref_spp / rates["ref_spp"]
-    seconds = frames * pixels * (noisy + ref) + sequences * rates["setup_s"]
-    gain = rates["workers_gain"] if workers == rates["workers"] else 1.0
-    how = f"{sequences} sequences, {frames} frames, ref {ref_spp} spp" + (f", / {gain:.2f} ({workers} processes)"
-                                                                           if gain != 1.0 else "")
-    return seconds / gain, how
+def split_seconds(data: dict, split: str, rates: dict) -> float:
+    """A split's projected render seconds in one process (see the module docstring)."""
+    part = data["splits"][split]
+    frames = int(part["sequences"]) * int(data["seq_len"])
+    pixels = data["lr_width"] * data["lr_height"] / (rates["lr"][0] * rates["lr"][1])
+    buffers = rates["buffers"]
+    noisy = (buffers.get("lr_noisy_s", 0) + buffers.get("hr_noisy_s", 0)) * data["spp"] / rates["spp"]
+    ref = (buffers.get("lr_ref_s", 0) + buffers.get("hr_ref_s", 0)) * int(part.get("ref_spp") or data["ref_spp"]) \
+        / rates["ref_spp"]
+    return frames * pixels * (noisy + ref) + int(part["sequences"]) * rates["setup_s"]
 
 
-def power(diff: float, sd_seed: float, sd_sequence: float, sd_residual: float, seeds: int, sequences: int,
-          alpha: float = 0.05) -> float:
-    """Two-sided power of the paired test at `diff` for `seeds` x `sequences`, from variance components;
-    df by Satterthwaite over the three terms (the claims' test caps it at the largest term's)."""
-    from scipy import stats
-    terms = [(sd_sequence ** 2 / sequences, sequences - 1), (sd_seed ** 2 / seeds, seeds - 1),
-             (sd_residual ** 2 / (seeds * sequences), (seeds - 1) * (sequences - 1))]
-    terms = [(v, df) for v, df in terms if v > 0 and df > 0]
-    if not terms:
-        return math.nan
-    variance = sum(v for v, _ in terms)
-    df = min(variance ** 2 / sum(v ** 2 / df for v, df in terms), max(terms)[1])
-    critical = stats.t.ppf(1 - alpha / 2, df)
-    shift = diff / math.sqrt(variance)
-    return float(stats.nct.sf(critical, df, shift) + stats.nct.cdf(-critical, df, shift))
-
-
-def plan(cfg: dict, render: dict, steps: dict[str, dict], score_ms: float, curve_ms: float) -> list[dict]:
-    """The phases' projected seconds: rows of phase, what, seconds, source."""
-    from bench.experiments.speed import LABELS
+def table_rows(cfg: dict) -> tuple[list[str], list[str], dict[str, str]]:
+    """The experiment's learned and deterministic row models, and {model: why} of those left out because
+    their model does not import here (as the GPU job's sota step leaves them out)."""
+    from bench.errors import UserError
+    from bench.experiments.table import missing_package
+    from bench.measure import error_summary
     from bench.models.factory import build_model, is_learned
-    spec, train, experiment = cfg["data"], cfg["train"], cfg["experiment"]
-    seeds = len(cfg["seeds"])
-    eval_split = cfg["eval"]["split"] or ("test" if "test" in spec["splits"] else "val")
-    curve = train["val_sequences"] > 0 and train["val_every"] > 0
-    splits = ["train"] + (["val"] if curve and eval_split != "val" else []) + [eval_split]
-    rows = []
-    for name in splits:
-        seconds, how = split_seconds(spec, name, render, cfg["workers"])
-        rows.append({"phase": "render", "what": f"{name}: {how}", "seconds": seconds, "source": "render probe"})
-    compiled = train.get("compile") == "reduce-overhead"
-    hr = (spec["lr_height"] * spec["scale"], spec["lr_width"] * spec["scale"])
-    curve_points = -(-train["steps"] // train["val_every"]) if curve else 0   # every val_every steps and the last
-    curve_frames = min(train["val_sequences"], spec["splits"]["val"]["sequences"]) * spec["seq_len"]
-    rows_models = [row["model"] for row in experiment["rows"]]
-    learned = [m for m in rows_models if learned_model(build_model, is_learned, cfg["models"][m], spec["scale"])]
+    learned, fixed, left_out = [], [], {}
+    for row in cfg["experiment"]["rows"]:
+        try:
+            model = build_model(cfg["models"][row["model"]], cfg["data"]["scale"])
+        except UserError as err:
+            missing = missing_package(err)
+            if missing is None:
+                raise
+            left_out[row["model"]] = error_summary(missing)
+            continue
+        (learned if is_learned(model) else fixed).append(row["model"])
+    return learned, fixed, left_out
+
+
+def plan(cfg: dict, render: dict, steps: dict[str, dict], score_ms: float, curve_ms: float,
+         learned: list[str], fixed: list[str]) -> list[dict]:
+    """The phases' projected seconds (NaN where a rate was not measured): rows of phase, what, seconds,
+    source."""
+    from bench.experiments.context import training_splits, working_split
+    from bench.experiments.speed import LABELS
+    data, train, seeds = cfg["data"], cfg["train"], len(cfg["seeds"])
+    scored = cfg["eval"]["split"]
+    ctx = SimpleNamespace(eval=SimpleNamespace(split=scored), data_spec=data)   # what the two rules read
+    rows = [{"phase": "render", "what": f"{name}: {data['splits'][name]['sequences']} sequences at ref "
+             f"{data['splits'][name].get('ref_spp') or data['ref_spp']} spp", "seconds": split_seconds(data, name, render),
+             "source": "render probe, one process"}
+            for name in sorted(training_splits(ctx) | {scored}, key=list(data["splits"]).index)]
+    curve_split = working_split(ctx)
+    curve_frames = min(train["val_sequences"], data["splits"].get(curve_split, {}).get("sequences", 0)) * data["seq_len"]
+    # the trainer scores its curve every val_every steps and at the last (bench/train.py)
+    points = (-(-train["steps"] // train["val_every"]) if train["val_every"] else 1) if curve_frames else 0
     for model in learned:
         label = LABELS.get(model, model)
-        rate = steps.get(label, {})
-        step_ms = rate.get("compiled_ms" if compiled else "eager_ms", math.nan)
-        first = rate.get("compile_s", math.nan) if compiled else 0.0
-        seconds = seeds * (train["steps"] * step_ms / 1000 + first + curve_points * curve_frames * curve_ms / 1000)
-        rows.append({"phase": "train", "what": f"{label}: {seeds} x ({train['steps']} steps x {step_ms:.1f} ms"
-                     + (f" + compile {first:.0f} s" if compiled else "")
-                     + (f" + {curve_points} curve points x {curve_frames} frames" if curve else "") + ")",
-                     "seconds": seconds, "source": "speed table" + (", this host's scoring" if curve else "")})
-    frames = spec["splits"][eval_split]["sequences"] * spec["seq_len"]
-    evaluations = len(learned) * seeds + len(rows_models) - len(learned)
-    rows.append({"phase": "evaluate", "what": f"{evaluations} evaluations x {frames} frames of {hr[1]}x{hr[0]} "
-                 f"x {score_ms:.0f} ms", "seconds": evaluations * frames * score_ms / 1000,
-                 "source": "scoring timed on this host"})
+        rate = steps.get(label, {"ms": math.nan, "compile_s": math.nan})
+        curve = f" + {points} curve points x {curve_frames} frames x {curve_ms:.0f} ms" if points else ""
+        rows.append({"phase": "train", "what": f"{label}: {seeds} x ({train['steps']} steps x {rate['ms']:.1f} ms"
+                     + (f" + compile {rate['compile_s']:.0f} s" if rate["compile_s"] else "") + curve + ")",
+                     "seconds": seeds * (train["steps"] * rate["ms"] / 1000 + rate["compile_s"]
+                                         + points * curve_frames * curve_ms / 1000),
+                     "source": "speed table" + (", scoring timed here" if points else "")})
+    frames = data["splits"][scored]["sequences"] * data["seq_len"]
+    hr = f"{data['lr_width'] * data['scale']}x{data['lr_height'] * data['scale']}"
+    evaluations = len(learned) * seeds + len(fixed)
+    rows.append({"phase": "evaluate", "what": f"{evaluations} evaluations x {frames} {scored} frames of {hr} x "
+                 f"{score_ms:.0f} ms", "seconds": evaluations * frames * score_ms / 1000,
+                 "source": "scoring timed here"})
     return rows
-
-
-def learned_model(build_model, is_learned, model_cfg: dict, scale: int) -> bool:
-    """Whether a row's model trains; one that cannot be built here (OIDN without pyoidn) does not."""
-    try:
-        return is_learned(build_model(model_cfg, scale))
-    except Exception:
-        return False
 
 
 def claims_power(claims: Path, diff: float, seeds: int, sequences: int) -> list[float]:
     """Each claim pair's power at `diff` (PSNR) in the design, from its recorded variance components."""
-    table = pd.read_csv(claims)
-    parts = table[["PSNR sd seed", "PSNR sd sequence", "PSNR sd residual"]].dropna()
+    from bench.stats import power
+    parts = pd.read_csv(claims)[["PSNR sd seed", "PSNR sd sequence", "PSNR sd residual"]].dropna()
     return [power(diff, *row, seeds, sequences) for row in parts.itertuples(index=False)]
 
 
@@ -192,31 +198,44 @@ def main(argv=None) -> int:
     parser.add_argument("--out", type=Path, help="also write the record here")
     args = parser.parse_args(argv)
     cfg = composed(args.preset, [f"+experiment={args.experiment}", *args.set])
-    render = render_rates(args.records / "data" / f"{args.machine}-render-probe.md")
-    steps = step_rates(args.records / "speed" / args.machine / "table.csv")
-    spec = cfg["data"]
-    hr = (spec["lr_height"] * spec["scale"], spec["lr_width"] * spec["scale"])
+    train, data = cfg["train"], cfg["data"]
+    if train["precision"] != "fp32" or train["channels_last"] or train["compile"] not in PATHS:
+        parser.error(f"no speed rows for train.precision={train['precision']}, channels_last={train['channels_last']}, "
+                     f"compile={train['compile']}: the plan projects fp32, eager or reduce-overhead")
+    import torch
     from bench.experiments.training import CURVE_SCORES
     from bench.machine import device_tag
-    rows = plan(cfg, render, steps, scoring_ms(hr), scoring_ms(hr, CURVE_SCORES))
-    total = sum(row["seconds"] for row in rows)
-    import torch
+    size = f"{train['batch_size']}x{train['seq_len']} frames of {train['crop']}x{train['crop']} LR"
+    steps = step_rates(args.records / "speed" / args.machine, args.preset, size, PATHS[train["compile"]])
+    render = render_rates(args.records / "data" / f"{args.machine}-render-probe.md")
+    hr_hw = (data["lr_height"] * data["scale"], data["lr_width"] * data["scale"])
+    learned, fixed, left_out = table_rows(cfg)
+    rows = plan(cfg, render, steps, scoring_ms(hr_hw), scoring_ms(hr_hw, CURVE_SCORES), learned, fixed)
+    command = " ".join(["python scripts/gpu_speedrun_plan.py", *(argv if argv is not None else sys.argv[1:])])
     lines = [f"# {args.experiment} at preset {args.preset} on {args.machine}, projected", "",
-             f"`python scripts/gpu_speedrun_plan.py {' '.join(argv if argv is not None else sys.argv[1:])}` "
-             f"(a lead, not a run: how each phase is projected is in the script's docstring); scoring timed on "
-             f"{device_tag('cpu')} with {torch.get_num_threads()} threads.", "",
+             f"`{command}` (a lead, not a run: how each phase is projected is in the script's docstring); "
+             f"training steps of {size}; scoring timed on {device_tag('cpu')} with {torch.get_num_threads()} threads"
+             + (f"; left out, not importable here: {', '.join(f'{m} ({why})' for m, why in left_out.items())}"
+                if left_out else "") + ".", "",
              "| phase | what | seconds | from |", "|---|---|---|---|"]
     lines += [f"| {row['phase']} | {row['what']} | {row['seconds']:.0f} | {row['source']} |" for row in rows]
+    unmeasured = [row["what"].split(":")[0] for row in rows if math.isnan(row["seconds"])]
+    total = sum(row["seconds"] for row in rows if not math.isnan(row["seconds"]))
     lines += ["", f"total: {total:.0f} s ({total / 60:.1f} min) against a budget of {args.budget:.0f} s: "
-              + ("fits" if total <= args.budget else f"over by {total - args.budget:.0f} s")]
-    eval_split = cfg["eval"]["split"] or ("test" if "test" in spec["splits"] else "val")
-    sequences, seeds = spec["splits"][eval_split]["sequences"], len(cfg["seeds"])
+              + ("fits" if total <= args.budget else f"over by {total - args.budget:.0f} s")
+              + (f"; without {', '.join(unmeasured)}: no speed row" if unmeasured else "")]
+    if render["workers"] and {"pass 1", "pass 2"} <= set(render["walls"]):
+        n, wall = render["workers"]
+        lines.append(f"rendering with {n} processes: the probe's {n}-process pass took {wall:.1f} s against one "
+                     f"process's {render['walls']['pass 1']:.1f} s cold and {render['walls']['pass 2']:.1f} s warm "
+                     f"(x{render['walls']['pass 1'] / wall:.2f} and x{render['walls']['pass 2'] / wall:.2f})")
+    sequences, seeds = data["splits"][cfg["eval"]["split"]]["sequences"], len(cfg["seeds"])
     powers = sorted(claims_power(args.claims, args.diff, seeds, sequences))
     if powers:
         source = args.claims.relative_to(ROOT) if args.claims.is_relative_to(ROOT) else args.claims
-        lines.append(f"power at {args.diff} dB, {seeds} seeds x {sequences} {eval_split} sequences, with the variance "
-                     f"components of the {len(powers)} claim pairs in {source}: median {powers[len(powers) // 2]:.2f}, "
-                     f"lowest {powers[0]:.2f}, highest {powers[-1]:.2f}")
+        lines.append(f"power at {args.diff} dB, {seeds} seeds x {sequences} {cfg['eval']['split']} sequences, with the "
+                     f"variance components of the {len(powers)} claim pairs in {source}: median "
+                     f"{statistics.median(powers):.2f}, lowest {powers[0]:.2f}, highest {powers[-1]:.2f}")
     print("\n".join(lines))
     if args.out:
         args.out.parent.mkdir(parents=True, exist_ok=True)

@@ -160,15 +160,17 @@ def test_the_plan_step_projects_table_5_from_this_machines_records_once(project,
     data.mkdir(parents=True)
     speed.mkdir(parents=True)
     shutil.copy(REPO / "results/gpu/data/cuda-nvidia-h200-render-probe.md", data / f"{tag}-render-probe.md")
-    shutil.copy(REPO / "results/gpu/speed/cuda-nvidia-h200/table.csv", speed / "table.csv")
-    env = dict(os.environ, PYTHON=sys.executable, DEVICE="cpu", PRESET="smoke", OUT=str(tmp_path / "out"))
+    for name in ("table.csv", "table.md"):
+        shutil.copy(REPO / "results/gpu/speed/cuda-nvidia-h200" / name, speed / name)
+    env = dict(os.environ, PYTHON=sys.executable, DEVICE="cpu", PRESET="gpu", OUT=str(tmp_path / "out"),
+               SOTA_ARGS="data.lr_width=32 data.lr_height=16 train.steps=400")   # small frames: quick scoring
     done = subprocess.run(["bash", "scripts/gpu_job.sh", "plan"], cwd=project, env=env, capture_output=True,
                           text=True, timeout=300)
     assert done.returncode == 0 and "gpu_job: plan exit 0" in done.stdout, done.stdout[-2000:] + done.stderr[-2000:]
     record = project / "results" / "gpu" / "profile" / f"{tag}-speedrun-plan.md"
     text = record.read_text()
-    assert text.startswith(f"# sota at preset smoke on {tag}, projected") and "| render | train: " in text
-    assert "steps x 136.3 ms" in text and "total: " in text and "power at 0.1 dB" in text   # Ours' eager step
+    assert text.startswith(f"# sota at preset gpu on {tag}, projected") and "| render | train: " in text
+    assert "| train | Ours: 3 x (400 steps x 136.3 ms" in text and "total: " in text and "power at 0.1 dB" in text
     again = subprocess.run(["bash", "scripts/gpu_job.sh", "plan"], cwd=project, env=env, capture_output=True,
                            text=True, timeout=300)
     assert "gpu_job: plan already there" in again.stdout and record.read_text() == text

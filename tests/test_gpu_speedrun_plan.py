@@ -1,5 +1,6 @@
 """scripts/gpu_speedrun_plan.py: its rates are the committed GPU records', its render projection agrees with
-the render probe's own, its power is the claims' test's rejection rate, and its arithmetic is the formula."""
+the render probe's own, it renders the splits a table renders, leaves out the rows the GPU job leaves out,
+and its arithmetic is the formula. (Its power is bench.stats.power: tests/test_stats.py.)"""
 from __future__ import annotations
 
 import math
@@ -8,7 +9,7 @@ import subprocess
 import sys
 from pathlib import Path
 
-import numpy as np
+import pandas as pd
 import pytest
 
 REPO = Path(__file__).resolve().parents[1]
@@ -17,85 +18,97 @@ sys.path.insert(0, str(REPO / "scripts"))
 import gpu_speedrun_plan as plan  # noqa: E402
 
 PROBE = REPO / "results/gpu/data/cuda-nvidia-h200-render-probe.md"
-SPEED = REPO / "results/gpu/speed/cuda-nvidia-h200/table.csv"
+SPEED = REPO / "results/gpu/speed/cuda-nvidia-h200"
+SIZE = "4x7 frames of 64x64 LR"   # the gpu preset's training batch
 
 
-def test_the_render_projection_is_the_probes_own_for_the_split_it_measured():
+def test_the_render_projection_is_the_probes_own_for_the_splits_it_projected():
     """The probe projects each split of the preset it rendered (one process); the plan, reading the
-    probe's record back, gives the same minutes, and the 4-process pass's gain is its wall-clock ratio."""
+    probe's record back, gives the same minutes; the passes' walls are the record's."""
     rates = plan.render_rates(PROBE)
     text = PROBE.read_text()
     assert rates["lr"] == (192, 128) and (rates["spp"], rates["ref_spp"]) == (8, 256)
-    spec = plan.composed("gpu", [])["data"]
-    for split, minutes in re.findall(r"^- (\w+): \d+ sequences, \d+ frames at ref \d+ spp: about ([\d.]+) min$",
-                                     text, re.M):
-        seconds, how = plan.split_seconds(spec, split, rates, workers=1)
+    assert rates["walls"] == {"pass 1": 40.7, "pass 2": 23.6} and rates["workers"] == (4, 20.9)
+    data = plan.composed("gpu", [])["data"]
+    projected = re.findall(r"^- (\w+): \d+ sequences, \d+ frames at ref \d+ spp: about ([\d.]+) min$", text, re.M)
+    assert [split for split, _ in projected] == ["train", "val", "generalization"]
+    for split, minutes in projected:
         # the record prints minutes to 0.1 and each buffer's seconds to 0.001 (about 1% of the smallest)
-        assert abs(seconds / 60 - float(minutes)) <= 0.05 + 0.02 * float(minutes), split
-        assert "processes" not in how
-    seconds, how = plan.split_seconds(spec, "train", rates, workers=rates["workers"])
-    assert rates["workers"] == 4 and how.endswith("(4 processes)")
-    assert seconds == pytest.approx(plan.split_seconds(spec, "train", rates, 1)[0] / rates["workers_gain"])
+        assert abs(plan.split_seconds(data, split, rates) / 60 - float(minutes)) <= 0.05 + 0.02 * float(minutes), split
 
 
-def test_the_step_rates_are_the_speed_tables_rows():
-    import pandas as pd
-    rows = pd.read_csv(SPEED)
+def test_the_step_rates_are_the_speed_tables_rows_at_the_presets_widths_and_batch():
+    rows = pd.read_csv(SPEED / "table.csv")
     ours = rows[(rows["section"] == "training step") & (rows["method"] == "Ours")].set_index("fast path")
-    rates = plan.step_rates(SPEED)["Ours"]
-    assert rates["eager_ms"] == ours.loc["fp32", "ms"] and rates["compiled_ms"] == ours.loc[plan.COMPILED, "ms"]
-    assert rates["compile_s"] == float(re.search(r"\(compile\) (\d+) s", ours.loc[plan.COMPILED, "note"]).group(1))
+    eager = plan.step_rates(SPEED, "gpu", SIZE, "fp32")
+    graphed = plan.step_rates(SPEED, "gpu", SIZE, plan.PATHS["reduce-overhead"])
+    assert eager["Ours"] == {"ms": ours.loc["fp32", "ms"], "compile_s": 0.0}
+    assert graphed["Ours"]["ms"] == ours.loc[plan.PATHS["reduce-overhead"], "ms"]
+    assert graphed["Ours"]["compile_s"] == float(
+        re.search(r"\(compile\) (\d+) s", ours.loc[plan.PATHS["reduce-overhead"], "note"]).group(1))
+    assert set(eager) == {"Ours", "EDSR", "RAE", "KPCN", "CFM", "3x3 conv stack (56 x 32 ch)"}
+    assert "CFM" not in graphed                                            # not timed: PARTIAL
+    assert plan.step_rates(SPEED, "gpu", "4x5 frames of 32x32 LR", "fp32") == {}   # another batch: no rate
+    with pytest.raises(ValueError, match="not timed at preset cpu's widths"):
+        plan.step_rates(SPEED, "cpu", SIZE, "fp32")
 
 
-def test_the_power_is_the_claims_tests_rejection_rate():
-    """At no difference it is the test's level; at a difference, the rate at which bench.stats.compare
-    rejects simulated designs with those variance components (within Monte Carlo error)."""
-    from bench.stats import compare
-    assert plan.power(0.0, 0.05, 0.3, 0.2, 3, 20) == pytest.approx(0.05, abs=1e-9)
-    rng = np.random.default_rng(0)
-    sd_seed, sd_sequence, sd_residual, seeds, sequences, diff = 0.0, 0.3, 0.2, 3, 20, 0.15
-    n = 1500
-    rejected = 0
-    for _ in range(n):
-        d = (diff + sd_seed * rng.standard_normal((seeds, 1)) + sd_sequence * rng.standard_normal((1, sequences))
-             + sd_residual * rng.standard_normal((seeds, sequences)))
-        rejected += compare(d).p < 0.05
-    stated = plan.power(diff, sd_seed, sd_sequence, sd_residual, seeds, sequences)
-    assert 0.3 < stated < 0.9
-    assert rejected / n == pytest.approx(stated, abs=4 * math.sqrt(stated * (1 - stated) / n))
-
-
-def test_the_plan_is_steps_times_step_time_and_frames_times_scoring():
-    cfg = plan.composed("smoke", ["+experiment=sota", "train.steps=30", "train.val_every=10", "train.val_sequences=2"])
+def test_the_plan_renders_what_the_table_renders_and_is_steps_times_step_time_and_frames_times_scoring():
+    """At the cpu preset (a frozen test split): the trainings render train and val (their curve's split,
+    rendered whether or not a curve is scored), the table test; steps x step time x seeds, the curve's
+    points every val_every steps and the last; evaluations x scored frames x scoring time."""
+    cfg = plan.composed("cpu", ["+experiment=sota", "train.steps=30", "train.val_every=10", "train.val_sequences=2"])
     render = plan.render_rates(PROBE)
-    steps = {label: {"eager_ms": 10.0 * (i + 1), "compiled_ms": 1.0, "compile_s": 5.0}
-             for i, label in enumerate(["EDSR", "RAE", "KPCN", "CFM", "Ours"])}
-    rows = plan.plan(cfg, render, steps, score_ms=100.0, curve_ms=40.0)
-    spec, seeds = cfg["data"], len(cfg["seeds"])
-    curve_frames = min(2, spec["splits"]["val"]["sequences"]) * spec["seq_len"]
+    labels = ["EDSR", "RAE", "KPCN", "CFM", "Ours"]
+    steps = {label: {"ms": 10.0 * (i + 1), "compile_s": 5.0 * (label == "Ours")} for i, label in enumerate(labels)}
+    learned, fixed = ["edsr", "rae", "kpcn", "cfm", "srd"], ["bilinear", "bicubic"]
+    rows = plan.plan(cfg, render, steps, score_ms=100.0, curve_ms=40.0, learned=learned, fixed=fixed)
+    data, seeds = cfg["data"], len(cfg["seeds"])
+    assert [r["what"].split(":")[0] for r in rows if r["phase"] == "render"] == ["train", "val", "test"]
+    assert [r["seconds"] for r in rows if r["phase"] == "render"] == [
+        plan.split_seconds(data, split, render) for split in ("train", "val", "test")]
+    curve_frames = 2 * data["seq_len"]
     train = [r for r in rows if r["phase"] == "train"]
-    assert [r["what"].split(":")[0] for r in train] == ["EDSR", "RAE", "KPCN", "CFM", "Ours"]   # the learned rows
+    assert [r["what"].split(":")[0] for r in train] == labels
     for i, row in enumerate(train):   # curve points at steps 10, 20 and 30, the last
-        assert row["seconds"] == pytest.approx(seeds * (30 * 10.0 * (i + 1) / 1000 + 3 * curve_frames * 0.040))
-    split = "test" if "test" in spec["splits"] else "val"
-    frames = spec["splits"][split]["sequences"] * spec["seq_len"]
-    rows_total = len(cfg["experiment"]["rows"])
+        compile_s = 5.0 * (labels[i] == "Ours")
+        assert row["seconds"] == pytest.approx(seeds * (30 * 10.0 * (i + 1) / 1000 + compile_s + 3 * curve_frames * 0.040))
     evaluate = [r for r in rows if r["phase"] == "evaluate"]
-    assert evaluate[0]["seconds"] == pytest.approx((5 * seeds + rows_total - 5) * frames * 0.1)
-    graphed = plan.plan({**cfg, "train": {**cfg["train"], "compile": "reduce-overhead"}}, render, steps, 100.0, 40.0)
-    assert [r["seconds"] for r in graphed if r["phase"] == "train"][0] == pytest.approx(
-        seeds * (30 * 1.0 / 1000 + 5.0 + 3 * curve_frames * 0.040))
-    assert {r["what"].split(":")[0] for r in rows if r["phase"] == "render"} == {"train", split} | {"val"}
+    frames = data["splits"]["test"]["sequences"] * data["seq_len"]
+    assert evaluate[0]["seconds"] == pytest.approx((5 * seeds + 2) * frames * 0.1) and "test frames" in evaluate[0]["what"]
+    no_curve = plan.plan(plan.composed("cpu", ["+experiment=sota", "train.steps=30", "train.val_sequences=0"]),
+                         render, {**steps, "CFM": {"ms": math.nan, "compile_s": math.nan}}, 100.0, 40.0, learned, fixed)
+    assert [r["what"].split(":")[0] for r in no_curve if r["phase"] == "render"] == ["train", "val", "test"]
+    assert [r["seconds"] for r in no_curve if r["phase"] == "train"][0] == pytest.approx(seeds * 30 * 10.0 / 1000)
+    assert math.isnan([r["seconds"] for r in no_curve if r["what"].startswith("CFM")][0])
 
 
-def test_the_script_prints_the_phases_the_total_and_the_power(tmp_path):
+def test_a_row_whose_package_is_missing_is_left_out_and_a_broken_model_is_an_error():
+    cfg = plan.composed("smoke", ["+experiment=sota"])
+    cfg["models"]["oidn_lr"] = {"_target_": "no_such_package.Denoiser"}   # as OIDN without pyoidn
+    learned, fixed, left_out = plan.table_rows(cfg)
+    assert learned == ["edsr", "rae", "kpcn", "cfm", "srd"] and "bilinear" in fixed and "oidn_lr" not in fixed
+    assert list(left_out) == ["oidn_lr"] and "no_such_package" in left_out["oidn_lr"]
+    cfg["models"]["oidn_lr"] = {"_target_": "baselines.no_such_module.Denoiser"}   # a typo in the project
+    with pytest.raises(Exception, match="no_such_module"):
+        plan.table_rows(cfg)
+
+
+def test_the_script_prints_the_phases_the_total_and_the_power_and_names_what_it_could_not_rate(tmp_path):
     out = subprocess.run([sys.executable, "scripts/gpu_speedrun_plan.py", "--out", str(tmp_path / "plan.md"),
-                          "--set", "data.lr_width=32", "data.lr_height=16", "train.val_sequences=0"],
+                          "--set", "data.lr_width=32", "data.lr_height=16", "train.compile=reduce-overhead"],
                          cwd=REPO, capture_output=True, text=True, timeout=300, env={"PYTHONPATH": str(REPO),
                                                                                      "PATH": "/usr/bin:/bin"})
     assert out.returncode == 0, out.stderr[-2000:]
-    assert "| render | train: 100 sequences" in out.stdout and "| evaluate | 19 evaluations x 140 frames of 64x32" in out.stdout
-    assert re.search(r"^total: \d+ s \([\d.]+ min\) against a budget of 780 s: (fits|over by \d+ s)$", out.stdout, re.M)
+    assert "| render | train: 100 sequences at ref 256 spp |" in out.stdout
+    assert re.search(r"\| evaluate \| (17|19) evaluations x 140 val frames of 64x32 x \d+ ms", out.stdout)
+    assert "| train | Ours: 3 x (2000 steps x 36.9 ms + compile 104 s + 20 curve points" in out.stdout
+    assert re.search(r"^total: \d+ s \([\d.]+ min\) against a budget of 780 s: (fits|over by \d+ s); without CFM: "
+                     r"no speed row$", out.stdout, re.M)
+    assert "x1.95 and x1.13" in out.stdout
     assert re.search(r"power at 0.1 dB, 3 seeds x 20 val sequences, with the variance components of the \d+ claim "
                      r"pairs in results/cpu/claims/table.csv: median 0\.\d\d", out.stdout)
     assert (tmp_path / "plan.md").read_text() == out.stdout   # --out: the record is what it printed
+    refused = subprocess.run([sys.executable, "scripts/gpu_speedrun_plan.py", "--set", "train.precision=bf16"],
+                             cwd=REPO, capture_output=True, text=True, timeout=300, env={"PYTHONPATH": str(REPO)})
+    assert refused.returncode == 2 and "no speed rows for train.precision=bf16" in refused.stderr

@@ -160,3 +160,17 @@ def test_power_at_the_smallest_claimed_difference(name):
 
 def test_a_large_difference_is_found():
     assert rejection_rate(TYPICAL, 0.6, 500, seed=2) > 0.9
+
+
+def test_power_is_the_rate_compare_calls_a_difference_and_the_paired_t_tests_power_with_one_seed():
+    """stats.power simulates the design and asks compare(): at no difference it is the level; with one seed
+    compare() is the paired t-test over sequences, whose power is the noncentral t's."""
+    from scipy import stats as scipy_stats
+    draws = 2000
+    assert stats.power(0.0, 0.1, 0.3, 0.2, 3, 20, draws=draws) <= 0.05 + 3 * np.sqrt(0.05 * 0.95 / draws)
+    sd, sequences, diff = np.hypot(0.3, 0.2), 20, 0.15   # one seed: sequence and residual add up
+    critical = scipy_stats.t.ppf(0.975, sequences - 1)
+    shift = diff * np.sqrt(sequences) / sd
+    exact = scipy_stats.nct.sf(critical, sequences - 1, shift) + scipy_stats.nct.sf(critical, sequences - 1, -shift)
+    simulated = stats.power(diff, 0.0, 0.3, 0.2, 1, sequences, draws=draws)
+    assert 0.3 < exact < 0.9 and simulated == pytest.approx(exact, abs=3 * np.sqrt(exact * (1 - exact) / draws))

@@ -354,7 +354,7 @@ def selected_rows(ctx: Context, rows: list[dict], task: str, leave_out: list[str
         try:
             build_model(model_config(ctx, r["model"], r.get("overrides")), get_task(r["task"]).scale)
         except UserError as err:
-            missing = _import_error(err)
+            missing = missing_package(err)
             if not (leave_out_unavailable and missing):
                 raise
             unavailable[r["label"]] = error_summary(missing)
@@ -364,7 +364,7 @@ def selected_rows(ctx: Context, rows: list[dict], task: str, leave_out: list[str
     return kept, unavailable
 
 
-def _import_error(err: BaseException) -> ModuleNotFoundError | None:
+def missing_package(err: BaseException) -> ModuleNotFoundError | None:
     """The package this machine lacks behind a model that could not be built: the deepest ImportError of
     the chain (Hydra wraps the first in one of its own), if it is a ModuleNotFoundError of a whole package
     outside this project (a misspelt `_target_` or a broken import in bench or baselines is an error)."""
