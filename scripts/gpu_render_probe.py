@@ -128,25 +128,37 @@ def buffer_seconds(passes: list[dict]) -> dict[str, float]:
     return medians
 
 
+def split_seconds(data: dict, split: str, rates: dict) -> float:
+    """A split's render seconds in one process, projected from measured `rates` (`lr`: their LR width and
+    height, `spp`, `ref_spp`, `buffers`: seconds of each buffer of a later frame, `setup_s`: a sequence's
+    first frame's extra seconds): per frame the noisy passes scaled by spp and the references by the
+    split's reference spp, both by the frames' pixels, plus each sequence's set-up."""
+    part = data["splits"][split]
+    frames = int(part["sequences"]) * int(data["seq_len"])
+    pixels = data["lr_width"] * data["lr_height"] / (rates["lr"][0] * rates["lr"][1])
+    buffers = rates["buffers"]
+    noisy = (buffers.get("lr_noisy_s", 0) + buffers.get("hr_noisy_s", 0)) * data["spp"] / rates["spp"]
+    ref_spp = int(part.get("ref_spp") or data["ref_spp"])
+    ref = (buffers.get("lr_ref_s", 0) + buffers.get("hr_ref_s", 0)) * ref_spp / rates["ref_spp"]
+    return frames * pixels * (noisy + ref) + int(part["sequences"]) * rates["setup_s"]
+
+
 def projection(spec: dict, split: str, warm: dict[str, float], cold: dict[str, float]) -> list[str]:
-    """Lines: each split's render time projected from the measured buffers: per frame its noisy passes
-    as measured and its references scaled by the split's reference spp over the measured split's, plus
-    per sequence the first frame's extra seconds of the first pass (a scene not rendered before)."""
-    measured_ref = int(spec["splits"][split].get("ref_spp") or spec["ref_spp"])
-    noisy = warm.get("lr_noisy_s", 0.0) + warm.get("hr_noisy_s", 0.0)
-    ref = warm.get("lr_ref_s", 0.0) + warm.get("hr_ref_s", 0.0)
-    setup = cold.get("first_frame_s", 0.0)
+    """Lines: each split's render time projected from the measured buffers of `split` (`split_seconds`):
+    the later frames of the second pass, and the first frame's extra seconds of the first pass (a scene
+    not rendered before)."""
+    rates = {"lr": (spec["lr_width"], spec["lr_height"]), "spp": spec["spp"],
+             "ref_spp": int(spec["splits"][split].get("ref_spp") or spec["ref_spp"]),
+             "buffers": warm, "setup_s": cold.get("first_frame_s", 0.0)}
     lines = ["- per frame (median of the later frames, second pass): "
              + ", ".join(f"{k} {v:.3f}" for k, v in sorted(warm.items()) if k != "first_frame_s")
-             + f"; per sequence, the first frame's extra seconds in the first pass: {setup:.2f}"]
+             + f"; per sequence, the first frame's extra seconds in the first pass: {rates['setup_s']:.2f}"]
     total = 0.0
     for name, part in spec["splits"].items():
-        sequences = int(part["sequences"])
-        frames = sequences * int(spec["seq_len"])
-        ref_spp = int(part.get("ref_spp") or spec["ref_spp"])
-        seconds = frames * (noisy + ref * ref_spp / measured_ref) + sequences * setup
+        seconds = split_seconds(spec, name, rates)
         total += seconds
-        lines.append(f"- {name}: {sequences} sequences, {frames} frames at ref {ref_spp} spp: about {seconds / 60:.1f} min")
+        lines.append(f"- {name}: {part['sequences']} sequences, {int(part['sequences']) * int(spec['seq_len'])} frames "
+                     f"at ref {int(part.get('ref_spp') or spec['ref_spp'])} spp: about {seconds / 60:.1f} min")
     lines.append(f"- all splits: about {total / 60:.1f} min on one such device, one sequence at a time, in one process")
     return lines
 

@@ -44,6 +44,9 @@ import pandas as pd
 
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
+sys.path.insert(0, str(ROOT / "scripts"))
+
+from gpu_render_probe import split_seconds  # noqa: E402   the probe's own projection of a split
 
 PATHS = {None: "fp32", "reduce-overhead": "fp32, compiled (reduce-overhead)"}   # train.compile -> speed table path
 
@@ -106,18 +109,6 @@ def scoring_ms(hr_hw: tuple[int, int], names=None, frames: int = 7, calls: int =
         all_metrics(pred, ref, names)
         times.append(time.perf_counter() - start)
     return 1000 * statistics.median(times) / frames
-
-
-def split_seconds(data: dict, split: str, rates: dict) -> float:
-    """A split's projected render seconds in one process (see the module docstring)."""
-    part = data["splits"][split]
-    frames = int(part["sequences"]) * int(data["seq_len"])
-    pixels = data["lr_width"] * data["lr_height"] / (rates["lr"][0] * rates["lr"][1])
-    buffers = rates["buffers"]
-    noisy = (buffers.get("lr_noisy_s", 0) + buffers.get("hr_noisy_s", 0)) * data["spp"] / rates["spp"]
-    ref = (buffers.get("lr_ref_s", 0) + buffers.get("hr_ref_s", 0)) * int(part.get("ref_spp") or data["ref_spp"]) \
-        / rates["ref_spp"]
-    return frames * pixels * (noisy + ref) + int(part["sequences"]) * rates["setup_s"]
 
 
 def table_rows(cfg: dict) -> tuple[list[str], list[str], dict[str, str]]:
