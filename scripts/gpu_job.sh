@@ -71,7 +71,7 @@ step_limit() {
     echo $((left < STEP_S ? left : STEP_S))
 }
 
-# the carried wheels (scripts/gpu_prepare.sh: hydra, omegaconf, antlr4, OpenEXR, drjit, trimmed mitsuba)
+# the carried wheels (scripts/gpu_prepare.sh: hydra, omegaconf, antlr4, OpenEXR, flip-evaluator, drjit, trimmed mitsuba)
 if compgen -G ".whl/*.whl" > /dev/null; then
     "$PYTHON" -m pip install -q --no-index --no-deps --no-compile --no-cache-dir --upgrade --target /tmp/site .whl/*.whl \
         || { echo "gpu_job: installing .whl failed"; exit 1; }
@@ -165,7 +165,9 @@ step_speed() {
 
 step_sota() {
     if [ -f "results/gpu/sota/table.md" ]; then echo "gpu_job: sota table already there"; return; fi
-    "$PYTHON" -c "import mitsuba" 2>/dev/null || { echo "gpu_job: no mitsuba here (carry .whl): sota skipped"; return; }
+    # rendering needs mitsuba, scoring flip_evaluator (the image has neither): said now, not after the trainings
+    "$PYTHON" -c "import mitsuba, flip_evaluator" 2>/dev/null \
+        || { echo "gpu_job: no mitsuba or flip_evaluator here (carry .whl): sota skipped"; return; }
     local fused=0
     tests_passed && fused=1
     # SIGTERM at the limit: the trainer checkpoints and stops; the next call resumes it. OIDN's rows need
@@ -216,6 +218,7 @@ step_sweep() {
 step_plan() {
     local record=results/gpu/profile/$tag-speedrun-plan.md
     if [ -f "$record" ]; then echo "gpu_job: plan already there ($record)"; return; fi
+    "$PYTHON" -c "import flip_evaluator" 2>/dev/null || { echo "gpu_job: no flip_evaluator here (carry .whl): plan skipped"; return; }
     # SOTA_ARGS too: the projection is of the table the sota step would run
     timeout "$(step_limit)" "$PYTHON" scripts/gpu_speedrun_plan.py --preset "$PRESET" --machine "$tag" --out "$record" \
         ${SOTA_ARGS:+--set $SOTA_ARGS}

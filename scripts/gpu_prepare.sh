@@ -2,7 +2,7 @@
 # Prepares THIS checkout for scripts/gpu_job.sh on a lent GPU machine (docs/gpu.md, "The GPU job"): the
 # whole job travels in ONE call (the machine goes back ~30 s after a call), tree and wheels within 64 MiB.
 #  1. .whl/: wheels for the machine's Python 3.12 that its image lacks: hydra-core, omegaconf, antlr4,
-#     OpenEXR, drjit and mitsuba, the last trimmed to the variants and plugins the suite loads and both
+#     OpenEXR, flip-evaluator (the FLIP scores of every evaluation), drjit and mitsuba, the last trimmed to the variants and plugins the suite loads and both
 #     recompressed with LZMA (scripts/trim_mitsuba_wheel.py; about 24 MiB in all);
 #  2. the run archive results/cpu/runs taken out of the index and ignored, so the working tree travels;
 #     `scripts/gpu_prepare.sh --undo` puts it back. Commit nothing between the two (git status shows
@@ -20,7 +20,7 @@ platforms=(--platform manylinux_2_28_x86_64 --platform manylinux_2_27_x86_64 --p
 download() { python3 -m pip download -q --no-deps --only-binary=:all: --python-version 3.12 --implementation cp \
     "${platforms[@]}" -d "$1" "${@:2}"; }
 mkdir -p .whl
-download .whl hydra-core==1.3.8 omegaconf==2.3.1 OpenEXR==3.5.3 drjit==1.5.0 mitsuba==3.9.1
+download .whl hydra-core==1.3.8 omegaconf==2.3.1 OpenEXR==3.5.3 flip-evaluator==1.7 drjit==1.5.0 mitsuba==3.9.1
 python3 -m pip wheel -q --no-deps -w .whl antlr4-python3-runtime==4.9.3   # an sdist only: a pure-Python wheel
 # LZMA takes minutes here; a wheel already trimmed (its RECORD lists no headers) is left as it is
 mitsuba=$(ls .whl/mitsuba-*.whl)

@@ -4,6 +4,7 @@ would run, but for the device."""
 import io
 import json
 import os
+import re
 import shutil
 import subprocess
 import sys
@@ -262,3 +263,23 @@ def test_the_profile_script_profiles_the_trainers_step_at_the_presets_recipe(tmp
     assert (f"batch {batch} x 2 frames of 16x16 LR at preset smoke, the trainer's step: HDR encode, loss without "
             "perceptual, clip, Adam, EMA, fp32") in text and "No CUDA here" in text
     assert "\n| eager | " in text and "\n| torch.compile |" not in text
+
+
+def test_the_carried_wheels_are_the_projects_pins_and_scoring_without_flip_is_said_before_training(project, tmp_path):
+    """The GPU image lacks flip_evaluator (every evaluation's FLIP scores) as it lacks mitsuba: gpu_prepare
+    carries both at pyproject's pins, and without them the sota step says so before it trains anything."""
+    import tomllib
+    pins = dict(dep.split("==") for dep in tomllib.loads((REPO / "pyproject.toml").read_text())["project"]["dependencies"])
+    prepare = (REPO / "scripts" / "gpu_prepare.sh").read_text()
+    downloaded = re.search(r"^download \.whl (.*)$", prepare, re.M).group(1).split()
+    assert "flip-evaluator==1.7" in downloaded and "mitsuba==3.9.1" in downloaded
+    assert all(pins[name] == version for name, version in (d.split("==") for d in downloaded))
+    shim = tmp_path / "no_flip"
+    shim.mkdir()
+    (shim / "flip_evaluator.py").write_text('raise ModuleNotFoundError("No module named flip_evaluator", name="flip_evaluator")\n')
+    copy = shutil.copytree(project, tmp_path / "project", ignore=shutil.ignore_patterns("runs", "results"))
+    done = job(copy, "sota", "plan", out=tmp_path / "out", PYTHONPATH=str(shim))
+    assert done.returncode == 0, done.stdout[-2000:]
+    assert "gpu_job: no mitsuba or flip_evaluator here (carry .whl): sota skipped" in done.stdout
+    assert "gpu_job: no flip_evaluator here (carry .whl): plan skipped" in done.stdout
+    assert not (copy / "results" / "gpu" / "sota").exists() and not (copy / "runs").exists()
