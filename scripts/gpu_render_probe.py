@@ -25,6 +25,7 @@ from __future__ import annotations
 import argparse
 import hashlib
 import json
+import os
 import statistics
 import sys
 import tempfile
@@ -204,16 +205,30 @@ def digests_line(digest_file: Path, earlier: dict, digests: dict, variant: str) 
 
 
 def concurrent_pass(root: Path, probed: dict, split: str, workers: int, variant: str, first: list[dict]) -> str:
-    """Pass 3: the same sequences by `workers` processes at once (build_dataset), against pass 1."""
-    t0 = time.perf_counter()
-    frames = len(datagen.build_dataset(root, probed, BUFFERS, workers=workers, progress=False, variant=variant,
-                                       splits=[split]))
-    wall = time.perf_counter() - t0
+    """Pass 3: the same sequences by `workers` processes at once (build_dataset), each starting with an
+    empty kernel cache as a fresh machine's first render does (HOME, where Dr.Jit and OptiX keep theirs,
+    is an empty folder for the spawned workers), against pass 1, the one process's cold render."""
+    home = root / "home"
+    home.mkdir(parents=True)
+    kept = {k: os.environ.get(k) for k in ("HOME", "XDG_CACHE_HOME")}
+    os.environ.update(HOME=str(home), XDG_CACHE_HOME=str(home / ".cache"))
+    try:
+        t0 = time.perf_counter()
+        frames = len(datagen.build_dataset(root / "frames", probed, BUFFERS, workers=workers, progress=False,
+                                           variant=variant, splits=[split]))
+        wall = time.perf_counter() - t0
+    finally:
+        for key, value in kept.items():
+            os.environ.pop(key) if value is None else os.environ.update({key: value})
     one_process = sum(len(q["records"]) for q in first) / sum(q["wall_s"] for q in first)
+    setup = buffer_seconds(first).get("first_frame_s", 0.0)
+    cache = ("an empty kernel cache" if any(home.iterdir()) else
+             "the host's kernel cache (none was written under the empty HOME, no worker was spawned)")
     return (f"- pass 3: the same {frames} frames by {workers} processes at once (bench.datagen.build_dataset, "
-            f"workers={workers}): {wall:.1f} s wall, {frames / wall:.2f} frames/s against pass 1's "
-            f"{one_process:.2f} in one process (each process loads Mitsuba and compiles its scenes' kernels, "
-            "with Dr.Jit's kernel cache on disk as the first two passes left it)")
+            f"workers={workers}) from {cache}: {wall:.1f} s wall, {frames / wall:.2f} frames/s against "
+            f"pass 1's {one_process:.2f} in one process, whose first frames took {setup:.2f} s more a sequence "
+            "than its later ones (each process loads Mitsuba and compiles its scenes' kernels; pass 1 is cold on "
+            "a fresh machine, warm where the host's cache held them)")
 
 
 def compare_variant(root: Path, tmp: Path, spec: dict, split: str, other: str, frames: int, first: dict) -> list[str]:

@@ -6,9 +6,10 @@ not a run. Each phase names where its rate comes from:
   curve reads, bench.experiments.context.training_splits, and the scored split), from the render probe's
   seconds per buffer (`results/gpu/data/<machine>-render-probe.md`: the later frames' noisy passes scaled
   by spp over the probe's, the references by each split's reference spp, both by the frames' pixels) plus
-  each sequence's first-frame set-up, in one process. Several processes are not projected: the probe's
-  4-process pass had Dr.Jit's kernel cache warm on disk, so its gains over a cold and a warm single
-  process bracket what they buy; the record says both;
+  each sequence's first-frame set-up, in one process; divided by the probe's gain of N processes over
+  one where the preset renders with N (`workers`) and both of the probe's passes started without a
+  kernel cache, as a fresh machine's render does (an older record's N-process pass had the cache warm
+  on disk: then its gains over a cold and a warm process are printed, not used);
 - training: the speed table's training step (`results/gpu/speed/<machine>/table.csv`: the trainer's step,
   at the preset's widths, batch, frames and crop) on the path the preset trains (fp32, eager or
   `train.compile=reduce-overhead` with its first call's compile once per training: Inductor's cache on
@@ -74,11 +75,13 @@ def render_rates(record: Path) -> dict:
         raise ValueError(f"{record}: no probe settings or per-buffer seconds (a PARTIAL record?)")
     walls = dict(re.findall(r"(pass \d): \d+ frames in ([\d.]+) s wall", text))
     workers = re.search(r"pass 3: the same \d+ frames by (\d+) processes at once[^:]*: ([\d.]+) s wall", text)
+    cold = bool(re.search(r"pass 3: [^\n]* from an empty kernel cache", text)) and float(per_frame.group(2)) > 0
     return {"lr": (int(size.group(1)), int(size.group(2))), "spp": int(size.group(4)),
             "ref_spp": int(size.group(5)),
             "buffers": {k: float(v) for k, v in re.findall(r"(\w+_s) ([\d.]+)", per_frame.group(1))},
             "setup_s": float(per_frame.group(2)), "walls": {k: float(v) for k, v in walls.items()},
-            "workers": (int(workers.group(1)), float(workers.group(2))) if workers else None}
+            "workers": (int(workers.group(1)), float(workers.group(2))) if workers else None,
+            "workers_cold": cold}   # pass 3 and pass 1 both without a kernel cache: their walls compare
 
 
 def step_rates(table_dir: Path, preset: str, size: str, path: str) -> dict[str, dict]:
@@ -141,9 +144,14 @@ def plan(cfg: dict, render: dict, steps: dict[str, dict], score_ms: float, curve
     data, train, seeds = cfg["data"], cfg["train"], len(cfg["seeds"])
     scored = cfg["eval"]["split"]
     ctx = SimpleNamespace(eval=SimpleNamespace(split=scored), data_spec=data)   # what the two rules read
+    processes, gain = 1, 1.0
+    if render["workers"] and render["workers_cold"] and render["workers"][0] == cfg["workers"]:
+        processes, gain = cfg["workers"], render["walls"]["pass 1"] / render["workers"][1]
     rows = [{"phase": "render", "what": f"{name}: {data['splits'][name]['sequences']} sequences at ref "
-             f"{data['splits'][name].get('ref_spp') or data['ref_spp']} spp", "seconds": split_seconds(data, name, render),
-             "source": "render probe, one process"}
+             f"{data['splits'][name].get('ref_spp') or data['ref_spp']} spp"
+             + (f", / {gain:.2f} ({processes} processes)" if processes > 1 else ""),
+             "seconds": split_seconds(data, name, render) / gain,
+             "source": "render probe, " + (f"{processes} processes" if processes > 1 else "one process")}
             for name in sorted(training_splits(ctx) | {scored}, key=list(data["splits"]).index)]
     curve_split = working_split(ctx)
     curve_frames = min(train["val_sequences"], data["splits"].get(curve_split, {}).get("sequences", 0)) * data["seq_len"]
@@ -217,9 +225,12 @@ def main(argv=None) -> int:
               + (f"; without {', '.join(unmeasured)}: no speed row" if unmeasured else "")]
     if render["workers"] and {"pass 1", "pass 2"} <= set(render["walls"]):
         n, wall = render["workers"]
-        lines.append(f"rendering with {n} processes: the probe's {n}-process pass took {wall:.1f} s against one "
-                     f"process's {render['walls']['pass 1']:.1f} s cold and {render['walls']['pass 2']:.1f} s warm "
-                     f"(x{render['walls']['pass 1'] / wall:.2f} and x{render['walls']['pass 2'] / wall:.2f})")
+        lines.append(f"rendering with {n} processes: the probe's {n}-process pass "
+                     + ("(no kernel cache) " if render["workers_cold"] else "(Dr.Jit's kernel cache warm on disk) ")
+                     + f"took {wall:.1f} s against one process's {render['walls']['pass 1']:.1f} s cold and "
+                     f"{render['walls']['pass 2']:.1f} s warm (x{render['walls']['pass 1'] / wall:.2f} and "
+                     f"x{render['walls']['pass 2'] / wall:.2f})"
+                     + ("" if render["workers_cold"] else "; not used: run the probe again for a cold one"))
     sequences, seeds = data["splits"][cfg["eval"]["split"]]["sequences"], len(cfg["seeds"])
     powers = sorted(claims_power(args.claims, args.diff, seeds, sequences))
     if powers:

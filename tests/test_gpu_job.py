@@ -193,7 +193,8 @@ def test_the_render_step_measures_the_variant_twice_and_keeps_the_digests(projec
     text = record.read_text()
     assert text.startswith("# Rendering `smoke` with llvm_ad_rgb")                   # whole: no PARTIAL line
     assert "- pass 1 against pass 2: 30 of 30 decoded layers bit-identical" in text   # 3 frames x 10 layers
-    assert "- pass 3: the same 3 frames by 2 processes at once" in text
+    assert "- pass 3: the same 3 frames by 2 processes at once" in text   # one sequence: rendered in this process
+    assert "from the host's kernel cache (none was written under the empty HOME, no worker was spawned)" in text
     assert "- train: 32 sequences, 96 frames at ref 256 spp: about" in text
     assert "relative L2 difference per layer: hr.albedo 0, " in text                   # llvm against llvm
     digests = json.loads(record.with_suffix(".digests.json").read_text())

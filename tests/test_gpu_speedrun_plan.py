@@ -37,6 +37,28 @@ def test_the_render_projection_is_the_probes_own_for_the_splits_it_projected():
         assert abs(plan.split_seconds(data, split, rates) / 60 - float(minutes)) <= 0.05 + 0.02 * float(minutes), split
 
 
+def test_a_cold_several_process_pass_divides_the_render_where_the_preset_renders_with_as_many(tmp_path):
+    """The committed record's 4-process pass had the kernel cache warm: not used. A record whose pass 3
+    started from an empty kernel cache (and whose pass 1 paid a set-up) is, at the preset's `workers`."""
+    text = PROBE.read_text()
+    assert plan.render_rates(PROBE)["workers_cold"] is False
+    cold = tmp_path / "probe.md"
+    cold.write_text(re.sub(r"(pass 3: [^\n]*workers=4\)):", r"\1 from an empty kernel cache:", text))
+    rates = plan.render_rates(cold)
+    assert rates["workers_cold"] is True and rates["workers"] == (4, 20.9)
+    labels = ["EDSR", "RAE", "KPCN", "CFM", "Ours"]
+    steps = {label: {"ms": 1.0, "compile_s": 0.0} for label in labels}
+    learned = ["edsr", "rae", "kpcn", "cfm", "srd"]
+    for workers, gain in ((4, 40.7 / 20.9), (2, 1.0)):
+        cfg = plan.composed("gpu", ["+experiment=sota", f"workers={workers}"])
+        render = [r for r in plan.plan(cfg, rates, steps, 1.0, 1.0, learned, []) if r["phase"] == "render"]
+        assert [r["seconds"] for r in render] == pytest.approx(
+            [plan.split_seconds(cfg["data"], split, rates) / gain for split in ("train", "val")])
+        assert ("4 processes" in render[0]["source"]) == (workers == 4)
+        warm = [r for r in plan.plan(cfg, plan.render_rates(PROBE), steps, 1.0, 1.0, learned, []) if r["phase"] == "render"]
+        assert warm[0]["source"] == "render probe, one process"
+
+
 def test_the_step_rates_are_the_speed_tables_rows_at_the_presets_widths_and_batch():
     rows = pd.read_csv(SPEED / "table.csv")
     ours = rows[(rows["section"] == "training step") & (rows["method"] == "Ours")].set_index("fast path")
@@ -105,7 +127,7 @@ def test_the_script_prints_the_phases_the_total_and_the_power_and_names_what_it_
     assert "| train | Ours: 3 x (2000 steps x 36.9 ms + compile 104 s + 20 curve points" in out.stdout
     assert re.search(r"^total: \d+ s \([\d.]+ min\) against a budget of 780 s: (fits|over by \d+ s); without CFM: "
                      r"no speed row$", out.stdout, re.M)
-    assert "x1.95 and x1.13" in out.stdout
+    assert "(Dr.Jit's kernel cache warm on disk) took 20.9 s" in out.stdout and "x1.95 and x1.13); not used" in out.stdout
     assert re.search(r"power at 0.1 dB, 3 seeds x 20 val sequences, with the variance components of the \d+ claim "
                      r"pairs in results/cpu/claims/table.csv: median 0\.\d\d", out.stdout)
     assert (tmp_path / "plan.md").read_text() == out.stdout   # --out: the record is what it printed
