@@ -26,6 +26,7 @@ import argparse
 import hashlib
 import json
 import os
+import site
 import statistics
 import sys
 import tempfile
@@ -210,8 +211,9 @@ def concurrent_pass(root: Path, probed: dict, split: str, workers: int, variant:
     is an empty folder for the spawned workers), against pass 1, the one process's cold render."""
     home = root / "home"
     home.mkdir(parents=True)
-    kept = {k: os.environ.get(k) for k in ("HOME", "XDG_CACHE_HOME")}
-    os.environ.update(HOME=str(home), XDG_CACHE_HOME=str(home / ".cache"))
+    kept = {k: os.environ.get(k) for k in ("HOME", "XDG_CACHE_HOME", "PYTHONUSERBASE")}
+    # the user's site-packages stay where they are (a `pip install --user` mitsuba too)
+    os.environ.update(HOME=str(home), XDG_CACHE_HOME=str(home / ".cache"), PYTHONUSERBASE=site.getuserbase())
     try:
         t0 = time.perf_counter()
         frames = len(datagen.build_dataset(root / "frames", probed, BUFFERS, workers=workers, progress=False,
