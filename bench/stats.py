@@ -117,7 +117,6 @@ def compare(d: np.ndarray, level: float = 0.95) -> Comparison:
     return Comparison(diff, se, float(df), diff - half, diff + half, p)
 
 
-
 def power(diff: float, sd_seed: float, sd_sequence: float, sd_residual: float, seeds: int, sequences: int,
           alpha: float = 0.05, draws: int = 500, seed: int = 0) -> float:
     """The rate at which `compare` calls a true mean difference `diff` significant (p < `alpha`, before

@@ -134,15 +134,19 @@ def split_seconds(data: dict, split: str, rates: dict) -> float:
     """A split's render seconds in one process, projected from measured `rates` (`lr`: their LR width and
     height, `spp`, `ref_spp`, `buffers`: seconds of each buffer of a later frame, `setup_s`: a sequence's
     first frame's extra seconds): per frame the noisy passes scaled by spp and the references by the
-    split's reference spp, both by the frames' pixels, plus each sequence's set-up."""
+    split's reference spp (a sequence's own, `sequence_ref_spp`), both by the frames' pixels, plus each
+    sequence's set-up."""
     part = data["splits"][split]
     frames = int(part["sequences"]) * int(data["seq_len"])
     pixels = data["lr_width"] * data["lr_height"] / (rates["lr"][0] * rates["lr"][1])
     buffers = rates["buffers"]
     noisy = (buffers.get("lr_noisy_s", 0) + buffers.get("hr_noisy_s", 0)) * data["spp"] / rates["spp"]
     ref_spp = int(part.get("ref_spp") or data["ref_spp"])
-    ref = (buffers.get("lr_ref_s", 0) + buffers.get("hr_ref_s", 0)) * ref_spp / rates["ref_spp"]
-    return frames * pixels * (noisy + ref) + int(part["sequences"]) * rates["setup_s"]
+    # sequences given more reference samples (sequence_ref_spp) render theirs at that count
+    ref_frames_spp = frames * ref_spp + sum(int(data["seq_len"]) * (int(spp) - ref_spp)
+                                            for spp in (part.get("sequence_ref_spp") or {}).values())
+    ref = (buffers.get("lr_ref_s", 0) + buffers.get("hr_ref_s", 0)) / rates["ref_spp"]
+    return pixels * (frames * noisy + ref_frames_spp * ref) + int(part["sequences"]) * rates["setup_s"]
 
 
 def projection(spec: dict, split: str, warm: dict[str, float], cold: dict[str, float]) -> list[str]:
@@ -171,7 +175,7 @@ def differing_layers(a: dict, b: dict) -> dict[str, float]:
             if not np.array_equal(a[name], b[name], equal_nan=True)}
 
 
-def passes_section(first: list[dict], second: list[dict], layers_total: int, differing: dict) -> list[str]:
+def passes_section(first: list[dict], second: list[dict], layers_total: int, differing: dict, cold: bool) -> list[str]:
     """The table of sequences and the lines on passes 1 and 2."""
     lines = []
     rows = [sequence_row(f, s) for f, s in zip(first, second + [None] * (len(first) - len(second)))]
@@ -186,7 +190,8 @@ def passes_section(first: list[dict], second: list[dict], layers_total: int, dif
     same = layers_total - sum(map(len, differing.values()))
     return lines + [
         "",
-        f"- pass 1: {frames_one} frames in {sum(s['wall_s'] for s in first):.1f} s wall; pass 2: {frames_two} "
+        f"- pass 1: {frames_one} frames in {sum(s['wall_s'] for s in first):.1f} s wall "
+        f"from {'an empty kernel cache' if cold else 'the kernel cache the host had'}; pass 2: {frames_two} "
         f"frames in {sum(s['wall_s'] for s in second):.1f} s wall, "
         f"{frames_two / rendered_s if rendered_s else float('nan'):.2f} frames/s of render time",
         f"- pass 1 against pass 2: {same} of {layers_total} decoded layers bit-identical"
@@ -205,13 +210,23 @@ def digests_line(digest_file: Path, earlier: dict, digests: dict, variant: str) 
             f"{len(shared)} frames' digests equal")
 
 
+def kernel_cache_empty() -> bool:
+    """Whether Dr.Jit's kernel cache (HOME/.drjit, OptiX's as well) holds nothing yet."""
+    cache = Path(os.environ.get("HOME", "~")).expanduser() / ".drjit"
+    return not cache.is_dir() or not any(cache.iterdir())
+
+
 def concurrent_pass(root: Path, probed: dict, split: str, workers: int, variant: str, first: list[dict]) -> str:
     """Pass 3: the same sequences by `workers` processes at once (build_dataset), each starting with an
     empty kernel cache as a fresh machine's first render does (HOME, where Dr.Jit and OptiX keep theirs,
-    is an empty folder for the spawned workers), against pass 1, the one process's cold render."""
+    is an empty folder for the spawned workers), against pass 1, one process's render (cold where the
+    record's pass 1 line says so, as on a fresh machine)."""
     home = root / "home"
     home.mkdir(parents=True)
-    kept = {k: os.environ.get(k) for k in ("HOME", "XDG_CACHE_HOME", "PYTHONUSERBASE")}
+    kept = {k: os.environ.get(k) for k in ("HOME", "XDG_CACHE_HOME", "PYTHONUSERBASE", "OPTIX_CACHE_PATH",
+                                           "CUDA_CACHE_PATH")}
+    for key in ("OPTIX_CACHE_PATH", "CUDA_CACHE_PATH"):   # set, they would point past the empty HOME
+        os.environ.pop(key, None)
     # the user's site-packages stay where they are (a `pip install --user` mitsuba too)
     os.environ.update(HOME=str(home), XDG_CACHE_HOME=str(home / ".cache"), PYTHONUSERBASE=site.getuserbase())
     try:
@@ -221,16 +236,15 @@ def concurrent_pass(root: Path, probed: dict, split: str, workers: int, variant:
         wall = time.perf_counter() - t0
     finally:
         for key, value in kept.items():
-            os.environ.pop(key) if value is None else os.environ.update({key: value})
+            os.environ.pop(key, None) if value is None else os.environ.update({key: value})
     one_process = sum(len(q["records"]) for q in first) / sum(q["wall_s"] for q in first)
     setup = buffer_seconds(first).get("first_frame_s", 0.0)
-    cache = ("an empty kernel cache" if any(home.iterdir()) else
-             "the host's kernel cache (none was written under the empty HOME, no worker was spawned)")
+    spawned = min(workers, int(probed["splits"][split]["sequences"])) > 1   # build_dataset's rule
+    cache = "an empty kernel cache" if spawned else "the host's kernel cache (one sequence, rendered in this process)"
     return (f"- pass 3: the same {frames} frames by {workers} processes at once (bench.datagen.build_dataset, "
             f"workers={workers}) from {cache}: {wall:.1f} s wall, {frames / wall:.2f} frames/s against "
             f"pass 1's {one_process:.2f} in one process, whose first frames took {setup:.2f} s more a sequence "
-            "than its later ones (each process loads Mitsuba and compiles its scenes' kernels; pass 1 is cold on "
-            "a fresh machine, warm where the host's cache held them)")
+            "than its later ones (each process loads Mitsuba and compiles its scenes' kernels)")
 
 
 def compare_variant(root: Path, tmp: Path, spec: dict, split: str, other: str, frames: int, first: dict) -> list[str]:
@@ -312,6 +326,7 @@ def main(argv=None) -> int:
     deadline = time.monotonic() + args.seconds
     with tempfile.TemporaryDirectory() as tmp:
         one, two = Path(tmp) / "one", Path(tmp) / "two"
+        cold = kernel_cache_empty()   # a fresh machine's; pass 3's gain over pass 1 compares two cold starts
         first = render_pass(one, jobs, probed, variant, deadline)
         second = render_pass(two, [s["job"] for s in first], probed, variant, deadline + args.seconds)
         digests, layers_total, differing = {}, 0, {}
@@ -327,7 +342,7 @@ def main(argv=None) -> int:
         if not earlier and digests:
             write_atomic(digest_file, lambda tmp_file: tmp_file.write_text(
                 json.dumps({"variant": variant, "device": tag, "frames": digests}, indent=1) + "\n"))
-        parts = {"passes": passes_section(first, second, layers_total, differing), "pass 3": [],
+        parts = {"passes": passes_section(first, second, layers_total, differing, cold), "pass 3": [],
                  "digests": [digests_line(digest_file, earlier, digests, variant)],
                  "projection": ["", "Projected render time of the whole preset (a lead, from the buffers' measured "
                                 "seconds):", *projection(spec, args.split, buffer_seconds(second or first),

@@ -7,9 +7,9 @@ not a run. Each phase names where its rate comes from:
   seconds per buffer (`results/gpu/data/<machine>-render-probe.md`: the later frames' noisy passes scaled
   by spp over the probe's, the references by each split's reference spp, both by the frames' pixels) plus
   each sequence's first-frame set-up, in one process; divided by the probe's gain of N processes over
-  one where the preset renders with N (`workers`) and both of the probe's passes started without a
-  kernel cache, as a fresh machine's render does (an older record's N-process pass had the cache warm
-  on disk: then its gains over a cold and a warm process are printed, not used);
+  one where the preset renders with N (`workers`; the job's sota step takes it from SOTA_ARGS) and the
+  record says both passes started without a kernel cache, as a fresh machine's render does (else the
+  gains over pass 1 and pass 2 are printed, not used);
 - training: the speed table's training step (`results/gpu/speed/<machine>/table.csv`: the trainer's step,
   at the preset's widths, batch, frames and crop) on the path the preset trains (fp32, eager or
   `train.compile=reduce-overhead` with its first call's compile once per training: Inductor's cache on
@@ -75,7 +75,8 @@ def render_rates(record: Path) -> dict:
         raise ValueError(f"{record}: no probe settings or per-buffer seconds (a PARTIAL record?)")
     walls = dict(re.findall(r"(pass \d): \d+ frames in ([\d.]+) s wall", text))
     workers = re.search(r"pass 3: the same \d+ frames by (\d+) processes at once[^:]*: ([\d.]+) s wall", text)
-    cold = bool(re.search(r"pass 3: [^\n]* from an empty kernel cache", text)) and float(per_frame.group(2)) > 0
+    cold = bool(re.search(r"pass 3: [^\n]* from an empty kernel cache", text)
+                and re.search(r"pass 1: [^\n]* from an empty kernel cache", text))
     return {"lr": (int(size.group(1)), int(size.group(2))), "spp": int(size.group(4)),
             "ref_spp": int(size.group(5)),
             "buffers": {k: float(v) for k, v in re.findall(r"(\w+_s) ([\d.]+)", per_frame.group(1))},
@@ -115,14 +116,15 @@ def scoring_ms(hr_hw: tuple[int, int], names=None, frames: int = 7, calls: int =
 
 
 def table_rows(cfg: dict) -> tuple[list[str], list[str], dict[str, str]]:
-    """The experiment's learned and deterministic row models, and {model: why} of those left out because
-    their model does not import here (as the GPU job's sota step leaves them out)."""
+    """The experiment's learned and deterministic row models (less `experiment.leave_out`'s), and {model:
+    why} of those left out because their model does not import here (as the GPU job's sota step leaves
+    them out)."""
     from bench.errors import UserError
     from bench.experiments.table import missing_package
     from bench.measure import error_summary
     from bench.models.factory import build_model, is_learned
     learned, fixed, left_out = [], [], {}
-    for row in cfg["experiment"]["rows"]:
+    for row in (r for r in cfg["experiment"]["rows"] if r["label"] not in (cfg["experiment"].get("leave_out") or [])):
         try:
             model = build_model(cfg["models"][row["model"]], cfg["data"]["scale"])
         except UserError as err:
@@ -155,11 +157,15 @@ def plan(cfg: dict, render: dict, steps: dict[str, dict], score_ms: float, curve
             for name in sorted(training_splits(ctx) | {scored}, key=list(data["splits"]).index)]
     curve_split = working_split(ctx)
     curve_frames = min(train["val_sequences"], data["splits"].get(curve_split, {}).get("sequences", 0)) * data["seq_len"]
-    # the trainer scores its curve every val_every steps and at the last (bench/train.py)
-    points = (-(-train["steps"] // train["val_every"]) if train["val_every"] else 1) if curve_frames else 0
+    # the trainer scores its curve at step 0, every val_every steps and at the last (bench/train.py)
+    points = 1 + (-(-train["steps"] // train["val_every"]) if train["val_every"] else 1) if curve_frames else 0
     for model in learned:
         label = LABELS.get(model, model)
-        rate = steps.get(label, {"ms": math.nan, "compile_s": math.nan})
+        rate = steps.get(label)
+        if rate is None:
+            rows.append({"phase": "train", "what": f"{label}: no speed row for this path and batch",
+                         "seconds": math.nan, "source": "speed table"})
+            continue
         curve = f" + {points} curve points x {curve_frames} frames x {curve_ms:.0f} ms" if points else ""
         rows.append({"phase": "train", "what": f"{label}: {seeds} x ({train['steps']} steps x {rate['ms']:.1f} ms"
                      + (f" + compile {rate['compile_s']:.0f} s" if rate["compile_s"] else "") + curve + ")",
@@ -173,6 +179,10 @@ def plan(cfg: dict, render: dict, steps: dict[str, dict], score_ms: float, curve
                  f"{score_ms:.0f} ms", "seconds": evaluations * frames * score_ms / 1000,
                  "source": "scoring timed here"})
     return rows
+
+
+def seconds_cell(seconds: float) -> str:
+    return "-" if math.isnan(seconds) else f"{seconds:.0f}"
 
 
 def claims_power(claims: Path, diff: float, seeds: int, sequences: int) -> list[float]:
@@ -217,7 +227,7 @@ def main(argv=None) -> int:
              + (f"; left out, not importable here: {', '.join(f'{m} ({why})' for m, why in left_out.items())}"
                 if left_out else "") + ".", "",
              "| phase | what | seconds | from |", "|---|---|---|---|"]
-    lines += [f"| {row['phase']} | {row['what']} | {row['seconds']:.0f} | {row['source']} |" for row in rows]
+    lines += [f"| {row['phase']} | {row['what']} | {seconds_cell(row['seconds'])} | {row['source']} |" for row in rows]
     unmeasured = [row["what"].split(":")[0] for row in rows if math.isnan(row["seconds"])]
     total = sum(row["seconds"] for row in rows if not math.isnan(row["seconds"]))
     lines += ["", f"total: {total:.0f} s ({total / 60:.1f} min) against a budget of {args.budget:.0f} s: "
@@ -230,7 +240,8 @@ def main(argv=None) -> int:
                      + f"took {wall:.1f} s against one process's {render['walls']['pass 1']:.1f} s cold and "
                      f"{render['walls']['pass 2']:.1f} s warm (x{render['walls']['pass 1'] / wall:.2f} and "
                      f"x{render['walls']['pass 2'] / wall:.2f})"
-                     + ("" if render["workers_cold"] else "; not used: run the probe again for a cold one"))
+                     + ("; not used: run the probe again for a cold one" if not render["workers_cold"] else
+                        "" if n == cfg["workers"] else f"; not used: this preset renders with workers={cfg['workers']}"))
     sequences, seeds = data["splits"][cfg["eval"]["split"]]["sequences"], len(cfg["seeds"])
     powers = sorted(claims_power(args.claims, args.diff, seeds, sequences))
     if powers:

@@ -37,15 +37,37 @@ def test_the_render_projection_is_the_probes_own_for_the_splits_it_projected():
         assert abs(plan.split_seconds(data, split, rates) / 60 - float(minutes)) <= 0.05 + 0.02 * float(minutes), split
 
 
-def test_a_cold_several_process_pass_divides_the_render_where_the_preset_renders_with_as_many(tmp_path):
-    """The committed record's 4-process pass had the kernel cache warm: not used. A record whose pass 3
-    started from an empty kernel cache (and whose pass 1 paid a set-up) is, at the preset's `workers`."""
-    text = PROBE.read_text()
+def test_a_cold_several_process_pass_divides_the_render_where_the_preset_renders_with_as_many(tmp_path, monkeypatch):
+    """The committed record's 4-process pass had the kernel cache warm: not used. A record whose pass 1 and
+    pass 3 (the probe's own lines) both started from an empty kernel cache is, at the preset's `workers`;
+    pass 3's workers see an empty HOME and the user's site-packages, and the environment is restored."""
+    import os
+    import site
+    import gpu_render_probe as probe
     assert plan.render_rates(PROBE)["workers_cold"] is False
+    seen = {}
+
+    def build_dataset(root, spec, buffers, workers, **_):
+        seen.update(home=os.environ["HOME"], userbase=os.environ["PYTHONUSERBASE"])
+        (Path(os.environ["HOME"]) / ".drjit").mkdir()
+        return [None] * 56
+    monkeypatch.setattr(probe.datagen, "build_dataset", build_dataset)
+    home = os.environ.get("HOME")
+    first = [{"job": {"sequence": f"s{i}"}, "wall_s": 40.7 / 8, "records": [{"time_s": {"hr_ref_s": 1.0}}] * 7}
+             for i in range(8)]
+    probed = {"splits": {"train": {"sequences": 8}}}
+    pass_3 = probe.concurrent_pass(tmp_path / "p3", probed, "train", 4, "cuda_ad_rgb", first)
+    assert seen["home"] == str(tmp_path / "p3" / "home") and seen["userbase"] == site.getuserbase()
+    assert os.environ.get("HOME") == home and "from an empty kernel cache" in pass_3
+    pass_1 = probe.passes_section(first, first, 10, {}, cold=True)[-2]
+    text = PROBE.read_text()
+    text = re.sub(r"^- pass 1: .*$", pass_1, text, count=1, flags=re.M)
+    text = re.sub(r"^- pass 3: .*$", pass_3.replace(re.search(r"([\d.]+) s wall", pass_3).group(0), "20.9 s wall"),
+                  text, count=1, flags=re.M)
     cold = tmp_path / "probe.md"
-    cold.write_text(re.sub(r"(pass 3: [^\n]*workers=4\)):", r"\1 from an empty kernel cache:", text))
+    cold.write_text(text)
     rates = plan.render_rates(cold)
-    assert rates["workers_cold"] is True and rates["workers"] == (4, 20.9)
+    assert rates["workers_cold"] is True and rates["workers"] == (4, 20.9) and rates["walls"]["pass 1"] == 40.7
     labels = ["EDSR", "RAE", "KPCN", "CFM", "Ours"]
     steps = {label: {"ms": 1.0, "compile_s": 0.0} for label in labels}
     learned = ["edsr", "rae", "kpcn", "cfm", "srd"]
@@ -55,8 +77,8 @@ def test_a_cold_several_process_pass_divides_the_render_where_the_preset_renders
         assert [r["seconds"] for r in render] == pytest.approx(
             [plan.split_seconds(cfg["data"], split, rates) / gain for split in ("train", "val")])
         assert ("4 processes" in render[0]["source"]) == (workers == 4)
-        warm = [r for r in plan.plan(cfg, plan.render_rates(PROBE), steps, 1.0, 1.0, learned, []) if r["phase"] == "render"]
-        assert warm[0]["source"] == "render probe, one process"
+    cold.write_text(text.replace("s wall from an empty kernel cache; pass 2", "s wall from the kernel cache the host had; pass 2"))
+    assert plan.render_rates(cold)["workers_cold"] is False   # pass 1 from the host's cache: the walls do not compare
 
 
 def test_the_step_rates_are_the_speed_tables_rows_at_the_presets_widths_and_batch():
@@ -89,20 +111,28 @@ def test_the_plan_renders_what_the_table_renders_and_is_steps_times_step_time_an
     assert [r["what"].split(":")[0] for r in rows if r["phase"] == "render"] == ["train", "val", "test"]
     assert [r["seconds"] for r in rows if r["phase"] == "render"] == [
         plan.split_seconds(data, split, render) for split in ("train", "val", "test")]
+    val = data["splits"]["val"]   # its refined sequences render their references at their own spp
+    plain = {**data, "splits": {"val": {k: v for k, v in val.items() if k != "sequence_ref_spp"}}}
+    ref_s = (render["buffers"]["lr_ref_s"] + render["buffers"]["hr_ref_s"]) / render["ref_spp"]
+    pixels = data["lr_width"] * data["lr_height"] / (192 * 128)
+    extra = sum(data["seq_len"] * (spp - val["ref_spp"]) for spp in val["sequence_ref_spp"].values())
+    assert plan.split_seconds(data, "val", render) - plan.split_seconds(plain, "val", render) == pytest.approx(
+        pixels * extra * ref_s) and extra > 0
     curve_frames = 2 * data["seq_len"]
     train = [r for r in rows if r["phase"] == "train"]
     assert [r["what"].split(":")[0] for r in train] == labels
-    for i, row in enumerate(train):   # curve points at steps 10, 20 and 30, the last
+    for i, row in enumerate(train):   # curve points at steps 0 (before training), 10, 20 and 30, the last
         compile_s = 5.0 * (labels[i] == "Ours")
-        assert row["seconds"] == pytest.approx(seeds * (30 * 10.0 * (i + 1) / 1000 + compile_s + 3 * curve_frames * 0.040))
+        assert row["seconds"] == pytest.approx(seeds * (30 * 10.0 * (i + 1) / 1000 + compile_s + 4 * curve_frames * 0.040))
     evaluate = [r for r in rows if r["phase"] == "evaluate"]
     frames = data["splits"]["test"]["sequences"] * data["seq_len"]
     assert evaluate[0]["seconds"] == pytest.approx((5 * seeds + 2) * frames * 0.1) and "test frames" in evaluate[0]["what"]
     no_curve = plan.plan(plan.composed("cpu", ["+experiment=sota", "train.steps=30", "train.val_sequences=0"]),
-                         render, {**steps, "CFM": {"ms": math.nan, "compile_s": math.nan}}, 100.0, 40.0, learned, fixed)
+                         render, {k: v for k, v in steps.items() if k != "CFM"}, 100.0, 40.0, learned, fixed)
     assert [r["what"].split(":")[0] for r in no_curve if r["phase"] == "render"] == ["train", "val", "test"]
     assert [r["seconds"] for r in no_curve if r["phase"] == "train"][0] == pytest.approx(seeds * 30 * 10.0 / 1000)
-    assert math.isnan([r["seconds"] for r in no_curve if r["what"].startswith("CFM")][0])
+    (cfm,) = [r for r in no_curve if r["what"].startswith("CFM")]
+    assert math.isnan(cfm["seconds"]) and cfm["what"] == "CFM: no speed row for this path and batch"
 
 
 def test_a_row_whose_package_is_missing_is_left_out_and_a_broken_model_is_an_error():
@@ -111,6 +141,8 @@ def test_a_row_whose_package_is_missing_is_left_out_and_a_broken_model_is_an_err
     learned, fixed, left_out = plan.table_rows(cfg)
     assert learned == ["edsr", "rae", "kpcn", "cfm", "srd"] and "bilinear" in fixed and "oidn_lr" not in fixed
     assert list(left_out) == ["oidn_lr"] and "no_such_package" in left_out["oidn_lr"]
+    cfg["experiment"]["leave_out"] = ["Input bicubic"]
+    assert "bicubic" not in plan.table_rows(cfg)[1]
     cfg["models"]["oidn_lr"] = {"_target_": "baselines.no_such_module.Denoiser"}   # a typo in the project
     with pytest.raises(Exception, match="no_such_module"):
         plan.table_rows(cfg)
@@ -124,7 +156,8 @@ def test_the_script_prints_the_phases_the_total_and_the_power_and_names_what_it_
     assert out.returncode == 0, out.stderr[-2000:]
     assert "| render | train: 100 sequences at ref 256 spp |" in out.stdout
     assert re.search(r"\| evaluate \| (17|19) evaluations x 140 val frames of 64x32 x \d+ ms", out.stdout)
-    assert "| train | Ours: 3 x (2000 steps x 36.9 ms + compile 104 s + 20 curve points" in out.stdout
+    assert "| train | Ours: 3 x (2000 steps x 36.9 ms + compile 104 s + 21 curve points" in out.stdout
+    assert "| train | CFM: no speed row for this path and batch | - | speed table |" in out.stdout
     assert re.search(r"^total: \d+ s \([\d.]+ min\) against a budget of 780 s: (fits|over by \d+ s); without CFM: "
                      r"no speed row$", out.stdout, re.M)
     assert "(Dr.Jit's kernel cache warm on disk) took 20.9 s" in out.stdout and "x1.95 and x1.13); not used" in out.stdout
