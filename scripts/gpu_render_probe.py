@@ -32,6 +32,7 @@ import sys
 import tempfile
 import time
 from pathlib import Path
+from unittest import mock
 
 import numpy as np
 import yaml
@@ -223,20 +224,16 @@ def concurrent_pass(root: Path, probed: dict, split: str, workers: int, variant:
     record's pass 1 line says so, as on a fresh machine)."""
     home = root / "home"
     home.mkdir(parents=True)
-    kept = {k: os.environ.get(k) for k in ("HOME", "XDG_CACHE_HOME", "PYTHONUSERBASE", "OPTIX_CACHE_PATH",
-                                           "CUDA_CACHE_PATH")}
-    for key in ("OPTIX_CACHE_PATH", "CUDA_CACHE_PATH"):   # set, they would point past the empty HOME
-        os.environ.pop(key, None)
-    # the user's site-packages stay where they are (a `pip install --user` mitsuba too)
-    os.environ.update(HOME=str(home), XDG_CACHE_HOME=str(home / ".cache"), PYTHONUSERBASE=site.getuserbase())
-    try:
+    # the user's site-packages stay where they are (a `pip install --user` mitsuba too); the whole
+    # environment is restored on leaving
+    with mock.patch.dict(os.environ, HOME=str(home), XDG_CACHE_HOME=str(home / ".cache"),
+                         PYTHONUSERBASE=site.getuserbase()):
+        for key in ("OPTIX_CACHE_PATH", "CUDA_CACHE_PATH"):   # set, they would point past the empty HOME
+            os.environ.pop(key, None)
         t0 = time.perf_counter()
         frames = len(datagen.build_dataset(root / "frames", probed, BUFFERS, workers=workers, progress=False,
                                            variant=variant, splits=[split]))
         wall = time.perf_counter() - t0
-    finally:
-        for key, value in kept.items():
-            os.environ.pop(key, None) if value is None else os.environ.update({key: value})
     one_process = sum(len(q["records"]) for q in first) / sum(q["wall_s"] for q in first)
     setup = buffer_seconds(first).get("first_frame_s", 0.0)
     spawned = min(workers, int(probed["splits"][split]["sequences"])) > 1   # build_dataset's rule

@@ -73,14 +73,14 @@ def render_rates(record: Path) -> dict:
                           r"in the first pass: ([\d.]+)", text)
     if not size or not per_frame:
         raise ValueError(f"{record}: no probe settings or per-buffer seconds (a PARTIAL record?)")
-    walls = dict(re.findall(r"(pass \d): \d+ frames in ([\d.]+) s wall", text))
+    walls = {k: float(v) for k, v in re.findall(r"(pass \d): \d+ frames in ([\d.]+) s wall", text)}
     workers = re.search(r"pass 3: the same \d+ frames by (\d+) processes at once[^:]*: ([\d.]+) s wall", text)
     cold = bool(re.search(r"pass 3: [^\n]* from an empty kernel cache", text)
                 and re.search(r"pass 1: [^\n]* from an empty kernel cache", text))
     return {"lr": (int(size.group(1)), int(size.group(2))), "spp": int(size.group(4)),
             "ref_spp": int(size.group(5)),
             "buffers": {k: float(v) for k, v in re.findall(r"(\w+_s) ([\d.]+)", per_frame.group(1))},
-            "setup_s": float(per_frame.group(2)), "walls": {k: float(v) for k, v in walls.items()},
+            "setup_s": float(per_frame.group(2)), "walls": walls,
             "workers": (int(workers.group(1)), float(workers.group(2))) if workers else None,
             "workers_cold": cold}   # pass 3 and pass 1 both without a kernel cache: their walls compare
 
@@ -137,6 +137,19 @@ def table_rows(cfg: dict) -> tuple[list[str], list[str], dict[str, str]]:
     return learned, fixed, left_out
 
 
+def render_gain(render: dict, workers: int) -> tuple[int, float, str]:
+    """(processes, gain, why not) of rendering with `workers` processes: the probe's N-process pass over its
+    pass 1 where both started without a kernel cache and N is `workers`; else one process, no gain, and why."""
+    if not render["workers"]:
+        return 1, 1.0, "the probe ran no several-process pass"
+    n, wall = render["workers"]
+    if not render["workers_cold"]:
+        return 1, 1.0, "run the probe again for a cold one"
+    if n != workers:
+        return 1, 1.0, f"this preset renders with workers={workers}"
+    return n, render["walls"]["pass 1"] / wall, ""
+
+
 def plan(cfg: dict, render: dict, steps: dict[str, dict], score_ms: float, curve_ms: float,
          learned: list[str], fixed: list[str]) -> list[dict]:
     """The phases' projected seconds (NaN where a rate was not measured): rows of phase, what, seconds,
@@ -146,9 +159,7 @@ def plan(cfg: dict, render: dict, steps: dict[str, dict], score_ms: float, curve
     data, train, seeds = cfg["data"], cfg["train"], len(cfg["seeds"])
     scored = cfg["eval"]["split"]
     ctx = SimpleNamespace(eval=SimpleNamespace(split=scored), data_spec=data)   # what the two rules read
-    processes, gain = 1, 1.0
-    if render["workers"] and render["workers_cold"] and render["workers"][0] == cfg["workers"]:
-        processes, gain = cfg["workers"], render["walls"]["pass 1"] / render["workers"][1]
+    processes, gain, _ = render_gain(render, cfg["workers"])
     rows = [{"phase": "render", "what": f"{name}: {data['splits'][name]['sequences']} sequences at ref "
              f"{data['splits'][name].get('ref_spp') or data['ref_spp']} spp"
              + (f", / {gain:.2f} ({processes} processes)" if processes > 1 else ""),
@@ -212,9 +223,11 @@ def main(argv=None) -> int:
         parser.error(f"no speed rows for train.precision={train['precision']}, channels_last={train['channels_last']}, "
                      f"compile={train['compile']}: the plan projects fp32, eager or reduce-overhead")
     import torch
+    from bench.experiments.speed import _step_size   # the speed table's own label of a step's batch
     from bench.experiments.training import CURVE_SCORES
     from bench.machine import device_tag
-    size = f"{train['batch_size']}x{train['seq_len']} frames of {train['crop']}x{train['crop']} LR"
+    from bench.train import Recipe
+    size = _step_size(Recipe.from_config(train))
     steps = step_rates(args.records / "speed" / args.machine, args.preset, size, PATHS[train["compile"]])
     render = render_rates(args.records / "data" / f"{args.machine}-render-probe.md")
     hr_hw = (data["lr_height"] * data["scale"], data["lr_width"] * data["scale"])
@@ -235,13 +248,12 @@ def main(argv=None) -> int:
               + (f"; without {', '.join(unmeasured)}: no speed row" if unmeasured else "")]
     if render["workers"] and {"pass 1", "pass 2"} <= set(render["walls"]):
         n, wall = render["workers"]
+        why_not = render_gain(render, cfg["workers"])[2]
         lines.append(f"rendering with {n} processes: the probe's {n}-process pass "
                      + ("(no kernel cache) " if render["workers_cold"] else "(Dr.Jit's kernel cache warm on disk) ")
                      + f"took {wall:.1f} s against one process's {render['walls']['pass 1']:.1f} s cold and "
                      f"{render['walls']['pass 2']:.1f} s warm (x{render['walls']['pass 1'] / wall:.2f} and "
-                     f"x{render['walls']['pass 2'] / wall:.2f})"
-                     + ("; not used: run the probe again for a cold one" if not render["workers_cold"] else
-                        "" if n == cfg["workers"] else f"; not used: this preset renders with workers={cfg['workers']}"))
+                     f"x{render['walls']['pass 2'] / wall:.2f})" + (f"; not used: {why_not}" if why_not else ""))
     sequences, seeds = data["splits"][cfg["eval"]["split"]]["sequences"], len(cfg["seeds"])
     powers = sorted(claims_power(args.claims, args.diff, seeds, sequences))
     if powers:

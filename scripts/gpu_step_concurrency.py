@@ -133,9 +133,9 @@ def done_rows(out: Path, title: str, settings: str) -> dict[tuple[str, str, str]
     """The rows of a PARTIAL record at `out` of the same machine (`title`) and `settings`, by (model label,
     path, processes): a job step stopped at its limit goes on from them instead of timing them again. A
     record of other settings is timed again, whole."""
-    if not out.exists() or not out.read_text().startswith(PARTIAL):
+    text = out.read_text() if out.exists() else ""
+    if not text.startswith(PARTIAL):
         return {}
-    text = out.read_text()
     if f"\n{title}\n" not in text or f"`: {settings} ms/step" not in text:
         print(f"{out}: a PARTIAL record of another machine or other settings: every configuration is timed again")
         return {}
