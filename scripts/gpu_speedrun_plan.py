@@ -13,7 +13,9 @@ not a run. Each phase names where its rate comes from:
 - training: the speed table's training step (`results/gpu/speed/<machine>/table.csv`: the trainer's step,
   at the preset's widths, batch, frames and crop) on the path the preset trains (fp32, eager or
   `train.compile=reduce-overhead` with its first call's compile once per training: Inductor's cache on
-  disk is not counted on), times steps and seeds; and the learning curve's scoring at its points;
+  disk is not counted on), times steps and seeds; and the learning curve's scoring at its points. A model
+  configured at other widths than the one timed (its frame's MACs against the table's inference row) has
+  no rate;
 - scoring: the metrics of one output frame (`bench.metrics.all_metrics`, on the host's CPU), timed here
   on random frames of the preset's HR size (median of 3 calls). Run on the GPU machine (the job's `plan`
   step), it times that host; elsewhere it is an estimate that names the CPU it ran on. Inference on the
@@ -86,17 +88,44 @@ def render_rates(record: Path) -> dict:
 
 
 def step_rates(table_dir: Path, preset: str, size: str, path: str) -> dict[str, dict]:
-    """Per model label, its training step (ms) on `path` at `size` and, for a compiled path, the seconds its
-    first call compiled (from the row's note), as the speed table timed them at `preset`'s widths."""
+    """Per model label, its training step (ms) on `path` at `size`, for a compiled path the seconds its
+    first call compiled (from the row's note), and the MACs of one frame through the model the table timed
+    (`frame`: (GMac, LR height and width), from its inference rows; None without one), as the speed table
+    timed them at `preset`'s widths."""
     if f"preset {preset} widths" not in (table_dir / "table.md").read_text().split("\n\n")[0]:
         raise ValueError(f"{table_dir}: not timed at preset {preset}'s widths")
-    rows = pd.read_csv(table_dir / "table.csv")
-    rows = rows[(rows["section"] == "training step") & (rows["size"] == size) & (rows["fast path"] == path)]
+    table = pd.read_csv(table_dir / "table.csv")
+    rows = table[(table["section"] == "training step") & (table["size"] == size) & (table["fast path"] == path)]
+    frames = {}
+    for _, row in table[table["section"] == "inference"].iterrows():   # size: "960x540 -> 1920x1080"
+        width, height = map(int, row["size"].split(" ")[0].split("x"))
+        frames.setdefault(row["method"], (float(row["GMac"]), (height, width)))
     rates = {}
     for _, row in rows.iterrows():
         compiled = re.search(r"first call \(compile\) ([\d.]+) s", str(row["note"]))
-        rates[row["method"]] = {"ms": float(row["ms"]), "compile_s": float(compiled.group(1)) if compiled else 0.0}
+        rates[row["method"]] = {"ms": float(row["ms"]), "compile_s": float(compiled.group(1)) if compiled else 0.0,
+                                "frame": frames.get(row["method"])}
     return rates
+
+
+def other_widths(cfg: dict, steps: dict[str, dict], learned: list[str], tolerance: float = 0.005) -> dict[str, str]:
+    """{label: why} of the learned models configured unlike the ones the speed table timed: a width set
+    with --set (models.srd.channels=...) changes a frame's MACs, counted here on the meta device at the
+    table's inference size, and the table's step is not that model's."""
+    from bench.experiments.macs import frame_macs
+    from bench.experiments.speed import LABELS
+    differ = {}
+    for model in learned:
+        label = LABELS.get(model, model)
+        timed = (steps.get(label) or {}).get("frame")
+        if timed is None:
+            continue
+        gmac, input_hw = timed
+        configured = frame_macs(cfg["models"][model], input_hw, cfg["data"]["scale"])["macs"].sum() / 1e9
+        if abs(configured - gmac) > tolerance * gmac:
+            differ[label] = (f"its step was timed at {gmac:.1f} GMac a {input_hw[1]}x{input_hw[0]} frame, this "
+                             f"configuration is {configured:.1f}")
+    return differ
 
 
 def scoring_ms(hr_hw: tuple[int, int], names=None, frames: int = 7, calls: int = 3) -> float:
@@ -151,9 +180,9 @@ def render_gain(render: dict, workers: int) -> tuple[int, float, str]:
 
 
 def plan(cfg: dict, render: dict, steps: dict[str, dict], score_ms: float, curve_ms: float,
-         learned: list[str], fixed: list[str]) -> list[dict]:
-    """The phases' projected seconds (NaN where a rate was not measured): rows of phase, what, seconds,
-    source."""
+         learned: list[str], fixed: list[str], unrated: dict[str, str] | None = None) -> list[dict]:
+    """The phases' projected seconds (NaN where a rate was not measured, or `unrated` {label: why} says
+    the measured one is not this model's): rows of phase, what, seconds, source."""
     from bench.experiments.context import training_splits, working_split
     from bench.experiments.speed import LABELS
     data, train, seeds = cfg["data"], cfg["train"], len(cfg["seeds"])
@@ -174,9 +203,9 @@ def plan(cfg: dict, render: dict, steps: dict[str, dict], score_ms: float, curve
     for model in learned:
         label = LABELS.get(model, model)
         rate = steps.get(label)
-        if rate is None:
-            rows.append({"phase": "train", "what": f"{label}: no speed row for this path and batch",
-                         "seconds": math.nan, "source": "speed table"})
+        if rate is None or label in (unrated or {}):
+            why = (unrated or {}).get(label, "no speed row for this path and batch")
+            rows.append({"phase": "train", "what": f"{label}: {why}", "seconds": math.nan, "source": "speed table"})
             continue
         curve = f" + {points} curve points x {curve_frames} frames x {curve_ms:.0f} ms" if points else ""
         rows.append({"phase": "train", "what": f"{label}: {seeds} x ({train['steps']} steps x {rate['ms']:.1f} ms"
@@ -233,7 +262,8 @@ def main(argv=None) -> int:
     render = render_rates(args.records / "data" / f"{args.machine}-render-probe.md")
     hr_hw = (data["lr_height"] * data["scale"], data["lr_width"] * data["scale"])
     learned, fixed, left_out = table_rows(cfg)
-    rows = plan(cfg, render, steps, scoring_ms(hr_hw), scoring_ms(hr_hw, CURVE_SCORES), learned, fixed)
+    rows = plan(cfg, render, steps, scoring_ms(hr_hw), scoring_ms(hr_hw, CURVE_SCORES), learned, fixed,
+                other_widths(cfg, steps, learned))
     command = " ".join(["python scripts/gpu_speedrun_plan.py", *(argv if argv is not None else sys.argv[1:])])
     lines = [f"# {args.experiment} at preset {args.preset} on {args.machine}, projected", "",
              f"`{command}` (a lead, not a run: how each phase is projected is in the script's docstring); "
@@ -246,7 +276,7 @@ def main(argv=None) -> int:
     total = sum(row["seconds"] for row in rows if not math.isnan(row["seconds"]))
     lines += ["", f"total: {total:.0f} s ({total / 60:.1f} min) against a budget of {args.budget:.0f} s: "
               + ("fits" if total <= args.budget else f"over by {total - args.budget:.0f} s")
-              + (f"; without {', '.join(unmeasured)}: no speed row" if unmeasured else "")]
+              + (f"; without {', '.join(unmeasured)}: not rated (the rows say why)" if unmeasured else "")]
     if render["workers"] and {"pass 1", "pass 2"} <= set(render["walls"]):
         n, wall = render["workers"]
         why_not = render_gain(render, cfg["workers"])[2]

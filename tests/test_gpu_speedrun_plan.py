@@ -86,7 +86,9 @@ def test_the_step_rates_are_the_speed_tables_rows_at_the_presets_widths_and_batc
     ours = rows[(rows["section"] == "training step") & (rows["method"] == "Ours")].set_index("fast path")
     eager = plan.step_rates(SPEED, "gpu", SIZE, "fp32")
     graphed = plan.step_rates(SPEED, "gpu", SIZE, plan.PATHS["reduce-overhead"])
-    assert eager["Ours"] == {"ms": ours.loc["fp32", "ms"], "compile_s": 0.0}
+    inference = rows[(rows["section"] == "inference") & (rows["method"] == "Ours")]
+    assert eager["Ours"] == {"ms": ours.loc["fp32", "ms"], "compile_s": 0.0,
+                             "frame": (inference["GMac"].iloc[0], (540, 960))}   # "960x540 -> 1920x1080"
     assert graphed["Ours"]["ms"] == ours.loc[plan.PATHS["reduce-overhead"], "ms"]
     assert graphed["Ours"]["compile_s"] == float(
         re.search(r"\(compile\) (\d+) s", ours.loc[plan.PATHS["reduce-overhead"], "note"]).group(1))
@@ -95,6 +97,22 @@ def test_the_step_rates_are_the_speed_tables_rows_at_the_presets_widths_and_batc
     assert plan.step_rates(SPEED, "gpu", "4x5 frames of 32x32 LR", "fp32") == {}   # another batch: no rate
     with pytest.raises(ValueError, match="not timed at preset cpu's widths"):
         plan.step_rates(SPEED, "cpu", SIZE, "fp32")
+
+
+def test_a_model_configured_at_other_widths_than_the_one_timed_has_no_rate():
+    """A width set with --set changes the model the table's step would stand for: its frame's MACs differ
+    from the inference row's, and its train row says so instead of using another model's step."""
+    steps = plan.step_rates(SPEED, "gpu", SIZE, "fp32")
+    learned = ["edsr", "rae", "kpcn", "cfm", "srd"]
+    assert plan.other_widths(plan.composed("gpu", ["+experiment=sota"]), steps, learned) == {}
+    cfg = plan.composed("gpu", ["+experiment=sota", "models.srd.channels=24"])
+    differ = plan.other_widths(cfg, steps, learned)
+    assert list(differ) == ["Ours"]
+    why = differ["Ours"]
+    assert re.fullmatch(r"its step was timed at 267\.8 GMac a 960x540 frame, this configuration is \d+\.\d", why)
+    rows = plan.plan(cfg, plan.render_rates(PROBE), steps, 100.0, 40.0, learned, [], {"Ours": why})
+    (ours,) = [r for r in rows if r["what"].startswith("Ours")]
+    assert math.isnan(ours["seconds"]) and ours["what"] == f"Ours: {why}"
 
 
 def test_the_plan_renders_what_the_table_renders_and_is_steps_times_step_time_and_frames_times_scoring():
@@ -150,7 +168,8 @@ def test_a_row_whose_package_is_missing_is_left_out_and_a_broken_model_is_an_err
 
 def test_the_script_prints_the_phases_the_total_and_the_power_and_names_what_it_could_not_rate(tmp_path):
     out = subprocess.run([sys.executable, "scripts/gpu_speedrun_plan.py", "--out", str(tmp_path / "plan.md"),
-                          "--set", "data.lr_width=32", "data.lr_height=16", "train.compile=reduce-overhead"],
+                          "--set", "data.lr_width=32", "data.lr_height=16", "train.compile=reduce-overhead",
+                          "models.rae.width=40"],
                          cwd=REPO, capture_output=True, text=True, timeout=300, env={"PYTHONPATH": str(REPO),
                                                                                      "PATH": "/usr/bin:/bin"})
     assert out.returncode == 0, out.stderr[-2000:]
@@ -158,8 +177,10 @@ def test_the_script_prints_the_phases_the_total_and_the_power_and_names_what_it_
     assert re.search(r"\| evaluate \| (17|19) evaluations x 140 val frames of 64x32 x \d+ ms", out.stdout)
     assert "| train | Ours: 3 x (2000 steps x 36.9 ms + compile 104 s + 21 curve points" in out.stdout
     assert "| train | CFM: no speed row for this path and batch | - | speed table |" in out.stdout
-    assert re.search(r"^total: \d+ s \([\d.]+ min\) against a budget of 780 s: (fits|over by \d+ s); without CFM: "
-                     r"no speed row$", out.stdout, re.M)
+    assert re.search(r"\| train \| RAE: its step was timed at 256\.4 GMac a 960x540 frame, this configuration is "
+                     r"\d+\.\d \| - \| speed table \|", out.stdout)                    # another width: not RAE's step
+    assert re.search(r"^total: \d+ s \([\d.]+ min\) against a budget of 780 s: (fits|over by \d+ s); without RAE, "
+                     r"CFM: not rated \(the rows say why\)$", out.stdout, re.M)
     assert "(Dr.Jit's kernel cache warm on disk) took 20.9 s" in out.stdout and "x1.95 and x1.13); not used" in out.stdout
     assert re.search(r"power at 0.1 dB, 3 seeds x 20 val sequences, with the variance components of the \d+ claim "
                      r"pairs in results/cpu/claims/table.csv: median 0\.\d\d", out.stdout)
