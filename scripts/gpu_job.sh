@@ -148,6 +148,16 @@ finished() {
     [ "$(cat "$1.tries" 2>/dev/null || echo 0)" -lt "${2:-2}" ] && return 1
     echo "gpu_job: $1 is still PARTIAL after ${2:-2} tries: kept (remove $1.tries to go on; or raise STEP_S, or time less)"
 }
+# whether every module named imports here; else the step says which do not and is skipped (the GPU image
+# has neither mitsuba nor flip_evaluator: scripts/gpu_prepare.sh downloads their wheels, carry .whl)
+imports() {
+    local step=$1 module missing=()
+    shift
+    for module in "$@"; do "$PYTHON" -c "import $module" 2>/dev/null || missing+=("$module"); done
+    [ ${#missing[@]} -eq 0 ] && return 0
+    echo "gpu_job: no ${missing[*]} here (carry .whl): $step skipped"
+    return 1
+}
 # counted before the step runs: a call killed at its limit counts too
 tried() { mkdir -p "$(dirname "$1")"; echo $(( $(cat "$1.tries" 2>/dev/null || echo 0) + 1 )) > "$1.tries"; }
 
@@ -165,9 +175,8 @@ step_speed() {
 
 step_sota() {
     if [ -f "results/gpu/sota/table.md" ]; then echo "gpu_job: sota table already there"; return; fi
-    # rendering needs mitsuba, scoring flip_evaluator (the image has neither): said now, not after the trainings
-    "$PYTHON" -c "import mitsuba, flip_evaluator" 2>/dev/null \
-        || { echo "gpu_job: no mitsuba or flip_evaluator here (carry .whl): sota skipped"; return; }
+    # rendering needs mitsuba, scoring flip_evaluator: said now, not after the trainings
+    imports sota mitsuba flip_evaluator || return 0
     local fused=0
     tests_passed && fused=1
     # SIGTERM at the limit: the trainer checkpoints and stops; the next call resumes it. OIDN's rows need
@@ -182,7 +191,7 @@ step_sota() {
 step_render() {
     local record=results/gpu/data/$tag-render-probe.md
     if finished "$record"; then echo "gpu_job: render probe already there ($record)"; return; fi
-    "$PYTHON" -c "import mitsuba" 2>/dev/null || { echo "gpu_job: no mitsuba here (carry .whl): render skipped"; return; }
+    imports render mitsuba || return 0
     tried "$record"
     local limit
     limit=$(step_limit)
@@ -218,7 +227,7 @@ step_sweep() {
 step_plan() {
     local record=results/gpu/profile/$tag-speedrun-plan.md
     if [ -f "$record" ]; then echo "gpu_job: plan already there ($record)"; return; fi
-    "$PYTHON" -c "import flip_evaluator" 2>/dev/null || { echo "gpu_job: no flip_evaluator here (carry .whl): plan skipped"; return; }
+    imports plan flip_evaluator || return 0
     # SOTA_ARGS too: the projection is of the table the sota step would run
     timeout "$(step_limit)" "$PYTHON" scripts/gpu_speedrun_plan.py --preset "$PRESET" --machine "$tag" --out "$record" \
         ${SOTA_ARGS:+--set $SOTA_ARGS}
