@@ -187,8 +187,7 @@ def plan(cfg: dict, render: dict, steps: dict[str, dict], score_ms: float, curve
     from bench.experiments.speed import LABELS
     data, train, seeds = cfg["data"], cfg["train"], len(cfg["seeds"])
     scored = cfg["eval"]["split"]
-    ctx = SimpleNamespace(eval=SimpleNamespace(split=scored), data_spec=data,      # what the two rules read
-                          train=SimpleNamespace(val_sequences=train["val_sequences"]))
+    ctx = SimpleNamespace(eval=SimpleNamespace(split=scored), data_spec=data)   # what the two rules read
     processes, gain, _ = render_gain(render, cfg["workers"])
     rows = [{"phase": "render", "what": f"{name}: {data['splits'][name]['sequences']} sequences at ref "
              f"{data['splits'][name].get('ref_spp') or data['ref_spp']} spp"

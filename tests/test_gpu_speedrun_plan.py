@@ -116,8 +116,8 @@ def test_a_model_configured_at_other_widths_than_the_one_timed_has_no_rate():
 
 
 def test_the_plan_renders_what_the_table_renders_and_is_steps_times_step_time_and_frames_times_scoring():
-    """At the cpu preset (a frozen test split): the trainings render train and val (their curve's split;
-    without a curve, train alone), the table test; steps x step time x seeds, the curve's
+    """At the cpu preset (a frozen test split): the trainings render train and val (their curve's split,
+    rendered whether or not a curve is scored), the table test; steps x step time x seeds, the curve's
     points every val_every steps and the last; evaluations x scored frames x scoring time."""
     cfg = plan.composed("cpu", ["+experiment=sota", "train.steps=30", "train.val_every=10", "train.val_sequences=2"])
     render = plan.render_rates(PROBE)
@@ -147,7 +147,7 @@ def test_the_plan_renders_what_the_table_renders_and_is_steps_times_step_time_an
     assert evaluate[0]["seconds"] == pytest.approx((5 * seeds + 2) * frames * 0.1) and "test frames" in evaluate[0]["what"]
     no_curve = plan.plan(plan.composed("cpu", ["+experiment=sota", "train.steps=30", "train.val_sequences=0"]),
                          render, {k: v for k, v in steps.items() if k != "CFM"}, 100.0, 40.0, learned, fixed)
-    assert [r["what"].split(":")[0] for r in no_curve if r["phase"] == "render"] == ["train", "test"]
+    assert [r["what"].split(":")[0] for r in no_curve if r["phase"] == "render"] == ["train", "val", "test"]
     assert [r["seconds"] for r in no_curve if r["phase"] == "train"][0] == pytest.approx(seeds * 30 * 10.0 / 1000)
     (cfm,) = [r for r in no_curve if r["what"].startswith("CFM")]
     assert math.isnan(cfm["seconds"]) and cfm["what"] == "CFM: no speed row for this path and batch"

@@ -1,6 +1,5 @@
 """The frozen test split: the paper's tables and the claims report it where the preset's data has one
 (cpu), tuning experiments read val and refuse test, and a split's tables never land on another's."""
-import dataclasses
 import json
 from pathlib import Path
 
@@ -12,7 +11,7 @@ from bench import runs
 from bench.cli import CONF_DIR, apply_pin, apply_split, make_context
 from bench.errors import UserError
 from bench.experiments import claims
-from bench.experiments.context import split_note, training_splits, with_training, working_split
+from bench.experiments.context import split_note, working_split
 from conftest import bench_here, smoke_context
 
 REPO = Path(__file__).resolve().parent.parent
@@ -82,40 +81,6 @@ def test_learning_curves_and_captions_never_lean_on_test():
     assert "no test split" in split_note(ctx, "val")
 
 
-def test_a_training_without_a_learning_curve_renders_the_train_split_alone(monkeypatch):
-    """train.val_sequences=0 scores no curve, so a table that must train renders train and the scored split,
-    not the working split (val), unless a row's own recipe asks a curve (force=true: every row's)."""
-    from types import SimpleNamespace
-    from bench.experiments import table
-    ctx = smoke_context()
-    no_curve = with_training(ctx, {"val_sequences": 0})
-    assert working_split(ctx) == "val" and training_splits(ctx) == {"train", "val"}
-    assert training_splits(no_curve) == {"train"}
-    rendered = []
-    monkeypatch.setattr(table, "ensure_data", lambda ctx, passes, splits: rendered.append(splits))
-    monkeypatch.setattr(table, "frame_records", lambda ctx, split: True)
-    monkeypatch.setattr(table, "unrecorded_rows", lambda ctx, rows, split, trainings: rows)  # none scored yet
-    unrecorded = SimpleNamespace(stage=None, why="no complete training recorded", weights=None, hash="h")
-    recorded = SimpleNamespace(stage=None, why=None, weights="weights.pt", hash="h")
-    ours = {"label": "Ours", "model": "srd", "task": "srd"}
-    curve = {"label": "Ours, a curve", "model": "srd", "task": "srd", "train": {"val_sequences": 2}}
-    bilinear = {"label": "Bilinear", "model": "bilinear", "task": "srd"}
-
-    def render(ctx, rows, trained):
-        rendered.clear()
-        trainings = {} if ctx.force else {(r["label"], 0): [] if r["model"] == "bilinear" else
-                                          [recorded if trained else unrecorded] for r in rows}
-        table.render_what_runs(dataclasses.replace(ctx, seeds=[0]), "t", rows, "srd", "generalization", False,
-                               trainings)
-        return rendered[0]
-    assert render(no_curve, [ours, bilinear], trained=False) == {"generalization", "train"}
-    assert render(no_curve, [ours, curve], trained=False) == {"generalization", "train", "val"}
-    assert render(ctx, [ours], trained=False) == {"generalization", "train", "val"}
-    assert render(no_curve, [ours, bilinear], trained=True) == {"generalization"}        # nothing to train
-    forced = dataclasses.replace(no_curve, force=True)    # every run again: nothing recorded is looked up
-    assert render(forced, [ours, bilinear], trained=True) == {"generalization", "train"}
-
-
 @pytest.mark.parametrize("asked, in_split, scored", [(4, 2, [0, 1]), (4, 10, [0, 3, 6, 9]), (1, 10, [0]),
                                                      (3, 3, [0, 1, 2])])
 def test_the_learning_curve_scores_the_sequences_it_asks_for_spread_over_the_working_split(
@@ -165,14 +130,10 @@ class _Rendering(Exception):
     """Stops an experiment at its first render, once the splits it asked for are known."""
 
 
-@pytest.mark.parametrize("name, overrides, splits", [("stability", [], {"train", "val"}),
-                                                     ("stability", ["train.val_sequences=0"], {"train", "val"}),
-                                                     ("lr_range", [], {"train"})])
-def test_an_experiment_that_only_trains_renders_what_it_reads_never_test(name, overrides, splits, tmp_path,
-                                                                         monkeypatch):
-    """At the cpu preset the test split's references are hours of rendering: stability trains and reads
-    val (its sample frame, with a learning curve or without), the range test trains without a curve, so
-    they ask for those splits only."""
+@pytest.mark.parametrize("name", ["stability", "lr_range"])
+def test_an_experiment_that_only_trains_renders_train_and_val_never_test(name, tmp_path, monkeypatch):
+    """At the cpu preset the test split's references are hours of rendering: stability and the range
+    test train and read val, so they ask for those two splits only."""
     from bench.cli import run_experiment
     import bench.experiments.lr_range
     import bench.experiments.stability
@@ -184,7 +145,7 @@ def test_an_experiment_that_only_trains_renders_what_it_reads_never_test(name, o
 
     monkeypatch.setattr(getattr(bench.experiments, name), "ensure_data", ensure_data)
     cfg = composed("preset=cpu", f"data_dir={tmp_path / 'data'}", f"runs_dir={tmp_path / 'runs'}",
-                   f"results_dir={tmp_path / 'results'}", *overrides, name=name)
+                   f"results_dir={tmp_path / 'results'}", name=name)
     with pytest.raises(_Rendering):
         run_experiment(cfg)
-    assert asked == [splits]
+    assert asked == [{"train", "val"}]

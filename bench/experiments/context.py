@@ -33,11 +33,9 @@ def working_split(ctx: "Context") -> str:
 
 
 def training_splits(ctx: "Context") -> set[str]:
-    """The splits a training with `ctx.train`'s recipe reads: its frames, and the working split its
-    learning curve is scored on (none when `val_sequences` is 0). An experiment that only trains renders
-    these, never the test split's expensive references."""
-    curve = {working_split(ctx)} if ctx.train.val_sequences > 0 else set()
-    return ({"train"} | curve) & set(ctx.data_spec["splits"])
+    """The splits a training reads: its frames, and the working split its learning curve is scored on.
+    An experiment that only trains renders these, never the test split's expensive references."""
+    return {"train", working_split(ctx)} & set(ctx.data_spec["splits"])
 
 
 def split_note(ctx: "Context", split: str) -> str:

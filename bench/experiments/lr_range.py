@@ -57,9 +57,9 @@ def run(ctx: Context, name: str, models: list[str], steps: int, lr_max: float, s
     import matplotlib.pyplot as plt
 
     t = get_task(task)
+    ensure_data(ctx, set(t.buffers(with_mid=True)), training_splits(ctx))
     test_ctx = with_training(ctx, {"schedule": "range", "lr": lr_max, "steps": steps, "ema": None,
                                    "val_sequences": 0})
-    ensure_data(ctx, set(t.buffers(with_mid=True)), training_splits(test_ctx))   # no curve: train alone
     rows, fig = [], plt.figure(figsize=(6, 4))
     for model in models:
         _, run_ = trained_model(test_ctx, model_config(ctx, model), t, ctx.seeds[0], f"{model} (lr range)",

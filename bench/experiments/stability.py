@@ -397,8 +397,7 @@ def run(ctx: Context, name: str, models: list[str], frames: int, long_frames: in
         write_tables(table, out_dir, ctx.preset, ctx.device, ctx.train.hdr)
         log.info("stability: table.md/.tex and the verdicts rewritten from the recorded %s", out_dir / "table.csv")
         return table
-    # the working split for the sample frame too, whether or not the trainings score a curve on it
-    ensure_data(ctx, set(get_task("srd").buffers(with_mid=True)), training_splits(ctx) | {working_split(ctx)})
+    ensure_data(ctx, set(get_task("srd").buffers(with_mid=True)), training_splits(ctx))
     rows = []
     for model_name in models:
         log.info("stability: %s", model_name)

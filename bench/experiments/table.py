@@ -28,8 +28,7 @@ import pandas as pd
 
 from bench import archived, runs
 from bench.errors import UserError
-from bench.experiments.context import (Context, model_config, row_setting, split_note, training_splits,
-                                       with_training)
+from bench.experiments.context import Context, model_config, row_setting, split_note, training_splits
 from bench.experiments.datasets import ensure_data, evaluation_data, frame_records, splits_on_disk
 from bench.experiments.evaluation import evaluation_recorded
 from bench.experiments.figure import crop_figure, curve_figure
@@ -322,13 +321,10 @@ def render_what_runs(ctx: Context, name: str, rows: list[dict], task: str, split
     drawn = figure and shown in needed
     loading = {(r["label"], seed) for r in pending for seed in ctx.seeds} | (
         {(r["label"], ctx.seeds[0]) for r in rows} if drawn else set())  # the figure shows the first seed
-    # force=true: every run computes again (`trainings` is empty: nothing recorded is looked up)
-    whys_untrained = {} if ctx.force else {key: untrained(trainings[key]) for key in sorted(loading)}
-    to_train = [f"{label} seed {seed}: {why}" for (label, seed), whys in whys_untrained.items() for why in whys]
-    training = {label for label, _ in loading} if ctx.force else {key[0] for key, whys in whys_untrained.items() if whys}
-    for r in rows:  # each training reads the splits of its own recipe (a row may ask a curve the preset does not)
-        if r["label"] in training:
-            needed |= training_splits(with_training(ctx, r.get("train"), r["model"]))
+    to_train = [] if ctx.force else [f"{label} seed {seed}: {why}" for label, seed in sorted(loading)
+                                     for why in untrained(trainings[label, seed])]
+    if ctx.force or to_train:
+        needed |= training_splits(ctx)
     if needed:
         # why, before the render: a table a user expected from the archive says what is missing
         whys = ["force=true"] if ctx.force else (  # every run computes again: the one reason

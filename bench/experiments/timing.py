@@ -62,14 +62,14 @@ from bench.datagen import derive_seed, frame_view, plan_sequences, render_settin
 from bench.dataset import SequenceDataset
 from bench.errors import UserError
 from bench.evaluate import predict
-from bench.experiments.context import Context, model_config, training_splits, with_training
+from bench.experiments.context import Context, model_config, with_training
 from bench.experiments.datasets import ensure_data
 from bench.experiments.speed import LABELS
 from bench.experiments.table import domain_note
 from bench.experiments.time_curves import (BRUTE_FORCE, EXPECTED_SLOPE, SPEEDUP_COLUMNS, add_speedups, average,
                                            brute_force_spp, equal_time_table, loglog_slope, plot,
                                            reference_noise_slope, rising_steps, slope_ok, speedup_table)
-from bench.experiments.training import trained_model, training_records, untrained
+from bench.experiments.training import trained_model, training_records, untrained, working_split
 from bench.machine import cpu_isa, cpu_model, device_tag, gpu_model
 from bench.measure import time_call
 from bench.metrics import HIGHER_IS_BETTER, LOWER_IS_BETTER, METRICS, RELMSE_FORMULA, mse
@@ -363,7 +363,7 @@ def cpu_size_tables(ctx: Context, name: str, caption: str, views: int, lr_spp: l
                     methods: list[dict]) -> pd.DataFrame:
     """Render, score and time at the preset's sizes; write table.*, speedup.*, equal_time.* and the figure."""
     # the views' split, and where a training may run here the splits it reads (its curve's included)
-    splits = (training_splits(ctx) if train_missing else set()) | {"val"}
+    splits = {"train", "val", working_split(ctx)} if train_missing else {"val"}
     ensure_data(ctx, _data_passes(methods, train_missing), splits)
     chosen = pick_views(ctx, int(views))
     ref_spp = _reference_spp(chosen)
