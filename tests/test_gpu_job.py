@@ -212,23 +212,42 @@ def test_the_render_step_measures_the_variant_twice_and_keeps_the_digests(projec
         assert failed.returncode == 1 and said.startswith("PARTIAL: the variant did not start"), said
 
 
-def test_the_concurrency_probe_goes_on_from_a_partial_record_and_a_dead_worker_is_its_row(tmp_path):
-    """scripts/gpu_step_concurrency.py (the job's `concurrency` step): the configurations a PARTIAL record
-    of the same machine and settings already holds are kept (a step stopped at its limit goes on), two
-    processes at once take training steps, each on its share of the cores, against the kept one-process
-    row; the record is whole once every configuration is in. A PARTIAL record of other settings is timed
-    again. A worker that dies without a word after warming up releases the others at the barrier and is
-    its configuration's row, not a hang."""
+def test_the_concurrency_probe_goes_on_from_a_partial_record_and_a_dead_worker_is_its_row(tmp_path, capsys,
+                                                                                           monkeypatch):
+    """scripts/gpu_step_concurrency.py (the job's `concurrency` step): a worker that dies without a word
+    after warming up releases the others at the barrier and is its configuration's row, not a hang; a
+    PARTIAL record of another machine, or of other settings, is timed again. The configurations a PARTIAL
+    record of the same machine and settings already holds are kept (a step stopped at its limit goes on),
+    two processes at once take training steps, each on its share of the cores, against the kept
+    one-process row; the record is whole once every configuration is in."""
+    monkeypatch.syspath_prepend(str(REPO / "scripts"))
+    from gpu_step_concurrency import done_rows
     from bench.scheduler import threads_per_job
-    out = tmp_path / "concurrency.md"
     command = [sys.executable, "scripts/gpu_step_concurrency.py", "--device", "cpu", "--preset", "smoke", "--models",
                "edsr", "--steps", "2", "--warmup", "1", "--timeout", "120"]
-    first = subprocess.run(command + ["--processes", "1", "--out", str(out)], cwd=REPO, capture_output=True,
-                           text=True, timeout=300)
-    assert first.returncode == 0, first.stdout[-2000:] + first.stderr[-2000:]
-    header, row = out.read_text().split("\n| EDSR | none | 1 |")
     kept_row = "| EDSR | none | 1 | 2 | 50.0 | 20.00 | 1.00 |"   # as if an earlier call, stopped, had timed it
+    dies = tmp_path / "dies.md"   # a PARTIAL record of another machine: not kept
+    dies.write_text("PARTIAL: 1 of 2 configurations timed\n# Training steps of several processes at once on "
+                    f"cuda-another-gpu\n\n`...`: the same settings ms/step\n\n{kept_row}\n")
+    died = subprocess.run(command + ["--processes", "1", "--out", str(dies)], cwd=REPO,
+                          capture_output=True, text=True, timeout=300,
+                          env=dict(os.environ, SRD_BENCH_TEST_WORKER_EXIT="1:0"))
+    assert died.returncode == 0, died.stdout[-2000:] + died.stderr[-2000:]
+    assert "a PARTIAL record of another machine or other settings" in died.stdout
+    text = dies.read_text()
+    assert "| EDSR | none | 1 | - | - | - | failed: a process exited with code 3 without a word |" in text
+    assert kept_row not in text
+    header = text.split("\n| EDSR | none | 1 |")[0]          # this machine's title and settings
+    title, settings = header.splitlines()[0], re.search(r"`: (.+) ms/step: ", header).group(1)
+    other = tmp_path / "other.md"  # the same machine, other settings (20 timed steps): not kept
+    other.write_text(f"PARTIAL: 1 of 2 configurations timed\n{header.replace('then 2 timed', 'then 20 timed')}\n"
+                     f"{kept_row}\n")
+    capsys.readouterr()
+    assert done_rows(other, title, settings) == {}
+    assert "a PARTIAL record of another machine or other settings" in capsys.readouterr().out
+    out = tmp_path / "concurrency.md"
     out.write_text(f"PARTIAL: 1 of 2 configurations timed\n{header}\n{kept_row}\n")
+    assert done_rows(out, title, settings) == {("EDSR", "none", "1"): kept_row}
     done = subprocess.run(command + ["--processes", "1", "2", "--out", str(out)], cwd=REPO, capture_output=True,
                           text=True, timeout=300)
     assert done.returncode == 0, done.stdout[-2000:] + done.stderr[-2000:]
@@ -238,14 +257,6 @@ def test_the_concurrency_probe_goes_on_from_a_partial_record_and_a_dead_worker_i
     assert rows[0] == ["EDSR", "none", "1", "2", "50.0", "20.00", "1.00"]                  # kept, not timed again
     assert rows[1][:4] == ["EDSR", "none", "2", str(threads_per_job(2))] and float(rows[1][4]) > 0
     assert float(rows[1][6]) == pytest.approx(float(rows[1][5]) / 20.0, abs=0.01)        # against the kept row
-    dies = tmp_path / "dies.md"   # a PARTIAL record of other settings (20 timed steps): not kept
-    dies.write_text(f"PARTIAL: 1 of 2 configurations timed\n{header.replace('then 2 timed', 'then 20 timed')}\n{kept_row}\n")
-    died = subprocess.run(command + ["--processes", "1", "--out", str(dies)], cwd=REPO,
-                          capture_output=True, text=True, timeout=300,
-                          env=dict(os.environ, SRD_BENCH_TEST_WORKER_EXIT="1:0"))
-    assert died.returncode == 0, died.stdout[-2000:] + died.stderr[-2000:]
-    assert "a PARTIAL record of another machine or other settings" in died.stdout
-    assert "| EDSR | none | 1 | - | - | - | failed: a process exited with code 3 without a word |" in dies.read_text()
 
 
 def test_the_profile_script_profiles_the_trainers_step_at_the_presets_recipe(tmp_path):
