@@ -97,8 +97,8 @@ def step_rates(table_dir: Path, preset: str, size: str, path: str) -> dict[str, 
     table = pd.read_csv(table_dir / "table.csv")
     rows = table[(table["section"] == "training step") & (table["size"] == size) & (table["fast path"] == path)]
     frames = {}
-    for _, row in table[table["section"] == "inference"].iterrows():   # size: "960x540 -> 1920x1080"
-        width, height = map(int, row["size"].split(" ")[0].split("x"))
+    for _, row in table[(table["section"] == "inference") & table["GMac"].notna()].iterrows():
+        width, height = map(int, row["size"].split(" ")[0].split("x"))   # size: "960x540 -> 1920x1080"
         frames.setdefault(row["method"], (float(row["GMac"]), (height, width)))
     rates = {}
     for _, row in rows.iterrows():
