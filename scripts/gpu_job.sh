@@ -151,11 +151,22 @@ finished() {
 # whether every module named imports here; else the step says which do not and is skipped (the GPU image
 # has neither mitsuba nor flip_evaluator: scripts/gpu_prepare.sh downloads their wheels, carry .whl)
 imports() {
-    local step=$1 module missing=()
+    local step=$1 missing
     shift
-    for module in "$@"; do "$PYTHON" -c "import $module" 2>/dev/null || missing+=("$module"); done
-    [ ${#missing[@]} -eq 0 ] && return 0
-    echo "gpu_job: no ${missing[*]} here (carry .whl): $step skipped"
+    # one Python start for them all
+    missing=$("$PYTHON" - "$@" <<'PY' 2>/dev/null
+import importlib, sys
+missing = []
+for name in sys.argv[1:]:
+    try:
+        importlib.import_module(name)
+    except Exception:
+        missing.append(name)
+print(" or ".join(missing))
+PY
+) || missing="$*"
+    [ -z "$missing" ] && return 0
+    echo "gpu_job: no $missing here (carry .whl): $step skipped"
     return 1
 }
 # counted before the step runs: a call killed at its limit counts too

@@ -14,8 +14,8 @@ not a run. Each phase names where its rate comes from:
   at the preset's widths, batch, frames and crop) on the path the preset trains (fp32, eager or
   `train.compile=reduce-overhead` with its first call's compile once per training: Inductor's cache on
   disk is not counted on), times steps and seeds; and the learning curve's scoring at its points. A model
-  configured at other widths than the one timed (its frame's MACs against the table's inference row) has
-  no rate;
+  configured unlike the one timed (another width or scale: one frame's MACs against the table's
+  inference row) has no rate;
 - scoring: the metrics of one output frame (`bench.metrics.all_metrics`, on the host's CPU), timed here
   on random frames of the preset's HR size (median of 3 calls). Run on the GPU machine (the job's `plan`
   step), it times that host; elsewhere it is an estimate that names the CPU it ran on. Inference on the
@@ -89,9 +89,9 @@ def render_rates(record: Path) -> dict:
 
 def step_rates(table_dir: Path, preset: str, size: str, path: str) -> dict[str, dict]:
     """Per model label, its training step (ms) on `path` at `size`, for a compiled path the seconds its
-    first call compiled (from the row's note), and the MACs of one frame through the model the table timed
-    (`frame`: (GMac, LR height and width), from its inference rows; None without one), as the speed table
-    timed them at `preset`'s widths."""
+    first call compiled (from the row's note), and what one frame through the model the table timed
+    costs (`frame`: {"gmac", "lr_hw": (height, width)}, from its inference rows; None without one), as the
+    speed table timed them at `preset`'s widths."""
     if f"preset {preset} widths" not in (table_dir / "table.md").read_text().split("\n\n")[0]:
         raise ValueError(f"{table_dir}: not timed at preset {preset}'s widths")
     table = pd.read_csv(table_dir / "table.csv")
@@ -99,7 +99,7 @@ def step_rates(table_dir: Path, preset: str, size: str, path: str) -> dict[str, 
     frames = {}
     for _, row in table[(table["section"] == "inference") & table["GMac"].notna()].iterrows():
         width, height = map(int, row["size"].split(" ")[0].split("x"))   # size: "960x540 -> 1920x1080"
-        frames.setdefault(row["method"], (float(row["GMac"]), (height, width)))
+        frames.setdefault(row["method"], {"gmac": float(row["GMac"]), "lr_hw": (height, width)})
     rates = {}
     for _, row in rows.iterrows():
         compiled = re.search(r"first call \(compile\) ([\d.]+) s", str(row["note"]))
@@ -108,24 +108,30 @@ def step_rates(table_dir: Path, preset: str, size: str, path: str) -> dict[str, 
     return rates
 
 
-def other_widths(cfg: dict, steps: dict[str, dict], learned: list[str], tolerance: float = 0.005) -> dict[str, str]:
-    """{label: why} of the learned models configured unlike the ones the speed table timed: a width set
-    with --set (models.srd.channels=...) changes a frame's MACs, counted here on the meta device at the
-    table's inference size, and the table's step is not that model's."""
+def models_not_timed(cfg: dict, steps: dict[str, dict], learned: list[str], rtol: float = 1e-4) -> dict[str, str]:
+    """{label: why} of the learned models whose configuration is not the model the speed table timed:
+    one frame's MACs, counted here on the meta device at the table's inference size and the data's scale,
+    differ from the table's inference row (a width set with --set models.srd.channels=..., another
+    scale, a changed model), or the table has no such row to check against. Both counts are the same
+    analytic count, so they agree to the CSV's rounding when the model is the same. Models are taken as
+    `table_rows` takes them: a row's own `overrides` are not read (the sota table's rows have none)."""
     from bench.experiments.macs import frame_macs
     from bench.experiments.speed import LABELS
-    differ = {}
+    why = {}
     for model in learned:
         label = LABELS.get(model, model)
-        timed = (steps.get(label) or {}).get("frame")
+        if label not in steps:
+            continue   # no step to use: plan() says so
+        timed = steps[label]["frame"]
         if timed is None:
+            why[label] = "no inference row in the speed table to check the configured model against"
             continue
-        gmac, input_hw = timed
-        configured = frame_macs(cfg["models"][model], input_hw, cfg["data"]["scale"])["macs"].sum() / 1e9
-        if abs(configured - gmac) > tolerance * gmac:
-            differ[label] = (f"its step was timed at {gmac:.1f} GMac a {input_hw[1]}x{input_hw[0]} frame, this "
-                             f"configuration is {configured:.1f}")
-    return differ
+        height, width = timed["lr_hw"]
+        gmac = frame_macs(cfg["models"][model], timed["lr_hw"], cfg["data"]["scale"])["macs"].sum() / 1e9
+        if abs(gmac - timed["gmac"]) > rtol * timed["gmac"]:
+            why[label] = (f"its step was timed on a model of {timed['gmac']:.1f} GMac a {width}x{height} frame; "
+                          f"this configuration's is {gmac:.1f}")
+    return why
 
 
 def scoring_ms(hr_hw: tuple[int, int], names=None, frames: int = 7, calls: int = 3) -> float:
@@ -180,16 +186,18 @@ def render_gain(render: dict, workers: int) -> tuple[int, float, str]:
 
 
 def plan(cfg: dict, render: dict, steps: dict[str, dict], score_ms: float, curve_ms: float,
-         learned: list[str], fixed: list[str], unrated: dict[str, str] | None = None) -> list[dict]:
-    """The phases' projected seconds (NaN where a rate was not measured, or `unrated` {label: why} says
-    the measured one is not this model's): rows of phase, what, seconds, source."""
+         learned: list[str], fixed: list[str], not_timed: dict[str, str] | None = None) -> list[dict]:
+    """The phases' projected seconds (NaN where a rate was not measured, or `not_timed` {label: why} says
+    the measured one is not this model's): rows of phase, label (a split, a model, scoring), what,
+    seconds, source."""
+    not_timed = not_timed or {}
     from bench.experiments.context import training_splits, working_split
     from bench.experiments.speed import LABELS
     data, train, seeds = cfg["data"], cfg["train"], len(cfg["seeds"])
     scored = cfg["eval"]["split"]
     ctx = SimpleNamespace(eval=SimpleNamespace(split=scored), data_spec=data)   # what the two rules read
     processes, gain, _ = render_gain(render, cfg["workers"])
-    rows = [{"phase": "render", "what": f"{name}: {data['splits'][name]['sequences']} sequences at ref "
+    rows = [{"phase": "render", "label": name, "what": f"{name}: {data['splits'][name]['sequences']} sequences at ref "
              f"{data['splits'][name].get('ref_spp') or data['ref_spp']} spp"
              + (f", / {gain:.2f} ({processes} processes)" if processes > 1 else ""),
              "seconds": split_seconds(data, name, render) / gain,
@@ -202,12 +210,14 @@ def plan(cfg: dict, render: dict, steps: dict[str, dict], score_ms: float, curve
     for model in learned:
         label = LABELS.get(model, model)
         rate = steps.get(label)
-        if rate is None or label in (unrated or {}):
-            why = (unrated or {}).get(label, "no speed row for this path and batch")
-            rows.append({"phase": "train", "what": f"{label}: {why}", "seconds": math.nan, "source": "speed table"})
+        if rate is None or label in not_timed:
+            why = not_timed.get(label, "no speed row for this path and batch")
+            rows.append({"phase": "train", "label": label, "what": f"{label}: {why}", "seconds": math.nan,
+                         "source": "speed table"})
             continue
         curve = f" + {points} curve points x {curve_frames} frames x {curve_ms:.0f} ms" if points else ""
-        rows.append({"phase": "train", "what": f"{label}: {seeds} x ({train['steps']} steps x {rate['ms']:.1f} ms"
+        rows.append({"phase": "train", "label": label,
+                     "what": f"{label}: {seeds} x ({train['steps']} steps x {rate['ms']:.1f} ms"
                      + (f" + compile {rate['compile_s']:.0f} s" if rate["compile_s"] else "") + curve + ")",
                      "seconds": seeds * (train["steps"] * rate["ms"] / 1000 + rate["compile_s"]
                                          + points * curve_frames * curve_ms / 1000),
@@ -215,7 +225,7 @@ def plan(cfg: dict, render: dict, steps: dict[str, dict], score_ms: float, curve
     frames = data["splits"][scored]["sequences"] * data["seq_len"]
     hr = f"{data['lr_width'] * data['scale']}x{data['lr_height'] * data['scale']}"
     evaluations = len(learned) * seeds + len(fixed)
-    rows.append({"phase": "evaluate", "what": f"{evaluations} evaluations x {frames} {scored} frames of {hr} x "
+    rows.append({"phase": "evaluate", "label": "scoring", "what": f"{evaluations} evaluations x {frames} {scored} frames of {hr} x "
                  f"{score_ms:.0f} ms", "seconds": evaluations * frames * score_ms / 1000,
                  "source": "scoring timed here"})
     return rows
@@ -262,7 +272,7 @@ def main(argv=None) -> int:
     hr_hw = (data["lr_height"] * data["scale"], data["lr_width"] * data["scale"])
     learned, fixed, left_out = table_rows(cfg)
     rows = plan(cfg, render, steps, scoring_ms(hr_hw), scoring_ms(hr_hw, CURVE_SCORES), learned, fixed,
-                other_widths(cfg, steps, learned))
+                models_not_timed(cfg, steps, learned))
     command = " ".join(["python scripts/gpu_speedrun_plan.py", *(argv if argv is not None else sys.argv[1:])])
     lines = [f"# {args.experiment} at preset {args.preset} on {args.machine}, projected", "",
              f"`{command}` (a lead, not a run: how each phase is projected is in the script's docstring); "
@@ -271,7 +281,7 @@ def main(argv=None) -> int:
                 if left_out else "") + ".", "",
              "| phase | what | seconds | from |", "|---|---|---|---|"]
     lines += [f"| {row['phase']} | {row['what']} | {seconds_cell(row['seconds'])} | {row['source']} |" for row in rows]
-    unmeasured = [row["what"].split(":")[0] for row in rows if math.isnan(row["seconds"])]
+    unmeasured = [row["label"] for row in rows if math.isnan(row["seconds"])]
     total = sum(row["seconds"] for row in rows if not math.isnan(row["seconds"]))
     lines += ["", f"total: {total:.0f} s ({total / 60:.1f} min) against a budget of {args.budget:.0f} s: "
               + ("fits" if total <= args.budget else f"over by {total - args.budget:.0f} s")

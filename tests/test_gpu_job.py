@@ -226,9 +226,9 @@ def test_the_concurrency_probe_goes_on_from_a_partial_record_and_a_dead_worker_i
     command = [sys.executable, "scripts/gpu_step_concurrency.py", "--device", "cpu", "--preset", "smoke", "--models",
                "edsr", "--steps", "2", "--warmup", "1", "--timeout", "120"]
     kept_row = "| EDSR | none | 1 | 2 | 50.0 | 20.00 | 1.00 |"   # as if an earlier call, stopped, had timed it
-    dies = tmp_path / "dies.md"   # a PARTIAL record of another machine: not kept
+    dies = tmp_path / "dies.md"   # a PARTIAL record of another machine and settings: not kept
     dies.write_text("PARTIAL: 1 of 2 configurations timed\n# Training steps of several processes at once on "
-                    f"cuda-another-gpu\n\n`...`: the same settings ms/step\n\n{kept_row}\n")
+                    f"cuda-another-gpu\n\n`...`: other settings ms/step\n\n{kept_row}\n")
     died = subprocess.run(command + ["--processes", "1", "--out", str(dies)], cwd=REPO,
                           capture_output=True, text=True, timeout=300,
                           env=dict(os.environ, SRD_BENCH_TEST_WORKER_EXIT="1:0"))
@@ -239,12 +239,13 @@ def test_the_concurrency_probe_goes_on_from_a_partial_record_and_a_dead_worker_i
     assert kept_row not in text
     header = text.split("\n| EDSR | none | 1 |")[0]          # this machine's title and settings
     title, settings = header.splitlines()[0], re.search(r"`: (.+) ms/step: ", header).group(1)
-    other = tmp_path / "other.md"  # the same machine, other settings (20 timed steps): not kept
-    other.write_text(f"PARTIAL: 1 of 2 configurations timed\n{header.replace('then 2 timed', 'then 20 timed')}\n"
-                     f"{kept_row}\n")
-    capsys.readouterr()
-    assert done_rows(other, title, settings) == {}
-    assert "a PARTIAL record of another machine or other settings" in capsys.readouterr().out
+    other = tmp_path / "other.md"  # the same machine, other settings (20 timed steps); then the other way round
+    for other_header in (header.replace("then 2 timed", "then 20 timed"), header.replace(title, f"{title}-another")):
+        assert other_header != header
+        other.write_text(f"PARTIAL: 1 of 2 configurations timed\n{other_header}\n{kept_row}\n")
+        capsys.readouterr()
+        assert done_rows(other, title, settings) == {}
+        assert "a PARTIAL record of another machine or other settings" in capsys.readouterr().out
     out = tmp_path / "concurrency.md"
     out.write_text(f"PARTIAL: 1 of 2 configurations timed\n{header}\n{kept_row}\n")
     assert done_rows(out, title, settings) == {("EDSR", "none", "1"): kept_row}

@@ -87,8 +87,8 @@ def test_the_step_rates_are_the_speed_tables_rows_at_the_presets_widths_and_batc
     eager = plan.step_rates(SPEED, "gpu", SIZE, "fp32")
     graphed = plan.step_rates(SPEED, "gpu", SIZE, plan.PATHS["reduce-overhead"])
     inference = rows[(rows["section"] == "inference") & (rows["method"] == "Ours")]
-    assert eager["Ours"] == {"ms": ours.loc["fp32", "ms"], "compile_s": 0.0,
-                             "frame": (inference["GMac"].iloc[0], (540, 960))}   # "960x540 -> 1920x1080"
+    assert eager["Ours"] == {"ms": ours.loc["fp32", "ms"], "compile_s": 0.0,        # "960x540 -> 1920x1080":
+                             "frame": {"gmac": inference["GMac"].iloc[0], "lr_hw": (540, 960)}}  # H, W
     assert graphed["Ours"]["ms"] == ours.loc[plan.PATHS["reduce-overhead"], "ms"]
     assert graphed["Ours"]["compile_s"] == float(
         re.search(r"\(compile\) (\d+) s", ours.loc[plan.PATHS["reduce-overhead"], "note"]).group(1))
@@ -99,20 +99,25 @@ def test_the_step_rates_are_the_speed_tables_rows_at_the_presets_widths_and_batc
         plan.step_rates(SPEED, "cpu", SIZE, "fp32")
 
 
-def test_a_model_configured_at_other_widths_than_the_one_timed_has_no_rate():
+def test_a_model_configured_unlike_the_one_timed_has_no_rate():
     """A width set with --set changes the model the table's step would stand for: its frame's MACs differ
-    from the inference row's, and its train row says so instead of using another model's step."""
+    from the inference row's, and its train row says so instead of using another model's step; a model
+    the table has no inference row for cannot be checked, and is not rated either."""
     steps = plan.step_rates(SPEED, "gpu", SIZE, "fp32")
     learned = ["edsr", "rae", "kpcn", "cfm", "srd"]
-    assert plan.other_widths(plan.composed("gpu", ["+experiment=sota"]), steps, learned) == {}
+    assert all(steps[label]["frame"] for label in ["EDSR", "RAE", "KPCN", "CFM", "Ours"])   # each one checked
+    assert plan.models_not_timed(plan.composed("gpu", ["+experiment=sota"]), steps, learned) == {}
     cfg = plan.composed("gpu", ["+experiment=sota", "models.srd.channels=24"])
-    differ = plan.other_widths(cfg, steps, learned)
-    assert list(differ) == ["Ours"]
-    why = differ["Ours"]
-    assert re.fullmatch(r"its step was timed at 267\.8 GMac a 960x540 frame, this configuration is \d+\.\d", why)
-    rows = plan.plan(cfg, plan.render_rates(PROBE), steps, 100.0, 40.0, learned, [], {"Ours": why})
-    (ours,) = [r for r in rows if r["what"].startswith("Ours")]
-    assert math.isnan(ours["seconds"]) and ours["what"] == f"Ours: {why}"
+    not_timed = plan.models_not_timed(cfg, steps, learned)
+    assert list(not_timed) == ["Ours"]
+    assert re.fullmatch(r"its step was timed on a model of 267\.8 GMac a 960x540 frame; this configuration's is "
+                        r"\d+\.\d", not_timed["Ours"])
+    rows = plan.plan(cfg, plan.render_rates(PROBE), steps, 100.0, 40.0, learned, [], not_timed)
+    (ours,) = [r for r in rows if r.get("label") == "Ours"]
+    assert math.isnan(ours["seconds"]) and ours["what"] == f"Ours: {not_timed['Ours']}"
+    unchecked = {**steps, "KPCN": {**steps["KPCN"], "frame": None}}
+    assert plan.models_not_timed(plan.composed("gpu", ["+experiment=sota"]), unchecked, learned) == {
+        "KPCN": "no inference row in the speed table to check the configured model against"}
 
 
 def test_the_plan_renders_what_the_table_renders_and_is_steps_times_step_time_and_frames_times_scoring():
@@ -177,8 +182,8 @@ def test_the_script_prints_the_phases_the_total_and_the_power_and_names_what_it_
     assert re.search(r"\| evaluate \| (17|19) evaluations x 140 val frames of 64x32 x \d+ ms", out.stdout)
     assert "| train | Ours: 3 x (2000 steps x 36.9 ms + compile 104 s + 21 curve points" in out.stdout
     assert "| train | CFM: no speed row for this path and batch | - | speed table |" in out.stdout
-    assert re.search(r"\| train \| RAE: its step was timed at 256\.4 GMac a 960x540 frame, this configuration is "
-                     r"\d+\.\d \| - \| speed table \|", out.stdout)                    # another width: not RAE's step
+    assert re.search(r"\| train \| RAE: its step was timed on a model of 256\.4 GMac a 960x540 frame; this "
+                     r"configuration's is \d+\.\d \| - \| speed table \|", out.stdout)  # another width: not RAE's step
     assert re.search(r"^total: \d+ s \([\d.]+ min\) against a budget of 780 s: (fits|over by \d+ s); without RAE, "
                      r"CFM: not rated \(the rows say why\)$", out.stdout, re.M)
     assert "(Dr.Jit's kernel cache warm on disk) took 20.9 s" in out.stdout and "x1.95 and x1.13); not used" in out.stdout
