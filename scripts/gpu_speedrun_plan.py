@@ -225,8 +225,9 @@ def plan(cfg: dict, render: dict, steps: dict[str, dict], score_ms: float, curve
     frames = data["splits"][scored]["sequences"] * data["seq_len"]
     hr = f"{data['lr_width'] * data['scale']}x{data['lr_height'] * data['scale']}"
     evaluations = len(learned) * seeds + len(fixed)
-    rows.append({"phase": "evaluate", "label": "scoring", "what": f"{evaluations} evaluations x {frames} {scored} frames of {hr} x "
-                 f"{score_ms:.0f} ms", "seconds": evaluations * frames * score_ms / 1000,
+    rows.append({"phase": "evaluate", "label": "scoring",
+                 "what": f"{evaluations} evaluations x {frames} {scored} frames of {hr} x {score_ms:.0f} ms",
+                 "seconds": evaluations * frames * score_ms / 1000,
                  "source": "scoring timed here"})
     return rows
 
