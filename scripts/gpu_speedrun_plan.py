@@ -190,14 +190,15 @@ def plan(cfg: dict, render: dict, steps: dict[str, dict], score_ms: float, curve
     """The phases' projected seconds (NaN where a rate was not measured, or `not_timed` {label: why} says
     the measured one is not this model's): rows of phase, label (a split, a model, scoring), what,
     seconds, source."""
-    not_timed = not_timed or {}
     from bench.experiments.context import training_splits, working_split
     from bench.experiments.speed import LABELS
+    not_timed = not_timed or {}
     data, train, seeds = cfg["data"], cfg["train"], len(cfg["seeds"])
     scored = cfg["eval"]["split"]
     ctx = SimpleNamespace(eval=SimpleNamespace(split=scored), data_spec=data)   # what the two rules read
     processes, gain, _ = render_gain(render, cfg["workers"])
-    rows = [{"phase": "render", "label": name, "what": f"{name}: {data['splits'][name]['sequences']} sequences at ref "
+    rows = [{"phase": "render", "label": name,
+             "what": f"{name}: {data['splits'][name]['sequences']} sequences at ref "
              f"{data['splits'][name].get('ref_spp') or data['ref_spp']} spp"
              + (f", / {gain:.2f} ({processes} processes)" if processes > 1 else ""),
              "seconds": split_seconds(data, name, render) / gain,
