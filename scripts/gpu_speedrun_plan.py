@@ -50,20 +50,9 @@ sys.path.insert(0, str(ROOT))
 sys.path.insert(0, str(ROOT / "scripts"))
 
 from gpu_render_probe import split_seconds  # noqa: E402   the probe's own projection of a split
+from gpu_step_concurrency import composed  # noqa: E402   the config as the entry point resolves it
 
 PATHS = {None: "fp32", "reduce-overhead": "fp32, compiled (reduce-overhead)"}   # train.compile -> speed table path
-
-
-def composed(preset: str, overrides: list[str]) -> dict:
-    """The config at `preset` with `overrides`, its eval split resolved as the entry point resolves it
-    (bench.cli.apply_split), as plain values."""
-    from hydra import compose, initialize_config_dir
-    from omegaconf import OmegaConf
-    from bench.cli import CONF_DIR, apply_split
-    with initialize_config_dir(config_dir=CONF_DIR, version_base=None):
-        cfg = compose("config", overrides=[f"preset={preset}", *overrides])
-    apply_split(cfg)
-    return OmegaConf.to_container(cfg, resolve=True)
 
 
 def render_rates(record: Path) -> dict:

@@ -39,12 +39,15 @@ from bench.table_writer import PARTIAL, write_record  # noqa: E402   PARTIAL: th
 
 
 def composed(preset: str, overrides: list[str]) -> dict:
-    """The suite's config at `preset` with Hydra `overrides`, resolved to plain values."""
+    """The suite's config at `preset` with Hydra `overrides`, its eval split resolved as the entry point
+    resolves it (bench.cli.apply_split), as plain values (the GPU scripts' one way to read the config)."""
     from hydra import compose, initialize_config_dir
     from omegaconf import OmegaConf
-    from bench.cli import CONF_DIR
+    from bench.cli import CONF_DIR, apply_split
     with initialize_config_dir(config_dir=CONF_DIR, version_base=None):
-        return OmegaConf.to_container(compose("config", overrides=[f"preset={preset}", *overrides]), resolve=True)
+        cfg = compose("config", overrides=[f"preset={preset}", *overrides])
+    apply_split(cfg)
+    return OmegaConf.to_container(cfg, resolve=True)
 
 
 TEST_EXIT = "SRD_BENCH_TEST_WORKER_EXIT"   # "<processes>:<rank>": that worker exits after warming up (tests)
@@ -179,14 +182,15 @@ def main(argv=None) -> int:
                 + f", {recipe.batch_size} x {recipe.seq_len} frames of {recipe.crop}x{recipe.crop} LR a step, "
                 f"{step_note(recipe)}, in fp32; torch {torch.__version__}. Each process: {args.warmup} warm-up "
                 f"steps, then {args.steps} timed once all are warm.")
-    header = [f"# Training steps of several processes at once on {where}", "",
+    title = f"# Training steps of several processes at once on {where}"
+    header = [title, "",
               f"`python scripts/gpu_step_concurrency.py {' '.join(argv if argv is not None else sys.argv[1:])}`: "
               f"{settings} ms/step: the processes' mean; steps/s: all processes' steps over the wall time from the "
               "first start to the last end; x one: steps/s against one process on the same path.", "",
               "| model | path | processes | threads each | ms/step | steps/s | x one |", "|---|---|---|---|---|---|---|"]
     # every model eager first: a compiled path's configurations each compile again (from the Inductor cache)
     todo = [(m, c, n) for c in args.compile for m in args.models for n in sorted(set(args.processes))]
-    kept = done_rows(args.out, f"# Training steps of several processes at once on {where}", settings)
+    kept = done_rows(args.out, title, settings)
     rows, alone = [], {}
     for done, (name, path, processes) in enumerate(todo, 1):
         label = LABELS.get(name, name)
