@@ -11,7 +11,7 @@ from bench.experiments import results_page
 ROOT = Path(__file__).resolve().parents[1]
 
 
-@pytest.mark.parametrize("folder", ["cpu", "cpu/val", "gpu"])
+@pytest.mark.parametrize("folder", ["cpu", "cpu/val", "gpu", "paper"])
 def test_the_committed_results_page_is_the_one_its_tables_give(folder):
     shown = f"results/{folder}"
     expected = results_page.page(ROOT / shown, results_page.preset_of(shown), shown_as=shown)
