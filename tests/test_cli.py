@@ -726,30 +726,37 @@ import atexit, json, os, runpy, sys, time, traceback
 import hydra, numpy, omegaconf, pandas, torch, yaml
 folder, report, names = sys.argv[1], sys.argv[2], sys.argv[3:]
 path = [p for p in sys.path if p != ""]
+
+def status_of(script):
+    sys.argv, sys.path[:] = [script, "--help"], [folder, *path]
+    try:
+        runpy.run_path(script, run_name="__main__")
+        return 0
+    except SystemExit as stop:
+        if stop.code is None or isinstance(stop.code, int):   # beyond a C long: -1, as CPython exits
+            return (stop.code or 0) & 0xFF if -2**63 <= (stop.code or 0) < 2**63 else 255
+        print(stop.code, file=sys.stderr)
+        return 1
+    except BaseException:
+        traceback.print_exc()
+        return 1
+
 said = {}
 for name in names:
     out, err = report + "." + name + ".out", report + "." + name + ".err"
     pid = os.fork()
     if pid == 0:
-        with open(out, "w") as o, open(err, "w") as e:
-            os.dup2(o.fileno(), 1)
-            os.dup2(e.fileno(), 2)
-        sys.argv, sys.path[:] = [os.path.join(folder, name), "--help"], [folder, *path]
-        code = 0
-        try:
-            runpy.run_path(sys.argv[0], run_name="__main__")
-        except SystemExit as stop:
-            code = stop.code
-            if not (code is None or isinstance(code, int)):
-                print(code, file=sys.stderr)
-                code = 1
-        except BaseException:
-            traceback.print_exc()
-            code = 1
-        atexit._run_exitfuncs()
-        sys.stdout.flush()
-        sys.stderr.flush()
-        os._exit(code or 0)
+        code = 1
+        try:                                  # the child never returns into this loop
+            with open(out, "w") as o, open(err, "w") as e:
+                os.dup2(o.fileno(), 1)
+                os.dup2(e.fileno(), 2)
+            code = status_of(os.path.join(folder, name))
+            atexit._run_exitfuncs()
+            sys.stdout.flush()
+            sys.stderr.flush()
+        finally:
+            os._exit(code)
     deadline = time.monotonic() + 120
     while not (ended := os.waitpid(pid, os.WNOHANG))[0] and time.monotonic() < deadline:
         time.sleep(0.02)
