@@ -2,6 +2,7 @@
 import atexit
 import dataclasses
 import fcntl
+import json
 import os
 import shutil
 import subprocess
@@ -157,11 +158,54 @@ VGG16_WEIGHTS_DIR = Path(os.environ.get("SRD_VGG16_WEIGHTS_DIR") or REPO.parent 
 
 
 def bench(*args, cwd=REPO, timeout=600):
-    """`python -m bench ARGS` in a process of its own: for what only a process shows (a signal, a full disk,
-    commands at once, an edited copy of the code, the console entry itself). Elsewhere `bench_here`."""
-    env = dict(os.environ, HYDRA_FULL_ERROR="0", PYTHONUNBUFFERED="1")
-    return subprocess.run([sys.executable, "-m", "bench", *args], cwd=cwd, capture_output=True,
-                          text=True, timeout=timeout, env=env)
+    """`python -m bench ARGS` in a process of its own (`python_process`): for what only a process shows (an
+    edited copy of the code, another folder, a launcher's processes). Elsewhere `bench_here`; a process to
+    signal or to run beside others: subprocess.Popen."""
+    return python_process("-m", "bench", *args, cwd=cwd, timeout=timeout,
+                          env=dict(os.environ, HYDRA_FULL_ERROR="0", PYTHONUNBUFFERED="1"))
+
+
+# What tests/preloaded.py's libraries read from the environment when imported: a command whose environment
+# differs there gets an interpreter of its own. Its other variables are the command's.
+READ_AT_IMPORT = ("OMP_NUM_THREADS", "MKL_NUM_THREADS", "OPENBLAS_NUM_THREADS", "ATEN_CPU_CAPABILITY",
+                  "ONEDNN_MAX_CPU_ISA", "DNNL_MAX_CPU_ISA", "MKL_ENABLE_INSTRUCTIONS", "OPENBLAS_CORETYPE",
+                  "NPY_DISABLE_CPU_FEATURES", "LD_PRELOAD", "LD_LIBRARY_PATH")
+_preloaded = {"env": dict(os.environ)}   # as this file set it up: the interpreter's, whatever a test sets later
+
+
+def _preloaded_takes(env: dict) -> bool:
+    start = _preloaded["env"]
+    return all(env.get(k) == start.get(k) for k in {*READ_AT_IMPORT, *start, *env}
+               if k in READ_AT_IMPORT or k.startswith("PYTHON") and k not in ("PYTHONPATH", "PYTHONUNBUFFERED"))
+
+
+def python_process(*argv, cwd=REPO, env=None, timeout=600) -> subprocess.CompletedProcess:
+    """`python ARGV` as `subprocess.run(..., capture_output=True, text=True)` runs it, in a process forked
+    from one that imported torch, numpy, pandas and Hydra (tests/preloaded.py, started at the first call):
+    the same process but for the 2-3 s of those imports. The command imports the project afresh from its
+    folder and PYTHONPATH. Raises subprocess.TimeoutExpired after `timeout` seconds, the process killed."""
+    argv, env = [str(a) for a in argv], dict(os.environ if env is None else env)
+    if not _preloaded_takes(env):
+        return subprocess.run([sys.executable, *argv], cwd=cwd, env=env, capture_output=True, text=True,
+                              timeout=timeout)
+    server = _preloaded.get("server")
+    if server is None or server.poll() is not None:
+        server = _preloaded["server"] = subprocess.Popen(
+            [sys.executable, str(REPO / "tests" / "preloaded.py")], stdin=subprocess.PIPE,
+            stdout=subprocess.PIPE, text=True, env=_preloaded["env"])
+        atexit.register(server.stdin.close)   # its loop ends at end of input
+    with tempfile.TemporaryDirectory() as tmp:
+        out, err = Path(tmp) / "out", Path(tmp) / "err"
+        server.stdin.write(json.dumps({"argv": argv, "cwd": str(cwd), "env": env, "out": str(out), "err": str(err),
+                                       "timeout": timeout}) + "\n")
+        server.stdin.flush()
+        answer = server.stdout.readline()
+        assert answer, f"tests/preloaded.py ended (exit {server.wait()}) running {argv}"
+        code = json.loads(answer)["code"]
+        said = [p.read_text(errors="backslashreplace") if p.exists() else "" for p in (out, err)]
+    if code is None:
+        raise subprocess.TimeoutExpired([sys.executable, *argv], timeout, *said)
+    return subprocess.CompletedProcess([sys.executable, *argv], code, *said)
 
 
 def bench_here(*args, timeout=600) -> subprocess.CompletedProcess:

@@ -3,13 +3,12 @@ else) make it a row of a table and of the MAC audit, through the CLI."""
 import filecmp
 import os
 import shutil
-import subprocess
-import sys
 from pathlib import Path
 
 import pandas as pd
 import pytest
 
+from conftest import python_process
 from test_user_data import write_dataset
 
 REPO = Path(__file__).resolve().parent.parent
@@ -63,8 +62,7 @@ def test_a_toy_model_takes_its_module_its_yaml_and_one_line(tmp_path):
     write_dataset(data, frames=3, layers_hr=("noisy", "ref"), splits=("train", "val"), lr=(16, 16))
     env = dict(os.environ, PYTHONPATH=str(tmp_path), SRD_TRACKING="none", HYDRA_FULL_ERROR="0")
     common = [f"runs_dir={tmp_path / 'runs'}", f"results_dir={tmp_path / 'results'}", "progress=false"]
-    run = lambda *args: subprocess.run([sys.executable, "-m", "bench", "--config-path", str(conf), *args, *common],
-                                       cwd=REPO, capture_output=True, text=True, timeout=300, env=env)
+    run = lambda *args: python_process("-m", "bench", "--config-path", conf, *args, *common, env=env, timeout=300)
 
     table = run("+experiment=smoke", "experiment.rows=[{label: Toy, model: toy}]", "render_data=false",
                 f"data_dir={data}", "train.steps=5", "++experiment.figure=false")

@@ -20,7 +20,7 @@ from bench.cli import (CONF_DIR, apply_pin, available_experiments, available_stu
                        make_context)
 from bench.experiments import KINDS
 from bench.experiments.results_page import CONTROLS, PAPER_TABLES
-from conftest import REPO, SMOKE_DATA, bench, bench_here, perturbed
+from conftest import REPO, SMOKE_DATA, bench, bench_here, perturbed, python_process
 
 PRESETS = sorted(p.stem for p in (Path(CONF_DIR) / "preset").glob("*.yaml"))
 
@@ -718,24 +718,11 @@ SCRIPTS = sorted(p.name for p in (REPO / "scripts").glob("*.py"))
 
 
 
-@pytest.fixture(scope="module")
-def help_answers(tmp_path_factory):
-    """Every script's --help, each in a process forked from one that imported torch once (a process apiece
-    would import it again, about a second each): tests/answer_help.py."""
-    report = tmp_path_factory.mktemp("help") / "answers.json"
-    out = subprocess.run([sys.executable, str(REPO / "tests" / "answer_help.py"), str(REPO / "scripts"), str(report),
-                          *SCRIPTS],
-                         cwd=REPO, capture_output=True, text=True, timeout=600,
-                         env={**os.environ, "PYTHONPATH": str(REPO)})
-    assert out.returncode == 0, out.stdout[-1000:] + out.stderr[-3000:]
-    return json.loads(report.read_text())
-
-
 @pytest.mark.parametrize("script", SCRIPTS)
-def test_every_script_answers_help(script, help_answers):
-    said = help_answers[script]
-    assert said["code"] == 0 and "Traceback" not in said["stderr"] and "usage" in said["stdout"].lower(), \
-        said["stdout"][-500:] + said["stderr"][-1500:]
+def test_every_script_answers_help(script):
+    said = python_process(f"scripts/{script}", "--help", env={**os.environ, "PYTHONPATH": str(REPO)}, timeout=120)
+    assert said.returncode == 0 and "Traceback" not in said.stderr and "usage" in said.stdout.lower(), \
+        said.stdout[-500:] + said.stderr[-1500:]
 
 
 def test_the_regeneration_check_takes_every_paper_table_and_table_study_with_the_seeds_their_captions_name(tmp_path):

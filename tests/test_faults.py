@@ -21,7 +21,7 @@ from bench import datagen, exrio, runs
 from bench.atomic import write_atomic
 from bench.errors import UserError
 from bench.experiments.datasets import RENDERING, ensure_data
-from conftest import bench_here, smoke_context
+from conftest import bench_here, python_process, smoke_context
 
 SPEC = {"name": "tiny", "seed": 1, "lr_width": 8, "lr_height": 6, "scale": 2, "spp": 1, "ref_spp": 4,
         "seq_len": 2, "max_depth": 4, "splits": {"train": {"families": ["living_room"], "sequences": 1}}}
@@ -251,8 +251,7 @@ def test_the_callers_sigterm_handler_is_back_after_a_command(tmp_path):
             f" 'runs_dir={tmp_path / 'runs'}', 'results_dir={tmp_path / 'results'}']\n"
             "try:\n    main()\nexcept SystemExit as end:\n    print('exit', end.code)\n"
             "print('handler', signal.getsignal(signal.SIGTERM) is mine)\n")
-    out = subprocess.run([sys.executable, "-c", code], cwd=Path(__file__).parent.parent, capture_output=True,
-                         text=True, timeout=120)
+    out = python_process("-c", code, timeout=120)
     assert "exit 2" in out.stdout and "handler True" in out.stdout, out.stdout + out.stderr[-2000:]
 
 
@@ -641,8 +640,7 @@ def test_the_verify_command_names_each_damaged_file_of_a_store_or_an_archive_and
     """`python -m bench.archived DIR --verify`: one line per damaged file, a summary, exit 1; a sound store
     exits 0. It changes nothing."""
     def verify(folder):
-        return subprocess.run([sys.executable, "-m", "bench.archived", str(folder), "--verify"], cwd=REPO,
-                              capture_output=True, text=True, timeout=120)
+        return python_process("-m", "bench.archived", folder, "--verify", timeout=120)
     ctx = _table_ctx(store, runs_archive=tmp_path / "archive")
     _table(ctx)                                                      # archives the store's runs
     sound = verify(store / "runs")

@@ -13,6 +13,8 @@ from pathlib import Path
 
 import pytest
 
+from conftest import python_process
+
 REPO = Path(__file__).resolve().parent.parent
 TINY = ("data.lr_width=8 data.lr_height=6 data.spp=1 data.ref_spp=4 data.seq_len=2 data.max_depth=4 "
         "data.splits.train.sequences=1 data.splits.val.sequences=1 ~data.splits.generalization train.steps=2 "
@@ -199,15 +201,13 @@ def test_the_render_step_measures_the_variant_twice_and_keeps_the_digests(projec
     assert "relative L2 difference per layer: hr.albedo 0, " in text                   # llvm against llvm
     digests = json.loads(record.with_suffix(".digests.json").read_text())
     assert digests["variant"] == "llvm_ad_rgb" and len(digests["frames"]) == 3
-    later = subprocess.run([sys.executable, "scripts/gpu_render_probe.py", "--data", "smoke", "--families", "1",
-                            "--variant", "llvm_ad_rgb", "--out", str(record)], cwd=project, capture_output=True,
-                           text=True, timeout=300)
+    later = python_process("scripts/gpu_render_probe.py", "--data", "smoke", "--families", "1", "--variant",
+                           "llvm_ad_rgb", "--out", record, cwd=project, timeout=300)
     assert "as committed (written on cpu): 3 of 3 frames' digests equal" in later.stdout, later.stdout[-2000:]
     import torch
     if not torch.cuda.is_available():
-        failed = subprocess.run([sys.executable, "scripts/gpu_render_probe.py", "--data", "smoke", "--variant",
-                                 "cuda_ad_rgb", "--out", str(tmp_path / "cuda.md")], cwd=project, capture_output=True,
-                                text=True, timeout=300)
+        failed = python_process("scripts/gpu_render_probe.py", "--data", "smoke", "--variant", "cuda_ad_rgb",
+                                "--out", tmp_path / "cuda.md", cwd=project, timeout=300)
         said = (tmp_path / "cuda.md").read_text()
         assert failed.returncode == 1 and said.startswith("PARTIAL: the variant did not start"), said
 
@@ -223,14 +223,13 @@ def test_the_concurrency_probe_goes_on_from_a_partial_record_and_a_dead_worker_i
     monkeypatch.syspath_prepend(str(REPO / "scripts"))
     from gpu_step_concurrency import done_rows
     from bench.scheduler import threads_per_job
-    command = [sys.executable, "scripts/gpu_step_concurrency.py", "--device", "cpu", "--preset", "smoke", "--models",
-               "edsr", "--steps", "2", "--warmup", "1", "--timeout", "120"]
+    command = ["scripts/gpu_step_concurrency.py", "--device", "cpu", "--preset", "smoke", "--models", "edsr",
+               "--steps", "2", "--warmup", "1", "--timeout", "120"]
     kept_row = "| EDSR | none | 1 | 2 | 50.0 | 20.00 | 1.00 |"   # as if an earlier call, stopped, had timed it
     dies = tmp_path / "dies.md"   # a PARTIAL record of another machine and settings: not kept
     dies.write_text("PARTIAL: 1 of 2 configurations timed\n# Training steps of several processes at once on "
                     f"cuda-another-gpu\n\n`...`: other settings ms/step\n\n{kept_row}\n")
-    died = subprocess.run(command + ["--processes", "1", "--out", str(dies)], cwd=REPO,
-                          capture_output=True, text=True, timeout=300,
+    died = python_process(*command, "--processes", "1", "--out", dies, timeout=300,
                           env=dict(os.environ, SRD_BENCH_TEST_WORKER_EXIT="1:0"))
     assert died.returncode == 0, died.stdout[-2000:] + died.stderr[-2000:]
     assert "a PARTIAL record of another machine or other settings" in died.stdout
@@ -249,8 +248,7 @@ def test_the_concurrency_probe_goes_on_from_a_partial_record_and_a_dead_worker_i
     out = tmp_path / "concurrency.md"
     out.write_text(f"PARTIAL: 1 of 2 configurations timed\n{header}\n{kept_row}\n")
     assert done_rows(out, title, settings) == {("EDSR", "none", "1"): kept_row}
-    done = subprocess.run(command + ["--processes", "1", "2", "--out", str(out)], cwd=REPO, capture_output=True,
-                          text=True, timeout=300)
+    done = python_process(*command, "--processes", "1", "2", "--out", out, timeout=300)
     assert done.returncode == 0, done.stdout[-2000:] + done.stderr[-2000:]
     text = out.read_text()
     assert text.startswith("# Training steps of several processes at once on cpu-")      # whole: no PARTIAL
@@ -264,10 +262,9 @@ def test_the_profile_script_profiles_the_trainers_step_at_the_presets_recipe(tmp
     """scripts/gpu_profile_step.py profiles bench.experiments.speed.training_step (the trainer's step, as
     the speed table times it), at the preset's recipe unless told otherwise; no CUDA here: CPU columns."""
     out = tmp_path / "profile.md"
-    done = subprocess.run([sys.executable, "scripts/gpu_profile_step.py", "--device", "cpu", "--preset", "smoke",
-                           "--frames", "2", "--crop", "16", "--channels", "8", "--steps", "1", "--warmup", "1",
-                           "--no-compile", "--out", str(out)], cwd=REPO, capture_output=True, text=True, timeout=300,
-                          env=dict(os.environ, PYTHONPATH=str(REPO)))
+    done = python_process("scripts/gpu_profile_step.py", "--device", "cpu", "--preset", "smoke", "--frames", "2",
+                          "--crop", "16", "--channels", "8", "--steps", "1", "--warmup", "1", "--no-compile",
+                          "--out", out, timeout=300, env=dict(os.environ, PYTHONPATH=str(REPO)))
     assert done.returncode == 0, done.stderr[-2000:]
     from hydra import compose, initialize_config_dir
     with initialize_config_dir(config_dir=str(REPO / "conf"), version_base=None):

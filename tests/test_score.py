@@ -4,8 +4,6 @@ miniature: predict's outputs of a tiny dataset, scored, equal bench.evaluate on 
 `--against` the evaluation's record says so."""
 import json
 import os
-import subprocess
-import sys
 
 import numpy as np
 import OpenEXR
@@ -14,6 +12,7 @@ import pytest
 
 from bench import exrio
 from bench.evaluate import SCORES
+from conftest import python_process
 from test_predict_folders import REPO, srd_bench, write_lr, write_weights
 
 SEQUENCES, FRAMES, LR = ("atrium-1-v0", "atrium-1-v1"), 3, (16, 16)
@@ -134,7 +133,8 @@ def test_a_missing_or_foreign_output_is_one_line(scored, tmp_path, capsys, damag
 
 def test_score_imports_nothing_from_bench_experiments():
     code = "import sys, bench.score; sys.exit(any(m.startswith('bench.experiments') for m in sys.modules))"
-    assert subprocess.run([sys.executable, "-c", code], cwd=REPO, env=dict(os.environ, PYTHONPATH=str(REPO))).returncode == 0
+    done = python_process("-c", code, env=dict(os.environ, PYTHONPATH=str(REPO)))
+    assert done.returncode == 0, done.stderr[-2000:]
 
 
 def test_nonfinite_outputs_score_only_when_accepted_and_a_table_without_scores_is_refused(scored, tmp_path, capsys):

@@ -3,23 +3,20 @@ reuses them and mirrors the run store into MLflow, read back with MLflow's own c
 import json
 import os
 import re
-import subprocess
-import sys
 from pathlib import Path
 
 import pandas as pd
 import pytest
 
 from bench import runs, tracking
-from conftest import SMOKE_DATA, bench_here
+from conftest import SMOKE_DATA, bench_here, python_process
 
 REPO = Path(__file__).resolve().parent.parent
 
 
 def bench(*args):
     env = dict(os.environ, HYDRA_FULL_ERROR="0", PYTHONUNBUFFERED="1", SRD_TRACKING="none")
-    return subprocess.run([sys.executable, "-m", "bench", *args], cwd=REPO, capture_output=True, text=True,
-                          timeout=600, env=env)
+    return python_process("-m", "bench", *args, env=env)
 
 
 @pytest.fixture(scope="module")
