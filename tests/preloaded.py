@@ -5,7 +5,8 @@ or a script as __main__, sys.path as it would have it (the command's folder, its
 folders), the project's modules imported afresh from there (this process imports none of them), in the
 command's folder and environment, stdin empty, file descriptors 1 and 2 in files, the warnings filters a
 fresh interpreter has, non-daemon threads joined and atexit run at the end, and its exit status the
-interpreter's (a SystemExit message printed, an uncaught exception's traceback and 1, Ctrl-C's SIGINT).
+interpreter's (a SystemExit message printed, an uncaught exception's traceback, less this file's and
+runpy's frames, and 1; Ctrl-C's SIGINT).
 What the libraries imported here read from the environment at import (OMP_NUM_THREADS, ...) is this
 process's: the caller starts a real interpreter for a command whose environment differs there.
 Reads one JSON request a line on stdin: {argv, cwd, env, out, err, timeout}; answers {code} a line, code

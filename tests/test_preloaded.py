@@ -1,0 +1,66 @@
+"""conftest.python_process (tests/preloaded.py): a command in a process forked from an interpreter that
+imported torch once says and exits what the same command in a fresh interpreter does."""
+import os
+import subprocess
+import sys
+
+import pytest
+
+from conftest import REPO, python_process
+
+THREAD_THEN_ATEXIT = ("import atexit, threading, time\n"
+                      "def late():\n    time.sleep(0.2); print('thread done', flush=True)\n"
+                      "threading.Thread(target=late).start()\natexit.register(lambda: print('atexit'))\n")
+COMMANDS = {
+    "exit 3": ["-c", "import sys; print('out'); sys.exit(3)"],
+    "exit with a message": ["-c", "import sys; sys.exit('bye')"],
+    "exit beyond a C long": ["-c", "import sys; sys.exit(2**70)"],
+    "uncaught exception": ["-c", "def f():\n    raise ValueError('x')\nf()"],
+    "syntax error": ["-c", "print(1 +)"],
+    "KeyboardInterrupt": ["-c", "raise KeyboardInterrupt"],
+    "killed by SIGTERM": ["-c", "import os, signal; print('before', flush=True); os.kill(os.getpid(), signal.SIGTERM)"],
+    "a thread joined, then atexit": ["-c", THREAD_THEN_ATEXIT],
+    "warnings as a fresh interpreter shows them": ["-c", "import warnings; warnings.warn('shown'); "
+                                                   "warnings.warn('hidden', DeprecationWarning)"],
+    "argv, sys.path[0], stdin": ["-c", "import sys; print(sys.argv, repr(sys.path[0]), repr(sys.stdin.read()))", "a"],
+    "a module as __main__": ["-m", "tool", "--size", "3"],
+    "a module's usage error": ["-m", "tool", "--size", "x"],
+    "a script": ["tool.py", "--help"],
+}
+TOOL = ("import argparse, sys\n"
+        "parser = argparse.ArgumentParser(description='a tool')\nparser.add_argument('--size', type=int)\n"
+        "print(__name__, __spec__ and __spec__.name, sys.argv[0], sys.path[0], parser.parse_args().size)\n")
+
+
+@pytest.mark.parametrize("name", COMMANDS)
+def test_a_command_says_and_exits_what_a_fresh_interpreter_does(name, tmp_path):
+    argv = COMMANDS[name]
+    (tmp_path / "tool.py").write_text(TOOL)
+    env = dict(os.environ, PYTHONPATH=str(REPO))
+    real = subprocess.run([sys.executable, *argv], cwd=tmp_path, env=env, capture_output=True, text=True,
+                          timeout=120, stdin=subprocess.DEVNULL)
+    forked = python_process(*argv, cwd=tmp_path, env=env, timeout=120)
+    assert (forked.returncode, forked.stdout, forked.stderr) == (real.returncode, real.stdout, real.stderr)
+
+
+def test_the_command_imports_the_project_from_its_folder_in_its_environment(tmp_path):
+    """The server imported no module of the project: an edited copy is what the command runs."""
+    (tmp_path / "bench").mkdir()
+    (tmp_path / "bench" / "__init__.py").write_text("EDITED = True\n")
+    code = ("import os, sys, bench; print(bench.EDITED, os.getcwd(), os.environ['ONLY_HERE'], "
+            "'torch' in sys.modules, sys.path[1])")
+    done = python_process("-c", code, cwd=tmp_path, env=dict(os.environ, ONLY_HERE="1", PYTHONPATH="/nowhere"))
+    assert done.returncode == 0, done.stderr
+    assert done.stdout.split() == ["True", str(tmp_path), "1", "True", "/nowhere"]   # torch: preloaded
+
+
+def test_a_command_past_its_timeout_is_killed_and_raises_as_subprocess_run_does():
+    with pytest.raises(subprocess.TimeoutExpired):
+        python_process("-c", "import time; time.sleep(30)", timeout=1)
+    assert python_process("-c", "print('next')").stdout == "next\n"     # the server goes on
+
+
+def test_an_environment_torch_reads_at_import_gets_an_interpreter_of_its_own():
+    done = python_process("-c", "import sys; print('torch' in sys.modules)",
+                          env=dict(os.environ, OMP_NUM_THREADS="7"))
+    assert done.stdout == "False\n"
