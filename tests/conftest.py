@@ -193,7 +193,7 @@ def python_process(*argv, cwd=REPO, env=None, timeout=600) -> subprocess.Complet
         server = _preloaded["server"] = subprocess.Popen(
             [sys.executable, str(REPO / "tests" / "preloaded.py")], stdin=subprocess.PIPE,
             stdout=subprocess.PIPE, text=True, env=_preloaded["env"])
-        atexit.register(server.stdin.close)   # its loop ends at end of input
+        atexit.register(lambda: (server.stdin.close(), server.wait()))   # its loop ends at end of input
     with tempfile.TemporaryDirectory() as tmp:
         out, err = Path(tmp) / "out", Path(tmp) / "err"
         server.stdin.write(json.dumps({"argv": argv, "cwd": str(cwd), "env": env, "out": str(out), "err": str(err),
