@@ -8,6 +8,7 @@ import shutil
 import subprocess
 import sys
 import tempfile
+import threading
 from pathlib import Path
 
 import pytest
@@ -165,47 +166,57 @@ def bench(*args, cwd=REPO, timeout=600):
                           env=dict(os.environ, HYDRA_FULL_ERROR="0", PYTHONUNBUFFERED="1"))
 
 
-# What tests/preloaded.py's libraries read from the environment when imported: a command whose environment
-# differs there gets an interpreter of its own. Its other variables are the command's.
-READ_AT_IMPORT = ("OMP_NUM_THREADS", "MKL_NUM_THREADS", "OPENBLAS_NUM_THREADS", "ATEN_CPU_CAPABILITY",
-                  "ONEDNN_MAX_CPU_ISA", "DNNL_MAX_CPU_ISA", "MKL_ENABLE_INSTRUCTIONS", "OPENBLAS_CORETYPE",
-                  "NPY_DISABLE_CPU_FEATURES", "LD_PRELOAD", "LD_LIBRARY_PATH")
-_preloaded = {"env": dict(os.environ)}   # as this file set it up: the interpreter's, whatever a test sets later
+_preloaded = {"env": dict(os.environ), "lock": threading.Lock()}   # its environment: as this file set it up
 
 
-def _preloaded_takes(env: dict) -> bool:
+def _forks(env: dict) -> bool:
+    """Whether the preloaded interpreter can run a command in `env`: it differs from the interpreter's own
+    only in what is read after the imports there (preloaded.READ_LATE)."""
+    from preloaded import READ_LATE
     start = _preloaded["env"]
-    return all(env.get(k) == start.get(k) for k in {*READ_AT_IMPORT, *start, *env}
-               if k in READ_AT_IMPORT or k.startswith("PYTHON") and k not in ("PYTHONPATH", "PYTHONUNBUFFERED"))
+    return all(k.startswith(READ_LATE) for k in {*start, *env} if env.get(k) != start.get(k))
 
 
 def python_process(*argv, cwd=REPO, env=None, timeout=600) -> subprocess.CompletedProcess:
-    """`python ARGV` as `subprocess.run(..., capture_output=True, text=True)` runs it, in a process forked
-    from one that imported torch, numpy, pandas and Hydra (tests/preloaded.py, started at the first call):
-    the same process but for the 2-3 s of those imports. The command imports the project afresh from its
-    folder and PYTHONPATH. Raises subprocess.TimeoutExpired after `timeout` seconds, the process killed."""
+    """`python ARGV` as `subprocess.run(..., capture_output=True, text=True, stdin=DEVNULL)` runs it, in a
+    process forked from one that imported torch, numpy, pandas and Hydra (tests/preloaded.py, started at
+    the first call; what differs from a fresh interpreter is said there): the same process but for the
+    1-3 s of those imports. The command imports the project afresh from its folder and PYTHONPATH. One
+    command at a time; an environment that differs from this process's start in what torch & co. read at
+    import gets a fresh interpreter. Raises subprocess.TimeoutExpired after `timeout` seconds, the process
+    killed."""
     argv, env = [str(a) for a in argv], dict(os.environ if env is None else env)
-    if not _preloaded_takes(env):
+    if not Path(cwd).is_dir():
+        raise FileNotFoundError(f"no folder {cwd}")          # as subprocess.run raises
+    if not _forks(env):
         return subprocess.run([sys.executable, *argv], cwd=cwd, env=env, capture_output=True, text=True,
-                              timeout=timeout)
-    server = _preloaded.get("server")
-    if server is None or server.poll() is not None:
-        server = _preloaded["server"] = subprocess.Popen(
-            [sys.executable, str(REPO / "tests" / "preloaded.py")], stdin=subprocess.PIPE,
-            stdout=subprocess.PIPE, text=True, env=_preloaded["env"])
-        atexit.register(lambda: (server.stdin.close(), server.wait()))   # its loop ends at end of input
-    with tempfile.TemporaryDirectory() as tmp:
-        out, err = Path(tmp) / "out", Path(tmp) / "err"
-        server.stdin.write(json.dumps({"argv": argv, "cwd": str(cwd), "env": env, "out": str(out), "err": str(err),
-                                       "timeout": timeout}) + "\n")
-        server.stdin.flush()
-        answer = server.stdout.readline()
-        assert answer, f"tests/preloaded.py ended (exit {server.wait()}) running {argv}"
-        code = json.loads(answer)["code"]
-        said = [p.read_text(errors="backslashreplace") if p.exists() else "" for p in (out, err)]
-    if code is None:
+                              timeout=timeout, stdin=subprocess.DEVNULL)
+    with _preloaded["lock"], tempfile.TemporaryDirectory() as tmp:
+        server = _preloaded.get("server")
+        if server is None or server.poll() is not None:
+            log = tempfile.NamedTemporaryFile("w", prefix="srd-bench-preloaded-", suffix=".log", delete=False)
+            server = _preloaded["server"] = subprocess.Popen(
+                [sys.executable, str(REPO / "tests" / "preloaded.py")], cwd=REPO, env=_preloaded["env"],
+                stdin=subprocess.PIPE, stdout=subprocess.PIPE, stderr=log, text=True)
+            _preloaded["log"] = Path(log.name)
+            # its loop ends at the end of its input; waited for, so its children's CPU time counts to this process
+            atexit.register(lambda: (server.stdin.close(), server.wait(), log.close(), os.unlink(log.name)))
+        out, err, ident = Path(tmp) / "out", Path(tmp) / "err", os.urandom(8).hex()
+        try:
+            server.stdin.write(json.dumps({"id": ident, "argv": argv, "cwd": str(cwd), "env": env, "out": str(out),
+                                           "err": str(err), "timeout": timeout}) + "\n")
+            server.stdin.flush()
+            answer = json.loads(server.stdout.readline() or "{}")
+            assert answer.get("id") == ident, \
+                f"tests/preloaded.py answered {answer} running {argv}: {_preloaded['log'].read_text()[-2000:]}"
+        except BaseException:       # an answer left unread would be the next command's: start again
+            server.kill()
+            server.wait()
+            raise
+        said = [out.read_text(errors="backslashreplace"), err.read_text(errors="backslashreplace")]
+    if answer["code"] is None:
         raise subprocess.TimeoutExpired([sys.executable, *argv], timeout, *said)
-    return subprocess.CompletedProcess([sys.executable, *argv], code, *said)
+    return subprocess.CompletedProcess([sys.executable, *argv], answer["code"], *said)
 
 
 def bench_here(*args, timeout=600) -> subprocess.CompletedProcess:

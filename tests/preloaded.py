@@ -1,24 +1,43 @@
 """A Python that imported torch, numpy, pandas and Hydra once, and forks a process for each command it is
-sent (tests/conftest.py's `python_process`): `python ARGV` without the seconds every test's own process
-spent importing them again. The child runs the command as that interpreter would: `-m MODULE`, `-c CODE`
-or a script as __main__, sys.path as it would have it (the command's folder, its PYTHONPATH, the site's
-folders), the project's modules imported afresh from there (this process imports none of them), in the
-command's folder and environment, stdin empty, file descriptors 1 and 2 in files, the warnings filters a
-fresh interpreter has, non-daemon threads joined and atexit run at the end, and its exit status the
-interpreter's (a SystemExit message printed, an uncaught exception's traceback, less this file's and
-runpy's frames, and 1; Ctrl-C's SIGINT).
-What the libraries imported here read from the environment at import (OMP_NUM_THREADS, ...) is this
-process's: the caller starts a real interpreter for a command whose environment differs there.
-Reads one JSON request a line on stdin: {argv, cwd, env, out, err, timeout}; answers {code} a line, code
-null where the command ran past its timeout (then killed).
+sent (tests/conftest.py's `python_process`): `python ARGV` without the 1-3 s every such process spent
+importing them again. The child runs the command as that interpreter would: `-m MODULE` (through runpy, as
+the interpreter does), `-c CODE` or a script as __main__, sys.path as it would have it (the command's
+folder, its PYTHONPATH, the site's folders), the project's modules imported afresh from there (this
+process imports none of them), in the command's folder and environment, stdin empty, file descriptors 1
+and 2 in files, numpy's random numbers seeded anew, non-daemon threads joined and atexit run at the end,
+and its exit status the interpreter's (a SystemExit message printed, an uncaught exception's traceback
+without this file's frames and 1, Ctrl-C's SIGINT).
+What it does not: the environment the libraries imported here read at import (OMP_NUM_THREADS, locale,
+...) is this process's, so the caller forks only for commands whose environment differs from it in
+READ_LATE alone; the hash seed is this process's; the interpreter's final teardown (modules cleared, their
+objects finalised) does not run, so a file the command never closed is not flushed.
+Reads one JSON request a line on stdin: {id, argv, cwd, env, out, err, timeout}; answers {id, code} a line,
+code null where the command ran past its timeout (then killed). One command at a time.
     python tests/preloaded.py
 """
 import atexit, json, os, runpy, signal, sys, threading, time, traceback, types, warnings
-FRESH_FILTERS = warnings.filters[:]   # as a fresh interpreter has them, before any import changes them
 import hydra, numpy, omegaconf, pandas, torch, yaml  # noqa: F401,E401   imported once, before the forks
 
-OWN_PYTHONPATH = [os.path.abspath(p) for p in os.environ.get("PYTHONPATH", "").split(os.pathsep) if p]
-SITE_PATH = [p for p in sys.path[1:] if p not in OWN_PYTHONPATH]   # without this file's folder
+# What a command's environment may change: read by the project's modules (which the child imports), by
+# Inductor and Triton (which torch imports when first used, not here), or after start-up
+READ_LATE = ("PYTHONPATH", "PYTHONUNBUFFERED", "HYDRA_FULL_ERROR", "SRD_", "PYTEST_", "TORCHINDUCTOR_", "TRITON_")
+IMPORTED_FILTERS = warnings.filters[:]   # a fresh interpreter's, and what importing torch & co. adds
+
+
+def python_path(cwd_entry: str) -> list[str]:
+    """sys.path as a fresh interpreter builds it: the command's entry, PYTHONPATH's (every one made
+    absolute, an empty one the folder), then the site's."""
+    pythonpath = os.environ.get("PYTHONPATH")
+    return [cwd_entry, *(os.path.abspath(p) for p in (pythonpath.split(os.pathsep) if pythonpath else [])),
+            *SITE_PATH]
+
+
+def _own_pythonpath() -> list[str]:
+    pythonpath = os.environ.get("PYTHONPATH")
+    return [os.path.abspath(p) for p in pythonpath.split(os.pathsep)] if pythonpath else []
+
+
+SITE_PATH = [p for p in sys.path[1:] if p not in _own_pythonpath()]   # without this file's folder
 
 
 def exit_status(stop: SystemExit) -> int:
@@ -32,20 +51,21 @@ def exit_status(stop: SystemExit) -> int:
 
 def run(argv: list[str]) -> int:
     """`python ARGV` in this process, already in the command's folder and environment."""
-    extra = [os.path.abspath(p) for p in os.environ.get("PYTHONPATH", "").split(os.pathsep) if p]
+    main = sys.modules["__main__"] = types.ModuleType("__main__")
     try:
         if argv[0] == "-m":
-            sys.argv, sys.path[:] = [argv[1], *argv[2:]], [os.getcwd(), *extra, *SITE_PATH]
-            runpy.run_module(argv[1], run_name="__main__", alter_sys=True)
+            sys.argv, sys.path[:] = ["-m", *argv[2:]], python_path(os.getcwd())
+            runpy._run_module_as_main(argv[1])             # what the interpreter's -m calls
         elif argv[0] == "-c":
-            sys.argv, sys.path[:] = ["-c", *argv[2:]], ["", *extra, *SITE_PATH]
-            main = types.ModuleType("__main__")
-            sys.modules["__main__"] = main
-            exec(compile(argv[1], "<string>", "exec"), main.__dict__)
+            sys.argv, sys.path[:] = ["-c", *argv[2:]], python_path("")
+            exec(compile(argv[1], "<string>", "exec", dont_inherit=True), main.__dict__)
         else:
-            script = os.path.abspath(argv[0])
-            sys.argv, sys.path[:] = list(argv), [os.path.dirname(script), *extra, *SITE_PATH]
-            runpy.run_path(script, run_name="__main__")
+            sys.argv, sys.path[:] = list(argv), python_path(os.path.dirname(os.path.realpath(argv[0])))
+            path = os.path.abspath(argv[0])                # as the interpreter names a script since 3.9
+            with open(path, "rb") as source:
+                code = compile(source.read(), path, "exec", dont_inherit=True)
+            main.__file__, main.__cached__ = path, None
+            exec(code, main.__dict__)
         return 0
     except SystemExit as stop:
         return exit_status(stop)
@@ -58,10 +78,10 @@ def run(argv: list[str]) -> int:
 
 
 def print_uncaught(err: BaseException) -> None:
-    """The traceback the interpreter prints, without this file's frames and runpy's (a SyntaxError in -c's
-    code: no traceback, the error alone, as there)."""
+    """The traceback the interpreter prints, without this file's frames (a SyntaxError in -c's code: no
+    traceback, the error alone, as there)."""
     tb = err.__traceback__
-    while tb is not None and tb.tb_frame.f_code.co_filename in (__file__, "<frozen runpy>"):
+    while tb is not None and tb.tb_frame.f_code.co_filename == __file__:
         tb = tb.tb_next
     traceback.print_exception(type(err), err, tb)
 
@@ -77,16 +97,19 @@ def child(request: dict) -> None:
             for fd, f in ((0, empty), (1, out), (2, err)):
                 os.dup2(f.fileno(), fd)
         unbuffered = bool(os.environ.get("PYTHONUNBUFFERED"))   # else stdout block-buffered, stderr by line
-        sys.stdin = open(0, closefd=False)
-        sys.stdout = open(1, "w", buffering=1 if unbuffered else -1, closefd=False)
-        sys.stderr = open(2, "w", buffering=1, closefd=False, errors="backslashreplace")
-        warnings.filters[:] = FRESH_FILTERS
+        sys.stdin = sys.__stdin__ = open(0, closefd=False)
+        sys.stdout = sys.__stdout__ = open(1, "w", buffering=1 if unbuffered else -1, closefd=False)
+        sys.stderr = sys.__stderr__ = open(2, "w", buffering=1, closefd=False, errors="backslashreplace")
+        warnings.filters[:] = IMPORTED_FILTERS
+        warnings._filters_mutated()
+        numpy.random.seed()          # from the OS, as a new process seeds it (Python's random reseeds at fork
+                                     # itself; torch's default seed is the same in every process anyway)
         code = run(request["argv"])
-        threading._shutdown()      # as the interpreter's exit: non-daemon threads joined, then atexit
+        threading._shutdown()        # as the interpreter's exit: non-daemon threads joined, then atexit
         atexit._run_exitfuncs()
         sys.stdout.flush()
         sys.stderr.flush()
-        if code < 0:               # Ctrl-C: ended by SIGINT, as CPython ends then
+        if code < 0:                 # Ctrl-C: ended by SIGINT, as CPython ends then
             signal.signal(-code, signal.SIG_DFL)
             os.kill(os.getpid(), -code)
     finally:
@@ -94,18 +117,21 @@ def child(request: dict) -> None:
 
 
 def serve() -> None:
+    assert not [m for m in sys.modules if m.split(".")[0] in ("bench", "baselines", "triton")
+                or m.startswith("torch._inductor")], "imported here: READ_LATE would not hold"
     for line in sys.stdin:
         request = json.loads(line)
         pid = os.fork()
         if pid == 0:
             child(request)
-        deadline = time.monotonic() + request["timeout"]
+        deadline = time.monotonic() + (request["timeout"] if request["timeout"] is not None else float("inf"))
         while not (ended := os.waitpid(pid, os.WNOHANG))[0] and time.monotonic() < deadline:
             time.sleep(0.01)
         if not ended[0]:
             os.kill(pid, signal.SIGKILL)
             os.waitpid(pid, 0)
-        print(json.dumps({"code": os.waitstatus_to_exitcode(ended[1]) if ended[0] else None}), flush=True)
+        code = os.waitstatus_to_exitcode(ended[1]) if ended[0] else None
+        print(json.dumps({"id": request["id"], "code": code}), flush=True)
 
 
 if __name__ == "__main__":

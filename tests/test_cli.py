@@ -345,7 +345,8 @@ def test_bench_here_ends_as_the_command_in_its_own_process_and_leaves_this_one_a
     here = bench_here(*args)
     assert state() == before
     assert list((tmp_path / "runs").glob("hydra/*/cli.log")), "the command got as far as Hydra's logging"
-    there = bench(*args)
+    there = subprocess.run([sys.executable, "-m", "bench", *args], cwd=REPO, capture_output=True, text=True,
+                           timeout=300, env=dict(os.environ, HYDRA_FULL_ERROR="0"))   # a fresh interpreter: the reference
     assert here.returncode == there.returncode == 2
     assert here.stderr.strip().splitlines()[-1] == there.stderr.strip().splitlines()[-1]
 

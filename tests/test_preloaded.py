@@ -25,11 +25,16 @@ COMMANDS = {
     "argv, sys.path[0], stdin": ["-c", "import sys; print(sys.argv, repr(sys.path[0]), repr(sys.stdin.read()))", "a"],
     "a module as __main__": ["-m", "tool", "--size", "3"],
     "a module's usage error": ["-m", "tool", "--size", "x"],
+    "a module's traceback": ["-m", "tool", "--size", "0"],
+    "a module that is not there": ["-m", "no_such_tool"],
     "a script": ["tool.py", "--help"],
+    "a script's traceback": ["tool.py", "--size", "0"],
 }
 TOOL = ("import argparse, sys\n"
         "parser = argparse.ArgumentParser(description='a tool')\nparser.add_argument('--size', type=int)\n"
-        "print(__name__, __spec__ and __spec__.name, sys.argv[0], sys.path[0], parser.parse_args().size)\n")
+        "size = parser.parse_args().size\n"
+        "print(__name__, __spec__ and __spec__.name, sys.argv[0], sys.path[0], size)\n"
+        "if size == 0:\n    raise RuntimeError('zero')\n")
 
 
 @pytest.mark.parametrize("name", COMMANDS)
@@ -47,9 +52,9 @@ def test_the_command_imports_the_project_from_its_folder_in_its_environment(tmp_
     """The server imported no module of the project: an edited copy is what the command runs."""
     (tmp_path / "bench").mkdir()
     (tmp_path / "bench" / "__init__.py").write_text("EDITED = True\n")
-    code = ("import os, sys, bench; print(bench.EDITED, os.getcwd(), os.environ['ONLY_HERE'], "
+    code = ("import os, sys, bench; print(bench.EDITED, os.getcwd(), os.environ['SRD_TEST_ONLY_HERE'], "
             "'torch' in sys.modules, sys.path[1])")
-    done = python_process("-c", code, cwd=tmp_path, env=dict(os.environ, ONLY_HERE="1", PYTHONPATH="/nowhere"))
+    done = python_process("-c", code, cwd=tmp_path, env=dict(os.environ, SRD_TEST_ONLY_HERE="1", PYTHONPATH="/nowhere"))
     assert done.returncode == 0, done.stderr
     assert done.stdout.split() == ["True", str(tmp_path), "1", "True", "/nowhere"]   # torch: preloaded
 
@@ -64,3 +69,9 @@ def test_an_environment_torch_reads_at_import_gets_an_interpreter_of_its_own():
     done = python_process("-c", "import sys; print('torch' in sys.modules)",
                           env=dict(os.environ, OMP_NUM_THREADS="7"))
     assert done.stdout == "False\n"
+
+
+@pytest.mark.parametrize("draw", ["import random; print(random.random())",
+                                  "import numpy; print(numpy.random.rand())"])
+def test_each_command_draws_other_random_numbers_as_each_new_process_does(draw):
+    assert python_process("-c", draw).stdout != python_process("-c", draw).stdout

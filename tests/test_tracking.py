@@ -11,7 +11,6 @@ import pytest
 from bench import runs, tracking
 from conftest import SMOKE_DATA, bench_here, python_process
 
-REPO = Path(__file__).resolve().parent.parent
 
 
 def bench(*args):
