@@ -19,8 +19,10 @@ import atexit, json, os, runpy, signal, sys, threading, time, traceback, types, 
 import hydra, numpy, omegaconf, pandas, torch, yaml  # noqa: F401,E401   imported once, before the forks
 
 # What a command's environment may change: read by the project's modules (which the child imports), by
-# Inductor and Triton (which torch imports when first used, not here), or after start-up
-READ_LATE = ("PYTHONPATH", "PYTHONUNBUFFERED", "HYDRA_FULL_ERROR", "SRD_", "PYTEST_", "TORCHINDUCTOR_", "TRITON_")
+# Inductor, Triton and Dr.Jit (imported when first used, not here; the project sets DRJIT_LIBLLVM_PATH),
+# or after start-up
+READ_LATE = ("PYTHONPATH", "PYTHONUNBUFFERED", "HYDRA_FULL_ERROR", "SRD_", "PYTEST_", "TORCHINDUCTOR_", "TRITON_",
+             "DRJIT_")
 IMPORTED_FILTERS = warnings.filters[:]   # a fresh interpreter's, and what importing torch & co. adds
 
 
@@ -117,7 +119,7 @@ def child(request: dict) -> None:
 
 
 def serve() -> None:
-    assert not [m for m in sys.modules if m.split(".")[0] in ("bench", "baselines", "triton")
+    assert not [m for m in sys.modules if m.split(".")[0] in ("bench", "baselines", "triton", "drjit", "mitsuba")
                 or m.startswith("torch._inductor")], "imported here: READ_LATE would not hold"
     for line in sys.stdin:
         request = json.loads(line)

@@ -54,7 +54,9 @@ def test_the_command_imports_the_project_from_its_folder_in_its_environment(tmp_
     (tmp_path / "bench" / "__init__.py").write_text("EDITED = True\n")
     code = ("import os, sys, bench; print(bench.EDITED, os.getcwd(), os.environ['SRD_TEST_ONLY_HERE'], "
             "'torch' in sys.modules, sys.path[1])")
-    done = python_process("-c", code, cwd=tmp_path, env=dict(os.environ, SRD_TEST_ONLY_HERE="1", PYTHONPATH="/nowhere"))
+    env = dict(os.environ, SRD_TEST_ONLY_HERE="1", PYTHONPATH="/nowhere", DRJIT_LIBLLVM_PATH="/x.so",  # what the
+               TORCHINDUCTOR_CACHE_DIR=str(tmp_path))    # project and torch set in a test's process: read late
+    done = python_process("-c", code, cwd=tmp_path, env=env)
     assert done.returncode == 0, done.stderr
     assert done.stdout.split() == ["True", str(tmp_path), "1", "True", "/nowhere"]   # torch: preloaded
 
