@@ -26,20 +26,19 @@ READ_LATE = ("PYTHONPATH", "PYTHONUNBUFFERED", "HYDRA_FULL_ERROR", "SRD_", "PYTE
 IMPORTED_FILTERS = warnings.filters[:]   # a fresh interpreter's, and what importing torch & co. adds
 
 
-def python_path(cwd_entry: str) -> list[str]:
-    """sys.path as a fresh interpreter builds it: the command's entry, PYTHONPATH's (every one made
-    absolute, an empty one the folder), then the site's."""
-    pythonpath = os.environ.get("PYTHONPATH")
-    return [cwd_entry, *(os.path.abspath(p) for p in (pythonpath.split(os.pathsep) if pythonpath else [])),
-            *SITE_PATH]
-
-
-def _own_pythonpath() -> list[str]:
+def pythonpath_entries() -> list[str]:
+    """PYTHONPATH's folders as the interpreter adds them: each made absolute, an empty one the folder."""
     pythonpath = os.environ.get("PYTHONPATH")
     return [os.path.abspath(p) for p in pythonpath.split(os.pathsep)] if pythonpath else []
 
 
-SITE_PATH = [p for p in sys.path[1:] if p not in _own_pythonpath()]   # without this file's folder
+SITE_PATH = [p for p in sys.path[1:] if p not in pythonpath_entries()]   # without this file's folder
+
+
+def python_path(first: str) -> list[str]:
+    """sys.path as a fresh interpreter builds it for a command: `first` (its folder, or '' for -c), the
+    command's PYTHONPATH, then the site's."""
+    return [first, *pythonpath_entries(), *SITE_PATH]
 
 
 def exit_status(stop: SystemExit) -> int:

@@ -77,3 +77,12 @@ def test_an_environment_torch_reads_at_import_gets_an_interpreter_of_its_own():
                                   "import numpy; print(numpy.random.rand())"])
 def test_each_command_draws_other_random_numbers_as_each_new_process_does(draw):
     assert python_process("-c", draw).stdout != python_process("-c", draw).stdout
+
+
+def test_sys_path_takes_pythonpath_as_the_interpreter_does(tmp_path):
+    """An empty entry is the folder and a relative one is made absolute; the site's folders follow."""
+    env = dict(os.environ, PYTHONPATH=os.pathsep.join(["", "rel", str(REPO)]))
+    code = "import sys; print(sys.path)"
+    real = subprocess.run([sys.executable, "-c", code], cwd=tmp_path, env=env, capture_output=True, text=True,
+                          timeout=60, stdin=subprocess.DEVNULL)
+    assert python_process("-c", code, cwd=tmp_path, env=env).stdout == real.stdout
