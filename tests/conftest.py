@@ -274,7 +274,8 @@ def command_here(entry, argv, timeout) -> subprocess.CompletedProcess:
                     sys.stderr.write(warnings.formatwarning(message, category, filename, lineno, line))
                 entry()
         except SystemExit as stop:
-            code = stop.code if isinstance(stop.code, int) else (0 if stop.code is None else 1)
+            from preloaded import exit_status     # the interpreter's, as a forked command's (a message printed)
+            code = exit_status(stop)
         finally:
             faulthandler.cancel_dump_traceback_later()
             sys.stdout.close()
