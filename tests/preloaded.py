@@ -17,12 +17,19 @@ code null where the command ran past its timeout (then killed). One command at a
 """
 import atexit, json, os, runpy, signal, sys, threading, time, traceback, types, warnings
 import hydra, numpy, omegaconf, pandas, torch, yaml  # noqa: F401,E401   imported once, before the forks
+# Dynamo too: a training's first optimizer imports it (and with it Triton and Inductor's config), 1-2 s of
+# every training command otherwise. Inductor's config reads TORCHINDUCTOR_* at that import (its cache
+# folder excepted: read at a compile's first use of it), so a command whose environment differs there gets
+# an interpreter of its own (READ_LATE leaves them out); one that sets them in its own code before its
+# first compile would find them read already (the project's one such place, the worker of
+# scripts/gpu_step_concurrency.py, runs in a process it spawns).
+import torch._dynamo  # noqa: F401,E402
 
 # What a command's environment may change: read by the project's modules (which the child imports), by
-# Inductor, Triton and Dr.Jit (imported when first used, not here; the project sets DRJIT_LIBLLVM_PATH),
-# or after start-up
-READ_LATE = ("PYTHONPATH", "PYTHONUNBUFFERED", "HYDRA_FULL_ERROR", "SRD_", "PYTEST_", "TORCHINDUCTOR_", "TRITON_",
-             "DRJIT_")
+# Triton (its knobs read the environment when asked) and Dr.Jit (imported when first used, not here; the
+# project sets DRJIT_LIBLLVM_PATH), or after start-up
+READ_LATE = ("PYTHONPATH", "PYTHONUNBUFFERED", "HYDRA_FULL_ERROR", "SRD_", "PYTEST_", "TRITON_", "DRJIT_",
+             "TORCHINDUCTOR_CACHE_DIR")
 IMPORTED_FILTERS = warnings.filters[:]   # a fresh interpreter's, and what importing torch & co. adds
 
 
@@ -118,8 +125,8 @@ def child(request: dict) -> None:
 
 
 def serve() -> None:
-    assert not [m for m in sys.modules if m.split(".")[0] in ("bench", "baselines", "triton", "drjit", "mitsuba")
-                or m.startswith("torch._inductor")], "imported here: READ_LATE would not hold"
+    assert not [m for m in sys.modules if m.split(".")[0] in ("bench", "baselines", "drjit", "mitsuba")], \
+        "imported here: READ_LATE would not hold"
     for line in sys.stdin:
         request = json.loads(line)
         pid = os.fork()

@@ -67,9 +67,9 @@ def test_a_command_past_its_timeout_is_killed_and_raises_as_subprocess_run_does(
     assert python_process("-c", "print('next')").stdout == "next\n"     # the server goes on
 
 
-def test_an_environment_torch_reads_at_import_gets_an_interpreter_of_its_own():
-    done = python_process("-c", "import sys; print('torch' in sys.modules)",
-                          env=dict(os.environ, OMP_NUM_THREADS="7"))
+@pytest.mark.parametrize("variable", ["OMP_NUM_THREADS", "TORCHINDUCTOR_COMPILE_THREADS"])  # torch's, Inductor's
+def test_an_environment_torch_reads_at_import_gets_an_interpreter_of_its_own(variable):
+    done = python_process("-c", "import sys; print('torch' in sys.modules)", env=dict(os.environ, **{variable: "7"}))
     assert done.stdout == "False\n"
 
 
