@@ -45,17 +45,15 @@ os.environ["XDG_CACHE_HOME"] = tempfile.mkdtemp(prefix="srd-bench-test-cache-")
 atexit.register(shutil.rmtree, os.environ["XDG_CACHE_HOME"], ignore_errors=True)
 
 
-# The files that take longest, first (`make test --durations`, in this order): pytest-xdist hands whole
-# files to its workers in the order collected (make test passes --no-loadscope-reorder; its default orders
-# files by their number of tests, which left files of two to six tests and half a minute each to the end,
-# one worker idle). An order only: a stale list costs balance, never a test. Which files overlap matters
-# too: test_gpu_job moved up to fifth took 29 s -> 43-54 s (two clean-clone runs, 2 cores), so the list
-# stays as it was measured best, although test_train (its compiled step now in make test-slow),
-# test_eval_data (in-process commands) and test_distributed (ranks forked from a preloaded server) are
-# shorter than their places say.
-LONGEST_FIRST = ["test_cli.py", "test_experiments.py", "test_adopt.py", "test_faults.py", "test_train.py",
-                 "test_eval_data.py", "test_distributed.py", "test_gpu_job.py", "test_tracking.py",
-                 "test_stability.py", "test_scheduler.py", "test_fused_gpu.py", "test_layers.py"]
+# The files that take longest, first (`make test --durations`, summed per file, in this order): pytest-xdist
+# hands whole files to its workers in the order collected (make test passes --no-loadscope-reorder; its
+# default orders files by their number of tests, which left files of two to six tests and half a minute
+# each to the end, one worker idle). An order only: a stale list costs balance, never a test. Measured
+# after the GPU job's steps went to make test-slow (tests/test_gpu_job.py, the note at its top).
+LONGEST_FIRST = ["test_experiments.py", "test_cli.py", "test_faults.py", "test_adopt.py", "test_stability.py",
+                 "test_scheduler.py", "test_tracking.py", "test_train.py", "test_fused_gpu.py", "test_speed.py",
+                 "test_gpu_speedrun_plan.py", "test_eval_data.py", "test_measure.py", "test_gpu_job.py",
+                 "test_render_repro.py", "test_layers.py", "test_distributed.py"]
 
 
 def pytest_collection_modifyitems(items):
