@@ -205,7 +205,7 @@ def _forks(env: dict) -> bool:
 
 def python_process(*argv, cwd=REPO, env=None, timeout=600) -> subprocess.CompletedProcess:
     """`python ARGV` as `subprocess.run(..., capture_output=True, text=True, stdin=DEVNULL)` runs it, in a
-    process forked from one that imported torch, numpy, pandas and Hydra (tests/preloaded.py, started at
+    process forked from one that imported torch, numpy, pandas, Hydra and Dynamo (tests/preloaded.py, started at
     the first call; what differs from a fresh interpreter is said there): the same process but for the
     1-3 s of those imports. The command imports the project afresh from its folder and PYTHONPATH. One
     command at a time; an environment that differs from this process's start in what torch & co. read at

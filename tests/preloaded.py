@@ -1,4 +1,4 @@
-"""A Python that imported torch, numpy, pandas and Hydra once, and forks a process for each command it is
+"""A Python that imported torch, numpy, pandas, Hydra and Dynamo once, and forks a process for each command it is
 sent (tests/conftest.py's `python_process`): `python ARGV` without the 1-3 s every such process spent
 importing them again. The child runs the command as that interpreter would: `-m MODULE` (through runpy, as
 the interpreter does), `-c CODE` or a script as __main__, sys.path as it would have it (the command's
