@@ -65,7 +65,9 @@ def _parse_each_config_file_once():
         text = stream.read()
         key = (name, text, Loader.__qualname__)    # OmegaConf makes its Loader class anew at each load
         if key not in parses:
-            parses[key] = yaml.load(io.StringIO(text), Loader=Loader)
+            named = io.StringIO(text)
+            named.name = name                      # a YAML error names the file, as it would unpatched
+            parses[key] = yaml.load(named, Loader=Loader)
         return copy.deepcopy(parses[key])
     omegaconf_module.yaml = types.SimpleNamespace(**{**vars(yaml), "load": load})
 
@@ -197,10 +199,11 @@ _preloaded = {"env": dict(os.environ), "lock": threading.Lock()}   # its environ
 
 def _forks(env: dict) -> bool:
     """Whether the preloaded interpreter can run a command in `env`: it differs from the interpreter's own
-    only in what is read after the imports there (preloaded.READ_LATE)."""
-    from preloaded import READ_LATE
+    only in what is read after the imports there (preloaded.READ_LATE, but for READ_AT_IMPORT)."""
+    from preloaded import READ_AT_IMPORT, READ_LATE
     start = _preloaded["env"]
-    return all(k.startswith(READ_LATE) for k in {*start, *env} if env.get(k) != start.get(k))
+    return all(k.startswith(READ_LATE) and not k.startswith(READ_AT_IMPORT)
+               for k in {*start, *env} if env.get(k) != start.get(k))
 
 
 def python_process(*argv, cwd=REPO, env=None, timeout=600) -> subprocess.CompletedProcess:

@@ -18,11 +18,12 @@ code null where the command ran past its timeout (then killed). One command at a
 import atexit, json, os, runpy, signal, sys, threading, time, traceback, types, warnings
 import hydra, numpy, omegaconf, pandas, torch, yaml  # noqa: F401,E401   imported once, before the forks
 # Dynamo too: a training's first optimizer imports it (and with it Triton and Inductor's config), 1-2 s of
-# every training command otherwise. Inductor's config reads TORCHINDUCTOR_* at that import (its cache
-# folder excepted: read at a compile's first use of it), so a command whose environment differs there gets
-# an interpreter of its own (READ_LATE leaves them out); one that sets them in its own code before its
-# first compile would find them read already (the project's one such place, the worker of
-# scripts/gpu_step_concurrency.py, runs in a process it spawns).
+# every training command otherwise. Inductor's config reads TORCHINDUCTOR_* at that import, so a command
+# whose environment differs there gets an interpreter of its own (READ_LATE leaves them out); one that sets
+# them in its own code before its first compile would find them read already (the project's one such
+# place, the worker of scripts/gpu_step_concurrency.py, runs in a process it spawns). The cache folder is
+# read again at each compile's use of it; Dynamo's precompile cache took it at import, but that cache is
+# on only with TORCH_CACHING_PRECOMPILE=1, which READ_LATE leaves out too.
 import torch._dynamo  # noqa: F401,E402
 
 # What a command's environment may change: read by the project's modules (which the child imports), by
@@ -30,6 +31,7 @@ import torch._dynamo  # noqa: F401,E402
 # project sets DRJIT_LIBLLVM_PATH), or after start-up
 READ_LATE = ("PYTHONPATH", "PYTHONUNBUFFERED", "HYDRA_FULL_ERROR", "SRD_", "PYTEST_", "TRITON_", "DRJIT_",
              "TORCHINDUCTOR_CACHE_DIR")
+READ_AT_IMPORT = ("TRITON_BACKENDS_IN_TREE",)   # of READ_LATE's, read when Dynamo imported Triton here
 IMPORTED_FILTERS = warnings.filters[:]   # a fresh interpreter's, and what importing torch & co. adds
 
 
