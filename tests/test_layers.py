@@ -1,5 +1,6 @@
 """Tests for bench.nn: deformable conv, CFM, residual blocks, pixel shuffle, VGG16 features."""
 import contextlib
+import inspect
 import itertools
 import os
 import shutil
@@ -337,7 +338,7 @@ def test_the_kernel_ops_trace_under_torch_compile():
 def test_the_avx512_bf16_branch_compiles():
     """The AVX512-BF16 code (bf16 rounding and pair interleave intrinsics) builds, even on a CPU that
     cannot run it; its results are checked by the tests above on a machine that has it. Built once per
-    source, flags and compiler, kept where the kernels this CPU runs are (as bench.nn.native keeps
+    source, build command and compiler, kept where the kernels this CPU runs are (as bench.nn.native keeps
     those): g++ takes 6-9 s on 2 cores, and the same inputs build the same way."""
     import hashlib
     from bench.nn import native
@@ -346,7 +347,8 @@ def test_the_avx512_bf16_branch_compiles():
         pytest.skip("no C++ compiler, or the compiled kernels are off")
     flags = (*native.FLAGS, "-march=sapphirerapids")
     version = subprocess.run([compiler, "--version"], capture_output=True, text=True).stdout
-    key = hashlib.sha256("\n".join([native.SOURCE.read_text(), *flags, compiler, version]).encode()).hexdigest()
+    how = inspect.getsource(native._compile)   # the command line it builds from the flags
+    key = hashlib.sha256("\n".join([native.SOURCE.read_text(), how, *flags, compiler, version]).encode()).hexdigest()
     built = Path(os.environ.get("SRD_BENCH_CACHE", Path.home() / ".cache" / "srd-bench")) / f"spr-build-check-{key[:16]}.so"
     if not built.exists():                 # never loaded here: this CPU may not run it
         native._compile(compiler, flags, built)
