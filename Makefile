@@ -8,7 +8,7 @@ STAMP  := $(VENV)/.installed
 # every process compile every import again: make's own commands write it whatever that variable says
 PYC    := env -u PYTHONDONTWRITEBYTECODE
 
-.PHONY: setup run test test-slow clean clean-runs
+.PHONY: setup run test test-slow test-gpu-job clean clean-runs
 
 setup: $(STAMP)
 	@bash scripts/ensure_llvm.sh
@@ -34,6 +34,11 @@ test: setup
 
 test-slow: setup
 	$(PYC) $(PY) -m pytest -q -m slow
+
+# the GPU job's steps run on this CPU (the slow tests of tests/test_gpu_job.py, 2-3 min on 2 cores): CI
+# runs them after make test, and scripts/gpu_prepare.sh before a GPU call
+test-gpu-job: setup
+	$(PYC) $(PY) -m pytest -q -m slow tests/test_gpu_job.py
 
 # Removes the environment only; trained runs and rendered data are kept (see clean-runs).
 clean:

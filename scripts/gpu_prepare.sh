@@ -1,9 +1,10 @@
 #!/usr/bin/env bash
 # Prepares THIS checkout for scripts/gpu_job.sh on a lent GPU machine (docs/gpu.md, "The GPU job"): the
 # whole job travels in ONE call (the machine goes back ~30 s after a call), tree and wheels within 64 MiB.
-#  0. first, the job's dry run on this CPU: the tests of tests/test_gpu_job.py marked slow (its steps run at
-#     the smoke preset on tiny frames, about 2-3 min on 2 cores; make test leaves them out), so a change
-#     that breaks the job stops here, not on the lent machine. --no-dry-run skips it (just run).
+#  0. first, the job's dry run on this CPU, `make test-gpu-job`: the tests of tests/test_gpu_job.py marked
+#     slow (its steps at the smoke preset on tiny frames, about 2-3 min on 2 cores; CI runs them after
+#     make test), so a change that breaks the job stops here, not on the lent machine. --no-dry-run skips
+#     it (just run).
 #  1. .whl/: wheels for the machine's Python 3.12 that its image lacks: hydra-core, omegaconf, antlr4,
 #     OpenEXR, flip-evaluator (the FLIP scores of every evaluation), drjit and mitsuba, the last trimmed to the variants and plugins the suite loads and both
 #     recompressed with LZMA (scripts/trim_mitsuba_wheel.py; about 24 MiB in all);
@@ -13,10 +14,12 @@
 # It prints the sizes and fails when tree and wheels would not fit 64 MiB.
 #   scripts/gpu_prepare.sh [--no-dry-run] | --undo
 set -euo pipefail
-cd "$(dirname "$0")/.."
+self=$(realpath "$0")
+cd "$(dirname "$self")/.."
 exclude=.git/info/exclude
+[ $# -le 1 ] || { echo "gpu_prepare: one option at most (--no-dry-run or --undo), not: $*"; exit 2; }
 case "${1:-}" in
-    -h|--help) sed -n '2,14p' "$0" | sed 's/^# \{0,1\}//'; exit 0 ;;
+    -h|--help) sed -n '2,15p' "$self" | sed 's/^# \{0,1\}//'; exit 0 ;;
     --undo) git reset -q -- results/cpu/runs
             sed -i '\#^/results/cpu/runs/$#d' "$exclude"
             echo "gpu_prepare: the run archive is tracked again"; exit 0 ;;
@@ -24,10 +27,8 @@ case "${1:-}" in
     *) echo "gpu_prepare: unknown option $1 (--no-dry-run, --undo)"; exit 2 ;;
 esac
 if [ "${1:-}" != --no-dry-run ]; then
-    [ -x .venv/bin/python ] || { echo "gpu_prepare: no .venv: run make setup first (the dry run needs it)"; exit 1; }
-    echo "gpu_prepare: the GPU job's dry run (pytest -m slow tests/test_gpu_job.py) ..."
-    env -u PYTHONDONTWRITEBYTECODE .venv/bin/python -m pytest -q -p no:cacheprovider -m slow tests/test_gpu_job.py \
-        || { echo "gpu_prepare: the job's dry run failed: fix it before a GPU call"; exit 1; }
+    echo "gpu_prepare: the GPU job's dry run (make test-gpu-job) ..."
+    make test-gpu-job || { echo "gpu_prepare: the job's dry run failed: fix it before a GPU call"; exit 1; }
 fi
 platforms=(--platform manylinux_2_28_x86_64 --platform manylinux_2_27_x86_64 --platform manylinux_2_17_x86_64)
 download() { python3 -m pip download -q --no-deps --only-binary=:all: --python-version 3.12 --implementation cp \

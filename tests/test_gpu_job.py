@@ -17,11 +17,11 @@ from conftest import python_process
 
 REPO = Path(__file__).resolve().parent.parent
 # The tests marked slow run the job's steps on this CPU (training, rendering, spawned workers: about 130
-# test-seconds of make test's ~1000 on a 2-core AVX2 host). The scripts run only on a lent GPU, and every
-# GPU session runs scripts/gpu_prepare.sh first, which runs them (make test-slow too): a change that
-# breaks the job is caught before it costs device time, not in every CI run. make test keeps the checks
-# that need no step run: the job's records and tries, the speed step's overrides, the profile script,
-# the carried wheels' pins.
+# test-seconds of make test's ~1000 on a 2-core AVX2 host). The scripts run only on a lent GPU, so make
+# test leaves them out; `make test-gpu-job` runs them, and CI (.ci/run, after make test) and
+# scripts/gpu_prepare.sh (before a GPU call) run that: a change that breaks the job fails CI and stops
+# before it costs device time. make test keeps the checks that need no step run: the job's records and
+# tries, the speed step's overrides, the profile script, the carried wheels' pins.
 TINY = ("data.lr_width=8 data.lr_height=6 data.spp=1 data.ref_spp=4 data.seq_len=2 data.max_depth=4 "
         "data.splits.train.sequences=1 data.splits.val.sequences=1 ~data.splits.generalization train.steps=2 "
         "train.crop=4 train.seq_len=2 train.batch_size=1 train.val_sequences=1 workers=1 progress=false")
@@ -58,7 +58,7 @@ def first(project, tmp_path_factory):
     return out
 
 
-@pytest.mark.slow  # a step of the job run on this CPU: scripts/gpu_prepare.sh runs it (the note at the top)
+@pytest.mark.slow  # a step of the job run on this CPU: make test-gpu-job (the note at the top)
 def test_the_job_tests_renders_trains_scores_and_packs_then_a_second_call_skips_what_is_done(project, first, tmp_path):
     record = next((project / "results" / "gpu" / "cuda_tests").glob("*.txt")).read_text()
     assert record.startswith("failed (no CUDA GPU")                      # never "passed" without a GPU
@@ -87,7 +87,7 @@ def test_the_job_tests_renders_trains_scores_and_packs_then_a_second_call_skips_
         assert sorted(packed.getnames()) == [folder, f"{folder}/checkpoint.pt", f"{folder}/run.json"]
 
 
-@pytest.mark.slow  # a step of the job run on this CPU: scripts/gpu_prepare.sh runs it (the note at the top)
+@pytest.mark.slow  # a step of the job run on this CPU: make test-gpu-job (the note at the top)
 def test_the_kernel_tests_run_again_for_a_code_change_not_for_a_comment(project, first, tmp_path):
     """A record that the kernel tests passed counts for the kernels' code it names (their syntax trees):
     a comment added to a kernel file keeps it, a statement makes the job test them again."""
@@ -160,7 +160,7 @@ def test_the_speed_step_times_the_graphed_training_step_at_the_presets_batch(pro
     assert cfg.results_dir == "results/gpu"          # where the job looks for it and packs it, at any preset
 
 
-@pytest.mark.slow  # a step of the job run on this CPU: scripts/gpu_prepare.sh runs it (the note at the top)
+@pytest.mark.slow  # a step of the job run on this CPU: make test-gpu-job (the note at the top)
 def test_the_plan_step_projects_table_5_from_this_machines_records_once(project, tmp_path):
     """`plan` reads the render probe and speed table recorded under the machine's own tag (here the
     committed H200 records, named for this CPU) and writes its projection; a second call keeps it."""
@@ -188,7 +188,7 @@ def test_the_plan_step_projects_table_5_from_this_machines_records_once(project,
     assert "gpu_job: plan already there" in again.stdout and record.read_text() == text
 
 
-@pytest.mark.slow  # a step of the job run on this CPU: scripts/gpu_prepare.sh runs it (the note at the top)
+@pytest.mark.slow  # a step of the job run on this CPU: make test-gpu-job (the note at the top)
 def test_the_render_step_measures_the_variant_twice_and_keeps_the_digests(project, tmp_path):
     """`render` (scripts/gpu_render_probe.py): on a CPU the LLVM variant stands in for cuda_ad_rgb; two
     renders of the same frames in one process are compared layer by layer, then by two processes at once
@@ -222,7 +222,7 @@ def test_the_render_step_measures_the_variant_twice_and_keeps_the_digests(projec
         assert failed.returncode == 1 and said.startswith("PARTIAL: the variant did not start"), said
 
 
-@pytest.mark.slow  # a step of the job run on this CPU: scripts/gpu_prepare.sh runs it (the note at the top)
+@pytest.mark.slow  # a step of the job run on this CPU: make test-gpu-job (the note at the top)
 def test_the_concurrency_probe_goes_on_from_a_partial_record_and_a_dead_worker_is_its_row(tmp_path, capsys,
                                                                                            monkeypatch):
     """scripts/gpu_step_concurrency.py (the job's `concurrency` step): a worker that dies without a word
