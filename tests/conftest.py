@@ -79,7 +79,7 @@ _parse_each_config_file_once()
 # hands whole files to its workers in the order collected (make test passes --no-loadscope-reorder; its
 # default orders files by their number of tests, which left files of two to six tests and half a minute
 # each to the end, one worker idle). An order only: a stale list costs balance, never a test. Measured
-# after the GPU job's steps went to make test-slow (tests/test_gpu_job.py, the note at its top).
+# after the GPU job's steps left make test (make test-gpu-job: tests/test_gpu_job.py, the note at its top).
 LONGEST_FIRST = ["test_experiments.py", "test_cli.py", "test_faults.py", "test_adopt.py", "test_stability.py",
                  "test_scheduler.py", "test_tracking.py", "test_train.py", "test_fused_gpu.py", "test_speed.py",
                  "test_gpu_speedrun_plan.py", "test_eval_data.py", "test_measure.py", "test_gpu_job.py",

@@ -141,7 +141,7 @@ def test_every_model_config_is_configured_and_keeps_the_model_contract(name):
             torch.testing.assert_close(second[:, 0], out["final"][:, 1], rtol=1e-4, atol=1e-5)
 
 
-_AUDITED: dict[str, tuple[dict, dict | None]] = {}   # (budget, model config) -> its audit rows: see below
+_AUDITED: dict[str, tuple[dict, dict | None]] = {}   # (label, model config, budget, width_arg) -> `_audit`'s rows
 
 
 def _audit(label, cfg, budget_macs, width_arg):
