@@ -3,10 +3,9 @@ PYTHON ?= $(shell command -v python3.11 || command -v python3)
 VENV   := .venv
 PY     := $(VENV)/bin/python
 STAMP  := $(VENV)/.installed
-# Setup compiles the bytecode of every installed module (scripts/install_deps.sh) and of the project's;
-# Python writes that of a module edited since, once, also where PYTHONDONTWRITEBYTECODE=1 is set (CI
-# here), which would make every process compile it again: make's own commands write it whatever that
-# variable says
+# Python writes the bytecode of each module it imports, once (setup compiles none but what every command
+# imports: scripts/install_deps.sh), also where PYTHONDONTWRITEBYTECODE=1 is set (CI here), which would make
+# every process compile every import again: make's own commands write it whatever that variable says
 PYC    := env -u PYTHONDONTWRITEBYTECODE
 
 .PHONY: setup run test test-slow test-gpu-job clean clean-runs
@@ -19,10 +18,10 @@ $(STAMP): pyproject.toml
 	@$(PYTHON) -c 'import sys; assert sys.version_info[:2] == (3, 11), sys.version' 2>/dev/null || \
 		{ echo "SRD-Bench needs Python 3.11 (torch==2.13.0 CPU wheel); set PYTHON=/path/to/python3.11"; exit 1; }
 	@test -x $(PY) || $(PYTHON) -m venv $(VENV)
-	@# uv where it can (parallel, cached), else pip, each compiling every module: scripts/install_deps.sh
+	@# uv where it can (parallel, cached), else pip: scripts/install_deps.sh
 	bash scripts/install_deps.sh $(PY)
-	@# the project's bytecode too, for commands run without make
-	$(PYC) $(PY) -m compileall -q bench baselines
+	@# the bytecode of what every command imports, for commands run without make too
+	$(PYC) $(PY) -c 'import torch._dynamo, bench.cli, bench.train, bench.evaluate, bench.experiments.table'
 	@touch $(STAMP)
 
 run: setup
