@@ -17,7 +17,7 @@ ROOT = Path(__file__).resolve().parents[1]
 def _stability(root, smoke_data, *overrides):
     """4 steps, not 2: the PU21 model's scale-1e4 cell fails on its relMSE first (at 2, on its energy).
     Each case starts from 2 frames, not the experiment's 3: a recurrent model still carries its state from
-    one frame to the next, and every case costs two thirds (a third of the file's time)."""
+    one frame to the next, and each case costs two thirds as much."""
     smoke_data(root / "data")
     with initialize_config_dir(config_dir=CONF_DIR, version_base=None):
         cfg = compose("config", overrides=["+experiment=stability", *smoke_overrides(root, steps=4),
