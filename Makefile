@@ -3,20 +3,10 @@ PYTHON ?= $(shell command -v python3.11 || command -v python3)
 VENV   := .venv
 PY     := $(VENV)/bin/python
 STAMP  := $(VENV)/.installed
-# Python writes the bytecode of each module it imports, once (setup compiles what the two lists below import,
-# not every installed module: scripts/install_deps.sh), also where PYTHONDONTWRITEBYTECODE=1 is set (CI here),
-# which would make every process compile every import again: make's own commands write it whatever that
-# variable says
+# Python writes the bytecode of each module it imports, once (setup compiles none but what every command
+# imports: scripts/install_deps.sh), also where PYTHONDONTWRITEBYTECODE=1 is set (CI here), which would make
+# every process compile every import again: make's own commands write it whatever that variable says
 PYC    := env -u PYTHONDONTWRITEBYTECODE
-# What setup imports to write that bytecode. A module left out has its bytecode written where it is first
-# imported, often by several processes at once (xdist's two workers, a pair of joblib or render workers): a
-# clean clone's pytest took 318 s after the first list alone (12 s of setup) and 293 s after both at once
-# (19 s): 595 and 550 CPU-s (AMD EPYC, AVX2-capped, back to back). A list that misses a module costs time,
-# never a result.
-IMPORTED_BY_COMMANDS := torch._dynamo, torch._inductor.compile_fx, bench.cli, bench.train, bench.evaluate, \
-                        bench.experiments.table
-IMPORTED_BESIDES     := pytest, xdist, mlflow.tracking, mlflow.store.tracking.sqlalchemy_store, alembic, joblib, \
-                        skimage.metrics, matplotlib.pyplot, scipy.optimize, scipy.stats, scipy.signal, flip_evaluator
 
 .PHONY: setup run test test-slow test-gpu-job clean clean-runs
 
@@ -30,10 +20,8 @@ $(STAMP): pyproject.toml
 	@test -x $(PY) || $(PYTHON) -m venv $(VENV)
 	@# uv where it can (parallel, cached), else pip: scripts/install_deps.sh
 	bash scripts/install_deps.sh $(PY)
-	@# the bytecode of what the commands import, for commands run without make too, and of what the tests
-	@# and some commands import besides, in two processes at once (IMPORTED_BY_COMMANDS, IMPORTED_BESIDES)
-	$(PYC) $(PY) -c 'import $(IMPORTED_BY_COMMANDS)' & commands=$$!; \
-	$(PYC) $(PY) -c 'import $(IMPORTED_BESIDES)' && wait $$commands
+	@# the bytecode of what every command imports, for commands run without make too
+	$(PYC) $(PY) -c 'import torch._dynamo, bench.cli, bench.train, bench.evaluate, bench.experiments.table'
 	@touch $(STAMP)
 
 run: setup

@@ -3,11 +3,10 @@
 # uv installs the wheels in parallel from its cache; pip goes one package at a time, and this registry's
 # answers are not cached for it. Clean-clone make test minus pytest's time, on 2 AVX-512 cores: pip 89 s,
 # uv 40 s (uv's cache warm). No bytecode is compiled here: compiling all 15,000 modules took 21 of uv's 26 s
-# (2 cores; 21 s more of setup than the two imports that follow it, in a clean clone), and a run imports a
-# fraction of them. `make setup` then imports what the commands and the tests import (the Makefile,
-# IMPORTED_BY_COMMANDS and IMPORTED_BESIDES), and make's commands the rest as they need it, writing its
-# bytecode once, even where PYTHONDONTWRITEBYTECODE=1 (CI here), without which every process would compile
-# every import (the Makefile, PYC).
+# (2 cores), and a run imports a fraction of them. `make setup` then imports what every command imports,
+# and make's commands the rest as they need it, writing its bytecode once, even where
+# PYTHONDONTWRITEBYTECODE=1 (CI here), without which every process would compile every import (the
+# Makefile, PYC).
 # uv reads no pip configuration, so pip's find-links (where the torch CPU wheel lies), from its config files
 # or the environment, go along; where uv cannot install, pip does, and says so.
 set -euo pipefail
